@@ -1,0 +1,84 @@
+"""What every scene shares: its metadata record and the trajectory it produces.
+
+A scene knows numpy and scipy only (no torch, no files, no config): the data layer turns its
+trajectories into files and graphs, and the model is assembled from its ``SceneMeta``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+import numpy as np
+
+Interaction = Literal["contact", "pairwise"]
+TargetKind = Literal["velocity", "acceleration"]
+GraphKind = Literal["full", "radius"]
+
+
+@dataclass(frozen=True)
+class SceneMeta:
+    """What the rest of the code needs to know about a scene (DESIGN section 1).
+
+    ``box`` is the side length of the reflecting box ``[0, box]^dim`` when the scene has walls,
+    else ``None``. ``graph == "radius"`` means edges join pairs closer than
+    ``r_i + r_j + margin``; ``"full"`` means every ordered pair ``i != j``.
+    """
+
+    name: str
+    dim: int
+    n_particles: int
+    n_types: int
+    interaction: Interaction
+    target: TargetKind
+    graph: GraphKind
+    box: float | None = None
+
+    @property
+    def has_walls(self) -> bool:
+        return self.box is not None
+
+
+@dataclass
+class Trajectory:
+    """One simulation sampled at ``times`` (float64 throughout).
+
+    positions, velocities: (T, N, D), instantaneous (exact) values at the frame times.
+    accelerations: (T, N, D) from the force law at the recorded positions, or None (contact
+    scenes). masses, radii: (N,); types: (N,) int. contacts: (M, 3) int rows
+    ``(frame, i, j)`` with ``i < j`` for every pair that touches in ``(times[frame],
+    times[frame + 1]]``; None for scenes without contacts.
+    """
+
+    times: np.ndarray
+    positions: np.ndarray
+    velocities: np.ndarray
+    masses: np.ndarray
+    types: np.ndarray
+    radii: np.ndarray
+    accelerations: np.ndarray | None = None
+    contacts: np.ndarray | None = None
+
+
+class Scene(Protocol):
+    """A simulator plus its metadata. Parameters are dataclass fields (config, not code)."""
+
+    n_particles: int
+    dim: int
+
+    @property
+    def meta(self) -> SceneMeta: ...
+
+    def simulate(self, rng: np.random.Generator, times: np.ndarray) -> Trajectory:
+        """Draw initial conditions and masses from ``rng``; return the state at ``times``.
+
+        ``times`` is increasing, starts at 0. The physical trajectory must not depend on
+        ``times`` (integration accuracy is independent of the frame rate), so sampling the
+        same ``rng`` state at every 5th time gives every 5th frame bit for bit.
+        """
+        ...
+
+    def energy(self, positions: np.ndarray, velocities: np.ndarray,
+               masses: np.ndarray) -> np.ndarray:
+        """Total energy per frame for (T, N, D) arrays (float64)."""
+        ...

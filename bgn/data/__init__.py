@@ -1,0 +1,1 @@
+"""Data: simulation files (HDF5), graphs, frame samples and the LightningDataModule."""

@@ -1,0 +1,91 @@
+"""LightningDataModule: generates or finds the files, splits by simulation, batches graphs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import numpy as np
+from torch.utils.data import DataLoader
+
+from bgn.data.batch import collate
+from bgn.data.dataset import FrameDataset
+from bgn.data.files import DatasetFile
+from bgn.data.generate import ensure_splits
+from bgn.data.spec import DatasetSpec
+from bgn.sim import SceneMeta
+
+
+class ParticleDataModule(L.LightningDataModule):
+    """Train, val and test are separate simulations (separate files): no frame of a test
+    simulation is ever seen in training.
+
+    ``dataset`` is the ``dataset`` config node (scene parameters, sizes, loading options).
+    ``train_sims`` limits training to the first n simulations (sample-efficiency studies).
+    """
+
+    def __init__(self, dataset: Any, fps: float, data_dir: str | Path = "data",
+                 generate_workers: int | None = None, show_progress: bool = True) -> None:
+        super().__init__()
+        self.spec = DatasetSpec.from_config(dataset, fps, "train")
+        get = dataset.get if hasattr(dataset, "get") else (lambda k, d=None: d)
+        self.history = int(get("history", 5))
+        self.batch_size = int(get("batch_size", 32))
+        self.num_workers = int(get("num_workers", 0))
+        self.in_memory = bool(get("in_memory", True))
+        train_sims = get("train_sims", None)
+        self.train_sims = None if train_sims is None else int(train_sims)
+        if self.train_sims is not None and not 1 <= self.train_sims <= self.spec.n_sims:
+            raise ValueError(f"dataset.train_sims={self.train_sims} must be in "
+                             f"1..dataset.n_sims={self.spec.n_sims}")
+        if self.batch_size < 1:
+            raise ValueError(f"dataset.batch_size={self.batch_size} must be >= 1")
+        self.data_dir = Path(data_dir)
+        self.generate_workers = generate_workers
+        self.show_progress = show_progress
+        self.paths: dict[str, Path] = {}
+        self.datasets: dict[str, FrameDataset] = {}
+
+    def prepare_data(self) -> None:
+        self.paths = ensure_splits(self.spec, self.data_dir, self.generate_workers,
+                                   self.show_progress)
+
+    def setup(self, stage: str | None = None) -> None:
+        if not self.paths:
+            self.paths = {s: self.spec.with_split(s).path(self.data_dir)
+                          for s in ("train", "val", "test")}
+        for split, path in self.paths.items():
+            if split in self.datasets:
+                continue
+            file = DatasetFile(path, self.spec.with_split(split))
+            sims = list(range(self.train_sims)) if split == "train" and self.train_sims else None
+            self.datasets[split] = FrameDataset(file, self.history, sims, self.in_memory)
+
+    @property
+    def meta(self) -> SceneMeta:
+        return self.spec.build_scene().meta
+
+    @property
+    def dt(self) -> float:
+        return self.spec.dt
+
+    def stats(self) -> dict[str, dict[str, np.ndarray]]:
+        """Normalisation statistics of the training split (computed once, at generation)."""
+        self.setup()
+        return self.datasets["train"].file.stats()
+
+    def _loader(self, split: str, shuffle: bool) -> DataLoader:
+        self.setup()
+        return DataLoader(self.datasets[split], batch_size=self.batch_size, shuffle=shuffle,
+                          num_workers=self.num_workers, collate_fn=collate,
+                          persistent_workers=self.num_workers > 0)
+
+    def train_dataloader(self) -> DataLoader:
+        return self._loader("train", shuffle=True)
+
+    def val_dataloader(self) -> DataLoader:
+        return self._loader("val", shuffle=False)
+
+    def test_dataloader(self) -> DataLoader:
+        return self._loader("test", shuffle=False)

@@ -1,0 +1,163 @@
+"""Generate (or find in the cache) the HDF5 files of a dataset.
+
+``python -m bgn.data.generate dataset=collisions fps=10`` writes the train, val and test files
+under ``paths.data_dir``. Simulations run in parallel processes; each one draws from its own
+seed sequence ``(seed, split, index)``, so the arrays are bit-identical whatever the number of
+workers, and the simulations of a larger ``n_sims`` extend those of a smaller one.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+from contextlib import nullcontext
+from multiprocessing import get_context
+from pathlib import Path
+
+import numpy as np
+from filelock import FileLock
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from bgn.data.files import DatasetFile, write_dataset
+from bgn.data.graphs import contact_margin
+from bgn.data.spec import SPLITS, DatasetSpec
+from bgn.data.stats import compute_stats
+from bgn.sim import Trajectory
+
+SPLIT_IDS = {name: i for i, name in enumerate(SPLITS)}
+
+
+def simulate_one(spec: DatasetSpec, index: int) -> Trajectory:
+    """Simulation ``index`` of a split: a pure function of the spec and the index."""
+    rng = np.random.default_rng(np.random.SeedSequence([spec.seed, SPLIT_IDS[spec.split], index]))
+    # j / fps (not j * dt): the times of different frame rates then agree exactly.
+    times = np.arange(spec.n_frames) / spec.fps
+    return spec.build_scene().simulate(rng, times)
+
+
+def _simulate_indexed(args: tuple[DatasetSpec, int]) -> tuple[int, Trajectory]:
+    return args[1], simulate_one(*args)
+
+
+def simulate_split(spec: DatasetSpec, workers: int = 1,
+                   progress: Progress | None = None) -> list[Trajectory]:
+    """All simulations of one split, in index order."""
+    results: list[Trajectory | None] = [None] * spec.n_sims
+    task = progress.add_task(f"{spec.scene} fps={spec.fps:g} {spec.split}",
+                             total=spec.n_sims) if progress else None
+    jobs = [(spec, i) for i in range(spec.n_sims)]
+    if workers <= 1:
+        finished = map(_simulate_indexed, jobs)
+        pool = None
+    else:
+        # spawn: safe even when torch (and its thread pools) is already imported
+        pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"))
+        finished = pool.map(_simulate_indexed, jobs)
+    try:
+        for index, trajectory in finished:
+            results[index] = trajectory
+            if progress is not None and task is not None:
+                progress.advance(task)
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
+    return results  # type: ignore[return-value]
+
+
+def stack(trajectories: list[Trajectory]) -> dict[str, np.ndarray]:
+    """Trajectories -> the file's arrays (leading simulation axis; contacts as a table)."""
+    arrays = {name: np.stack([getattr(t, name) for t in trajectories])
+              for name in ("positions", "velocities", "masses", "radii")}
+    arrays["types"] = np.stack([t.types for t in trajectories]).astype(np.int64)
+    if trajectories[0].accelerations is not None:
+        arrays["accelerations"] = np.stack([t.accelerations for t in trajectories])
+    if trajectories[0].contacts is not None:
+        rows = [np.column_stack([np.full(len(t.contacts), s), t.contacts])
+                for s, t in enumerate(trajectories)]
+        arrays["contacts"] = np.concatenate(rows).astype(np.int64).reshape(-1, 4)
+    return arrays
+
+
+def radius_margin(arrays: dict[str, np.ndarray], dt: float) -> float:
+    """Margin of the radius graph that makes every contact before the next frame a candidate.
+
+    Relative speed times dt (with a safety factor) from the fastest disc of the split, widened
+    if a recorded contact would still fall outside (a chain of collisions within one frame).
+    """
+    speed = np.linalg.norm(arrays["velocities"], axis=-1).max()
+    margin = contact_margin(2.0 * speed, dt)
+    c = arrays["contacts"]
+    if len(c):
+        x = arrays["positions"]
+        gap = (np.linalg.norm(x[c[:, 0], c[:, 1], c[:, 2]] - x[c[:, 0], c[:, 1], c[:, 3]], axis=-1)
+               - arrays["radii"][c[:, 0], c[:, 2]] - arrays["radii"][c[:, 0], c[:, 3]])
+        margin = max(margin, contact_margin(float(gap.max()) / dt, dt))
+    return float(margin)
+
+
+def generate_file(spec: DatasetSpec, path: Path, workers: int = 1,
+                  progress: Progress | None = None) -> None:
+    scene = spec.build_scene()
+    arrays = stack(simulate_split(spec, workers, progress))
+    margin = radius_margin(arrays, spec.dt) if scene.meta.graph == "radius" else 0.0
+    stats = compute_stats(scene, arrays, spec.dt, margin) if spec.split == "train" else None
+    write_dataset(path, spec, scene.meta, arrays, margin=margin, stats=stats)
+
+
+def ensure_dataset(spec: DatasetSpec, data_dir: str | Path, workers: int | None = None,
+                   progress: Progress | None = None) -> Path:
+    """Path of the valid file for ``spec``, generating it first if it is not cached.
+
+    A lock next to the file lets concurrent processes share the work: the first generates,
+    the others wait and then read the same file. An existing bad file raises
+    ``DatasetFileError`` and is left untouched.
+    """
+    path = spec.path(data_dir)
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with FileLock(path.with_name(f".{path.name}.lock")):  # hidden; never removed (safe)
+            if not path.exists():
+                workers = default_workers(spec.n_sims) if workers is None else workers
+                generate_file(spec, path, workers, progress)
+    DatasetFile(path, spec).close()  # validate (cheap at our sizes) before anyone trains on it
+    return path
+
+
+def default_workers(n_sims: int) -> int:
+    return max(1, min(n_sims, len(os.sched_getaffinity(0))))
+
+
+def progress_bar() -> Progress:
+    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                    TimeElapsedColumn())
+
+
+def ensure_splits(spec: DatasetSpec, data_dir: str | Path, workers: int | None = None,
+                  show_progress: bool = True) -> dict[str, Path]:
+    """Generate or find the train, val and test files of a dataset."""
+    progress = progress_bar() if show_progress else None
+    with progress or nullcontext():
+        return {split: ensure_dataset(spec.with_split(split), data_dir, workers, progress)
+                for split in SPLITS}
+
+
+def main(cfg) -> dict[str, Path]:  # noqa: ANN001 (an OmegaConf DictConfig)
+    """Entry point body: generate every split of ``cfg.dataset`` at ``cfg.fps``."""
+    spec = DatasetSpec.from_config(cfg.dataset, cfg.fps, "train")
+    start = time.perf_counter()
+    paths = ensure_splits(spec, cfg.paths.data_dir, cfg.get("workers"))
+    elapsed = time.perf_counter() - start
+    for split, path in paths.items():
+        f = DatasetFile(path, check_values=False)
+        print(f"{split:>5}: {path}  ({path.stat().st_size / 1e6:.1f} MB, {f.n_sims} sims x "
+              f"{f.n_frames} frames x {f.attrs['n_particles']} particles)")
+        f.close()
+    print(f"done in {elapsed:.1f} s")
+    return paths
+
+
+if __name__ == "__main__":
+    import hydra
+
+    hydra.main(config_path="../../conf", config_name="generate", version_base="1.3")(main)()

@@ -1,0 +1,292 @@
+"""Sparse edge lists: complete graphs, radius (collision-candidate) graphs, disjoint unions.
+
+An edge list is an ``int64`` array of shape ``(2, E)``: row 0 holds senders, row 1 receivers.
+Every builder here returns both directions of every pair, no self-loops, sorted by
+``(receiver, sender)`` so that the output is deterministic whatever the search order was.
+The dense matrices of the paper are the special case :func:`full_graph` (DESIGN.md section 4).
+
+Neighbour search uses :class:`scipy.spatial.cKDTree`, so it costs ``O(N log N + E)`` and never
+builds an ``N x N`` distance matrix, caps neighbours, or drops one. Membership is decided by one
+float64 formula, :func:`pair_distance`, so the same pair is always in or out whoever asks.
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+from collections.abc import Sequence
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+__all__ = [
+    "batch_edges",
+    "contact_margin",
+    "full_graph",
+    "pair_distance",
+    "radius_graph",
+]
+
+# The tree compares its own distance arithmetic (e.g. squared distance against r**2) with the
+# query radius; that can round differently from pair_distance. Query a slightly larger ball and
+# decide membership exactly afterwards, so a pair exactly at the cut-off is never lost.
+_QUERY_RELATIVE_SLACK = 1e-9
+_QUERY_ABSOLUTE_SLACK = 1e-300  # only matters when the reach is 0 (identical points)
+
+
+def _empty_edges() -> np.ndarray:
+    return np.zeros((2, 0), dtype=np.int64)
+
+
+def _as_count(value: object, name: str) -> int:
+    """A non-negative Python int from an int-like value (bool is rejected: a likely bug)."""
+    if isinstance(value, bool | np.bool_):
+        raise ValueError(f"{name} must be an integer, got bool {value!r}")
+    try:
+        count = operator.index(value)  # type: ignore[arg-type]
+    except TypeError:
+        raise ValueError(
+            f"{name} must be an integer, got {type(value).__name__} {value!r}"
+        ) from None
+    if count < 0:
+        raise ValueError(f"{name} must be >= 0, got {count}")
+    return count
+
+
+def _as_finite_float(value: object, name: str, minimum: float | None = None) -> float:
+    try:
+        out = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a real number, got {value!r}") from None
+    if not math.isfinite(out):
+        raise ValueError(f"{name} must be finite, got {out}")
+    if minimum is not None and out < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {out}")
+    return out
+
+
+def _as_positions(positions: np.ndarray) -> np.ndarray:
+    pos = np.asarray(positions)
+    if pos.ndim != 2:
+        raise ValueError(
+            f"positions must have shape (N, D), got shape {pos.shape}"
+            + ("; for 1-D points use positions.reshape(-1, 1)" if pos.ndim == 1 else "")
+        )
+    if pos.shape[1] < 1:
+        raise ValueError(f"positions must have at least one coordinate (D >= 1), got {pos.shape}")
+    if not (np.issubdtype(pos.dtype, np.floating) or np.issubdtype(pos.dtype, np.integer)):
+        raise ValueError(f"positions must be real numbers, got dtype {pos.dtype}")
+    pos = pos.astype(np.float64, copy=False)
+    if not np.all(np.isfinite(pos)):
+        raise ValueError("positions must be finite (found NaN or inf)")
+    return pos
+
+
+def full_graph(n: int) -> np.ndarray:
+    """Every ordered pair ``(sender, receiver)`` with ``sender != receiver``: ``n (n - 1)`` edges.
+
+    Sorted by receiver, then sender.
+    """
+    n = _as_count(n, "n")
+    if n < 2:
+        return _empty_edges()
+    receivers = np.repeat(np.arange(n, dtype=np.int64), n - 1)
+    # Row r lists 0..n-2; shifting the entries >= r by one skips r itself and keeps them sorted.
+    senders = np.tile(np.arange(n - 1, dtype=np.int64), (n, 1))
+    senders += senders >= np.arange(n, dtype=np.int64)[:, None]
+    return np.stack([senders.reshape(-1), receivers])
+
+
+def pair_distance(positions: np.ndarray, senders: np.ndarray, receivers: np.ndarray) -> np.ndarray:
+    """Euclidean distance ``|x_receiver - x_sender|`` for each pair, in float64.
+
+    This is the one distance formula of the package: the square root of the squared coordinate
+    differences summed in coordinate order. Every neighbour decision (and every test oracle) uses
+    it, so a pair at exactly the cut-off is judged the same way everywhere. It is symmetric bit for
+    bit (negating a difference is exact), and translation does not change it when the
+    coordinate differences are exact.
+    """
+    pos = np.asarray(positions, dtype=np.float64)
+    if pos.ndim != 2:
+        raise ValueError(f"positions must have shape (N, D), got shape {pos.shape}")
+    s = np.asarray(senders)
+    r = np.asarray(receivers)
+    if s.shape != r.shape or s.ndim != 1:
+        raise ValueError(
+            f"senders and receivers must be 1-D and of equal length, got {s.shape} and {r.shape}"
+        )
+    total = np.zeros(s.shape[0], dtype=np.float64)
+    # One column at a time: gathers from contiguous columns are several times faster than
+    # gathering rows and reducing, and the summation order is fixed (no pairwise summation).
+    for column in np.ascontiguousarray(pos.T):
+        diff = column[r] - column[s]
+        diff *= diff
+        total += diff
+    return np.sqrt(total, out=total)
+
+
+def _symmetric_sorted(i: np.ndarray, j: np.ndarray, n: int) -> np.ndarray:
+    """Both directions of the undirected pairs ``(i, j)``, sorted by (receiver, sender)."""
+    if i.size == 0:
+        return _empty_edges()
+    # int32 halves the memory traffic of the steps below, and scipy would copy to int32 anyway.
+    index_dtype = np.int32 if n <= np.iinfo(np.int32).max else np.int64
+    m = i.size
+    senders = np.empty(2 * m, dtype=index_dtype)
+    receivers = np.empty(2 * m, dtype=index_dtype)
+    senders[:m], senders[m:] = i, j
+    receivers[:m], receivers[m:] = j, i
+    # COO -> CSR is a counting sort by receiver (linear in E); rows then hold about the mean
+    # degree each, so sorting senders within rows is cheap (scipy does it while canonicalising;
+    # sort_indices() below makes that explicit and costs nothing then). Measured about 2x
+    # faster than sorting a combined int64 key, 8x faster than np.lexsort, at 4 M edges.
+    adjacency = sp.csr_matrix(
+        (np.ones(senders.size, dtype=np.int8), (receivers, senders)), shape=(n, n)
+    )
+    del senders, receivers
+    adjacency.sort_indices()
+    out = np.empty((2, adjacency.indices.size), dtype=np.int64)
+    out[0] = adjacency.indices
+    out[1] = np.repeat(np.arange(n, dtype=index_dtype), np.diff(adjacency.indptr))
+    return out
+
+
+def radius_graph(
+    positions: np.ndarray,
+    radii: np.ndarray | None = None,
+    margin: float = 0.0,
+    cutoff: float | None = None,
+) -> np.ndarray:
+    """All pairs of distinct points within a distance, both directions, sorted by receiver.
+
+    Edges are sorted by (receiver, sender). Exactly one mode:
+
+    - ``radii`` given (shape ``(N,)``, finite, >= 0): pairs with
+      ``|x_i - x_j| <= (r_i + r_j) + margin``, the collision candidates of DESIGN.md section 4.
+    - ``cutoff`` given (finite, >= 0): pairs with ``|x_i - x_j| <= cutoff``; ``margin`` must be 0.
+
+    Distances come from :func:`pair_distance`; the comparison is inclusive, so points exactly at
+    the threshold are neighbours. Cost is ``O(N log N + candidates)`` with a KD-tree queried at the
+    largest possible pair threshold (``2 max(r) + margin`` or ``cutoff``). With very uneven radii
+    the candidates outnumber the final edges; the result is still exact.
+
+    Args:
+        positions: ``(N, D)`` array, ``D >= 1``, finite.
+        radii: per-point radii, or None for cutoff mode.
+        margin: added to ``r_i + r_j`` in radii mode (see :func:`contact_margin`), finite, >= 0.
+        cutoff: a single distance threshold, or None for radii mode.
+
+    Returns:
+        ``int64`` array of shape ``(2, E)``: senders, receivers. ``(2, 0)`` when ``N < 2``.
+    """
+    pos = _as_positions(positions)
+    n = pos.shape[0]
+    if (radii is None) == (cutoff is None):
+        raise ValueError("give exactly one of radii (with an optional margin) or cutoff")
+    margin = _as_finite_float(margin, "margin", minimum=0.0)
+
+    rad: np.ndarray | None = None
+    if radii is not None:
+        rad = np.asarray(radii)
+        if rad.shape != (n,):
+            raise ValueError(f"radii must have shape (N,) = ({n},), got {rad.shape}")
+        if not (np.issubdtype(rad.dtype, np.floating) or np.issubdtype(rad.dtype, np.integer)):
+            raise ValueError(f"radii must be real numbers, got dtype {rad.dtype}")
+        rad = rad.astype(np.float64, copy=False)
+        if not np.all(np.isfinite(rad)):
+            raise ValueError("radii must be finite (found NaN or inf)")
+        if n and rad.min() < 0:
+            raise ValueError(f"radii must be >= 0, found {rad.min()}")
+        reach = 2.0 * float(rad.max()) + margin if n else 0.0
+    else:
+        cut = _as_finite_float(cutoff, "cutoff", minimum=0.0)
+        if margin != 0.0:
+            raise ValueError("margin applies only with radii; fold it into cutoff instead")
+        reach = cut
+
+    if n < 2:
+        return _empty_edges()
+
+    query_radius = reach * (1.0 + _QUERY_RELATIVE_SLACK) + _QUERY_ABSOLUTE_SLACK
+    pairs = cKDTree(pos).query_pairs(query_radius, output_type="ndarray")
+    if pairs.size == 0:
+        return _empty_edges()
+    i = pairs[:, 0].astype(np.int64, copy=False)
+    j = pairs[:, 1].astype(np.int64, copy=False)
+
+    distance = pair_distance(pos, i, j)
+    if rad is not None:
+        keep = distance <= (rad[i] + rad[j]) + margin
+    else:
+        keep = distance <= reach
+    if not keep.all():  # in cutoff mode the slack adds almost no candidates: skip a copy
+        i, j = i[keep], j[keep]
+    return _symmetric_sorted(i, j, n)
+
+
+def contact_margin(max_relative_speed: float, dt: float, safety: float = 1.5) -> float:
+    """Margin for :func:`radius_graph` that makes every contact before the next frame a candidate.
+
+    Two particles close their gap by at most ``relative speed x dt`` between frames, so pairs
+    within ``r_i + r_j + v_rel dt`` now contain every pair that can touch before the next graph is
+    built. The safety factor (default 1.5) covers what that bound leaves out: the relative speed
+    can grow during the step (forces, gravity, a collision that sends a third particle faster),
+    the largest speed is usually estimated from the current frame only, and integrator substeps
+    can overshoot. Too large a margin only adds candidate edges; too small silently misses
+    collisions, so the factor errs on the large side.
+
+    Args:
+        max_relative_speed: an upper bound on ``|v_i - v_j|`` over pairs (e.g. twice the largest
+            speed), finite, >= 0.
+        dt: time until the next frame, finite, > 0.
+        safety: multiplier >= 1.
+
+    Returns:
+        ``safety * max_relative_speed * dt``.
+    """
+    speed = _as_finite_float(max_relative_speed, "max_relative_speed", minimum=0.0)
+    step = _as_finite_float(dt, "dt", minimum=0.0)
+    if step == 0.0:
+        raise ValueError("dt must be > 0")
+    factor = _as_finite_float(safety, "safety", minimum=1.0)
+    return factor * speed * step
+
+
+def batch_edges(edge_lists: Sequence[np.ndarray], n_nodes: Sequence[int]) -> np.ndarray:
+    """Disjoint union of graphs: each graph's indices offset by the node count before it.
+
+    Node ``k`` of graph ``g`` becomes node ``sum(n_nodes[:g]) + k`` of the batch. If every input is
+    sorted by (receiver, sender), so is the output.
+
+    Args:
+        edge_lists: one ``(2, E_g)`` integer array per graph, indices in ``[0, n_nodes[g])``.
+        n_nodes: node count of each graph.
+
+    Returns:
+        ``int64`` array of shape ``(2, sum E_g)``.
+    """
+    if len(edge_lists) != len(n_nodes):
+        raise ValueError(
+            f"got {len(edge_lists)} edge lists but {len(n_nodes)} node counts; one per graph"
+        )
+    pieces = []
+    offset = 0
+    for g, (edges, count) in enumerate(zip(edge_lists, n_nodes, strict=True)):
+        count = _as_count(count, f"n_nodes[{g}]")
+        e = np.asarray(edges)
+        if e.ndim != 2 or e.shape[0] != 2:
+            raise ValueError(f"edge_lists[{g}] must have shape (2, E), got {e.shape}")
+        if e.size and not np.issubdtype(e.dtype, np.integer):
+            raise ValueError(f"edge_lists[{g}] must hold integers, got dtype {e.dtype}")
+        e = e.astype(np.int64, copy=False)
+        if e.size and (e.min() < 0 or e.max() >= count):
+            raise ValueError(
+                f"edge_lists[{g}] has node indices in [{e.min()}, {e.max()}], "
+                f"outside [0, {count}) for a graph of {count} nodes"
+            )
+        pieces.append(e + offset)
+        offset += count
+    if not pieces:
+        return _empty_edges()
+    return np.concatenate(pieces, axis=1)

@@ -1,0 +1,107 @@
+"""What identifies a dataset file: scene, its parameters, sizes, seed, fps and split.
+
+The cache key is a hash of everything that changes the generated numbers, so a different
+parameter set never reuses a stale file.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from pathlib import Path
+from typing import Any
+
+from bgn.sim import SCENES, Scene, make_scene
+
+SPLITS = ("train", "val", "test")
+# Dataset config keys that do not change the generated numbers (they configure loading).
+LOADER_KEYS = frozenset({"history", "batch_size", "num_workers", "train_sims", "in_memory",
+                         "generate_workers"})
+SIZE_KEYS = ("n_sims", "n_frames", "seed")
+
+
+def _plain(value: Any) -> Any:
+    """Config values (OmegaConf containers, dataclasses, tuples) -> JSON-able builtins."""
+    if is_dataclass(value) and not isinstance(value, type):
+        return _plain(asdict(value))
+    if isinstance(value, dict) or hasattr(value, "items"):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple) or (hasattr(value, "__iter__")
+                                           and not isinstance(value, str | bytes)):
+        return [_plain(v) for v in value]
+    return value
+
+
+@dataclass(frozen=True)
+class DatasetSpec:
+    """Everything that determines the arrays of one split's file."""
+
+    scene: str
+    n_sims: int
+    n_frames: int
+    seed: int
+    fps: float
+    split: str
+    params: dict = field(default_factory=dict)  # scene parameters (config values)
+
+    def __post_init__(self) -> None:
+        if self.scene not in SCENES:
+            raise ValueError(f"dataset.scene={self.scene!r} is unknown; choose one of "
+                             f"{sorted(SCENES)}")
+        if self.split not in SPLITS:
+            raise ValueError(f"split={self.split!r}; choose one of {SPLITS}")
+        if not self.fps > 0:
+            raise ValueError(f"fps={self.fps} must be a positive number of frames per time unit")
+        if self.n_sims < 1:
+            raise ValueError(f"dataset.n_sims={self.n_sims} must be at least 1")
+        if self.n_frames < 3:
+            raise ValueError(f"dataset.n_frames={self.n_frames} must be at least 3")
+
+    @classmethod
+    def from_config(cls, dataset: Any, fps: float, split: str) -> DatasetSpec:
+        """Build from a ``dataset`` config node (``scene`` + scene parameters + sizes)."""
+        cfg = _plain(dataset)
+        missing = [k for k in ("scene", *SIZE_KEYS) if k not in cfg]
+        if missing:
+            raise ValueError(f"dataset config lacks {missing}; see conf/dataset/*.yaml")
+        params = {k: v for k, v in cfg.items()
+                  if k not in LOADER_KEYS and k not in SIZE_KEYS and k != "scene"}
+        spec = cls(scene=cfg["scene"], n_sims=int(cfg["n_sims"]), n_frames=int(cfg["n_frames"]),
+                   seed=int(cfg["seed"]), fps=float(fps), split=split, params=params)
+        spec.build_scene()  # fail now, with the scene's own message, on a bad parameter
+        return spec
+
+    def build_scene(self) -> Scene:
+        return make_scene(self.scene, **self.params)
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.fps
+
+    def generating_config(self) -> dict:
+        """The full parameter set of the scene (defaults filled in), sizes and seed."""
+        scene = self.build_scene()
+        fixed = SCENES[self.scene][1]  # set by the scene's name, not by config
+        resolved = {f.name: _plain(getattr(scene, f.name))
+                    for f in fields(scene) if f.name not in fixed}  # type: ignore[arg-type]
+        return {"scene": self.scene, "params": resolved, "n_sims": self.n_sims,
+                "n_frames": self.n_frames, "seed": self.seed}
+
+    def key(self) -> str:
+        """Short hash of the generating config (fps and split are spelled out in the name)."""
+        blob = json.dumps(self.generating_config(), sort_keys=True).encode()
+        return hashlib.sha256(blob).hexdigest()[:10]
+
+    def filename(self) -> str:
+        return f"{self.scene}_{self.key()}_fps{self.fps:g}_{self.split}.h5"
+
+    def path(self, data_dir: str | Path) -> Path:
+        return Path(data_dir) / self.filename()
+
+    def with_split(self, split: str) -> DatasetSpec:
+        return DatasetSpec(self.scene, self.n_sims, self.n_frames, self.seed, self.fps, split,
+                           self.params)
+
+    def regenerate_hint(self) -> str:
+        return f"python -m bgn.data.generate dataset={self.scene} fps={self.fps:g}"

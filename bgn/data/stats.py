@@ -1,0 +1,82 @@
+"""Normalisation statistics, computed once on the training split (float64) and stored in it.
+
+Targets of the force scenes are heavy-tailed (SIMS.md, last section): next to mean and
+standard deviation we keep the median and a robust scale (1.4826 x median absolute deviation),
+so the model can choose a normalisation that a few extreme frames do not dominate.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bgn.data.graphs import full_graph, radius_graph
+from bgn.data.targets import backward_velocities, targets
+from bgn.sim import Scene
+
+MAX_EDGE_FRAMES = 100  # frames per simulation used for edge statistics (evenly spaced)
+
+
+def summarize(values: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-column statistics of (M, C) values in float64; variances are never negative."""
+    x = np.asarray(values, dtype=np.float64).reshape(len(values), -1)
+    if len(x) == 0:
+        zeros = np.zeros(x.shape[1])
+        return {"mean": zeros, "std": zeros, "median": zeros, "robust_scale": zeros,
+                "min": zeros, "max": zeros, "count": np.array(0.0)}
+    median = np.median(x, axis=0)
+    return {
+        "mean": x.mean(axis=0),
+        "std": x.std(axis=0),  # two-pass in numpy: never negative
+        "median": median,
+        "robust_scale": 1.4826 * np.median(np.abs(x - median), axis=0),
+        "min": x.min(axis=0),
+        "max": x.max(axis=0),
+        "count": np.array(float(len(x))),
+    }
+
+
+def compute_stats(scene: Scene, arrays: dict[str, np.ndarray], dt: float,
+                  margin: float) -> dict[str, dict[str, np.ndarray]]:
+    """Statistics of inputs, targets, edge features and masses of one (training) split."""
+    meta = scene.meta
+    positions = arrays["positions"]  # (S, T, N, D)
+    d = meta.dim
+    velocity = backward_velocities(np.moveaxis(positions, 1, 0), dt)  # (T-1, S, N, D)
+    target = targets(np.moveaxis(positions, 1, 0), dt, meta.target)
+    log_mass = np.log(arrays["masses"])
+    stats = {
+        "velocity": summarize(velocity.reshape(-1, d)),
+        "target": summarize(target.reshape(-1, d)),
+        "log_mass": summarize(log_mass.reshape(-1, 1)),
+    }
+
+    rel_pos, rel_vel, rel_logm, contact = [], [], [], []
+    n_sims, n_frames = positions.shape[:2]
+    frames = np.unique(np.linspace(1, n_frames - 2, min(MAX_EDGE_FRAMES, n_frames - 2))
+                       .astype(int))
+    contact_set = set()
+    if meta.interaction == "contact":
+        contact_set = {tuple(row) for row in arrays["contacts"].tolist()}
+    for s in range(n_sims):
+        for t in frames:
+            x = positions[s, t]
+            if meta.graph == "full":
+                edges = full_graph(meta.n_particles)
+            else:
+                edges = radius_graph(x, radii=arrays["radii"][s], margin=margin)
+            snd, rcv = edges
+            rel_pos.append(x[rcv] - x[snd])
+            rel_vel.append((x[rcv] - positions[s, t - 1][rcv])
+                           - (x[snd] - positions[s, t - 1][snd]))
+            rel_logm.append(log_mass[s, rcv] - log_mass[s, snd])
+            if meta.interaction == "contact":
+                lo, hi = np.minimum(snd, rcv), np.maximum(snd, rcv)
+                contact.append(np.array([(s, t, a, b) in contact_set
+                                         for a, b in zip(lo.tolist(), hi.tolist())], float))
+            else:
+                contact.append(scene.pair_force_magnitude(x, arrays["masses"][s], snd, rcv))
+    stats["rel_position"] = summarize(np.concatenate(rel_pos))
+    stats["rel_velocity"] = summarize(np.concatenate(rel_vel) / dt)
+    stats["rel_log_mass"] = summarize(np.concatenate(rel_logm)[:, None])
+    stats["contact"] = summarize(np.concatenate(contact)[:, None])
+    return stats

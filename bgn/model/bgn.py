@@ -1,0 +1,238 @@
+"""BGN: the paper's multi-task graph network, assembled from a scene's metadata.
+
+Encode (Eq. 1) -> process (Eq. 2-4) -> decode the forward target (Eq. 5) and, from the same
+node features, infer mass (Eq. 6-10). The loss is the weighted sum of the task losses (Eq. 12).
+
+Model only what the scene needs (DESIGN section 1): no classifier when the scene has one
+particle type, no contact head without ``cfg.contact``, no flow without ``cfg.inverse``.
+All tensors are in normalised units except where a method says "physical".
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from bgn.data.batch import Graph
+from bgn.model.decoder import Decoder
+from bgn.model.encoder import (
+    EdgeEncoder,
+    NodeEncoder,
+    edge_features,
+    edge_input_dim,
+    node_features,
+    node_input_dim,
+)
+from bgn.model.inverse import FLOWS, InverseModel
+from bgn.model.normalizer import Normalizer
+from bgn.model.processor import CONTACT_MODES, Processor
+from bgn.sim.scene import SceneMeta
+
+LOSS_KEYS = ("dynamics", "contact", "type", "mass_nll", "relmass")
+
+
+@dataclass
+class ModelConfig:
+    hidden: int = 128
+    node_layers: int = 2
+    edge_layers: int = 2
+    decoder_hidden: int = 128
+    activation: str = "silu"
+    flow: str = "nsf"                  # "nsf" | "naf"
+    flow_transforms: int = 3
+    flow_hidden: int = 64
+    classifier: bool = True            # only built when the scene has n_types > 1
+    contact: bool = True
+    inverse: bool = True
+    contact_mode: str = "aggregate"    # "aggregate" | "dense" (paper-literal, full graphs)
+    shared_decoder: bool = False
+    degree_normalize: bool = False
+    use_absolute_position: bool = False
+    # Force scenes: the contact target is |F_ij| / robust scale, compressed by log1p so that
+    # the heavy tail of close encounters does not dominate (SIMS.md); "linear" = paper MSE.
+    force_transform: str = "log1p"     # "log1p" | "linear"
+    # Dynamics loss on the normalised target: "mse" (paper) or "huber" (robust to the tail).
+    dynamics_loss: str = "mse"
+    huber_delta: float = 1.0
+    # Eq. 12 weights, one per task (keys: LOSS_KEYS); missing keys weigh 1.
+    loss_weights: dict[str, float] = field(default_factory=lambda: dict.fromkeys(LOSS_KEYS, 1.0))
+
+    def __post_init__(self) -> None:
+        if self.flow not in FLOWS:
+            raise ValueError(f"flow={self.flow!r}; choose one of {FLOWS}")
+        if self.contact_mode not in CONTACT_MODES:
+            raise ValueError(f"contact_mode={self.contact_mode!r}; choose one of "
+                             f"{CONTACT_MODES}")
+        if self.force_transform not in ("log1p", "linear"):
+            raise ValueError(f"force_transform={self.force_transform!r}; use log1p or linear")
+        if self.dynamics_loss not in ("mse", "huber"):
+            raise ValueError(f"dynamics_loss={self.dynamics_loss!r}; use mse or huber")
+        unknown = set(self.loss_weights) - set(LOSS_KEYS)
+        if unknown:
+            raise ValueError(f"unknown loss weights {sorted(unknown)}; keys are {LOSS_KEYS}")
+
+    def loss_weight(self, key: str) -> float:
+        return float(self.loss_weights.get(key, 1.0))
+
+
+@dataclass
+class BGNOutput:
+    target: torch.Tensor                     # (N, D) normalised forward target
+    type_logits: torch.Tensor | None         # (N, n_types)
+    contact: torch.Tensor | None             # (E,) logits (contact scenes) or force values
+    mass_nll: torch.Tensor | None            # (N,) NLL of the normalised log-mass
+    relmass: torch.Tensor | None             # (E,) normalised R̂_ij
+    log_mass_sample: torch.Tensor | None     # (N,) the sample z_K behind relmass (normalised)
+    edge_weight: torch.Tensor                # (E,) learned adjacency of the edge encoder
+
+
+class BGN(nn.Module):
+    """Graph network for bi-directional physics, built from ``(meta, stats, history, cfg)``.
+
+    ``history`` is k: the velocity window has k+1 steps, newest first.
+    """
+
+    def __init__(self, meta: SceneMeta, stats: Mapping[str, Any], history: int,
+                 cfg: ModelConfig | None = None) -> None:
+        super().__init__()
+        cfg = cfg or ModelConfig()
+        if cfg.contact_mode == "dense" and cfg.contact and meta.graph != "full":
+            raise ValueError(
+                f"contact_mode='dense' needs a full graph with a fixed number of particles; "
+                f"scene {meta.name!r} uses a {meta.graph} graph. Use contact_mode='aggregate'.")
+        self.meta, self.cfg, self.history = meta, cfg, history
+        self.contact_scene = meta.interaction == "contact"
+        self.normalizer = Normalizer(stats, meta.dim)
+        d, h = meta.dim, cfg.hidden
+        node_in = node_input_dim(d, history, meta.has_walls, cfg.use_absolute_position)
+        edge_in = edge_input_dim(d, history)
+        self.node_encoder = NodeEncoder(node_in, h, cfg.node_layers, cfg.activation,
+                                        cfg.degree_normalize)
+        self.edge_encoder = EdgeEncoder(node_in, edge_in, h, cfg.edge_layers, cfg.activation,
+                                        cfg.degree_normalize)
+        self.processor = Processor(h, edge_in, meta.n_types, meta.n_particles,
+                                   contact_scene=self.contact_scene, classifier=cfg.classifier,
+                                   contact=cfg.contact, contact_mode=cfg.contact_mode)
+        self.decoder = Decoder(self.processor.out_features, cfg.decoder_hidden, d,
+                               cfg.activation, cfg.shared_decoder)
+        self.inverse = (InverseModel(self.processor.tilde_v_features, cfg.flow,
+                                     cfg.flow_transforms, cfg.flow_hidden, cfg.activation)
+                        if cfg.inverse else None)
+        heads = {"dynamics"}
+        if self.processor.classifier is not None:
+            heads.add("type")
+        if self.processor.contact is not None:
+            heads.add("contact")
+        if self.inverse is not None:
+            heads |= {"mass_nll", "relmass"}
+        self.heads = frozenset(heads)  # the loss keys this model produces
+
+    # ------------------------------------------------------------------ forward
+    def _check(self, g: Graph) -> None:
+        if g.vel.shape[1] != self.history + 1 or g.vel.shape[2] != self.meta.dim:
+            raise ValueError(f"graph velocity window {tuple(g.vel.shape[1:])} does not match "
+                             f"the model's (history + 1, dim) = "
+                             f"({self.history + 1}, {self.meta.dim})")
+
+    def _process(self, g: Graph):
+        """Encoders and processor: (ProcessorOutput, edge weights)."""
+        self._check(g)
+        x = node_features(g, self.normalizer, self.meta.has_walls,
+                          self.cfg.use_absolute_position, self.meta.box)
+        e = edge_features(g, self.normalizer)
+        h_v = self.node_encoder(x, g.edge_index)               # Eq. 1
+        h_e, w = self.edge_encoder(x, e, g.edge_index)         # Eq. 1 with learned A
+        return self.processor(h_v, h_e, e, g), w               # Eq. 2-3
+
+    def forward(self, g: Graph, noise: torch.Tensor | None = None) -> BGNOutput:
+        """All heads on a graph (one frame or a batch). ``noise`` (N,): base draws of the
+        flow sample behind ``relmass`` (drawn here when None)."""
+        p, w = self._process(g)
+        target = self.decoder(p.h_cv)                          # Eq. 5
+        mass_nll = relmass = z = None
+        if self.inverse is not None:
+            log_m = self.normalizer.log_mass(torch.log(g.mass))
+            mass_nll, z = self.inverse(p.h_tilde_v, log_m, noise)   # Eq. 7-8
+            relmass = self.inverse.relative(z, g.edge_index)        # Eq. 9-10
+        return BGNOutput(target, p.type_logits, p.contact, mass_nll, relmass, z, w)
+
+    # ------------------------------------------------------------------ losses
+    def normalize_contact(self, edge_contact: torch.Tensor) -> torch.Tensor:
+        """Per-edge contact target in the units of ``BGNOutput.contact``: 0/1 for contact
+        scenes (``contact`` holds logits), else the (log1p-compressed) normalised pairwise
+        force magnitude."""
+        if self.contact_scene:
+            return edge_contact
+        c = self.normalizer.contact(edge_contact)
+        return torch.log1p(c) if self.cfg.force_transform == "log1p" else c
+
+    def loss_terms(self, g: Graph, out: BGNOutput) -> dict[str, torch.Tensor]:
+        """Scalar losses of the heads present, keys among ``LOSS_KEYS``."""
+        y = self.normalized_target(g)
+        if self.cfg.dynamics_loss == "huber":
+            dyn = F.huber_loss(out.target, y, delta=self.cfg.huber_delta)
+        else:
+            dyn = F.mse_loss(out.target, y)                     # L_Dec
+        terms = {"dynamics": dyn}
+        if out.contact is not None:                             # Eq. 4 on edges
+            c = self.normalize_contact(g.edge_contact)
+            if out.contact.numel() == 0:
+                terms["contact"] = out.contact.sum()            # no edges: 0, not NaN
+            elif self.contact_scene:  # logits: BCE is the stable form of a sigmoid + 0/1 target
+                terms["contact"] = F.binary_cross_entropy_with_logits(out.contact, c)
+            else:
+                terms["contact"] = F.mse_loss(out.contact, c)
+        if out.type_logits is not None:                         # cross-entropy of Eq. 2
+            terms["type"] = F.cross_entropy(out.type_logits, g.types)
+        if out.mass_nll is not None:                            # Eq. 8
+            terms["mass_nll"] = out.mass_nll.mean()
+        if out.relmass is not None:                             # L_Inv-Dec
+            r = self.normalizer.rel_log_mass(g.edge_rel_log_mass)
+            terms["relmass"] = (F.mse_loss(out.relmass, r) if r.numel()
+                                else out.relmass.sum())
+        return terms
+
+    def total_loss(self, terms: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """Eq. 12: weighted sum of the task losses (weights from the config)."""
+        if not terms:
+            raise ValueError("no loss terms to sum")
+        weighted = [self.cfg.loss_weight(k) * v for k, v in terms.items()]
+        return torch.stack(weighted).sum()
+
+    # ------------------------------------------------------------------ inference
+    def normalized_target(self, g: Graph) -> torch.Tensor:
+        """The graph's target in the model's (normalised) units, (N, D)."""
+        return self.normalizer.target(g.target)
+
+    def denormalize_target(self, target: torch.Tensor) -> torch.Tensor:
+        """``BGNOutput.target`` -> physical units."""
+        return self.normalizer.denormalize_target(target)
+
+    def denormalize_relmass(self, relmass: torch.Tensor) -> torch.Tensor:
+        """``BGNOutput.relmass`` -> ``log m_i - log m_j``."""
+        return self.normalizer.denormalize_rel_log_mass(relmass)
+
+    def predict(self, g: Graph) -> torch.Tensor:
+        """Forward target (next velocity or acceleration) in physical units, (N, D).
+
+        Runs only the forward path (no flow). Wrap in ``torch.no_grad()`` for rollouts."""
+        p, _ = self._process(g)
+        return self.normalizer.denormalize_target(self.decoder(p.h_cv))
+
+    @torch.no_grad()
+    def sample_log_mass(self, g: Graph, n_samples: int) -> torch.Tensor:
+        """Samples of every particle's normalised log-mass, (n_samples, N)."""
+        if self.inverse is None:
+            raise RuntimeError("this model has no inverse head (cfg.inverse=False)")
+        p, _ = self._process(g)
+        return self.inverse.sample_log_mass(p.h_tilde_v, n_samples)
+
+    @torch.no_grad()
+    def sample_mass(self, g: Graph, n_samples: int) -> torch.Tensor:
+        """Samples of every particle's mass in physical units, (n_samples, N)."""
+        return torch.exp(self.normalizer.denormalize_log_mass(self.sample_log_mass(g, n_samples)))

@@ -1,0 +1,134 @@
+"""Encoders (paper section "Encoder definition and design", Eq. 1).
+
+- Node encoder ``E_V``: raw-residual GCN layers over the particles' own state.
+- Edge (relation) encoder ``E_E``: a shared linear map of per-edge relative features (the paper's
+  1x1 convolution over the ``N x (k+1) x |V| x |V|`` relative tensor) gives one weight per edge;
+  weighted raw-residual GCN layers then give ``H_E``.
+
+Positions enter only as differences ``x_i - x_j`` (receiver minus sender), so both encoders are
+translation invariant unless ``use_absolute_position`` is set.
+"""
+
+from __future__ import annotations
+
+from itertools import pairwise
+
+import torch
+from torch import nn
+
+from bgn.data.batch import Graph
+from bgn.model.normalizer import Normalizer
+from bgn.model.ops import activation, gcn_aggregate, pad_features
+
+WALL_CLIP = 5.0  # wall distances beyond this many interaction lengths carry no information
+DIRECTION_EPS = 1e-6  # in normalised length units: coincident particles get direction 0, not NaN
+
+
+def node_input_dim(dim: int, history: int, walls: bool, absolute_position: bool) -> int:
+    """Width of ``node_features``: velocity window, then wall distances, then position."""
+    return (history + 1) * dim + (2 * dim if walls else 0) + (dim if absolute_position else 0)
+
+
+def edge_input_dim(dim: int, history: int) -> int:
+    """Width of ``edge_features``: relative position, distance, direction, velocity window."""
+    return dim + 1 + dim + (history + 1) * dim
+
+
+def node_features(g: Graph, norm: Normalizer, walls: bool, absolute_position: bool = False,
+                  box: float | None = None) -> torch.Tensor:
+    """``H_V^0`` (N, F0): normalised velocity window flattened (newest first), then the
+    distances to the walls in interaction lengths (clipped), then optionally the position."""
+    feats = [norm.velocity(g.vel).flatten(1)]
+    if walls:
+        if g.wall is None:
+            raise ValueError("the scene has walls but the graph carries no wall distances")
+        feats.append(torch.clamp(norm.rel_position(g.wall), max=WALL_CLIP))
+    if absolute_position:
+        feats.append(g.pos / box if box is not None else norm.rel_position(g.pos))
+    return torch.cat(feats, dim=1)
+
+
+def edge_features(g: Graph, norm: Normalizer) -> torch.Tensor:
+    """Per-edge relative features (E, Fe), receiver minus sender: the paper's ``P_i - P_j``.
+
+    ``[x_i - x_j, |x_i - x_j|, unit direction, v_i - v_j for each of the k+1 window steps]``,
+    lengths in units of the relative-position scale, velocities in the relative-velocity scale.
+    The unit direction is given explicitly so that a message linear in these features can carry
+    a force direction (processor).
+    """
+    snd, rcv = g.edge_index[0], g.edge_index[1]
+    rel = norm.rel_position(g.pos[rcv] - g.pos[snd])
+    # sqrt(r^2 + eps^2): no NaN (value or gradient) for coincident particles.
+    dist = torch.sqrt((rel * rel).sum(-1, keepdim=True) + DIRECTION_EPS**2)
+    rel_vel = norm.rel_velocity(g.vel[rcv] - g.vel[snd]).flatten(1)
+    return torch.cat([rel, dist, rel / dist, rel_vel], dim=1)
+
+
+class RawResidualGCN(nn.Module):
+    """One raw-residual graph convolution, Eq. 1: ``H' = s(Â H W + Â H)``, ``Â = A + I``.
+
+    When the width changes (first layer) the raw path ``Â H`` is zero-padded or truncated to the
+    output width (``ops.pad_features``): a fixed linear projection. A learned one would merge
+    with ``W`` and the raw features would no longer pass through.
+    """
+
+    def __init__(self, in_features: int, out_features: int, act: str = "silu",
+                 normalize: bool = False) -> None:
+        super().__init__()
+        self.out_features = out_features
+        self.normalize = normalize
+        self.linear = nn.Linear(in_features, out_features)  # W^l (with a bias)
+        self.act = activation(act)
+
+    def forward(self, h: torch.Tensor, edge_index: torch.Tensor,
+                edge_weight: torch.Tensor | None = None) -> torch.Tensor:
+        ah = gcn_aggregate(h, edge_index, edge_weight, self.normalize)  # Â H
+        return self.act(self.linear(ah) + pad_features(ah, self.out_features))  # Eq. 1
+
+
+class NodeEncoder(nn.Module):
+    """``E_V: [A, P] -> H_V``: ``layers`` raw-residual GCN layers on the unweighted graph."""
+
+    def __init__(self, in_features: int, hidden: int, layers: int, act: str = "silu",
+                 normalize: bool = False) -> None:
+        super().__init__()
+        widths = [in_features] + [hidden] * layers
+        self.layers = nn.ModuleList(RawResidualGCN(a, b, act, normalize)
+                                    for a, b in pairwise(widths))
+
+    def forward(self, x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
+        for layer in self.layers:
+            x = layer(x, edge_index)
+        return x
+
+
+class EdgeEncoder(nn.Module):
+    """``E_E: [A, P_i - P_j] -> H_E``.
+
+    The 1x1 convolution over the channels of the relative tensor is a linear map shared by all
+    edges, ``w_ij = sigmoid(a . e_ij + b)``. The sigmoid keeps the learned adjacency a soft
+    0/1 mask like the paper's ``A`` (contact or not): bounded weights keep the sums of the GCN
+    bounded by the degree, even for the close encounters of the gravity scenes, where an
+    unbounded squashing (softplus, exp) could explode.
+    """
+
+    def __init__(self, node_features: int, edge_features: int, hidden: int, layers: int,
+                 act: str = "silu", normalize: bool = False) -> None:
+        super().__init__()
+        self.conv1x1 = nn.Linear(edge_features, 1)
+        widths = [node_features] + [hidden] * layers
+        self.layers = nn.ModuleList(RawResidualGCN(a, b, act, normalize)
+                                    for a, b in pairwise(widths))
+
+    def edge_weight(self, e: torch.Tensor) -> torch.Tensor:
+        """(E, Fe) relative features -> (E,) weights in (0, 1): the learned ``A``."""
+        return torch.sigmoid(self.conv1x1(e)).squeeze(-1)
+
+    def forward(self, x: torch.Tensor, e: torch.Tensor,
+                edge_index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Node (N, F0) and edge (E, Fe) features -> (``H_E`` (N, hidden), weights (E,))."""
+        w = self.edge_weight(e)
+        h = x
+        for layer in self.layers:
+            h = layer(h, edge_index, w)  # Eq. 1 with Â = A_w + I
+        return h, w

@@ -1,0 +1,163 @@
+"""Processor (paper section "Processor definition and design", Eq. 2-4).
+
+- Particle-type classifier, Eq. 2: ``Ŷ = softmax(H_V W)``, ``H̃_V = H_V ‖ Ŷ``; built only when
+  the scene has more than one particle type.
+- Contact decoder, Eq. 3: ``ĉ_ij = <h_E,i, h_E,j> / sqrt(F)`` per edge. The ``1/sqrt(F)`` (a
+  constant) keeps initial logits O(1) so the sigmoid does not start saturated.
+- ``H̃_CV``: the paper concatenates row i of the N x N matrix ``Ĉ`` to ``H̃_V``, which ties the
+  model to one N. Here (``contact_mode="aggregate"``) a contact-weighted sum of edge messages,
+  ``sum_j ĉ_ij m_ij``, is concatenated instead; ``contact_mode="dense"`` keeps the literal rows
+  as an ablation for full graphs with a fixed N.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from bgn.data.batch import Graph
+from bgn.model.ops import scatter_sum
+
+CONTACT_MODES = ("aggregate", "dense")
+
+
+class TypeClassifier(nn.Module):
+    """Eq. 2: type logits ``H_V W`` (softmax / cross-entropy applied by the loss)."""
+
+    def __init__(self, hidden: int, n_types: int) -> None:
+        super().__init__()
+        self.linear = nn.Linear(hidden, n_types)
+
+    def forward(self, h_v: torch.Tensor) -> torch.Tensor:
+        return self.linear(h_v)
+
+
+def check_full_graph(g: Graph, n: int) -> None:
+    """Raise a clear error unless every graph in the batch is complete with exactly n nodes."""
+    counts = g.num_nodes.tolist()
+    n_edges = int(g.edge_index.shape[1])
+    if any(c != n for c in counts) or n_edges != len(counts) * n * (n - 1):
+        raise ValueError(
+            f"contact_mode='dense' concatenates rows of the N x N contact matrix and needs "
+            f"complete graphs of exactly N={n} particles; got graphs of {sorted(set(counts))} "
+            f"nodes with {n_edges} edges in all. Use contact_mode='aggregate' for radius "
+            f"graphs or a varying number of particles.")
+
+
+class ContactHead(nn.Module):
+    """Contact decoder (Eq. 3) and the contact-weighted aggregation that replaces ``Ĉ ‖ H_V``.
+
+    Message ``m_ij = W_m e_ij + b_m``: a linear map of the edge's relative features (relative
+    position, distance, unit direction, relative velocities). It is linear on purpose: then
+
+        sum_j ĉ_ij m_ij = W_m (sum_j ĉ_ij e_ij) + b_m sum_j ĉ_ij,
+
+    so only the narrow ``e_ij`` (about 16 channels) is gathered and scattered per edge and the
+    wide map is applied per node (O(E Fe + N Fe M) instead of O(E M)). With ``ĉ_ij`` a force
+    magnitude and the unit direction in ``e_ij``, ``sum_j ĉ_ij u_ij`` is a net force.
+    """
+
+    def __init__(self, h_e_features: int, edge_features: int, message_features: int | None,
+                 probability: bool) -> None:
+        super().__init__()
+        self.inv_sqrt_f = 1.0 / math.sqrt(h_e_features)
+        self.probability = probability  # contact scenes: sigmoid of the logits
+        self.message = (nn.Linear(edge_features, message_features)
+                        if message_features is not None else None)
+
+    def logits(self, h_e: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
+        """Eq. 3 on edges: ``ĉ_ij = <h_E,i, h_E,j> / sqrt(F)`` (E,)."""
+        snd, rcv = edge_index[0], edge_index[1]
+        return (h_e[rcv] * h_e[snd]).sum(-1) * self.inv_sqrt_f
+
+    def weights(self, c: torch.Tensor) -> torch.Tensor:
+        """Contact estimate used downstream: probability (contact scenes) or magnitude."""
+        return torch.sigmoid(c) if self.probability else c
+
+    def aggregate(self, c: torch.Tensor, e: torch.Tensor, edge_index: torch.Tensor,
+                  n: int) -> torch.Tensor:
+        """``sum over edges j -> i of weights(ĉ_ij) m_ij`` (N, M), via linearity (class doc)."""
+        assert self.message is not None
+        rcv = edge_index[1]
+        w = self.weights(c)
+        weighted = scatter_sum(w[:, None] * e, rcv, n)        # sum_j ĉ_ij e_ij
+        total = scatter_sum(w, rcv, n)                        # sum_j ĉ_ij
+        return nn.functional.linear(weighted, self.message.weight) \
+            + total[:, None] * self.message.bias
+
+    def dense_rows(self, c: torch.Tensor, h_e: torch.Tensor, g: Graph, n: int) -> torch.Tensor:
+        """Rows of the literal N x N matrix ``Ĉ = H_E H_Eᵀ`` (N_total, n), ablation only.
+
+        Row i, column j (j local to i's graph) is ``weights(ĉ_ij)``; the diagonal is
+        ``weights(<h_E,i, h_E,i> / sqrt(F))``, as in the paper's full matrix product.
+        """
+        check_full_graph(g, n)
+        snd, rcv = g.edge_index[0], g.edge_index[1]
+        offsets = torch.cumsum(g.num_nodes, 0) - g.num_nodes   # first node of each graph
+        local = torch.arange(h_e.shape[0], device=h_e.device) - offsets[g.batch]
+        rows = h_e.new_zeros(h_e.shape[0], n)
+        rows[rcv, local[snd]] = self.weights(c)
+        diag = (h_e * h_e).sum(-1) * self.inv_sqrt_f
+        rows[torch.arange(h_e.shape[0], device=h_e.device), local] = self.weights(diag)
+        return rows
+
+
+@dataclass
+class ProcessorOutput:
+    h_tilde_v: torch.Tensor            # (N, F_V)  H_V ‖ Ŷ: context of the inverse model
+    h_cv: torch.Tensor                 # (N, F_CV) input of the forward decoder
+    type_logits: torch.Tensor | None   # (N, n_types)
+    contact: torch.Tensor | None       # (E,) contact logits (contact scenes) or magnitudes
+
+
+class Processor(nn.Module):
+    """Classifier (if several types), contact decoder (if ``contact``) and ``H̃_CV``.
+
+    Without the contact head the decoder sees ``H̃_V ‖ H_E``, so relative information still
+    reaches it through the edge encoder.
+    """
+
+    def __init__(self, hidden: int, edge_features: int, n_types: int, n_particles: int,
+                 contact_scene: bool, classifier: bool = True, contact: bool = True,
+                 contact_mode: str = "aggregate", message_features: int | None = None) -> None:
+        super().__init__()
+        if contact_mode not in CONTACT_MODES:
+            raise ValueError(f"contact_mode={contact_mode!r}; choose one of {CONTACT_MODES}")
+        self.contact_mode = contact_mode
+        self.n_particles = n_particles
+        self.classifier = TypeClassifier(hidden, n_types) if classifier and n_types > 1 else None
+        self.contact = None
+        if contact:
+            message = (message_features or hidden) if contact_mode == "aggregate" else None
+            self.contact = ContactHead(hidden, edge_features, message, contact_scene)
+        self.tilde_v_features = hidden + (n_types if self.classifier is not None else 0)
+        if self.contact is None:
+            extra = hidden                                     # H_E
+        elif contact_mode == "dense":
+            extra = n_particles                                # row of Ĉ
+        else:
+            extra = message_features or hidden                 # sum_j ĉ_ij m_ij
+        self.out_features = self.tilde_v_features + extra
+
+    def forward(self, h_v: torch.Tensor, h_e: torch.Tensor, e: torch.Tensor,
+                g: Graph) -> ProcessorOutput:
+        type_logits = None
+        h_tilde_v = h_v
+        if self.classifier is not None:
+            type_logits = self.classifier(h_v)
+            h_tilde_v = torch.cat([h_v, torch.softmax(type_logits, -1)], -1)  # H_V ‖ Ŷ
+        contact = None
+        if self.contact is None:
+            h_cv = torch.cat([h_tilde_v, h_e], -1)
+        else:
+            contact = self.contact.logits(h_e, g.edge_index)
+            if self.contact_mode == "dense":  # literal Ĉ_i ‖ H̃_V
+                rows = self.contact.dense_rows(contact, h_e, g, self.n_particles)
+                h_cv = torch.cat([rows, h_tilde_v], -1)
+            else:
+                agg = self.contact.aggregate(contact, e, g.edge_index, h_v.shape[0])
+                h_cv = torch.cat([h_tilde_v, agg], -1)
+        return ProcessorOutput(h_tilde_v, h_cv, type_logits, contact)

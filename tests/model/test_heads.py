@@ -1,0 +1,145 @@
+"""Model only what the scene needs; loss keys; the dense ablation; building from a dict."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from bgn.data.batch import collate
+from bgn.model import BGN, LOSS_KEYS, ModelConfig, build_model
+
+
+def names(model: BGN) -> list[str]:
+    return [name for name, _ in model.named_parameters()]
+
+
+def small(**overrides) -> ModelConfig:
+    return ModelConfig(hidden=16, decoder_hidden=16, flow_hidden=8, flow_transforms=2,
+                       **overrides)
+
+
+def test_full_model_has_every_head(meta, stats, graph):
+    model = BGN(meta(6, 3), stats(), 2, small()).double()
+    assert model.heads == frozenset(LOSS_KEYS)
+    assert any(n.startswith("processor.classifier") for n in names(model))
+    assert any(n.startswith("processor.contact") for n in names(model))
+    assert any(n.startswith("inverse.flow") for n in names(model))
+    g = graph(6, n_types=3)
+    terms = model.loss_terms(g, model(g))
+    assert set(terms) == set(LOSS_KEYS)
+    assert all(t.ndim == 0 and torch.isfinite(t) for t in terms.values())
+    total = model.total_loss(terms)
+    torch.testing.assert_close(total, sum(terms.values()))
+
+
+def test_loss_weights(meta, stats, graph):
+    model = BGN(meta(6, 3), stats(), 2, small(loss_weights={"dynamics": 2.0, "type": 0.0}))
+    model = model.double()
+    g = graph(6, n_types=3)
+    terms = model.loss_terms(g, model(g))
+    expected = 2 * terms["dynamics"] + terms["contact"] + terms["mass_nll"] + terms["relmass"]
+    torch.testing.assert_close(model.total_loss(terms), expected)
+    with pytest.raises(ValueError, match="unknown loss weights"):
+        ModelConfig(loss_weights={"dynamic": 1.0})
+
+
+def test_one_type_has_no_classifier(meta, stats, graph):
+    model = BGN(meta(6, 1), stats(), 2, small(classifier=True)).double()
+    assert model.processor.classifier is None
+    assert not any("classifier" in n for n in names(model))
+    g = graph(6, n_types=1)
+    out = model(g)
+    assert out.type_logits is None and "type" not in model.loss_terms(g, out)
+
+
+def test_classifier_off(meta, stats):
+    model = BGN(meta(6, 3), stats(), 2, small(classifier=False))
+    assert not any("classifier" in n for n in names(model)) and "type" not in model.heads
+
+
+def test_no_contact_head(meta, stats, graph):
+    model = BGN(meta(6, 2), stats(), 2, small(contact=False)).double()
+    assert model.processor.contact is None
+    assert not any(n.startswith("processor.contact") for n in names(model))
+    g = graph(6)
+    out = model(g)
+    assert out.contact is None and "contact" not in model.loss_terms(g, out)
+
+
+def test_no_inverse(meta, stats, graph):
+    model = BGN(meta(6, 2), stats(), 2, small(inverse=False)).double()
+    assert model.inverse is None
+    assert not any("inverse" in n or "flow" in n for n in names(model))
+    g = graph(6)
+    out = model(g)
+    assert out.mass_nll is None and out.relmass is None
+    assert not {"mass_nll", "relmass"} & set(model.loss_terms(g, out))
+    with pytest.raises(RuntimeError, match="no inverse head"):
+        model.sample_mass(g, 2)
+
+
+def test_contact_scene_uses_probabilities(meta, stats, graph):
+    """Contact scenes: logits out, BCE-with-logits against 0/1 targets."""
+    model = BGN(meta(6, 2, "contact"), stats(), 2, small()).double()
+    g = graph(6, contact=True)
+    out = model(g)
+    expected = torch.nn.functional.binary_cross_entropy_with_logits(out.contact, g.edge_contact)
+    torch.testing.assert_close(model.loss_terms(g, out)["contact"], expected)
+
+
+def test_force_scene_contact_target_is_compressed(meta, stats, graph):
+    model = BGN(meta(6, 2), stats(), 2, small()).double()
+    g = graph(6)
+    c = model.normalize_contact(g.edge_contact)
+    torch.testing.assert_close(c, torch.log1p(g.edge_contact / 0.8))
+    linear = BGN(meta(6, 2), stats(), 2, small(force_transform="linear")).double()
+    torch.testing.assert_close(linear.normalize_contact(g.edge_contact), g.edge_contact / 0.8)
+
+
+def test_graph_without_edges(meta, stats, graph):
+    """A radius graph may have no edges at all: losses stay finite."""
+    model = BGN(meta(4, 2, "contact", "radius"), stats(), 2, small()).double()
+    g = graph(4, kind="radius", contact=True, cutoff=1e-9)
+    assert g.edge_index.shape[1] == 0
+    terms = model.loss_terms(g, model(g))
+    assert all(torch.isfinite(t) for t in terms.values())
+    model.total_loss(terms).backward()
+
+
+def test_dense_contact_mode_on_full_graph(meta, stats, graph):
+    model = BGN(meta(6, 2), stats(), 2, small(contact_mode="dense")).double()
+    assert model.processor.contact.message is None          # no message map in this mode
+    assert model.processor.out_features == 16 + 2 + 6       # H_V ‖ Ŷ ‖ row of Ĉ
+    batch = collate([graph(6, seed=0), graph(6, seed=1)])
+    out = model(batch)
+    assert out.target.shape == (12, 2)
+    model.total_loss(model.loss_terms(batch, out)).backward()
+
+
+def test_dense_contact_mode_rejects_radius_graphs(meta, stats, graph):
+    with pytest.raises(ValueError, match="full graph"):
+        BGN(meta(6, 2, "contact", "radius"), stats(), 2, small(contact_mode="dense"))
+    model = BGN(meta(6, 2), stats(), 2, small(contact_mode="dense")).double()
+    with pytest.raises(ValueError, match="contact_mode='dense'.*N=6"):
+        model(graph(5))                                      # another N
+    with pytest.raises(ValueError, match="contact_mode='dense'"):
+        model(graph(6, kind="radius", cutoff=1.0))           # not complete
+
+
+def test_history_mismatch_is_clear(meta, stats, graph):
+    model = BGN(meta(6, 2), stats(), 3, small())
+    with pytest.raises(ValueError, match="velocity window"):
+        model(graph(6, history=2, dtype=torch.float32))
+
+
+def test_build_model_from_config_dict(meta, stats):
+    config = {"name": "bgn", "hidden": 16, "flow": "naf", "lr": 1e-3, "weight_decay": 0.0,
+              "loss_weights": {"dynamics": 1.0, "contact": 0.5, "type": 1.0, "mass_nll": 1.0,
+                               "relmass": 1.0}}
+    model = build_model(config, meta(6, 2), stats(), 2)
+    assert isinstance(model, BGN) and model.cfg.flow == "naf"
+    assert model.cfg.loss_weight("contact") == 0.5
+    with pytest.raises(ValueError, match="unknown BGN model options"):
+        build_model({"name": "bgn", "hiden": 16}, meta(6, 2), stats(), 2)
+    with pytest.raises(ValueError, match="unknown model"):
+        build_model({"name": "nope"}, meta(6, 2), stats(), 2)

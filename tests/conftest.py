@@ -34,3 +34,9 @@ def small_cfg(tmp_path: Path):
                                            f"paths.data_dir={tmp_path / 'data'}", *overrides])
 
     return make
+
+
+@pytest.fixture(scope="session")
+def shared_data_dir(tmp_path_factory) -> Path:
+    """One data cache for the whole session: training tests reuse the small datasets."""
+    return tmp_path_factory.mktemp("data")

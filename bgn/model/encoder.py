@@ -64,36 +64,61 @@ def edge_features(g: Graph, norm: Normalizer) -> torch.Tensor:
     return torch.cat([rel, dist, rel / dist, rel_vel], dim=1)
 
 
+def symmetric_edge_width(history: int) -> int:
+    """Width of ``symmetric_edge_features``."""
+    return 1 + 2 * (history + 1)
+
+
+def symmetric_edge_features(e: torch.Tensor, dim: int) -> torch.Tensor:
+    """From ``edge_features``: the channels that do not change when i and j swap (E, 1+2(k+1)):
+    distance, radial relative velocity ``u_ij . (v_i - v_j)`` and relative speed per window
+    step. A contact label is symmetric, so these are what an edge term of it may use."""
+    dist = e[:, dim:dim + 1]
+    direction = e[:, dim + 1:2 * dim + 1]
+    rel_vel = e[:, 2 * dim + 1:].unflatten(1, (-1, dim))            # (E, k+1, D)
+    radial = (rel_vel * direction[:, None]).sum(-1)
+    speed = torch.sqrt((rel_vel * rel_vel).sum(-1) + DIRECTION_EPS**2)
+    return torch.cat([dist, radial, speed], 1)
+
+
 class RawResidualGCN(nn.Module):
     """One raw-residual graph convolution, Eq. 1: ``H' = s(Â H W + Â H)``, ``Â = A + I``.
 
     When the width changes (first layer) the raw path ``Â H`` is zero-padded or truncated to the
     output width (``ops.pad_features``): a fixed linear projection. A learned one would merge
     with ``W`` and the raw features would no longer pass through.
+
+    ``self_weight=True`` (not in the paper) adds ``H W_self``: on a complete graph ``Â`` is the
+    all-ones matrix, so Eq. 1 alone gives every node of a graph the same features.
     """
 
     def __init__(self, in_features: int, out_features: int, act: str = "silu",
-                 normalize: bool = False) -> None:
+                 normalize: bool = False, self_weight: bool = False) -> None:
         super().__init__()
         self.out_features = out_features
         self.normalize = normalize
         self.linear = nn.Linear(in_features, out_features)  # W^l (with a bias)
+        self.self_linear = (nn.Linear(in_features, out_features, bias=False)
+                            if self_weight else None)
         self.act = activation(act)
 
     def forward(self, h: torch.Tensor, edge_index: torch.Tensor,
                 edge_weight: torch.Tensor | None = None) -> torch.Tensor:
         ah = gcn_aggregate(h, edge_index, edge_weight, self.normalize)  # Â H
-        return self.act(self.linear(ah) + pad_features(ah, self.out_features))  # Eq. 1
+        z = self.linear(ah) + pad_features(ah, self.out_features)      # Eq. 1
+        if self.self_linear is not None:
+            z = z + self.self_linear(h)
+        return self.act(z)
 
 
 class NodeEncoder(nn.Module):
     """``E_V: [A, P] -> H_V``: ``layers`` raw-residual GCN layers on the unweighted graph."""
 
     def __init__(self, in_features: int, hidden: int, layers: int, act: str = "silu",
-                 normalize: bool = False) -> None:
+                 normalize: bool = False, self_weight: bool = False) -> None:
         super().__init__()
         widths = [in_features] + [hidden] * layers
-        self.layers = nn.ModuleList(RawResidualGCN(a, b, act, normalize)
+        self.layers = nn.ModuleList(RawResidualGCN(a, b, act, normalize, self_weight)
                                     for a, b in pairwise(widths))
 
     def forward(self, x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
@@ -113,11 +138,11 @@ class EdgeEncoder(nn.Module):
     """
 
     def __init__(self, node_features: int, edge_features: int, hidden: int, layers: int,
-                 act: str = "silu", normalize: bool = False) -> None:
+                 act: str = "silu", normalize: bool = False, self_weight: bool = False) -> None:
         super().__init__()
         self.conv1x1 = nn.Linear(edge_features, 1)
         widths = [node_features] + [hidden] * layers
-        self.layers = nn.ModuleList(RawResidualGCN(a, b, act, normalize)
+        self.layers = nn.ModuleList(RawResidualGCN(a, b, act, normalize, self_weight)
                                     for a, b in pairwise(widths))
 
     def edge_weight(self, e: torch.Tensor) -> torch.Tensor:

@@ -19,6 +19,7 @@ import torch
 from torch import nn
 
 from bgn.data.batch import Graph
+from bgn.model.encoder import symmetric_edge_features, symmetric_edge_width
 from bgn.model.ops import scatter_sum
 
 CONTACT_MODES = ("aggregate", "dense")
@@ -61,17 +62,28 @@ class ContactHead(nn.Module):
     """
 
     def __init__(self, h_e_features: int, edge_features: int, message_features: int | None,
-                 probability: bool) -> None:
+                 probability: bool, edge_term: tuple[int, int] | None = None) -> None:
         super().__init__()
         self.inv_sqrt_f = 1.0 / math.sqrt(h_e_features)
         self.probability = probability  # contact scenes: sigmoid of the logits
         self.message = (nn.Linear(edge_features, message_features)
                         if message_features is not None else None)
+        # Optional (not in the paper): + a . s_ij, s_ij the swap-symmetric edge features
+        # (distance, radial and total relative speed). (dim, history) when enabled.
+        self.edge_term = None
+        if edge_term is not None:
+            self.dim = edge_term[0]
+            self.edge_term = nn.Linear(symmetric_edge_width(edge_term[1]), 1)
 
-    def logits(self, h_e: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
-        """Eq. 3 on edges: ``ĉ_ij = <h_E,i, h_E,j> / sqrt(F)`` (E,)."""
+    def logits(self, h_e: torch.Tensor, edge_index: torch.Tensor,
+               e: torch.Tensor | None = None) -> torch.Tensor:
+        """Eq. 3 on edges: ``ĉ_ij = <h_E,i, h_E,j> / sqrt(F)`` (E,) [+ the edge term]."""
         snd, rcv = edge_index[0], edge_index[1]
-        return (h_e[rcv] * h_e[snd]).sum(-1) * self.inv_sqrt_f
+        c = (h_e[rcv] * h_e[snd]).sum(-1) * self.inv_sqrt_f
+        if self.edge_term is not None:
+            assert e is not None
+            c = c + self.edge_term(symmetric_edge_features(e, self.dim)).squeeze(-1)
+        return c
 
     def weights(self, c: torch.Tensor) -> torch.Tensor:
         """Contact estimate used downstream: probability (contact scenes) or magnitude."""
@@ -92,7 +104,8 @@ class ContactHead(nn.Module):
         """Rows of the literal N x N matrix ``Ĉ = H_E H_Eᵀ`` (N_total, n), ablation only.
 
         Row i, column j (j local to i's graph) is ``weights(ĉ_ij)``; the diagonal is
-        ``weights(<h_E,i, h_E,i> / sqrt(F))``, as in the paper's full matrix product.
+        ``weights(<h_E,i, h_E,i> / sqrt(F))``, as in the paper's full matrix product (no edge
+        term there: a particle is no edge of itself).
         """
         check_full_graph(g, n)
         snd, rcv = g.edge_index[0], g.edge_index[1]
@@ -122,7 +135,8 @@ class Processor(nn.Module):
 
     def __init__(self, hidden: int, edge_features: int, n_types: int, n_particles: int,
                  contact_scene: bool, classifier: bool = True, contact: bool = True,
-                 contact_mode: str = "aggregate", message_features: int | None = None) -> None:
+                 contact_mode: str = "aggregate", message_features: int | None = None,
+                 contact_edge_term: tuple[int, int] | None = None) -> None:
         super().__init__()
         if contact_mode not in CONTACT_MODES:
             raise ValueError(f"contact_mode={contact_mode!r}; choose one of {CONTACT_MODES}")
@@ -132,7 +146,8 @@ class Processor(nn.Module):
         self.contact = None
         if contact:
             message = (message_features or hidden) if contact_mode == "aggregate" else None
-            self.contact = ContactHead(hidden, edge_features, message, contact_scene)
+            self.contact = ContactHead(hidden, edge_features, message, contact_scene,
+                                       contact_edge_term)
         self.tilde_v_features = hidden + (n_types if self.classifier is not None else 0)
         if self.contact is None:
             extra = hidden                                     # H_E
@@ -153,7 +168,7 @@ class Processor(nn.Module):
         if self.contact is None:
             h_cv = torch.cat([h_tilde_v, h_e], -1)
         else:
-            contact = self.contact.logits(h_e, g.edge_index)
+            contact = self.contact.logits(h_e, g.edge_index, e)
             if self.contact_mode == "dense":  # literal Ĉ_i ‖ H̃_V
                 rows = self.contact.dense_rows(contact, h_e, g, self.n_particles)
                 h_cv = torch.cat([rows, h_tilde_v], -1)

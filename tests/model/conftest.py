@@ -60,8 +60,9 @@ def random_graph(n: int = 6, dim: int = 2, history: int = 2, kind: str = "full",
     receivers, senders = i[keep], j[keep]
     edge_index = torch.stack([senders, receivers])
     diff = pos[receivers] - pos[senders]
-    if contact:
-        edge_contact = (torch.rand(len(senders), generator=gen) < 0.3).to(dtype)
+    if contact:  # symmetric, like real contacts
+        touching = torch.rand(n, n, generator=gen) < 0.3
+        edge_contact = (touching | touching.T)[receivers, senders].to(dtype)
     else:  # a softened inverse-square magnitude: heavy-ish tail
         edge_contact = 1.0 / ((diff * diff).sum(-1) + 0.1)
     mass = torch.exp(randn(n))
@@ -90,3 +91,12 @@ def meta():
 @pytest.fixture
 def graph():
     return random_graph
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny graphs: intra-op threads only add overhead (and stall badly on a busy 2-core box)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

@@ -28,8 +28,10 @@ def gcn_layer(layer, h: torch.Tensor, a_hat: torch.Tensor) -> torch.Tensor:
         d = a_hat.sum(1).rsqrt()
         a_hat = d[:, None] * a_hat * d[None, :]
     ah = a_hat @ h
-    return layer.act(ah @ layer.linear.weight.T + layer.linear.bias
-                     + pad(ah, layer.out_features))
+    z = ah @ layer.linear.weight.T + layer.linear.bias + pad(ah, layer.out_features)
+    if layer.self_linear is not None:  # the self_weight option
+        z = z + h @ layer.self_linear.weight.T
+    return layer.act(z)
 
 
 def dense_forward(model: BGN, g, noise: torch.Tensor) -> dict[str, torch.Tensor]:
@@ -68,6 +70,14 @@ def dense_forward(model: BGN, g, noise: torch.Tensor) -> dict[str, torch.Tensor]
         h_cv = torch.cat([h_tilde, h_e], -1)
     else:
         c = h_e @ h_e.T / math.sqrt(h_e.shape[1])
+        if proc.contact.edge_term is not None:  # the contact_edge_term option
+            d = g.pos.shape[1]
+            v = e[..., 2 * d + 1:].unflatten(-1, (-1, d))
+            radial = (v * e[..., None, d + 1:2 * d + 1]).sum(-1)
+            speed = torch.sqrt((v**2).sum(-1) + DIRECTION_EPS**2)
+            sym = torch.cat([dist, radial, speed], -1)
+            term = (sym @ proc.contact.edge_term.weight.T + proc.contact.edge_term.bias)[..., 0]
+            c = c + term * (1 - eye)  # on edges only: the diagonal of Ĉ is <h_E,i, h_E,i>
         out["contact"] = c
         c_w = torch.sigmoid(c) if model.contact_scene else c
         if cfg.contact_mode == "dense":
@@ -106,6 +116,9 @@ CASES = [
     ("pairwise", 2, False, {"contact_mode": "dense"}),
     ("contact", 2, False, {"contact_mode": "dense", "flow": "naf"}),
     ("pairwise", 2, False, {"contact": False}),
+    ("contact", 3, True, {"self_weight": False}),   # the paper's literal Eq. 1
+    ("contact", 2, True, {"contact_edge_term": True}),
+    ("pairwise", 2, False, {"contact_edge_term": True, "contact_mode": "dense"}),
 ]
 
 

@@ -100,3 +100,14 @@ def test_batch_equals_graphs_alone(meta, stats, graph, interaction, kind, n_type
             if x is not None:
                 s = ns if name in NODE_FIELDS else es
                 torch.testing.assert_close(x[s], getattr(alone, name), msg=name)
+
+
+def test_contact_edge_term_is_symmetric(meta, stats, graph):
+    """With the edge term the contact logit of j -> i still equals that of i -> j."""
+    model = build(meta, stats, "contact", "full", 2, contact_edge_term=True)
+    g = graph(7, contact=True, seed=6)
+    out = model(g)
+    snd, rcv = g.edge_index
+    code = rcv * 7 + snd
+    reverse = torch.argsort(code)[torch.searchsorted(code.sort().values, snd * 7 + rcv)]
+    torch.testing.assert_close(out.contact, out.contact[reverse])

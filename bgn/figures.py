@@ -1,0 +1,65 @@
+"""Figures for TensorBoard and reports (matplotlib, no display needed)."""
+
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+from scipy.stats import gaussian_kde  # noqa: E402
+
+
+def predicted_vs_true(pred: np.ndarray, true: np.ndarray, label: str) -> Figure:
+    """One panel per dimension: predicted against true target, with the identity line."""
+    d = true.shape[1]
+    fig, axes = plt.subplots(1, d, figsize=(3.2 * d, 3.2), squeeze=False)
+    for i, ax in enumerate(axes[0]):
+        ax.scatter(true[:, i], pred[:, i], s=4, alpha=0.5)
+        lo, hi = np.percentile(true[:, i], [0.5, 99.5])
+        ax.plot([lo, hi], [lo, hi], "k--", lw=1)
+        ax.set_xlim(lo, hi)
+        ax.set_ylim(lo, hi)
+        ax.set_xlabel(f"true {label} [{i}]")
+        ax.set_ylabel("predicted")
+    fig.tight_layout()
+    return fig
+
+
+def mass_density(true: np.ndarray, sampled: np.ndarray) -> Figure:
+    """Kernel density of true and sampled masses on a log axis (paper figures 2-3)."""
+    fig, ax = plt.subplots(figsize=(4.5, 3.2))
+    log_true, log_sampled = np.log10(true), np.log10(sampled[np.isfinite(sampled)
+                                                             & (sampled > 0)])
+    lo = min(log_true.min(), np.percentile(log_sampled, 0.5)) - 0.3
+    hi = max(log_true.max(), np.percentile(log_sampled, 99.5)) + 0.3
+    grid = np.linspace(lo, hi, 300)
+    for values, name in ((log_true, "true"), (log_sampled, "sampled")):
+        if len(values) > 1 and np.ptp(values) > 0:
+            ax.plot(grid, gaussian_kde(values)(grid), label=name)
+        else:
+            ax.axvline(values[0] if len(values) else lo, label=name)
+    ax.set_xlabel("log10 mass")
+    ax.set_ylabel("density")
+    ax.legend()
+    fig.tight_layout()
+    return fig
+
+
+def rollout(result: dict[str, np.ndarray]) -> Figure:
+    """Trajectories (truth solid, prediction dashed) and position error over time."""
+    true, pred = result["true"], result["predicted"]
+    fig, (ax, ax_err) = plt.subplots(1, 2, figsize=(8, 3.5))
+    n_show = min(true.shape[1], 8)
+    for i in range(n_show):
+        line, = ax.plot(true[:, i, 0], true[:, i, 1], lw=1)
+        ax.plot(pred[:, i, 0], pred[:, i, 1], "--", lw=1, color=line.get_color())
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_title("rollout (solid: truth, dashed: model)")
+    err = np.linalg.norm(pred - true, axis=-1).mean(axis=-1)
+    ax_err.semilogy(np.arange(len(err)), np.maximum(err, 1e-12))
+    ax_err.set_xlabel("step")
+    ax_err.set_ylabel("mean position error")
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,193 @@
+"""The LightningModule: wraps any forward model (BGN or a baseline), sums its task losses
+(Eq. 12), logs every task on its own, computes the metrics and draws validation figures.
+
+Models expose ``forward(g)``, ``loss_terms(g, out) -> {task: loss}``, ``total_loss(terms)``,
+``predict(g)`` (physical units) and, with an inverse head, ``sample_mass(g, n)``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import lightning as L
+import numpy as np
+import torch
+from torch import nn
+from torchmetrics import MeanSquaredError, MetricCollection, R2Score
+from torchmetrics.aggregation import CatMetric
+from torchmetrics.classification import (
+    BinaryAUROC,
+    BinaryF1Score,
+    MulticlassAccuracy,
+    MulticlassAUROC,
+)
+
+from bgn.data.batch import Graph
+from bgn.model import build_model
+from bgn.sim import SceneMeta
+
+STAGES = ("train", "val", "test")
+
+
+class PhysicsModule(L.LightningModule):
+    """Training, validation and test of one model on one scene.
+
+    ``model_config`` names the model (``name``: bgn or a baseline) and its parameters; ``meta``
+    is the scene's metadata record as a dict; ``stats`` the training split's statistics (plain
+    lists are fine). The target variance of the training split turns the MSE into the
+    normalised MSE of Table 1, comparable across frame rates.
+    """
+
+    def __init__(self, model_config: dict[str, Any], meta: dict[str, Any],
+                 stats: dict[str, dict[str, Any]], history: int, lr: float = 1e-3,
+                 weight_decay: float = 0.0, lr_min_ratio: float = 0.01,
+                 max_epochs_hint: int = 100, figures: bool = True,
+                 rollout: Callable[[nn.Module], dict] | None = None) -> None:
+        super().__init__()
+        # everything needed to rebuild the model goes into the checkpoint's hyperparameters,
+        # so PhysicsModule.load_from_checkpoint(path) alone restores it
+        self.save_hyperparameters(ignore=["rollout"])
+        self.meta = SceneMeta(**meta)
+        stats_arrays = {g: {k: np.asarray(v, dtype=np.float64) for k, v in entries.items()}
+                        for g, entries in stats.items()}
+        self.model = build_model(dict(model_config), self.meta, stats_arrays, history)
+        target_variance = stats_arrays["target"]["std"] ** 2
+        self.lr, self.weight_decay = lr, weight_decay
+        self.lr_min_ratio, self.max_epochs_hint = lr_min_ratio, max_epochs_hint
+        self.figures = figures
+        self.rollout = rollout  # draws the validation rollout figure; not part of the state
+        self.register_buffer("target_variance",
+                             torch.as_tensor(np.asarray(target_variance), dtype=torch.float32))
+        # "train" is taken by nn.Module.train, hence the suffix
+        self.metrics = nn.ModuleDict({f"{stage}_": self._stage_metrics() for stage in STAGES})
+        self._figure_batch: Graph | None = None
+
+    # -- metrics --------------------------------------------------------------------------
+    def _stage_metrics(self) -> MetricCollection:
+        metrics: dict[str, Any] = {"mse": MeanSquaredError(),
+                                   "relative_error": CatMetric(nan_strategy="ignore")}
+        heads = getattr(self.model, "heads", set())
+        if "type" in heads:
+            n = self.meta.n_types
+            metrics["type_accuracy"] = MulticlassAccuracy(num_classes=n, average="micro")
+            metrics["type_auroc"] = MulticlassAUROC(num_classes=n)
+        if "contact" in heads:
+            if self.meta.interaction == "contact":
+                metrics["contact_f1"] = BinaryF1Score()
+                metrics["contact_auroc"] = BinaryAUROC()
+            else:
+                metrics["contact_r2"] = R2Score()
+        if "relmass" in heads:
+            metrics["relmass_r2"] = R2Score()
+        return MetricCollection(metrics)
+
+    def _update_metrics(self, stage: str, g: Graph, out: Any) -> None:
+        m = self.metrics[f"{stage}_"]
+        pred = self.model.denormalize_target(out.target)
+        m["mse"].update(pred, g.target)
+        # robust error next to MSE: heavy tails make MSE a few-frame statistic (SIMS.md)
+        m["relative_error"].update((pred - g.target).norm(dim=-1)
+                                   / g.target.norm(dim=-1).clamp_min(1e-12))
+        if "type_accuracy" in m:
+            m["type_accuracy"].update(out.type_logits, g.types)
+            m["type_auroc"].update(out.type_logits.softmax(-1), g.types)
+        if "contact_f1" in m:
+            prob = torch.sigmoid(out.contact)
+            m["contact_f1"].update(prob, g.edge_contact.long())
+            m["contact_auroc"].update(prob, g.edge_contact.long())
+        if "contact_r2" in m:
+            m["contact_r2"].update(out.contact, self.model.normalize_contact(g.edge_contact))
+        if "relmass_r2" in m:
+            m["relmass_r2"].update(self.model.denormalize_relmass(out.relmass),
+                                   g.edge_rel_log_mass)
+
+    def _log_metrics(self, stage: str) -> None:
+        values = {}
+        for name, metric in self.metrics[f"{stage}_"].items():
+            if not metric.update_called:
+                continue
+            value = metric.compute()
+            if name == "relative_error":
+                value = value.median() if value.numel() else torch.tensor(float("nan"))
+                name = "median_relative_error"
+            values[f"{stage}/{name}"] = value
+            if name == "mse":
+                values[f"{stage}/nmse"] = value / self.target_variance.mean()
+            metric.reset()
+        self.log_dict(values, sync_dist=True)
+
+    # -- steps ----------------------------------------------------------------------------
+    def _step(self, stage: str, g: Graph) -> torch.Tensor:
+        out = self.model(g)
+        terms = self.model.loss_terms(g, out)
+        loss = self.model.total_loss(terms)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(
+                f"{stage} loss became {loss.item()} at step {self.global_step} "
+                f"(terms: { {k: float(v) for k, v in terms.items()} }); lower model.lr or check "
+                "the data; the last good checkpoint is in the run's checkpoints/ folder")
+        n = g.num_graphs
+        self.log(f"{stage}/loss", loss, batch_size=n, prog_bar=stage != "test",
+                 on_step=stage == "train", on_epoch=True)
+        for name, value in terms.items():
+            self.log(f"{stage}/loss_{name}", value, batch_size=n, on_step=False, on_epoch=True)
+        self._update_metrics(stage, g, out)
+        return loss
+
+    def training_step(self, g: Graph, batch_idx: int) -> torch.Tensor:
+        return self._step("train", g)
+
+    def validation_step(self, g: Graph, batch_idx: int) -> None:
+        if batch_idx == 0:
+            self._figure_batch = g
+        self._step("val", g)
+
+    def test_step(self, g: Graph, batch_idx: int) -> None:
+        self._step("test", g)
+
+    def on_train_epoch_end(self) -> None:
+        self._log_metrics("train")
+
+    def on_validation_epoch_end(self) -> None:
+        self._log_metrics("val")
+        if self.figures and self._figure_batch is not None and not self.trainer.sanity_checking:
+            self._log_figures(self._figure_batch)
+
+    def on_test_epoch_end(self) -> None:
+        self._log_metrics("test")
+
+    def transfer_batch_to_device(self, batch: Graph, device: torch.device,
+                                 dataloader_idx: int) -> Graph:
+        return batch.to(device)
+
+    def configure_optimizers(self) -> dict[str, Any]:
+        optimizer = torch.optim.AdamW(self.parameters(), lr=self.lr,
+                                      weight_decay=self.weight_decay)
+        epochs = self.trainer.max_epochs if self.trainer.max_epochs and \
+            self.trainer.max_epochs > 0 else self.max_epochs_hint
+        scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(
+            optimizer, T_max=max(1, epochs), eta_min=self.lr * self.lr_min_ratio)
+        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler,
+                                                         "interval": "epoch"}}
+
+    # -- figures --------------------------------------------------------------------------
+    def _log_figures(self, g: Graph) -> None:
+        experiment = getattr(self.logger, "experiment", None)
+        if experiment is None or not hasattr(experiment, "add_figure"):
+            return
+        from bgn import figures
+
+        with torch.no_grad():
+            pred = self.model.predict(g).cpu().numpy()
+        step = self.global_step
+        experiment.add_figure("val/predicted_vs_true", figures.predicted_vs_true(
+            pred, g.target.cpu().numpy(), self.meta.target), step)
+        if hasattr(self.model, "sample_mass") and "mass_nll" in getattr(self.model, "heads", ()):
+            with torch.no_grad():
+                samples = self.model.sample_mass(g, 16).cpu().numpy()
+            experiment.add_figure("val/mass_density", figures.mass_density(
+                g.mass.cpu().numpy(), samples.ravel()), step)
+        if self.rollout is not None:
+            result = self.rollout(self.model)
+            experiment.add_figure("val/rollout", figures.rollout(result), step)

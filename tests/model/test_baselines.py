@@ -1,0 +1,229 @@
+"""Baselines BS1 (Cranmer et al. 2020 GN) and BS2 (Sanchez-Gonzalez et al. 2020 GNS)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+import torch
+
+from bgn.data.batch import collate
+from bgn.model import Normalizer, build_model
+from bgn.model.baselines import GNS, MODELS, CranmerGN, EdgeMLP
+
+HISTORY = 2
+SMALL = {  # test-sized versions of the published models
+    "cranmer_gn": {"hidden": 32, "message_dim": 8, "hidden_layers": 2},
+    "gns": {"latent": 16, "mlp_hidden": 16, "mlp_layers": 2, "message_passing_steps": 3},
+}
+SCENES = [  # interaction, graph kind, n_types, box (walls)
+    ("pairwise", "full", 1, None),
+    ("contact", "radius", 2, 4.0),
+]
+NAMES = sorted(MODELS)
+
+
+def build(meta, stats, name, interaction="pairwise", kind="full", n_types=1, box=None, n=7,
+          **overrides):
+    torch.manual_seed(1)
+    params = {**SMALL[name], **overrides}
+    return MODELS[name](meta(n, n_types, interaction, kind, box=box), stats(), HISTORY,
+                        params).double()
+
+
+def sample(graph, n=7, n_types=1, kind="full", box=None, seed=0):
+    return graph(n, history=HISTORY, kind=kind, n_types=n_types, contact=kind == "radius",
+                 box=box, seed=seed)
+
+
+def test_registry_has_both_baselines():
+    assert set(MODELS) == {"cranmer_gn", "gns"}
+
+
+@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize(("interaction", "kind", "n_types", "box"), SCENES)
+def test_forward_backward_finite(meta, stats, graph, name, interaction, kind, n_types, box):
+    model = build(meta, stats, name, interaction, kind, n_types, box).train()
+    g = sample(graph, n_types=n_types, kind=kind, box=box, seed=3)
+    assert g.edge_index.shape[1] > 0
+    out = model(g)
+    assert out.target.shape == (7, 2)
+    assert out.type_logits is None and out.contact is None and out.relmass is None
+    assert model.heads == frozenset({"dynamics"})
+    terms = model.loss_terms(g, out)
+    assert set(terms) == {"dynamics"}
+    loss = model.total_loss(terms)
+    assert torch.isfinite(loss)
+    loss.backward()
+    for pname, p in model.named_parameters():
+        assert p.grad is not None and torch.isfinite(p.grad).all(), pname
+    assert model.predict(g).shape == (7, 2)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_graph_without_edges(meta, stats, graph, name):
+    model = build(meta, stats, name, "contact", "radius", 2, 4.0, n=3)
+    g = replace(sample(graph, 3, 2, "radius", 4.0), edge_index=torch.zeros(2, 0, dtype=torch.long))
+    out = model(g)
+    assert out.target.shape == (3, 2) and torch.isfinite(out.target).all()
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_build_model_by_name(meta, stats, name):
+    # published default sizes, optimiser keys stripped by the registry
+    model = build_model({"name": name, "lr": 1e-3, "weight_decay": 0.0}, meta(4, 1), stats(), 5)
+    assert isinstance(model, CranmerGN if name == "cranmer_gn" else GNS)
+    assert model.name == name
+    if name == "gns":
+        assert len(model.processor) == 10 and model.cfg.latent == 128
+    else:
+        assert model.cfg.hidden == 300 and model.cfg.message_dim == 100
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_unknown_or_bad_params_raise(meta, stats, name):
+    with pytest.raises(ValueError, match="hiden"):
+        build_model({"name": name, "hiden": 3}, meta(4, 1), stats(), 2)
+    with pytest.raises(ValueError, match="hiden"):
+        MODELS[name](meta(4, 1), stats(), 2, {"name": name, "hiden": 3})
+    with pytest.raises(ValueError, match="activation"):
+        MODELS[name](meta(4, 1), stats(), 2, {"activation": "nope"})
+    key = "hidden" if name == "cranmer_gn" else "latent"
+    with pytest.raises(ValueError, match=key):
+        MODELS[name](meta(4, 1), stats(), 2, {key: 0})
+    with pytest.raises(ValueError, match="noise_std"):
+        MODELS["gns"](meta(4, 1), stats(), 2, {"noise_std": -1.0})
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_wrong_window_raises(meta, stats, graph, name):
+    model = build(meta, stats, name)
+    g = graph(7, history=HISTORY + 1)
+    with pytest.raises(ValueError, match="velocity window"):
+        model(g)
+
+
+def test_targets_normalised_like_bgn(meta, stats, graph):
+    model = build(meta, stats, "gns")
+    g = sample(graph)
+    norm = Normalizer(stats(), 2).double()
+    torch.testing.assert_close(model.normalized_target(g), norm.target(g.target))
+    torch.testing.assert_close(model.denormalize_target(model.normalized_target(g)), g.target)
+    model.eval()
+    out = model(g)
+    torch.testing.assert_close(model.loss_terms(g, out)["dynamics"],
+                               ((out.target - norm.target(g.target)) ** 2).mean())
+    torch.testing.assert_close(model.predict(g), norm.denormalize_target(out.target))
+
+
+# ----------------------------------------------------------------------------- symmetries
+@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize(("interaction", "kind", "n_types", "box"), SCENES)
+def test_translation_invariance(meta, stats, graph, name, interaction, kind, n_types, box):
+    model = build(meta, stats, name, interaction, kind, n_types, box).eval()
+    g = sample(graph, n_types=n_types, kind=kind, box=box, seed=2)
+    # walls are inputs as distances, so shift positions only (as the distances would be)
+    shifted = replace(g, pos=g.pos + torch.tensor([13.25, -4.5], dtype=torch.float64))
+    torch.testing.assert_close(model(g).target, model(shifted).target)
+
+
+@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize(("interaction", "kind", "n_types", "box"), SCENES)
+def test_permutation_equivariance(meta, stats, graph, name, interaction, kind, n_types, box):
+    model = build(meta, stats, name, interaction, kind, n_types, box, oracle=True).eval()
+    g = sample(graph, n_types=n_types, kind=kind, box=box, seed=4)
+    gen = torch.Generator().manual_seed(5)
+    perm = torch.randperm(7, generator=gen)             # new node a is old node perm[a]
+    inverse = torch.argsort(perm)
+    edge_perm = torch.randperm(g.edge_index.shape[1], generator=gen)
+    permuted = replace(
+        g, pos=g.pos[perm], vel=g.vel[perm], target=g.target[perm], mass=g.mass[perm],
+        types=g.types[perm], radius=g.radius[perm],
+        wall=None if g.wall is None else g.wall[perm],
+        edge_index=inverse[g.edge_index][:, edge_perm],
+        edge_contact=g.edge_contact[edge_perm], edge_rel_log_mass=g.edge_rel_log_mass[edge_perm])
+    torch.testing.assert_close(model(g).target[perm], model(permuted).target)
+    torch.testing.assert_close(model.loss_terms(g, model(g))["dynamics"],
+                               model.loss_terms(permuted, model(permuted))["dynamics"])
+
+
+@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize(("interaction", "kind", "n_types", "box"), SCENES)
+def test_batch_equals_graphs_alone(meta, stats, graph, name, interaction, kind, n_types, box):
+    model = build(meta, stats, name, interaction, kind, n_types, box).eval()  # GNS: noise off
+    a = sample(graph, 7, n_types, kind, box, seed=6)
+    b = sample(graph, 5, n_types, kind, box, seed=7)
+    both = model(collate([a, b])).target
+    torch.testing.assert_close(both[:7], model(a).target)
+    torch.testing.assert_close(both[7:], model(b).target)
+
+
+def test_factored_edge_mlp_equals_concatenation():
+    torch.manual_seed(0)
+    layer = EdgeMLP(3, 5, [16, 16, 4], "relu", layer_norm=True).double()
+    e, x = torch.randn(11, 3, dtype=torch.float64), torch.randn(6, 5, dtype=torch.float64)
+    edge_index = torch.randint(0, 6, (2, 11))
+    factored = layer(e, x, edge_index)
+    layer.factored = False
+    torch.testing.assert_close(factored, layer(e, x, edge_index))
+
+
+# ----------------------------------------------------------------------------- noise, oracle
+def test_noise_only_in_training(meta, stats, graph):
+    model = build(meta, stats, "gns", noise_std=0.3)
+    g = sample(graph, seed=8)
+    model.eval()
+    clean = model(g).target
+    torch.testing.assert_close(model(g).target, clean)                # deterministic
+    model.train()
+    noisy1, noisy2 = model(g).target, model(g).target
+    assert not torch.allclose(noisy1, clean) and not torch.allclose(noisy1, noisy2)
+    torch.testing.assert_close(model.predict(g), model.denormalize_target(clean))  # never noisy
+    quiet = build(meta, stats, "gns", noise_std=0.0).train()
+    torch.testing.assert_close(quiet(g).target, quiet.eval()(g).target)
+    cranmer = build(meta, stats, "cranmer_gn").train()                 # BS1 has no noise
+    torch.testing.assert_close(cranmer(g).target, cranmer.eval()(g).target)
+
+
+def test_noise_is_a_random_walk_newest_first(meta, stats, graph):
+    model = build(meta, stats, "gns", noise_std=0.3, n=4000)
+    g = graph(4000, history=HISTORY, seed=9)
+    torch.manual_seed(0)
+    std = model.velocity_noise(g).std(dim=(0, 2))                      # per window step
+    expected = 0.3 * torch.sqrt(torch.arange(HISTORY + 1, 0, -1) / (HISTORY + 1.0))
+    torch.testing.assert_close(std, expected.double(), atol=0.01, rtol=0.0)
+
+
+@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize(("n_types", "extra"), [(1, 1), (3, 4)])
+def test_oracle_inputs_and_label(meta, stats, graph, name, n_types, extra):
+    plain = build(meta, stats, name, n_types=n_types)
+    oracle = build(meta, stats, name, n_types=n_types, oracle=True)
+    assert oracle.node_in == plain.node_in + extra
+    assert plain.name == name and oracle.name == f"{name}+oracle" == oracle.label
+    g = sample(graph, n_types=n_types, seed=10)
+    assert oracle.node_inputs(g).shape == (7, oracle.node_in)
+    other = replace(g, mass=g.mass * torch.linspace(0.5, 2.0, 7, dtype=torch.float64),
+                    types=(g.types + 1) % n_types)
+    plain.eval(), oracle.eval()
+    # without the oracle, masses and types are never inputs; with it they are
+    torch.testing.assert_close(plain(g).target, plain(other).target)
+    assert not torch.allclose(oracle(g).target, oracle(other).target)
+
+
+# ----------------------------------------------------------------------------- learning
+@pytest.mark.parametrize("name", NAMES)
+def test_overfits_a_tiny_batch(meta, stats, graph, name):
+    torch.manual_seed(0)
+    params = {**SMALL[name], **({"noise_std": 0.0} if name == "gns" else {})}  # a fixed target
+    model = MODELS[name](meta(4, 1), stats(), HISTORY, params)
+    g = collate([graph(4, history=HISTORY, seed=s, dtype=torch.float32) for s in (11, 12)])
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    first = None
+    for _ in range(400):
+        opt.zero_grad()
+        loss = model.total_loss(model.loss_terms(g, model(g)))
+        first = loss.item() if first is None else first
+        loss.backward()
+        opt.step()
+    assert first > 0.5 and loss.item() < 1e-3, (first, loss.item())

@@ -46,6 +46,8 @@ def compute_stats(scene: Scene, arrays: dict[str, np.ndarray], dt: float,
     log_mass = np.log(arrays["masses"])
     stats = {
         "velocity": summarize(velocity.reshape(-1, d)),
+        # v[t] - v[t-1]: the scale of the increments inside an input window
+        "velocity_increment": summarize(np.diff(velocity, axis=0).reshape(-1, d)),
         "target": summarize(target.reshape(-1, d)),
         "log_mass": summarize(log_mass.reshape(-1, 1)),
     }

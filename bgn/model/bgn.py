@@ -66,6 +66,13 @@ class ModelConfig:
     # False = the paper's literal Eq. 1 (ablation).
     self_weight: bool = True
     use_absolute_position: bool = False
+    # Not in the paper: the window's velocity increments (finite-difference accelerations) as
+    # node inputs in their own scale. They are linear in the window, but at high fps they are
+    # tiny differences of normalised velocities that GCN averaging washes out.
+    velocity_increments: bool = False
+    # Not in the paper: the decoder also sees the node's own input features (a skip past the
+    # GCN layers, which mix each node with its neighbours).
+    decoder_skip: bool = False
     # Force scenes: the contact target is |F_ij| / robust scale, compressed by log1p so that
     # the heavy tail of close encounters does not dominate (SIMS.md); "linear" = paper MSE.
     force_transform: str = "log1p"     # "log1p" | "linear"
@@ -122,7 +129,8 @@ class BGN(nn.Module):
         self.contact_scene = meta.interaction == "contact"
         self.normalizer = Normalizer(stats, meta.dim)
         d, h = meta.dim, cfg.hidden
-        node_in = node_input_dim(d, history, meta.has_walls, cfg.use_absolute_position)
+        node_in = node_input_dim(d, history, meta.has_walls, cfg.use_absolute_position,
+                                 cfg.velocity_increments)
         edge_in = edge_input_dim(d, history)
         self.node_encoder = NodeEncoder(node_in, h, cfg.node_layers, cfg.activation,
                                         cfg.degree_normalize, cfg.self_weight)
@@ -133,7 +141,8 @@ class BGN(nn.Module):
                                    contact=cfg.contact, contact_mode=cfg.contact_mode,
                                    contact_edge_term=((d, history) if cfg.contact_edge_term
                                                       else None))
-        self.decoder = Decoder(self.processor.out_features, cfg.decoder_hidden, d,
+        self.decoder = Decoder(self.processor.out_features + (node_in if cfg.decoder_skip else 0),
+                               cfg.decoder_hidden, d,
                                cfg.activation, cfg.shared_decoder)
         self.inverse = (InverseModel(self.processor.tilde_v_features, cfg.flow,
                                      cfg.flow_transforms, cfg.flow_hidden, cfg.activation)
@@ -158,17 +167,22 @@ class BGN(nn.Module):
         """Encoders and processor: (ProcessorOutput, edge weights)."""
         self._check(g)
         x = node_features(g, self.normalizer, self.meta.has_walls,
-                          self.cfg.use_absolute_position, self.meta.box)
+                          self.cfg.use_absolute_position, self.meta.box,
+                          self.cfg.velocity_increments)
         e = edge_features(g, self.normalizer)
         h_v = self.node_encoder(x, g.edge_index)               # Eq. 1
         h_e, w = self.edge_encoder(x, e, g.edge_index)         # Eq. 1 with learned A
-        return self.processor(h_v, h_e, e, g), w               # Eq. 2-3
+        return self.processor(h_v, h_e, e, g), w, x            # Eq. 2-3
+
+    def _decode(self, h_cv: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """Eq. 5 on H̃_CV (and the node inputs with ``decoder_skip``)."""
+        return self.decoder(torch.cat([h_cv, x], -1) if self.cfg.decoder_skip else h_cv)
 
     def forward(self, g: Graph, noise: torch.Tensor | None = None) -> BGNOutput:
         """All heads on a graph (one frame or a batch). ``noise`` (N,): base draws of the
         flow sample behind ``relmass`` (drawn here when None)."""
-        p, w = self._process(g)
-        target = self.decoder(p.h_cv)                          # Eq. 5
+        p, w, x = self._process(g)
+        target = self._decode(p.h_cv, x)                       # Eq. 5
         mass_nll = relmass = z = None
         if self.inverse is not None:
             log_m = self.normalizer.log_mass(torch.log(g.mass))
@@ -236,15 +250,15 @@ class BGN(nn.Module):
         """Forward target (next velocity or acceleration) in physical units, (N, D).
 
         Runs only the forward path (no flow). Wrap in ``torch.no_grad()`` for rollouts."""
-        p, _ = self._process(g)
-        return self.normalizer.denormalize_target(self.decoder(p.h_cv))
+        p, _, x = self._process(g)
+        return self.normalizer.denormalize_target(self._decode(p.h_cv, x))
 
     @torch.no_grad()
     def sample_log_mass(self, g: Graph, n_samples: int) -> torch.Tensor:
         """Samples of every particle's normalised log-mass, (n_samples, N)."""
         if self.inverse is None:
             raise RuntimeError("this model has no inverse head (cfg.inverse=False)")
-        p, _ = self._process(g)
+        p, _, _ = self._process(g)
         return self.inverse.sample_log_mass(p.h_tilde_v, n_samples)
 
     @torch.no_grad()

@@ -24,9 +24,11 @@ WALL_CLIP = 5.0  # wall distances beyond this many interaction lengths carry no 
 DIRECTION_EPS = 1e-6  # in normalised length units: coincident particles get direction 0, not NaN
 
 
-def node_input_dim(dim: int, history: int, walls: bool, absolute_position: bool) -> int:
-    """Width of ``node_features``: velocity window, then wall distances, then position."""
-    return (history + 1) * dim + (2 * dim if walls else 0) + (dim if absolute_position else 0)
+def node_input_dim(dim: int, history: int, walls: bool, absolute_position: bool,
+                   increments: bool = False) -> int:
+    """Width of ``node_features``: velocity window, increments, wall distances, position."""
+    return ((history + 1) * dim + (history * dim if increments else 0)
+            + (2 * dim if walls else 0) + (dim if absolute_position else 0))
 
 
 def edge_input_dim(dim: int, history: int) -> int:
@@ -35,10 +37,13 @@ def edge_input_dim(dim: int, history: int) -> int:
 
 
 def node_features(g: Graph, norm: Normalizer, walls: bool, absolute_position: bool = False,
-                  box: float | None = None) -> torch.Tensor:
-    """``H_V^0`` (N, F0): normalised velocity window flattened (newest first), then the
-    distances to the walls in interaction lengths (clipped), then optionally the position."""
+                  box: float | None = None, increments: bool = False) -> torch.Tensor:
+    """``H_V^0`` (N, F0): normalised velocity window flattened (newest first), optionally its
+    increments v[t-l] - v[t-l-1] in their own scale, then the distances to the walls in
+    interaction lengths (clipped), then optionally the position."""
     feats = [norm.velocity(g.vel).flatten(1)]
+    if increments:
+        feats.append(norm.velocity_increment(g.vel[:, :-1] - g.vel[:, 1:]).flatten(1))
     if walls:
         if g.wall is None:
             raise ValueError("the scene has walls but the graph carries no wall distances")

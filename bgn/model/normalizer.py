@@ -76,6 +76,9 @@ class Normalizer(nn.Module):
         buf("velocity_scale", robust_scale(stats, "velocity").mean())
         buf("target_center", np.broadcast_to(_column(stats, "target", "median"), (dim,)))
         buf("target_scale", robust_scale(stats, "target").mean())
+        # older statistics lack increments: fall back to the velocity scale
+        buf("increment_scale", robust_scale(stats, "velocity_increment").mean()
+            if "velocity_increment" in stats else robust_scale(stats, "velocity").mean())
         buf("rel_position_scale", robust_scale(stats, "rel_position").mean())
         buf("rel_velocity_scale", robust_scale(stats, "rel_velocity").mean())
         buf("contact_scale", robust_scale(stats, "contact").mean())
@@ -87,6 +90,12 @@ class Normalizer(nn.Module):
     def velocity(self, v: torch.Tensor) -> torch.Tensor:
         """(..., D) velocities -> normalised."""
         return (v - self.velocity_center) / self.velocity_scale
+
+    def velocity_increment(self, dv: torch.Tensor) -> torch.Tensor:
+        """v[t] - v[t-1] in units of its own scale: the window's finite-difference
+        accelerations, well conditioned (differences of normalised velocities are tiny at
+        high fps)."""
+        return dv / self.increment_scale
 
     def target(self, y: torch.Tensor) -> torch.Tensor:
         """(N, D) physical target -> normalised."""

@@ -42,7 +42,7 @@ class PhysicsModule(L.LightningModule):
     def __init__(self, model_config: dict[str, Any], meta: dict[str, Any],
                  stats: dict[str, dict[str, Any]], history: int, lr: float = 1e-3,
                  weight_decay: float = 0.0, lr_min_ratio: float = 0.01,
-                 max_epochs_hint: int = 100, figures: bool = True,
+                 lr_patience: int = 5, figures: bool = True,
                  rollout: Callable[[nn.Module], dict] | None = None) -> None:
         super().__init__()
         # everything needed to rebuild the model goes into the checkpoint's hyperparameters,
@@ -54,7 +54,7 @@ class PhysicsModule(L.LightningModule):
         self.model = build_model(dict(model_config), self.meta, stats_arrays, history)
         target_variance = stats_arrays["target"]["std"] ** 2
         self.lr, self.weight_decay = lr, weight_decay
-        self.lr_min_ratio, self.max_epochs_hint = lr_min_ratio, max_epochs_hint
+        self.lr_min_ratio, self.lr_patience = lr_min_ratio, lr_patience
         self.figures = figures
         self.rollout = rollout  # draws the validation rollout figure; not part of the state
         self.register_buffer("target_variance",
@@ -164,12 +164,14 @@ class PhysicsModule(L.LightningModule):
     def configure_optimizers(self) -> dict[str, Any]:
         optimizer = torch.optim.AdamW(self.parameters(), lr=self.lr,
                                       weight_decay=self.weight_decay)
-        epochs = self.trainer.max_epochs if self.trainer.max_epochs and \
-            self.trainer.max_epochs > 0 else self.max_epochs_hint
-        scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(
-            optimizer, T_max=max(1, epochs), eta_min=self.lr * self.lr_min_ratio)
-        return {"optimizer": optimizer, "lr_scheduler": {"scheduler": scheduler,
-                                                         "interval": "epoch"}}
+        # on plateaus rather than on a fixed schedule: runs end by a time budget (max_time),
+        # so the number of epochs is not known in advance
+        scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
+            optimizer, mode="min", factor=0.5, patience=self.lr_patience,
+            min_lr=self.lr * self.lr_min_ratio)
+        return {"optimizer": optimizer, "lr_scheduler": {
+            "scheduler": scheduler, "monitor": "val/nmse", "interval": "epoch",
+            "strict": False}}
 
     # -- figures --------------------------------------------------------------------------
     def _log_figures(self, g: Graph) -> None:

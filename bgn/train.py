@@ -48,7 +48,6 @@ def build(cfg: DictConfig) -> tuple[ParticleDataModule, PhysicsModule]:
     module = PhysicsModule(model_config, dict(vars(datamodule.meta)),
                            plain_stats(datamodule.stats()), datamodule.history, lr=lr,
                            weight_decay=weight_decay, figures=bool(cfg.get("figures", True)),
-                           max_epochs_hint=int(cfg.trainer.get("max_epochs") or 100),
                            rollout=rollout_fn)
     return datamodule, module
 

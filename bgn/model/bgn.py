@@ -69,10 +69,10 @@ class ModelConfig:
     # Not in the paper: the window's velocity increments (finite-difference accelerations) as
     # node inputs in their own scale. They are linear in the window, but at high fps they are
     # tiny differences of normalised velocities that GCN averaging washes out.
-    velocity_increments: bool = False
+    velocity_increments: bool = True
     # Not in the paper: the decoder also sees the node's own input features (a skip past the
     # GCN layers, which mix each node with its neighbours).
-    decoder_skip: bool = False
+    decoder_skip: bool = True
     # Force scenes: the contact target is |F_ij| / robust scale, compressed by log1p so that
     # the heavy tail of close encounters does not dominate (SIMS.md); "linear" = paper MSE.
     force_transform: str = "log1p"     # "log1p" | "linear"

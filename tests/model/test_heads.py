@@ -149,7 +149,8 @@ def test_complete_graph_node_features_need_self_weight(meta, stats, graph):
     """Eq. 1 on a complete graph: Â = 11ᵀ, so H_V is one row repeated; ``self_weight`` fixes it."""
     g = graph(6)
     for self_weight, identical in ((False, True), (True, False)):
-        model = BGN(meta(6, 2), stats(), 2, small(self_weight=self_weight)).double()
+        model = BGN(meta(6, 2), stats(), 2,
+                    small(self_weight=self_weight, velocity_increments=False)).double()
         x = model.normalizer.velocity(g.vel).flatten(1)
         h_v = model.node_encoder(x, g.edge_index)
         assert torch.allclose(h_v, h_v[:1].expand_as(h_v)) == identical

@@ -10,7 +10,7 @@ from torch.utils.data import Dataset
 
 from bgn.data.batch import Graph
 from bgn.data.files import DatasetFile
-from bgn.data.graphs import full_graph, radius_graph
+from bgn.data.graphs import full_graph, scene_edges
 from bgn.data.targets import backward_velocities, targets
 from bgn.sim import Scene, SceneMeta, make_scene
 
@@ -110,8 +110,7 @@ def frame_graph(window: np.ndarray, dt: float, meta: SceneMeta, scene: Scene,
     else:
         target = np.zeros_like(pos)
     if edges is None:
-        edges = (full_graph(len(pos)) if meta.graph == "full"
-                 else radius_graph(pos, radii=radii, margin=margin))
+        edges = scene_edges(meta.graph, pos, radii, margin)
     snd, rcv = edges
     if meta.interaction == "contact":
         n = len(pos)

@@ -290,3 +290,14 @@ def batch_edges(edge_lists: Sequence[np.ndarray], n_nodes: Sequence[int]) -> np.
     if not pieces:
         return _empty_edges()
     return np.concatenate(pieces, axis=1)
+
+
+def scene_edges(graph: str, positions: np.ndarray, radii: np.ndarray, margin: float
+                ) -> np.ndarray:
+    """The edges a scene asks for (``SceneMeta.graph``): complete, or pairs closer than
+    ``r_i + r_j + margin``."""
+    if graph == "full":
+        return full_graph(len(positions))
+    if graph == "radius":
+        return radius_graph(positions, radii=radii, margin=margin)
+    raise ValueError(f"unknown graph kind {graph!r}; use 'full' or 'radius'")

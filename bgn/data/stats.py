@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bgn.data.graphs import full_graph, radius_graph
+from bgn.data.graphs import scene_edges
 from bgn.data.targets import backward_velocities, targets
 from bgn.sim import Scene
 
@@ -62,11 +62,7 @@ def compute_stats(scene: Scene, arrays: dict[str, np.ndarray], dt: float,
     for s in range(n_sims):
         for t in frames:
             x = positions[s, t]
-            if meta.graph == "full":
-                edges = full_graph(meta.n_particles)
-            else:
-                edges = radius_graph(x, radii=arrays["radii"][s], margin=margin)
-            snd, rcv = edges
+            snd, rcv = scene_edges(meta.graph, x, arrays["radii"][s], margin)
             rel_pos.append(x[rcv] - x[snd])
             rel_vel.append((x[rcv] - positions[s, t - 1][rcv])
                            - (x[snd] - positions[s, t - 1][snd]))

@@ -17,7 +17,8 @@ def rollout(model: nn.Module, dataset: FrameDataset, sim: int, start: int | None
 
     The first window (k+2 frames) is true; every later frame is predicted. Returns true and
     predicted positions (n_steps+1, N, D), the true and predicted energy per frame, and the
-    first step with a non-finite value (-1 if none).
+    first step with a non-finite value (-1 if none); a rollout stops before that step, so
+    every array it returns is finite.
     """
     k = dataset.history
     start = k + 1 if start is None else start
@@ -36,13 +37,13 @@ def rollout(model: nn.Module, dataset: FrameDataset, sim: int, start: int | None
         target = model.predict(g).double().cpu().numpy()
         velocity = (window[-1] - window[-2]) / dataset.dt
         position, _ = step(window[-1], velocity, target, dataset.dt, kind)
-        if first_bad < 0 and not np.isfinite(position).all():
-            first_bad = i + 1
-            position = np.nan_to_num(position)
+        if not np.isfinite(position).all():
+            first_bad = i + 1  # stop here: nothing after a non-finite frame means anything
+            break
         window = np.concatenate([window[1:], position[None]])
         predicted.append(position)
     predicted = np.stack(predicted)
-    true = truth[k + 1:]
+    true = truth[k + 1:k + 1 + len(predicted)]
     masses = dataset.file.read("masses", sim)
 
     def energy(x: np.ndarray) -> np.ndarray:

@@ -97,7 +97,7 @@ def cell_overrides(cell: Cell, cfg: DictConfig) -> list[str]:
         se = preset.sample_efficiency
         # n_sims is per split and must hold the largest train_sims; val/test use them all
         out += [f"dataset.n_sims={max(int(n) for n in se.train_sims)}",
-                f"+dataset.train_sims={cell.train_sims}", *se.get("overrides", [])]
+                f"++dataset.train_sims={cell.train_sims}", *se.get("overrides", [])]
     out += [f"paths.data_dir={cfg.data_dir}",
             f"paths.output_dir={Path(cfg.cells_dir) / cell.name}"]
     return out
@@ -191,7 +191,10 @@ def write_table(report_dir: Path, stem: str, title: str, columns: list[str],
     if notes:
         lines += [notes, ""]
     lines += ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
-    lines += ["| " + " | ".join(fmt(r.get(c)) for c in columns) + " |" for r in rows]
+    def cell(column: str, value: Any) -> str:  # figures show inline in markdown only
+        return f"![{Path(value).stem}]({value})" if column == "figure" and value else fmt(value)
+
+    lines += ["| " + " | ".join(cell(c, r.get(c)) for c in columns) + " |" for r in rows]
     if not rows:
         lines.append("\n(no cells of this kind in the preset)")
     (report_dir / f"{stem}.md").write_text("\n".join(lines) + "\n")
@@ -250,7 +253,7 @@ def write_report(cfg: DictConfig, cells: list[Cell],
         if c.ablation == "full" and c.train_sims is None and r.get("figure"):
             figure = Path(r["figure"])
             rows.append({"scene": c.scene, "fps": fmt(c.fps), "model": c.model,
-                         **ev(c), "figure": f"![{c.name}](figures/{figure.name})"})
+                         **ev(c), "figure": f"figures/{figure.name}"})
     write_table(report_dir, "inverse", "Inverse model: sampled vs true masses", inv_cols,
                 rows, "Log-masses (natural log) of every particle of a subset of test frames; "
                 "Welch p: t-test of true vs sampled log-masses (unequal variances); W1: "

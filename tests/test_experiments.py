@@ -52,8 +52,8 @@ def test_tiny_preset_end_to_end_and_resumes(tmp_path: Path, capsys) -> None:
     assert len(inverse) == len(preset.scenes) * len(preset.fps)
     for row in inverse:
         assert 0 <= float(row["coverage90"]) <= 1
-        png = row["figure"].split("(")[1].rstrip(")")
-        assert (out / png).exists()
+        assert (out / row["figure"]).exists()
+        assert f"({row['figure']})" in (out / "inverse.md").read_text()
     types = (out / "types.md").read_text()
     assert types.count("| collisions |") == len(preset.fps)
     ablations = (out / "ablations.md").read_text()
@@ -70,6 +70,13 @@ def test_tiny_preset_end_to_end_and_resumes(tmp_path: Path, capsys) -> None:
     run(tiny_cfg(tmp_path))
     assert "  trained\n" not in capsys.readouterr().out
     assert stamps == {p: p.stat().st_mtime_ns for p in stamps}
+
+    # an interrupted cell (checkpoints but no metrics.json) is the only one trained again
+    interrupted = tmp_path / "cells" / cells[0].name / "metrics.json"
+    interrupted.unlink()
+    run(tiny_cfg(tmp_path))
+    assert capsys.readouterr().out.count("  trained\n") == 1
+    assert interrupted.exists()
 
 
 # ----------------------------------------------------------------------------- metrics

@@ -334,7 +334,7 @@ class CollisionScene:
     # Velocity spread of the heaviest mass mode. With ``thermal`` every particle starts with
     # the same mean kinetic energy (std ~ 1/sqrt(m)): the gas is in equipartition from frame 0,
     # so the data are stationary; otherwise light discs heat up ~20x over the first frames.
-    velocity_std: float = 0.2
+    velocity_std: float = 0.05
     thermal: bool = True
     # Two species by default: light small discs and heavy large ones (bimodal masses).
     types: tuple = (ParticleType(radius=0.1, mass_mode=0.001, mass_log_std=0.1, fraction=0.5),

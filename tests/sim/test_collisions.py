@@ -287,7 +287,7 @@ def test_three_types_3d_by_config():
         {"radius": 0.3, "mass_mode": 0.01, "mass_log_std": 0.2, "fraction": 1 / 3},
         (0.4, 0.2, 0.0, 1 / 6),
     ]
-    scene = CollisionScene(n_particles=6, dim=3, box=4.0, types=types)
+    scene = CollisionScene(n_particles=6, dim=3, box=4.0, types=types, velocity_std=1.0)
     assert all(isinstance(t, ParticleType) for t in scene.types)
     assert scene.meta.dim == 3 and scene.meta.n_types == 3 and scene.meta.n_particles == 6
     assert scene.meta.interaction == "contact" and scene.meta.target == "velocity"

@@ -56,8 +56,9 @@ def train(cfg: DictConfig) -> dict[str, float]:
     """Fit, test, and write metrics.json; returns the final metrics."""
     start = time.perf_counter()
     L.seed_everything(int(cfg.seed), workers=True)
-    datamodule, module = build(cfg)
     output_dir = Path(cfg.paths.output_dir)
+    print(f"run directory: {output_dir}")
+    datamodule, module = build(cfg)
     # a group entry set to null (callbacks.early_stopping=null) switches that callback off
     callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c]
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c]

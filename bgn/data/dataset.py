@@ -10,7 +10,7 @@ from torch.utils.data import Dataset
 
 from bgn.data.batch import Graph
 from bgn.data.files import DatasetFile
-from bgn.data.graphs import full_graph, scene_edges
+from bgn.data.graphs import full_graph, pair_codes, scene_edges
 from bgn.data.targets import backward_velocities, targets
 from bgn.sim import Scene, SceneMeta, make_scene
 
@@ -64,7 +64,7 @@ class FrameDataset(Dataset):
         if self._contacts is None:  # built lazily per worker: (sim, frame) -> sorted i*N+j
             n = self.meta.n_particles
             table = self.file.read("contacts", ...)
-            codes = table[:, 2] * n + table[:, 3]
+            codes = pair_codes(table[:, 2], table[:, 3], n)
             order = np.lexsort((codes, table[:, 1], table[:, 0]))
             self._contacts = {}
             for (s, f), c in zip(map(tuple, table[order, :2].tolist()), codes[order]):
@@ -73,7 +73,7 @@ class FrameDataset(Dataset):
         return self._contacts.get((sim, frame), np.empty(0, dtype=np.int64))
 
     def __getitem__(self, index: int) -> Graph:
-        if self.in_memory and not self.file._cache:
+        if self.in_memory and not self.file.loaded:
             self.file.load_all()
         sim, t = self.locate(index)
         x = self.file.read("positions", (sim, slice(t - self.history - 1, t + 2)))
@@ -113,8 +113,7 @@ def frame_graph(window: np.ndarray, dt: float, meta: SceneMeta, scene: Scene,
         edges = scene_edges(meta.graph, pos, radii, margin)
     snd, rcv = edges
     if meta.interaction == "contact":
-        n = len(pos)
-        codes = np.minimum(snd, rcv) * n + np.maximum(snd, rcv)
+        codes = pair_codes(snd, rcv, len(pos))
         known = contact_codes if contact_codes is not None else np.empty(0, np.int64)
         contact = np.isin(codes, known).astype(np.float32)
     else:

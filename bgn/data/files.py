@@ -168,6 +168,11 @@ class DatasetFile:
     def has(self, name: str) -> bool:
         return name in self._cache or name in self.handle
 
+    @property
+    def loaded(self) -> bool:
+        """Whether ``load_all`` has put the arrays in memory."""
+        return bool(self._cache)
+
     def load_all(self) -> None:
         """Read every array into memory once (small and medium datasets)."""
         for name in self.handle:

@@ -301,3 +301,10 @@ def scene_edges(graph: str, positions: np.ndarray, radii: np.ndarray, margin: fl
     if graph == "radius":
         return radius_graph(positions, radii=radii, margin=margin)
     raise ValueError(f"unknown graph kind {graph!r}; use 'full' or 'radius'")
+
+
+def pair_codes(i: np.ndarray, j: np.ndarray, n: int) -> np.ndarray:
+    """One integer per unordered pair {i, j} of n nodes (``min * n + max``): edges in both
+    directions and recorded contacts ``(i < j)`` compare with ``np.isin``."""
+    i, j = np.asarray(i, dtype=np.int64), np.asarray(j, dtype=np.int64)
+    return np.minimum(i, j) * n + np.maximum(i, j)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bgn.data.graphs import scene_edges
+from bgn.data.graphs import pair_codes, scene_edges
 from bgn.data.targets import backward_velocities, targets
 from bgn.sim import Scene
 
@@ -56,9 +56,9 @@ def compute_stats(scene: Scene, arrays: dict[str, np.ndarray], dt: float,
     n_sims, n_frames = positions.shape[:2]
     frames = np.unique(np.linspace(1, n_frames - 2, min(MAX_EDGE_FRAMES, n_frames - 2))
                        .astype(int))
-    contact_set = set()
+    n = meta.n_particles
     if meta.interaction == "contact":
-        contact_set = {tuple(row) for row in arrays["contacts"].tolist()}
+        c = arrays["contacts"]  # rows (sim, frame, i, j)
     for s in range(n_sims):
         for t in frames:
             x = positions[s, t]
@@ -68,9 +68,9 @@ def compute_stats(scene: Scene, arrays: dict[str, np.ndarray], dt: float,
                            - (x[snd] - positions[s, t - 1][snd]))
             rel_logm.append(log_mass[s, rcv] - log_mass[s, snd])
             if meta.interaction == "contact":
-                lo, hi = np.minimum(snd, rcv), np.maximum(snd, rcv)
-                contact.append(np.array([(s, t, a, b) in contact_set
-                                         for a, b in zip(lo.tolist(), hi.tolist())], float))
+                here = c[(c[:, 0] == s) & (c[:, 1] == t)]
+                contact.append(np.isin(pair_codes(snd, rcv, n),
+                                       pair_codes(here[:, 2], here[:, 3], n)).astype(float))
             else:
                 contact.append(scene.pair_force_magnitude(x, arrays["masses"][s], snd, rcv))
     stats["rel_position"] = summarize(np.concatenate(rel_pos))

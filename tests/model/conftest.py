@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -100,3 +102,23 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+def permute_graph(g: Graph, seed: int = 5) -> tuple[Graph, torch.Tensor, torch.Tensor]:
+    """Relabel the nodes and reorder the edges of ``g`` at random.
+
+    Returns the permuted graph, ``perm`` (new node a is old node ``perm[a]``) and
+    ``edge_perm`` (new edge e is old edge ``edge_perm[e]``).
+    """
+    gen = torch.Generator().manual_seed(seed)
+    n = g.pos.shape[0]
+    perm = torch.randperm(n, generator=gen)
+    inverse = torch.argsort(perm)
+    edge_perm = torch.randperm(g.edge_index.shape[1], generator=gen)
+    permuted = replace(
+        g, pos=g.pos[perm], vel=g.vel[perm], target=g.target[perm], mass=g.mass[perm],
+        types=g.types[perm], radius=g.radius[perm],
+        wall=None if g.wall is None else g.wall[perm],
+        edge_index=inverse[g.edge_index][:, edge_perm],
+        edge_contact=g.edge_contact[edge_perm], edge_rel_log_mass=g.edge_rel_log_mass[edge_perm])
+    return permuted, perm, edge_perm

@@ -10,6 +10,7 @@ import torch
 from bgn.data.batch import collate
 from bgn.model import Normalizer, build_model
 from bgn.model.baselines import GNS, MODELS, CranmerGN, EdgeMLP
+from tests.model.conftest import permute_graph
 
 HISTORY = 2
 SMALL = {  # test-sized versions of the published models
@@ -132,16 +133,7 @@ def test_translation_invariance(meta, stats, graph, name, interaction, kind, n_t
 def test_permutation_equivariance(meta, stats, graph, name, interaction, kind, n_types, box):
     model = build(meta, stats, name, interaction, kind, n_types, box, oracle=True).eval()
     g = sample(graph, n_types=n_types, kind=kind, box=box, seed=4)
-    gen = torch.Generator().manual_seed(5)
-    perm = torch.randperm(7, generator=gen)             # new node a is old node perm[a]
-    inverse = torch.argsort(perm)
-    edge_perm = torch.randperm(g.edge_index.shape[1], generator=gen)
-    permuted = replace(
-        g, pos=g.pos[perm], vel=g.vel[perm], target=g.target[perm], mass=g.mass[perm],
-        types=g.types[perm], radius=g.radius[perm],
-        wall=None if g.wall is None else g.wall[perm],
-        edge_index=inverse[g.edge_index][:, edge_perm],
-        edge_contact=g.edge_contact[edge_perm], edge_rel_log_mass=g.edge_rel_log_mass[edge_perm])
+    permuted, perm, edge_perm = permute_graph(g)
     torch.testing.assert_close(model(g).target[perm], model(permuted).target)
     torch.testing.assert_close(model.loss_terms(g, model(g))["dynamics"],
                                model.loss_terms(permuted, model(permuted))["dynamics"])

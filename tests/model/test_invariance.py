@@ -9,6 +9,7 @@ import torch
 
 from bgn.data.batch import collate
 from bgn.model import BGN, BGNOutput, ModelConfig
+from tests.model.conftest import permute_graph
 
 NODE_FIELDS = ("target", "type_logits", "mass_nll", "log_mass_sample")
 EDGE_FIELDS = ("contact", "relmass", "edge_weight")
@@ -58,15 +59,7 @@ def test_absolute_position_option_breaks_translation_invariance(meta, stats, gra
 def test_permutation_equivariance(meta, stats, graph, interaction, kind, n_types):
     model = build(meta, stats, interaction, kind, n_types)
     g = graph(7, n_types=n_types, kind=kind, contact=interaction == "contact", seed=4)
-    gen = torch.Generator().manual_seed(5)
-    perm = torch.randperm(7, generator=gen)            # new node a is old node perm[a]
-    inverse = torch.argsort(perm)
-    edge_perm = torch.randperm(g.edge_index.shape[1], generator=gen)
-    permuted = replace(
-        g, pos=g.pos[perm], vel=g.vel[perm], target=g.target[perm], mass=g.mass[perm],
-        types=g.types[perm], radius=g.radius[perm],
-        edge_index=inverse[g.edge_index][:, edge_perm],
-        edge_contact=g.edge_contact[edge_perm], edge_rel_log_mass=g.edge_rel_log_mass[edge_perm])
+    permuted, perm, edge_perm = permute_graph(g)
     noise = torch.randn(7, dtype=torch.float64)
     assert_outputs_close(model(g, noise), model(permuted, noise[perm]), perm, edge_perm)
     a = model.loss_terms(g, model(g, noise))

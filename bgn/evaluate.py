@@ -18,6 +18,7 @@ from scipy.stats import gaussian_kde, ttest_ind, wasserstein_distance
 
 from bgn.data.batch import Graph, collate
 from bgn.data.dataset import FrameDataset
+from bgn.model.target import observed_targets
 from bgn.module import PhysicsModule
 
 
@@ -132,10 +133,16 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
     variance = module.target_variance.mean().item()
     indices = frame_indices(dataset, max_frames)
     sq_err, rel_err = [], []
+    # references without learning: repeat the last observed target, extrapolate the last two
+    ref_err: dict[str, list[torch.Tensor]] = {"last": [], "linear": []}
     logits, types, rel_pred, rel_true = [], [], [], []
     for g in batches(dataset, indices, batch_size):
         pred = model.predict(g)
         sq_err.append(((pred - g.target) ** 2).flatten())
+        seen = observed_targets(g, module.meta.target)
+        ref_err["last"].append(((seen[:, 0] - g.target) ** 2).flatten())
+        if seen.shape[1] > 1:
+            ref_err["linear"].append(((2 * seen[:, 0] - seen[:, 1] - g.target) ** 2).flatten())
         rel_err.append((pred - g.target).norm(dim=-1)
                        / g.target.norm(dim=-1).clamp_min(1e-12))
         if heads & {"type", "relmass"}:
@@ -150,6 +157,9 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
     metrics: dict[str, Any] = {"mse": mse, "nmse": mse / variance,
                                "median_relative_error": torch.cat(rel_err).median().item(),
                                "n_frames": len(indices)}
+    for name, errors in ref_err.items():
+        if errors:
+            metrics[f"nmse_{name}_extrapolation"] = torch.cat(errors).mean().item() / variance
     if logits:
         metrics.update(type_metrics(torch.cat(logits).numpy(), torch.cat(types).numpy()))
     if rel_pred:

@@ -205,6 +205,10 @@ def write_table(report_dir: Path, stem: str, title: str, columns: list[str],
             writer.writerows(rows)
 
 
+# no-learning references in Table 1 (bgn.evaluate): metric suffix -> column
+REFERENCES = {"last": "repeat-last NMSE", "linear": "linear-extrapolation NMSE"}
+
+
 def _paper(scene: str, fps: float) -> float | None:
     return PAPER_BGN.get(scene, {}).get(int(fps)) if float(fps).is_integer() else None
 
@@ -231,18 +235,23 @@ def write_report(cfg: DictConfig, cells: list[Cell],
         for c in main:
             if (c.scene, c.fps) == (scene, fps):
                 row[f"{c.model} MSE"], row[f"{c.model} NMSE"] = ev(c)["mse"], ev(c)["nmse"]
+                for ref in REFERENCES:  # the same test frames for every model
+                    row[REFERENCES[ref]] = ev(c).get(f"nmse_{ref}_extrapolation")
         row[f"BGN {PAPER_LABEL}"] = _paper(scene, fps)
         row[f"Cranmer et al. {PAPER_LABEL}"] = PAPER_CRANMER.get(scene)
         row[f"Sanchez-Gonzalez et al. {PAPER_LABEL}"] = PAPER_SANCHEZ.get(scene)
         rows.append(row)
     columns = ["scene", "fps", *[f"{m} {k}" for m in models for k in ("MSE", "NMSE")],
-               f"BGN {PAPER_LABEL}", f"Cranmer et al. {PAPER_LABEL}",
+               *REFERENCES.values(), f"BGN {PAPER_LABEL}", f"Cranmer et al. {PAPER_LABEL}",
                f"Sanchez-Gonzalez et al. {PAPER_LABEL}"]
     write_table(report_dir, "table1", "Table 1: one-step error on the test split", columns,
                 rows, "MSE of the forward target (next velocity for collisions, acceleration "
                 "otherwise) in physical units; NMSE = MSE / training target variance. The "
                 "paper's columns are its published Table 1 values (it does not say which "
-                "metric); the baselines are single values per scene in the paper.")
+                "metric); the baselines are single values per scene in the paper. The "
+                "extrapolation columns learn nothing: they repeat the last observed target, or "
+                "extrapolate the last two linearly, from the input window (the floor a learned "
+                "model must beat; the models predict the change from the latter by default).")
 
     # inverse: BGN cells with a mass head
     inv_cols = ["scene", "fps", "welch_p", "wasserstein1", "modes_true", "modes_recovered",

@@ -84,7 +84,7 @@ class PhysicsModule(L.LightningModule):
 
     def _update_metrics(self, stage: str, g: Graph, out: Any) -> None:
         m = self.metrics[f"{stage}_"]
-        pred = self.model.denormalize_target(out.target)
+        pred = self.model.denormalize_target(out.target, g)
         m["mse"].update(pred, g.target)
         # robust error next to MSE: heavy tails make MSE a few-frame statistic (SIMS.md)
         m["relative_error"].update((pred - g.target).norm(dim=-1)

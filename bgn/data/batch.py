@@ -27,6 +27,7 @@ class Graph:
     num_nodes: torch.Tensor      # (G,) nodes per graph
     sim: torch.Tensor            # (G,) simulation index of each graph
     frame: torch.Tensor          # (G,) frame index t of each graph
+    dt: torch.Tensor | None = None  # (G,) frame spacing (turns velocity windows into accelerations)
 
     @property
     def num_graphs(self) -> int:

@@ -7,7 +7,7 @@ from typing import Any
 
 import lightning as L
 import numpy as np
-from torch.utils.data import DataLoader
+from torch.utils.data import DataLoader, Subset
 
 from bgn.data.batch import collate
 from bgn.data.dataset import FrameDataset
@@ -17,12 +17,21 @@ from bgn.data.spec import DatasetSpec
 from bgn.sim import SceneMeta
 
 
+def evenly_spaced(n: int, k: int) -> list[int]:
+    """``k`` distinct indices spread evenly over ``range(n)``, first and last included."""
+    return np.unique(np.linspace(0, n - 1, min(k, n)).round().astype(int)).tolist()
+
+
 class ParticleDataModule(L.LightningDataModule):
     """Train, val and test are separate simulations (separate files): no frame of a test
     simulation is ever seen in training.
 
     ``dataset`` is the ``dataset`` config node (scene parameters, sizes, loading options).
     ``train_sims`` limits training to the first n simulations (sample-efficiency studies).
+    ``val_samples`` caps validation at that many frames spread evenly over all validation
+    simulations (every epoch the same ones): a prefix of the split, which ``limit_val_batches``
+    would take, is one or two simulations, and with heavy-tailed targets its error says little
+    about the others. The test split is always used whole.
     """
 
     def __init__(self, dataset: Any, fps: float, data_dir: str | Path = "data",
@@ -34,6 +43,11 @@ class ParticleDataModule(L.LightningDataModule):
         self.batch_size = int(get("batch_size", 32))
         self.num_workers = int(get("num_workers", 0))
         self.in_memory = bool(get("in_memory", True))
+        val_samples = get("val_samples", None)
+        self.val_samples = None if val_samples is None else int(val_samples)
+        if self.val_samples is not None and self.val_samples < 1:
+            raise ValueError(f"dataset.val_samples={self.val_samples} must be >= 1 (or null: "
+                             "the whole validation split)")
         train_sims = get("train_sims", None)
         self.train_sims = None if train_sims is None else int(train_sims)
         if self.train_sims is not None and not 1 <= self.train_sims <= self.spec.n_sims:
@@ -77,7 +91,10 @@ class ParticleDataModule(L.LightningDataModule):
 
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         self.setup()
-        return DataLoader(self.datasets[split], batch_size=self.batch_size, shuffle=shuffle,
+        data = self.datasets[split]
+        if split == "val" and self.val_samples is not None and self.val_samples < len(data):
+            data = Subset(data, evenly_spaced(len(data), self.val_samples))
+        return DataLoader(data, batch_size=self.batch_size, shuffle=shuffle,
                           num_workers=self.num_workers, collate_fn=collate,
                           persistent_workers=self.num_workers > 0)
 

@@ -136,4 +136,5 @@ def frame_graph(window: np.ndarray, dt: float, meta: SceneMeta, scene: Scene,
         num_nodes=torch.tensor([len(pos)]),
         sim=torch.tensor([sim]),
         frame=torch.tensor([frame]),
+        dt=torch.tensor([dt], dtype=f32),
     )

@@ -28,7 +28,7 @@ from bgn import __version__
 from bgn.data.spec import DatasetSpec
 from bgn.sim import SceneMeta
 
-SCHEMA_VERSION = 2  # 2: statistics of velocity increments
+SCHEMA_VERSION = 3  # 2: statistics of velocity increments; 3: of target differences
 STATE_ARRAYS = ("positions", "velocities")
 PARTICLE_ARRAYS = ("masses", "radii", "types")
 

@@ -49,6 +49,11 @@ def compute_stats(scene: Scene, arrays: dict[str, np.ndarray], dt: float,
         # v[t] - v[t-1]: the scale of the increments inside an input window
         "velocity_increment": summarize(np.diff(velocity, axis=0).reshape(-1, d)),
         "target": summarize(target.reshape(-1, d)),
+        # what is left of the target after the last observed value (diff1) or after a linear
+        # extrapolation of the last two (diff2): the scales of the residual targets that a
+        # model with model.target_prior=last|linear predicts (bgn.model.target)
+        "target_diff1": summarize(np.diff(target, n=1, axis=0).reshape(-1, d)),
+        "target_diff2": summarize(np.diff(target, n=2, axis=0).reshape(-1, d)),
         "log_mass": summarize(log_mass.reshape(-1, 1)),
     }
 

@@ -32,6 +32,7 @@ from bgn.data.batch import Graph
 from bgn.model.encoder import DIRECTION_EPS, node_features, node_input_dim
 from bgn.model.normalizer import Normalizer
 from bgn.model.ops import activation, mlp, scatter_sum
+from bgn.model.target import TargetCoder
 from bgn.sim.scene import SceneMeta
 
 
@@ -45,6 +46,10 @@ class CranmerGNConfig:
     hidden_layers: int = 3     # hidden layers per MLP (edge and node)
     activation: str = "relu"
     oracle: bool = False       # also feed true log-mass (and one-hot type) to the nodes
+    # what the head predicts and its loss, as BGN's (bgn.model.target): equal terms
+    target_prior: str = "auto"
+    dynamics_loss: str = "huber"
+    huber_delta: float = 1.0
 
     def __post_init__(self) -> None:
         _check_positive(self, ("hidden", "message_dim", "hidden_layers"))
@@ -68,6 +73,9 @@ class GNSConfig:
     activation: str = "relu"
     noise_std: float = 0.5
     oracle: bool = False
+    target_prior: str = "auto"         # as BGN's (bgn.model.target): equal terms
+    dynamics_loss: str = "huber"
+    huber_delta: float = 1.0
 
     def __post_init__(self) -> None:
         _check_positive(self, ("latent", "mlp_hidden", "mlp_layers", "message_passing_steps"))
@@ -160,10 +168,13 @@ class Baseline(nn.Module):
     model_name = "baseline"
 
     def __init__(self, meta: SceneMeta, stats: Mapping[str, Any], history: int,
-                 oracle: bool) -> None:
+                 oracle: bool, target_prior: str = "none", dynamics_loss: str = "mse",
+                 huber_delta: float = 1.0) -> None:
         super().__init__()
         self.meta, self.history, self.oracle = meta, history, oracle
         self.normalizer = Normalizer(stats, meta.dim)
+        self.target_coder = TargetCoder(self.normalizer, stats, meta, history, target_prior,
+                                        dynamics_loss, huber_delta)
         # one-hot types only carry information when there is more than one type
         self.oracle_types = oracle and meta.n_types > 1
         self.node_in = (node_input_dim(meta.dim, history, meta.has_walls, False)
@@ -216,8 +227,8 @@ class Baseline(nn.Module):
 
     # ------------------------------------------------------------------ losses
     def loss_terms(self, g: Graph, out: BaselineOutput) -> dict[str, torch.Tensor]:
-        """``{"dynamics": MSE}`` in normalised target units, exactly as BGN's ``L_Dec``."""
-        return {"dynamics": F.mse_loss(out.target, self.normalized_target(g))}
+        """``{"dynamics": loss}`` in the head's units, exactly as BGN's ``L_Dec``."""
+        return {"dynamics": self.target_coder.loss(out.target, g)}
 
     def total_loss(self, terms: Mapping[str, torch.Tensor]) -> torch.Tensor:
         if not terms:
@@ -227,15 +238,15 @@ class Baseline(nn.Module):
     # ------------------------------------------------------------------ inference
     def normalized_target(self, g: Graph) -> torch.Tensor:
         """The graph's target in the model's (normalised) units, (N, D)."""
-        return self.normalizer.target(g.target)
+        return self.target_coder.encode(g)
 
-    def denormalize_target(self, target: torch.Tensor) -> torch.Tensor:
-        """``BaselineOutput.target`` -> physical units."""
-        return self.normalizer.denormalize_target(target)
+    def denormalize_target(self, target: torch.Tensor, g: Graph) -> torch.Tensor:
+        """``BaselineOutput.target`` of graph ``g`` -> physical units."""
+        return self.target_coder.decode(g, target)
 
     def predict(self, g: Graph) -> torch.Tensor:
         """Forward target in physical units, (N, D), never with noise (rollouts, figures)."""
-        return self.normalizer.denormalize_target(self._run(g, noisy=False))
+        return self.target_coder.decode(g, self._run(g, noisy=False))
 
 
 # ----------------------------------------------------------------------------- BS1
@@ -253,7 +264,8 @@ class CranmerGN(Baseline):
     def __init__(self, meta: SceneMeta, stats: Mapping[str, Any], history: int,
                  cfg: CranmerGNConfig | None = None) -> None:
         cfg = cfg or CranmerGNConfig()
-        super().__init__(meta, stats, history, cfg.oracle)
+        super().__init__(meta, stats, history, cfg.oracle, cfg.target_prior,
+                         cfg.dynamics_loss, cfg.huber_delta)
         self.cfg = cfg
         hidden = [cfg.hidden] * cfg.hidden_layers
         self.message = EdgeMLP(self.edge_in, self.node_in, [*hidden, cfg.message_dim],
@@ -306,7 +318,8 @@ class GNS(Baseline):
     def __init__(self, meta: SceneMeta, stats: Mapping[str, Any], history: int,
                  cfg: GNSConfig | None = None) -> None:
         cfg = cfg or GNSConfig()
-        super().__init__(meta, stats, history, cfg.oracle)
+        super().__init__(meta, stats, history, cfg.oracle, cfg.target_prior,
+                         cfg.dynamics_loss, cfg.huber_delta)
         self.cfg = cfg
         hidden, act, h = [cfg.mlp_hidden] * cfg.mlp_layers, cfg.activation, cfg.latent
         self.node_encoder = mlp([self.node_in, *hidden, h], act, layer_norm=True)

@@ -14,6 +14,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F
@@ -31,6 +32,7 @@ from bgn.model.encoder import (
 from bgn.model.inverse import FLOWS, InverseModel
 from bgn.model.normalizer import Normalizer
 from bgn.model.processor import CONTACT_MODES, Processor
+from bgn.model.target import LOSSES, PRIORS, TargetCoder
 from bgn.sim.scene import SceneMeta
 
 LOSS_KEYS = ("dynamics", "contact", "type", "mass_nll", "relmass")
@@ -76,8 +78,18 @@ class ModelConfig:
     # Force scenes: the contact target is |F_ij| / robust scale, compressed by log1p so that
     # the heavy tail of close encounters does not dominate (SIMS.md); "linear" = paper MSE.
     force_transform: str = "log1p"     # "log1p" | "linear"
-    # Dynamics loss on the normalised target: "mse" (paper) or "huber" (robust to the tail).
-    dynamics_loss: str = "mse"
+    # Contact scenes: weight of the positive class in the contact BCE. About 1 % of candidate
+    # edges touch; unweighted, the head learns to say "no contact" everywhere (F1 0).
+    # "balanced" = (1 - p) / p with p the training split's contact fraction; a number sets it;
+    # 1 = the paper's plain BCE.
+    contact_pos_weight: str | float = "balanced"
+    # Not in the paper: what the dynamics head predicts (bgn.model.target). "auto": the change
+    # of the target from a linear extrapolation of the history (accelerations) or from the
+    # last velocity (collisions); "none" = the paper's normalised target.
+    target_prior: str = "auto"
+    # Dynamics loss in the head's units: "huber" (default, robust to the heavy tail of the
+    # residuals) or "mse" (the paper).
+    dynamics_loss: str = "huber"
     huber_delta: float = 1.0
     # Eq. 12 weights, one per task (keys: LOSS_KEYS); missing keys weigh 1.
     loss_weights: dict[str, float] = field(default_factory=lambda: dict.fromkeys(LOSS_KEYS, 1.0))
@@ -90,8 +102,13 @@ class ModelConfig:
                              f"{CONTACT_MODES}")
         if self.force_transform not in ("log1p", "linear"):
             raise ValueError(f"force_transform={self.force_transform!r}; use log1p or linear")
-        if self.dynamics_loss not in ("mse", "huber"):
-            raise ValueError(f"dynamics_loss={self.dynamics_loss!r}; use mse or huber")
+        if self.contact_pos_weight != "balanced" and not float(self.contact_pos_weight) > 0:
+            raise ValueError(f"contact_pos_weight={self.contact_pos_weight!r}; use 'balanced' "
+                             "or a positive number")
+        if self.target_prior not in PRIORS:
+            raise ValueError(f"target_prior={self.target_prior!r}; choose one of {PRIORS}")
+        if self.dynamics_loss not in LOSSES:
+            raise ValueError(f"dynamics_loss={self.dynamics_loss!r}; choose one of {LOSSES}")
         unknown = set(self.loss_weights) - set(LOSS_KEYS)
         if unknown:
             raise ValueError(f"unknown loss weights {sorted(unknown)}; keys are {LOSS_KEYS}")
@@ -111,6 +128,17 @@ class BGNOutput:
     edge_weight: torch.Tensor                # (E,) learned adjacency of the edge encoder
 
 
+def contact_pos_weight(stats: Mapping[str, Any], setting: str | float) -> float:
+    """Positive-class weight of the contact BCE: ``(1 - p) / p`` for "balanced", where ``p``
+    is the contact fraction of the training split's candidate edges, else the number given."""
+    if setting != "balanced":
+        return float(setting)
+    p = float(np.mean(stats["contact"]["mean"]))
+    if not 0.0 < p < 1.0:  # no contacts (or only contacts) in training: nothing to balance
+        return 1.0
+    return (1.0 - p) / p
+
+
 class BGN(nn.Module):
     """Graph network for bi-directional physics, built from ``(meta, stats, history, cfg)``.
 
@@ -128,6 +156,11 @@ class BGN(nn.Module):
         self.meta, self.cfg, self.history = meta, cfg, history
         self.contact_scene = meta.interaction == "contact"
         self.normalizer = Normalizer(stats, meta.dim)
+        self.target_coder = TargetCoder(self.normalizer, stats, meta, history, cfg.target_prior,
+                                        cfg.dynamics_loss, cfg.huber_delta)
+        self.register_buffer("contact_pos_weight", torch.tensor(
+            contact_pos_weight(stats, cfg.contact_pos_weight) if self.contact_scene else 1.0),
+            persistent=False)  # rebuilt from the statistics, which the checkpoint carries
         d, h = meta.dim, cfg.hidden
         node_in = node_input_dim(d, history, meta.has_walls, cfg.use_absolute_position,
                                  cfg.velocity_increments)
@@ -202,18 +235,14 @@ class BGN(nn.Module):
 
     def loss_terms(self, g: Graph, out: BGNOutput) -> dict[str, torch.Tensor]:
         """Scalar losses of the heads present, keys among ``LOSS_KEYS``."""
-        y = self.normalized_target(g)
-        if self.cfg.dynamics_loss == "huber":
-            dyn = F.huber_loss(out.target, y, delta=self.cfg.huber_delta)
-        else:
-            dyn = F.mse_loss(out.target, y)                     # L_Dec
-        terms = {"dynamics": dyn}
+        terms = {"dynamics": self.target_coder.loss(out.target, g)}   # L_Dec
         if out.contact is not None:                             # Eq. 4 on edges
             c = self.normalize_contact(g.edge_contact)
             if out.contact.numel() == 0:
                 terms["contact"] = out.contact.sum()            # no edges: 0, not NaN
             elif self.contact_scene:  # logits: BCE is the stable form of a sigmoid + 0/1 target
-                terms["contact"] = F.binary_cross_entropy_with_logits(out.contact, c)
+                terms["contact"] = F.binary_cross_entropy_with_logits(
+                    out.contact, c, pos_weight=self.contact_pos_weight.to(out.contact.dtype))
             else:
                 terms["contact"] = F.mse_loss(out.contact, c)
         if out.type_logits is not None:                         # cross-entropy of Eq. 2
@@ -236,11 +265,11 @@ class BGN(nn.Module):
     # ------------------------------------------------------------------ inference
     def normalized_target(self, g: Graph) -> torch.Tensor:
         """The graph's target in the model's (normalised) units, (N, D)."""
-        return self.normalizer.target(g.target)
+        return self.target_coder.encode(g)
 
-    def denormalize_target(self, target: torch.Tensor) -> torch.Tensor:
-        """``BGNOutput.target`` -> physical units."""
-        return self.normalizer.denormalize_target(target)
+    def denormalize_target(self, target: torch.Tensor, g: Graph) -> torch.Tensor:
+        """``BGNOutput.target`` of graph ``g`` -> physical units."""
+        return self.target_coder.decode(g, target)
 
     def denormalize_relmass(self, relmass: torch.Tensor) -> torch.Tensor:
         """``BGNOutput.relmass`` -> ``log m_i - log m_j``."""
@@ -251,7 +280,7 @@ class BGN(nn.Module):
 
         Runs only the forward path (no flow). Wrap in ``torch.no_grad()`` for rollouts."""
         p, _, x = self._process(g)
-        return self.normalizer.denormalize_target(self._decode(p.h_cv, x))
+        return self.target_coder.decode(g, self._decode(p.h_cv, x))
 
     @torch.no_grad()
     def sample_log_mass(self, g: Graph, n_samples: int) -> torch.Tensor:

@@ -62,7 +62,7 @@ def synthetic_frame(n: int, gen: torch.Generator, frame: int) -> Graph:
         edge_rel_log_mass=log_m[rcv] - log_m[snd], types=types,
         radius=torch.full((n,), RADIUS), wall=torch.cat([pos, BOX - pos], 1),
         batch=torch.zeros(n, dtype=torch.long), num_nodes=torch.tensor([n]),
-        sim=torch.tensor([0]), frame=torch.tensor([frame]))
+        sim=torch.tensor([0]), frame=torch.tensor([frame]), dt=torch.tensor([1.0]))
 
 
 def synthetic_batch(n_frames: int, per_frame: int, gen: torch.Generator) -> Graph:

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from bgn.data.batch import collate
-from bgn.data.datamodule import ParticleDataModule
+from bgn.data.datamodule import ParticleDataModule, evenly_spaced
 from bgn.data.targets import step
 
 
@@ -111,6 +111,11 @@ def test_stats_come_from_training_split(small_cfg):
         for key in ("mean", "std", "median", "robust_scale"):
             assert np.isfinite(stats[name][key]).all(), (name, key)
         assert (stats[name]["std"] >= 0).all()
+    y = np.moveaxis(np.stack([np.diff(x, 2, axis=0) for x in dm.datasets["train"].file.read(
+        "positions", ...)]) / dm.dt**2, 1, 0)  # targets (T-2, S, N, D)
+    for name, n in (("target_diff1", 1), ("target_diff2", 2)):
+        np.testing.assert_allclose(stats[name]["std"],
+                                   np.diff(y, n, axis=0).reshape(-1, 2).std(0), rtol=1e-8)
     x = dm.datasets["train"].file.read("positions", ...)
     v = np.diff(x, axis=1) / dm.dt
     np.testing.assert_allclose(stats["velocity"]["mean"], v.reshape(-1, 2).mean(0), rtol=1e-10)
@@ -118,8 +123,22 @@ def test_stats_come_from_training_split(small_cfg):
         dm.datasets["val"].file.stats()
 
 
+def test_validation_subset_spreads_over_all_simulations(small_cfg):
+    dm = _datamodule(small_cfg("spring", "dataset.n_sims=3", "dataset.val_samples=7",
+                               "dataset.batch_size=100"))
+    loader = dm.val_dataloader()
+    (g,) = list(loader)
+    assert g.num_graphs == 7
+    assert set(g.sim.tolist()) == {0, 1, 2}  # not a prefix of the split
+    assert len(dm.test_dataloader().dataset) == len(dm.datasets["test"])  # test: whole split
+    assert evenly_spaced(10, 4) == [0, 3, 6, 9]
+    assert evenly_spaced(3, 10) == [0, 1, 2]
+
+
 def test_datamodule_rejects_bad_values(small_cfg):
     with pytest.raises(ValueError, match="train_sims"):
         ParticleDataModule(small_cfg("spring", "+dataset.train_sims=5").dataset, 50)
+    with pytest.raises(ValueError, match="val_samples"):
+        ParticleDataModule(small_cfg("spring", "dataset.val_samples=0").dataset, 50)
     with pytest.raises(ValueError, match="batch_size"):
         ParticleDataModule(small_cfg("spring", "dataset.batch_size=0").dataset, 50)

@@ -28,6 +28,8 @@ def fake_stats(dim: int = 2) -> dict[str, dict[str, np.ndarray]]:
         "rel_velocity": entry(0.0, 2.2, 0.0, 1.7, dim),
         "contact": entry(0.5, 0.8, 0.0, 0.0, 1),
         "rel_log_mass": entry(0.0, 1.5, 0.0, 1.2, 1),
+        "target_diff1": entry(0.0, 9.0, 0.0, 0.4, dim),
+        "target_diff2": entry(0.0, 3.0, 0.0, 0.05, dim),
     }
 
 
@@ -77,7 +79,7 @@ def random_graph(n: int = 6, dim: int = 2, history: int = 2, kind: str = "full",
         radius=torch.full((n,), 0.1, dtype=dtype),
         wall=None if box is None else torch.cat([pos, box - pos], 1),
         batch=torch.zeros(n, dtype=torch.long), num_nodes=torch.tensor([n]),
-        sim=torch.tensor([0]), frame=torch.tensor([seed]))
+        sim=torch.tensor([0]), frame=torch.tensor([seed]), dt=torch.tensor([0.1], dtype=dtype))
 
 
 @pytest.fixture

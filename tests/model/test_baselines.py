@@ -104,17 +104,32 @@ def test_wrong_window_raises(meta, stats, graph, name):
         model(g)
 
 
-def test_targets_normalised_like_bgn(meta, stats, graph):
-    model = build(meta, stats, "gns")
+def test_published_targets_normalised_like_bgn(meta, stats, graph):
+    # target_prior=none, dynamics_loss=mse: the published parameterisation
+    model = build(meta, stats, "gns", target_prior="none", dynamics_loss="mse")
     g = sample(graph)
     norm = Normalizer(stats(), 2).double()
     torch.testing.assert_close(model.normalized_target(g), norm.target(g.target))
-    torch.testing.assert_close(model.denormalize_target(model.normalized_target(g)), g.target)
+    torch.testing.assert_close(model.denormalize_target(model.normalized_target(g), g), g.target)
     model.eval()
     out = model(g)
     torch.testing.assert_close(model.loss_terms(g, out)["dynamics"],
                                ((out.target - norm.target(g.target)) ** 2).mean())
     torch.testing.assert_close(model.predict(g), norm.denormalize_target(out.target))
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_baselines_share_bgn_target_coding(meta, stats, graph, name):
+    """Equal terms: by default a baseline's head predicts what BGN's does, with its loss."""
+    model = build(meta, stats, name)
+    bgn = build_model({"name": "bgn"}, meta(7, 1), stats(), HISTORY).double()
+    g = sample(graph)
+    torch.testing.assert_close(model.normalized_target(g), bgn.normalized_target(g))
+    model.eval()
+    out = model(g)
+    torch.testing.assert_close(model.loss_terms(g, out)["dynamics"],
+                               torch.nn.functional.huber_loss(out.target,
+                                                              bgn.normalized_target(g)))
 
 
 # ----------------------------------------------------------------------------- symmetries
@@ -170,7 +185,7 @@ def test_noise_only_in_training(meta, stats, graph):
     model.train()
     noisy1, noisy2 = model(g).target, model(g).target
     assert not torch.allclose(noisy1, clean) and not torch.allclose(noisy1, noisy2)
-    torch.testing.assert_close(model.predict(g), model.denormalize_target(clean))  # never noisy
+    torch.testing.assert_close(model.predict(g), model.denormalize_target(clean, g))  # never noisy
     quiet = build(meta, stats, "gns", noise_std=0.0).train()
     torch.testing.assert_close(quiet(g).target, quiet.eval()(g).target)
     cranmer = build(meta, stats, "cranmer_gn").train()                 # BS1 has no noise
@@ -207,7 +222,8 @@ def test_oracle_inputs_and_label(meta, stats, graph, name, n_types, extra):
 @pytest.mark.parametrize("name", NAMES)
 def test_overfits_a_tiny_batch(meta, stats, graph, name):
     torch.manual_seed(0)
-    params = {**SMALL[name], **({"noise_std": 0.0} if name == "gns" else {})}  # a fixed target
+    params = {**SMALL[name], **({"noise_std": 0.0} if name == "gns" else {}),  # a fixed target
+              "target_prior": "none", "dynamics_loss": "mse"}  # random windows: no prior
     model = MODELS[name](meta(4, 1), stats(), HISTORY, params)
     g = collate([graph(4, history=HISTORY, seed=s, dtype=torch.float32) for s in (11, 12)])
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)

@@ -1,0 +1,95 @@
+"""Target priors (bgn.model.target): exact on the motions they extrapolate, invertible, built
+from the input window only, and shared by BGN and the baselines."""
+
+from dataclasses import fields, replace
+
+import numpy as np
+import pytest
+import torch
+
+from bgn.data.dataset import frame_graph
+from bgn.model import build_model
+from bgn.model.normalizer import Normalizer
+from bgn.model.target import TargetCoder, observed_targets
+from bgn.sim import make_scene
+
+DT = 0.05
+
+
+def polynomial_graph(degree: int, kind: str, history: int = 3):
+    """A frame of a 4-body spring scene whose particles move on polynomials of ``degree``."""
+    scene = make_scene("spring")
+    rng = np.random.default_rng(degree)
+    coef = rng.normal(size=(degree + 1, 4, 2))
+    t = np.arange(history + 3)[:, None, None] * DT
+    x = sum(c * t**p for p, c in enumerate(coef))  # (history + 3, 4, 2)
+    meta = replace(scene.meta, target=kind)
+    g = frame_graph(x[:-1], DT, meta, scene, np.ones(4), np.full(4, 0.1), np.zeros(4, int),
+                    margin=0.0, next_position=x[-1])
+    return replace(g, **{f.name: getattr(g, f.name).double() for f in fields(g)
+                         if torch.is_tensor(getattr(g, f.name))
+                         and getattr(g, f.name).is_floating_point()}), meta
+
+
+def coder(stats, meta, prior, history=3):
+    return TargetCoder(Normalizer(stats(), 2), stats(), meta, history, prior).double()
+
+
+@pytest.mark.parametrize(("kind", "prior", "degree"), [
+    ("acceleration", "last", 2),     # constant acceleration: the last one is the next one
+    ("acceleration", "linear", 3),   # linearly changing acceleration: extrapolation is exact
+    ("velocity", "last", 1),         # constant velocity
+    ("velocity", "linear", 2),
+])
+def test_prior_is_exact_on_the_motion_it_extrapolates(stats, kind, prior, degree):
+    g, meta = polynomial_graph(degree, kind)
+    c = coder(stats, meta, prior)
+    # float32 frames (as the files hold them): finite differences / dt carry ~1e-6 round-off
+    torch.testing.assert_close(c.prior(g), g.target, rtol=0, atol=2e-5)
+    scale = 1.0 if c.residual_scale is None else float(c.residual_scale)
+    torch.testing.assert_close(c.encode(g) * scale, torch.zeros_like(g.target), rtol=0,
+                               atol=2e-5)
+
+
+def test_observed_accelerations_are_the_finite_differences_of_the_file_targets():
+    g, _ = polynomial_graph(4, "acceleration")
+    y = observed_targets(g, "acceleration")
+    assert y.shape == (4, 3, 2)  # k observed accelerations from k + 1 velocities
+    torch.testing.assert_close(y[:, 0], (g.vel[:, 0] - g.vel[:, 1]) / DT)
+
+
+@pytest.mark.parametrize("prior", ["none", "last", "linear"])
+@pytest.mark.parametrize("kind", ["acceleration", "velocity"])
+def test_encode_decode_roundtrip_and_no_target_leak(stats, prior, kind):
+    g, meta = polynomial_graph(4, kind)
+    c = coder(stats, meta, prior)
+    torch.testing.assert_close(c.decode(g, c.encode(g)), g.target)
+    moved = replace(g, target=g.target + 1.0)
+    torch.testing.assert_close(c.prior(moved), c.prior(g))  # the prior never sees the target
+
+
+def test_residual_scale_comes_from_target_differences(stats):
+    _, meta = polynomial_graph(2, "acceleration")
+    assert float(coder(stats, meta, "last").residual_scale) == pytest.approx(0.4)
+    assert float(coder(stats, meta, "linear").residual_scale) == pytest.approx(0.05)
+
+
+def test_bad_priors_get_one_clear_error(stats):
+    _, meta = polynomial_graph(2, "acceleration")
+    with pytest.raises(ValueError, match="choose one of"):
+        coder(stats, meta, "quadratic")
+    with pytest.raises(ValueError, match="history=1"):
+        coder(stats, meta, "linear", history=1)
+    old = {k: v for k, v in stats().items() if not k.startswith("target_diff")}
+    with pytest.raises(KeyError, match="regenerate"):
+        TargetCoder(Normalizer(old, 2), old, meta, 3, "last")
+
+
+@pytest.mark.parametrize("name", ["bgn", "cranmer_gn", "gns"])
+def test_models_predict_prior_plus_scaled_output(stats, name):
+    g, meta = polynomial_graph(3, "acceleration")
+    model = build_model({"name": name, "target_prior": "linear"}, meta, stats(), 3).double()
+    model.eval()
+    out, coder = model(g).target, model.target_coder
+    torch.testing.assert_close(model.predict(g), out * coder.residual_scale + coder.prior(g))
+    torch.testing.assert_close(model.denormalize_target(out, g), model.predict(g))

@@ -48,6 +48,8 @@ def test_tiny_preset_end_to_end_and_resumes(tmp_path: Path, capsys) -> None:
         for model in preset.models:
             assert float(row[f"{model} NMSE"]) >= 0 and float(row[f"{model} MSE"]) >= 0
         assert row["BGN paper (metric unstated)"]  # 10 and 50 fps are in the paper
+        assert float(row["repeat-last NMSE"]) >= 0  # no-learning references, every row
+        assert float(row["linear-extrapolation NMSE"]) >= 0
     inverse = csv_rows(out / "inverse.csv")
     assert len(inverse) == len(preset.scenes) * len(preset.fps)
     for row in inverse:

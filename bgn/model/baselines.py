@@ -48,7 +48,7 @@ class CranmerGNConfig:
     oracle: bool = False       # also feed true log-mass (and one-hot type) to the nodes
     # what the head predicts and its loss, as BGN's (bgn.model.target): equal terms
     target_prior: str = "auto"
-    dynamics_loss: str = "huber"
+    dynamics_loss: str = "auto"
     huber_delta: float = 1.0
 
     def __post_init__(self) -> None:
@@ -74,7 +74,7 @@ class GNSConfig:
     noise_std: float = 0.5
     oracle: bool = False
     target_prior: str = "auto"         # as BGN's (bgn.model.target): equal terms
-    dynamics_loss: str = "huber"
+    dynamics_loss: str = "auto"
     huber_delta: float = 1.0
 
     def __post_init__(self) -> None:

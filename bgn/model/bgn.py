@@ -87,9 +87,9 @@ class ModelConfig:
     # of the target from a linear extrapolation of the history (accelerations) or from the
     # last velocity (collisions); "none" = the paper's normalised target.
     target_prior: str = "auto"
-    # Dynamics loss in the head's units: "huber" (default, robust to the heavy tail of the
-    # residuals) or "mse" (the paper).
-    dynamics_loss: str = "huber"
+    # Dynamics loss in the head's units: "huber" (robust to the heavy tail of the residuals),
+    # "mse" (the paper), "auto": huber for accelerations, mse for velocities (bgn.model.target).
+    dynamics_loss: str = "auto"
     huber_delta: float = 1.0
     # Eq. 12 weights, one per task (keys: LOSS_KEYS); missing keys weigh 1.
     loss_weights: dict[str, float] = field(default_factory=lambda: dict.fromkeys(LOSS_KEYS, 1.0))

@@ -19,8 +19,12 @@ training noise corrupts what its network sees, not the prior). Residuals are nor
 robust scale of the training split's target differences (``target_diff1``, ``target_diff2`` in
 ``bgn.data.stats``). Those residuals are heavy-tailed (close encounters, light particles): an
 MSE in robust units is then ~1e4 and set by a handful of frames, so the default dynamics loss
-is a Huber loss (quadratic within ``huber_delta`` robust units, linear beyond). The metrics are
-always on the physical target.
+(``auto``) for accelerations is a Huber loss (quadratic within ``huber_delta`` robust units,
+linear beyond). For collisions the change of velocity is zero except at impacts, and impacts
+are what the MSE of Table 1 measures: a Huber loss fits them like a median and loses them
+(collisions fps 50, quick-preset cell, 60 s: test NMSE 0.095 with Huber, 0.082 with MSE, 0.080
+with the paper's target and MSE; median relative error 0.044, 0.100, 0.142), so ``auto`` keeps
+the MSE there. The metrics are always on the physical target.
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ from bgn.model.normalizer import Normalizer, robust_scale
 from bgn.sim import SceneMeta
 
 PRIORS = ("auto", "none", "last", "linear")
-LOSSES = ("mse", "huber")
+LOSSES = ("auto", "mse", "huber")
 _DIFF_STATS = {"last": "target_diff1", "linear": "target_diff2"}
 
 
@@ -67,6 +71,8 @@ class TargetCoder(nn.Module):
             raise ValueError(f"dynamics_loss={loss!r}; choose one of {LOSSES}")
         if not huber_delta > 0:
             raise ValueError(f"huber_delta={huber_delta} must be > 0")
+        if loss == "auto":  # heavy tails (force scenes) vs rare impacts that are the signal
+            loss = "huber" if meta.target == "acceleration" else "mse"
         self.loss_name, self.huber_delta = loss, float(huber_delta)
         if prior == "auto":
             prior = "linear" if meta.target == "acceleration" and history >= 2 else "last"

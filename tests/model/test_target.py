@@ -93,3 +93,16 @@ def test_models_predict_prior_plus_scaled_output(stats, name):
     out, coder = model(g).target, model.target_coder
     torch.testing.assert_close(model.predict(g), out * coder.residual_scale + coder.prior(g))
     torch.testing.assert_close(model.denormalize_target(out, g), model.predict(g))
+
+
+@pytest.mark.parametrize(("kind", "prior", "loss"), [("acceleration", "linear", "huber"),
+                                                     ("velocity", "last", "mse")])
+def test_auto_picks_prior_and_loss_by_target_kind(stats, kind, prior, loss):
+    g, meta = polynomial_graph(4, kind)
+    c = TargetCoder(Normalizer(stats(), 2), stats(), meta, 3, "auto", "auto").double()
+    assert (c.prior_name, c.loss_name) == (prior, loss)
+    out = torch.randn_like(g.target) * 5
+    y = c.encode(g)
+    expected = (torch.nn.functional.huber_loss(out, y) if loss == "huber"
+                else torch.nn.functional.mse_loss(out, y))
+    torch.testing.assert_close(c.loss(out, g), expected)

@@ -18,7 +18,7 @@ from scipy.stats import gaussian_kde, ttest_ind, wasserstein_distance
 
 from bgn.data.batch import Graph, collate
 from bgn.data.dataset import FrameDataset
-from bgn.model.target import observed_targets
+from bgn.model.target import extrapolate, observed_targets
 from bgn.module import PhysicsModule
 
 
@@ -140,9 +140,8 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
         pred = model.predict(g)
         sq_err.append(((pred - g.target) ** 2).flatten())
         seen = observed_targets(g, module.meta.target)
-        ref_err["last"].append(((seen[:, 0] - g.target) ** 2).flatten())
-        if seen.shape[1] > 1:
-            ref_err["linear"].append(((2 * seen[:, 0] - seen[:, 1] - g.target) ** 2).flatten())
+        for name in ref_err if seen.shape[1] > 1 else ("last",):
+            ref_err[name].append(((extrapolate(seen, name) - g.target) ** 2).flatten())
         rel_err.append((pred - g.target).norm(dim=-1)
                        / g.target.norm(dim=-1).clamp_min(1e-12))
         if heads & {"type", "relmass"}:

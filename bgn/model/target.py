@@ -58,6 +58,16 @@ def observed_targets(g: Graph, kind: str) -> torch.Tensor:
     return (g.vel[:, :-1] - g.vel[:, 1:]) / dt
 
 
+def extrapolate(seen: torch.Tensor, prior: str) -> torch.Tensor:
+    """(N, D) prediction of the next target from ``observed_targets`` (newest first):
+    ``last`` repeats ``y[t-1]``, ``linear`` is ``2 y[t-1] - y[t-2]``."""
+    if prior == "last":
+        return seen[:, 0]
+    if prior == "linear":
+        return 2 * seen[:, 0] - seen[:, 1]
+    raise ValueError(f"no extrapolation named {prior!r}; use last or linear")
+
+
 class TargetCoder(nn.Module):
     """Physical target <-> what the dynamics head outputs, for one ``prior`` (see module doc)."""
 
@@ -98,10 +108,7 @@ class TargetCoder(nn.Module):
         """(N, D) the part of the target predicted from the window alone (physical units)."""
         if self.prior_name == "none":
             return torch.zeros_like(g.target)
-        y = observed_targets(g, self.kind)
-        if self.prior_name == "last":
-            return y[:, 0]
-        return 2 * y[:, 0] - y[:, 1]
+        return extrapolate(observed_targets(g, self.kind), self.prior_name)
 
     def encode(self, g: Graph) -> torch.Tensor:
         """The graph's target in the head's units, (N, D)."""

@@ -130,6 +130,9 @@ class PhysicsModule(L.LightningModule):
         n = g.num_graphs
         self.log(f"{stage}/loss", loss, batch_size=n, prog_bar=stage != "test",
                  on_step=stage == "train", on_epoch=True)
+        # No sync_dist on the losses: with it a 2-process CPU DDP run hung at the first epoch
+        # end (tests/test_train.py runs DDP). Under DDP these are process 0's means; the
+        # torchmetrics (val/nmse, watched by checkpoints and early stopping) are reduced.
         for name, value in terms.items():
             self.log(f"{stage}/loss_{name}", value, batch_size=n, on_step=False, on_epoch=True)
         self._update_metrics(stage, g, out)

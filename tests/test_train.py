@@ -102,3 +102,26 @@ def test_multirun_sweep_writes_summary(tmp_path, shared_data_dir):
     runs = sorted(p.name for p in (tmp_path / "sweep").iterdir() if p.is_dir())
     assert len(runs) == 2 and all((tmp_path / "sweep" / r / "tensorboard").exists()
                                   for r in runs)
+
+
+def test_ddp_on_two_cpu_processes_splits_the_epoch_and_writes_one_record(tmp_path,
+                                                                         shared_data_dir):
+    """trainer=ddp through the real command line (Lightning relaunches the Hydra command for
+    rank 1): each process takes half of the epoch's batches, rank 0 alone writes the record."""
+    common = ["dataset=spring", *SMALL["spring"], f"paths.data_dir={shared_data_dir}",
+              "model.hidden=16", "model.decoder_hidden=16", "model.flow_hidden=16",
+              "figures=false", "trainer.max_epochs=1", "dataset.batch_size=8"]
+    datamodule, _ = build(compose_config("train", common))
+    single_process_steps = len(datamodule.train_dataloader())
+    run = tmp_path / "ddp"
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "bgn.train", *common, "trainer=ddp", "trainer.accelerator=cpu",
+           "trainer.devices=2", f"hydra.run.dir={run}"]
+    result = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True,
+                            timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    record = json.loads((run / "metrics.json").read_text())
+    assert record["dataset"] == "spring" and "test/nmse" in record["metrics"]
+    last = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    assert last["global_step"] == -(-single_process_steps // 2)  # ceil: DistributedSampler pads
+    assert not (run / ".pl_hydra_rank_1").exists() and (run / ".hydra" / "config.yaml").exists()

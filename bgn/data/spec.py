@@ -15,9 +15,10 @@ from typing import Any
 from bgn.sim import SCENES, Scene, make_scene
 
 SPLITS = ("train", "val", "test")
-# Dataset config keys that do not change the generated numbers (they configure loading).
+# Dataset config keys that do not change the generated numbers (they configure loading, or
+# the scene's default model.target_prior).
 LOADER_KEYS = frozenset({"history", "batch_size", "num_workers", "train_sims", "val_samples",
-                         "in_memory", "generate_workers"})
+                         "in_memory", "generate_workers", "target_prior"})
 SIZE_KEYS = ("n_sims", "n_frames", "seed")
 
 

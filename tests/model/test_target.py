@@ -106,3 +106,13 @@ def test_auto_picks_prior_and_loss_by_target_kind(stats, kind, prior, loss):
     expected = (torch.nn.functional.huber_loss(out, y) if loss == "huber"
                 else torch.nn.functional.mse_loss(out, y))
     torch.testing.assert_close(c.loss(out, g), expected)
+
+
+
+def test_no_prior_means_the_papers_mse_under_auto(stats):
+    """dataset.target_prior=none (gravity_r2) with dynamics_loss=auto: the paper's target and
+    loss, in the normaliser's units."""
+    g, meta = polynomial_graph(2, "acceleration")
+    c = TargetCoder(Normalizer(stats(), 2), stats(), meta, 3, "none", "auto").double()
+    assert (c.prior_name, c.loss_name, c.residual_scale) == ("none", "mse", None)
+    torch.testing.assert_close(c.encode(g), c.normalizer.target(g.target))

@@ -59,9 +59,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
     output_dir = Path(cfg.paths.output_dir)
     print(f"run directory: {output_dir}")
     datamodule, module = build(cfg)
-    coder = getattr(module.model, "target_coder", None)
-    if coder is not None:  # what model.target_prior=auto and dynamics_loss=auto chose
-        print(f"dynamics target: prior={coder.prior_name}, loss={coder.loss_name}")
+    coder = module.model.target_coder  # what target_prior=auto and dynamics_loss=auto chose
+    print(f"dynamics target: prior={coder.prior_name}, loss={coder.loss_name}")
     # a group entry set to null (callbacks.early_stopping=null) switches that callback off
     callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c]
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c]
@@ -75,14 +74,14 @@ def train(cfg: DictConfig) -> dict[str, float]:
         trainer.test(module, datamodule=datamodule, ckpt_path=best or None)
         metrics.update({k: float(v) for k, v in trainer.callback_metrics.items()})
     metrics["wall_time_s"] = time.perf_counter() - start
+    if not trainer.is_global_zero:  # DDP: one process writes the run's record
+        return metrics
     overrides = {}
     if HydraConfig.initialized():
         overrides = dict(o.split("=", 1) for o in HydraConfig.get().overrides.task if "=" in o)
     record = {"metrics": metrics, "overrides": overrides,
               "dataset": cfg.dataset.scene, "fps": float(cfg.fps),
               "model": getattr(module.model, "label", cfg.model.name)}
-    if not trainer.is_global_zero:  # DDP: one process writes the run's record
-        return metrics
     output_dir.mkdir(parents=True, exist_ok=True)
     (output_dir / "metrics.json").write_text(json.dumps(record, indent=2, sort_keys=True))
     print(json.dumps({k: round(v, 6) for k, v in sorted(metrics.items())

@@ -124,4 +124,6 @@ def test_ddp_on_two_cpu_processes_splits_the_epoch_and_writes_one_record(tmp_pat
     assert record["dataset"] == "spring" and "test/nmse" in record["metrics"]
     last = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
     assert last["global_step"] == -(-single_process_steps // 2)  # ceil: DistributedSampler pads
-    assert not (run / ".pl_hydra_rank_1").exists() and (run / ".hydra" / "config.yaml").exists()
+    assert (run / ".hydra" / "config.yaml").exists()
+    # both processes share the pipe: only process 0 prints the final summary
+    assert sum(line.startswith(' "test/nmse":') for line in result.stdout.splitlines()) == 1

@@ -108,7 +108,6 @@ def test_auto_picks_prior_and_loss_by_target_kind(stats, kind, prior, loss):
     torch.testing.assert_close(c.loss(out, g), expected)
 
 
-
 def test_no_prior_means_the_papers_mse_under_auto(stats):
     """dataset.target_prior=none (gravity_r2) with dynamics_loss=auto: the paper's target and
     loss, in the normaliser's units."""

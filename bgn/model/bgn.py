@@ -31,7 +31,7 @@ from bgn.model.encoder import (
 )
 from bgn.model.inverse import FLOWS, InverseModel
 from bgn.model.normalizer import Normalizer
-from bgn.model.processor import CONTACT_MODES, Processor
+from bgn.model.processor import CONTACT_MODES, MESSAGES, Processor
 from bgn.model.target import LOSSES, PRIORS, TargetCoder
 from bgn.sim.scene import SceneMeta
 
@@ -56,6 +56,10 @@ class ModelConfig:
     # and total relative speed) to the contact logit <h_E,i, h_E,j>. Node embeddings that do
     # not know positions cannot say from an inner product alone whether two particles touch.
     contact_edge_term: bool = True
+    # What the contact-weighted aggregation sums (processor.ContactHead): "linear", a linear map
+    # of the edge features (our reading of the paper), or "mlp", an edge MLP that also reads
+    # both particles' H̃_V and can express an elastic impulse.
+    contact_message: str = "linear"
     shared_decoder: bool = False
     # D^-1/2 Â D^-1/2 in every GCN layer. The paper's plain sums grow like (degree+1)^layers
     # (contact logits ~1e4 at initialisation on a 2000-particle radius graph) and in
@@ -100,6 +104,9 @@ class ModelConfig:
         if self.contact_mode not in CONTACT_MODES:
             raise ValueError(f"contact_mode={self.contact_mode!r}; choose one of "
                              f"{CONTACT_MODES}")
+        if self.contact_message not in MESSAGES:
+            raise ValueError(f"contact_message={self.contact_message!r}; choose one of "
+                             f"{MESSAGES}")
         if self.force_transform not in ("log1p", "linear"):
             raise ValueError(f"force_transform={self.force_transform!r}; use log1p or linear")
         if self.contact_pos_weight != "balanced" and not float(self.contact_pos_weight) > 0:
@@ -173,7 +180,8 @@ class BGN(nn.Module):
                                    contact_scene=self.contact_scene, classifier=cfg.classifier,
                                    contact=cfg.contact, contact_mode=cfg.contact_mode,
                                    contact_edge_term=((d, history) if cfg.contact_edge_term
-                                                      else None))
+                                                      else None),
+                                   message=cfg.contact_message, act=cfg.activation)
         self.decoder = Decoder(self.processor.out_features + (node_in if cfg.decoder_skip else 0),
                                cfg.decoder_hidden, d,
                                cfg.activation, cfg.shared_decoder)

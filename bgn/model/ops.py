@@ -10,6 +10,7 @@ from itertools import pairwise
 
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "silu": nn.SiLU,
@@ -85,3 +86,34 @@ def mlp(sizes: list[int], act: str = "silu", layer_norm: bool = False,
     if layer_norm:
         layers.append(nn.LayerNorm(sizes[-1]))
     return nn.Sequential(*layers)
+
+
+class EdgeMLP(nn.Module):
+    """``phi([e_ij, x_i, x_j])`` for every edge j -> i; ``sizes`` = hidden widths + output width.
+
+    ``factored=True`` applies the first layer's node blocks per node and gathers the products,
+    ``W [e, x_i, x_j] = W_e e + (W_r x)[i] + (W_s x)[j]``: the same function as the plain
+    concatenation (``factored=False``), with fewer FLOPs and no (E, 2F) concatenated copy when
+    the node features are wide (DESIGN section 9: 0.22 -> 0.35 M edges/s forward+backward).
+    """
+
+    def __init__(self, edge_in: int, node_in: int, sizes: list[int], act: str = "relu",
+                 layer_norm: bool = False, factored: bool = True) -> None:
+        super().__init__()
+        self.edge_in, self.node_in, self.factored = edge_in, node_in, factored
+        self.first = nn.Linear(edge_in + 2 * node_in, sizes[0])
+        self.rest = nn.Sequential(activation(act), *mlp(sizes, act, layer_norm))
+
+    def forward(self, e: torch.Tensor, x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
+        """Edge (E, edge_in) and node (N, node_in) features -> (E, sizes[-1])."""
+        snd, rcv = edge_index[0], edge_index[1]
+        if self.factored:
+            w_e, w_r, w_s = self.first.weight.split([self.edge_in, self.node_in, self.node_in],
+                                                    dim=1)
+            # index_select: its backward is index_add_, several times faster on CPU than the
+            # accumulating index_put_ behind x[idx]
+            z = (F.linear(e, w_e, self.first.bias)
+                 + F.linear(x, w_r).index_select(0, rcv) + F.linear(x, w_s).index_select(0, snd))
+        else:
+            z = self.first(torch.cat([e, x.index_select(0, rcv), x.index_select(0, snd)], dim=1))
+        return self.rest(z)

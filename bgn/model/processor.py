@@ -20,9 +20,10 @@ from torch import nn
 
 from bgn.data.batch import Graph
 from bgn.model.encoder import symmetric_edge_features, symmetric_edge_width
-from bgn.model.ops import scatter_sum
+from bgn.model.ops import EdgeMLP, scatter_sum
 
 CONTACT_MODES = ("aggregate", "dense")
+MESSAGES = ("linear", "mlp")
 
 
 class TypeClassifier(nn.Module):
@@ -59,15 +60,27 @@ class ContactHead(nn.Module):
     so only the narrow ``e_ij`` (about 16 channels) is gathered and scattered per edge and the
     wide map is applied per node (O(E Fe + N Fe M) instead of O(E M)). With ``ĉ_ij`` a force
     magnitude and the unit direction in ``e_ij``, ``sum_j ĉ_ij u_ij`` is a net force.
+
+    ``message="mlp"`` (not in the paper) makes ``m_ij = MLP(e_ij, h̃_V,i, h̃_V,j)`` instead, one
+    hidden layer. An elastic impulse, ``-2 m_j / (m_i + m_j) ((v_i - v_j) . u_ij) u_ij``, is a
+    product of edge features and of both particles' masses (their types): a linear message
+    cannot carry it, and the decoder sees only the sum over contacts. Costs one edge MLP,
+    O(E M), where the linear message costs O(E Fe).
     """
 
     def __init__(self, h_e_features: int, edge_features: int, message_features: int | None,
-                 probability: bool, edge_term: tuple[int, int] | None = None) -> None:
+                 probability: bool, edge_term: tuple[int, int] | None = None,
+                 message: str = "linear", node_features: int = 0, act: str = "silu") -> None:
         super().__init__()
+        if message not in MESSAGES:
+            raise ValueError(f"contact message={message!r}; choose one of {MESSAGES}")
         self.inv_sqrt_f = 1.0 / math.sqrt(h_e_features)
         self.probability = probability  # contact scenes: sigmoid of the logits
-        self.message = (nn.Linear(edge_features, message_features)
-                        if message_features is not None else None)
+        self.message: nn.Module | None = None
+        if message_features is not None:
+            self.message = (nn.Linear(edge_features, message_features) if message == "linear"
+                            else EdgeMLP(edge_features, node_features,
+                                         [message_features, message_features], act))
         # Optional (not in the paper): + a . s_ij, s_ij the swap-symmetric edge features
         # (distance, radial and total relative speed). (dim, history) when enabled.
         self.edge_term = None
@@ -90,11 +103,14 @@ class ContactHead(nn.Module):
         return torch.sigmoid(c) if self.probability else c
 
     def aggregate(self, c: torch.Tensor, e: torch.Tensor, edge_index: torch.Tensor,
-                  n: int) -> torch.Tensor:
-        """``sum over edges j -> i of weights(ĉ_ij) m_ij`` (N, M), via linearity (class doc)."""
+                  h: torch.Tensor) -> torch.Tensor:
+        """``sum over edges j -> i of weights(ĉ_ij) m_ij`` (N, M); a linear message goes via
+        linearity (class doc). ``h``: node features (N, F) that an MLP message also reads."""
         assert self.message is not None
-        rcv = edge_index[1]
+        rcv, n = edge_index[1], h.shape[0]
         w = self.weights(c)
+        if isinstance(self.message, EdgeMLP):
+            return scatter_sum(w[:, None] * self.message(e, h, edge_index), rcv, n)
         weighted = scatter_sum(w[:, None] * e, rcv, n)        # sum_j ĉ_ij e_ij
         total = scatter_sum(w, rcv, n)                        # sum_j ĉ_ij
         return nn.functional.linear(weighted, self.message.weight) \
@@ -136,19 +152,20 @@ class Processor(nn.Module):
     def __init__(self, hidden: int, edge_features: int, n_types: int, n_particles: int,
                  contact_scene: bool, classifier: bool = True, contact: bool = True,
                  contact_mode: str = "aggregate", message_features: int | None = None,
-                 contact_edge_term: tuple[int, int] | None = None) -> None:
+                 contact_edge_term: tuple[int, int] | None = None, message: str = "linear",
+                 act: str = "silu") -> None:
         super().__init__()
         if contact_mode not in CONTACT_MODES:
             raise ValueError(f"contact_mode={contact_mode!r}; choose one of {CONTACT_MODES}")
         self.contact_mode = contact_mode
         self.n_particles = n_particles
         self.classifier = TypeClassifier(hidden, n_types) if classifier and n_types > 1 else None
+        self.tilde_v_features = hidden + (n_types if self.classifier is not None else 0)
         self.contact = None
         if contact:
-            message = (message_features or hidden) if contact_mode == "aggregate" else None
-            self.contact = ContactHead(hidden, edge_features, message, contact_scene,
-                                       contact_edge_term)
-        self.tilde_v_features = hidden + (n_types if self.classifier is not None else 0)
+            width = (message_features or hidden) if contact_mode == "aggregate" else None
+            self.contact = ContactHead(hidden, edge_features, width, contact_scene,
+                                       contact_edge_term, message, self.tilde_v_features, act)
         if self.contact is None:
             extra = hidden                                     # H_E
         elif contact_mode == "dense":
@@ -173,6 +190,6 @@ class Processor(nn.Module):
                 rows = self.contact.dense_rows(contact, h_e, g, self.n_particles)
                 h_cv = torch.cat([rows, h_tilde_v], -1)
             else:
-                agg = self.contact.aggregate(contact, e, g.edge_index, h_v.shape[0])
+                agg = self.contact.aggregate(contact, e, g.edge_index, h_tilde_v)
                 h_cv = torch.cat([h_tilde_v, agg], -1)
         return ProcessorOutput(h_tilde_v, h_cv, type_logits, contact)

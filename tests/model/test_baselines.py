@@ -9,7 +9,8 @@ import torch
 
 from bgn.data.batch import collate
 from bgn.model import Normalizer, build_model
-from bgn.model.baselines import GNS, MODELS, CranmerGN, EdgeMLP
+from bgn.model.baselines import GNS, MODELS, CranmerGN
+from bgn.model.ops import EdgeMLP
 from tests.model.conftest import permute_graph
 
 HISTORY = 2

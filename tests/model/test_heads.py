@@ -8,6 +8,7 @@ import torch
 
 from bgn.data.batch import collate
 from bgn.model import BGN, LOSS_KEYS, ModelConfig, build_model
+from bgn.model.encoder import edge_input_dim
 
 
 def names(model: BGN) -> list[str]:
@@ -173,3 +174,26 @@ def test_complete_graph_node_features_need_self_weight(meta, stats, graph):
         x = model.normalizer.velocity(g.vel).flatten(1)
         h_v = model.node_encoder(x, g.edge_index)
         assert torch.allclose(h_v, h_v[:1].expand_as(h_v)) == identical
+
+
+def test_contact_message_mlp_reads_both_particles(meta, stats, graph):
+    """An elastic impulse depends on both masses: the MLP message sees H̃_V of both ends, the
+    linear message only the edge features. Both are weighted by the contact estimate."""
+    g = graph(6, contact=True)
+    for message, reads_nodes in (("linear", False), ("mlp", True)):
+        model = BGN(meta(6, 2, "contact"), stats(), 2, small(contact_message=message)).double()
+        head = model.processor.contact
+        e = torch.randn(g.edge_index.shape[1], edge_input_dim(2, 2), dtype=torch.float64)
+        c = torch.randn(e.shape[0], dtype=torch.float64)
+        h = torch.randn(6, model.processor.tilde_v_features, dtype=torch.float64)
+        a = head.aggregate(c, e, g.edge_index, h)
+        assert a.shape == (6, model.cfg.hidden)
+        assert torch.allclose(a, head.aggregate(c, e, g.edge_index, h + 1.0)) != reads_nodes
+        # no contact anywhere (probabilities -> 0): nothing is aggregated
+        none = head.aggregate(torch.full_like(c, -1e4), e, g.edge_index, h)
+        torch.testing.assert_close(none, torch.zeros_like(none))
+
+
+def test_unknown_contact_message_is_clear(meta, stats):
+    with pytest.raises(ValueError, match="contact_message='conv'"):
+        small(contact_message="conv")

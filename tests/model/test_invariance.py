@@ -13,9 +13,10 @@ from tests.model.conftest import permute_graph
 
 NODE_FIELDS = ("target", "type_logits", "mass_nll", "log_mass_sample")
 EDGE_FIELDS = ("contact", "relmass", "edge_weight")
-SCENES = [  # interaction, graph kind, n_types
-    ("pairwise", "full", 3),
-    ("contact", "radius", 2),
+SCENES = [  # interaction, graph kind, n_types, model options
+    ("pairwise", "full", 3, {}),
+    ("contact", "radius", 2, {}),
+    ("contact", "radius", 2, {"contact_message": "mlp"}),
 ]
 
 
@@ -37,9 +38,9 @@ def assert_outputs_close(a: BGNOutput, b: BGNOutput, node=None, edge=None) -> No
                                    msg=name)
 
 
-@pytest.mark.parametrize(("interaction", "kind", "n_types"), SCENES)
-def test_translation_invariance(meta, stats, graph, interaction, kind, n_types):
-    model = build(meta, stats, interaction, kind, n_types)
+@pytest.mark.parametrize(("interaction", "kind", "n_types", "overrides"), SCENES)
+def test_translation_invariance(meta, stats, graph, interaction, kind, n_types, overrides):
+    model = build(meta, stats, interaction, kind, n_types, **overrides)
     g = graph(7, n_types=n_types, kind=kind, contact=interaction == "contact", seed=2)
     assert g.edge_index.shape[1] > 0
     noise = torch.randn(7, dtype=torch.float64)
@@ -55,9 +56,9 @@ def test_absolute_position_option_breaks_translation_invariance(meta, stats, gra
     assert not torch.allclose(model.predict(g), model.predict(shifted))
 
 
-@pytest.mark.parametrize(("interaction", "kind", "n_types"), SCENES)
-def test_permutation_equivariance(meta, stats, graph, interaction, kind, n_types):
-    model = build(meta, stats, interaction, kind, n_types)
+@pytest.mark.parametrize(("interaction", "kind", "n_types", "overrides"), SCENES)
+def test_permutation_equivariance(meta, stats, graph, interaction, kind, n_types, overrides):
+    model = build(meta, stats, interaction, kind, n_types, **overrides)
     g = graph(7, n_types=n_types, kind=kind, contact=interaction == "contact", seed=4)
     permuted, perm, edge_perm = permute_graph(g)
     noise = torch.randn(7, dtype=torch.float64)
@@ -71,6 +72,7 @@ def test_permutation_equivariance(meta, stats, graph, interaction, kind, n_types
 @pytest.mark.parametrize(("interaction", "kind", "n_types", "overrides"), [
     ("pairwise", "full", 3, {}),
     ("contact", "radius", 2, {"degree_normalize": True}),
+    ("contact", "radius", 2, {"contact_message": "mlp"}),
     ("pairwise", "full", 2, {"contact_mode": "dense"}),
 ])
 def test_batch_equals_graphs_alone(meta, stats, graph, interaction, kind, n_types, overrides):

@@ -185,8 +185,9 @@ def fmt(value: Any) -> str:
 
 
 def write_table(report_dir: Path, stem: str, title: str, columns: list[str],
-                rows: list[dict[str, Any]], notes: str = "", csv_too: bool = True) -> None:
-    """``<stem>.md`` (a titled markdown table) and ``<stem>.csv`` with the same rows."""
+                rows: list[dict[str, Any]], notes: str = "", csv_too: bool = True) -> str:
+    """``<stem>.md`` (a titled markdown table) and ``<stem>.csv`` with the same rows; returns
+    the markdown (report.md embeds every table)."""
     lines = [f"# {title}", ""]
     if notes:
         lines += [notes, ""]
@@ -197,12 +198,14 @@ def write_table(report_dir: Path, stem: str, title: str, columns: list[str],
     lines += ["| " + " | ".join(cell(c, r.get(c)) for c in columns) + " |" for r in rows]
     if not rows:
         lines.append("\n(no cells of this kind in the preset)")
-    (report_dir / f"{stem}.md").write_text("\n".join(lines) + "\n")
+    text = "\n".join(lines) + "\n"
+    (report_dir / f"{stem}.md").write_text(text)
     if csv_too:
         with open(report_dir / f"{stem}.csv", "w", newline="") as fh:
             writer = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
             writer.writeheader()
             writer.writerows(rows)
+    return text
 
 
 # no-learning references in Table 1 (bgn.evaluate): metric suffix -> column
@@ -227,6 +230,7 @@ def write_report(cfg: DictConfig, cells: list[Cell],
 
     main = [c for c in cells if "main" in c.groups]
     models = list(dict.fromkeys(c.model for c in main))
+    tables: dict[str, str] = {}
 
     # Table 1: one row per scene x fps, MSE and NMSE per model, the paper's values beside
     rows = []
@@ -244,8 +248,9 @@ def write_report(cfg: DictConfig, cells: list[Cell],
     columns = ["scene", "fps", *[f"{m} {k}" for m in models for k in ("MSE", "NMSE")],
                *REFERENCES.values(), f"BGN {PAPER_LABEL}", f"Cranmer et al. {PAPER_LABEL}",
                f"Sanchez-Gonzalez et al. {PAPER_LABEL}"]
-    write_table(report_dir, "table1", "Table 1: one-step error on the test split", columns,
-                rows, "MSE of the forward target (next velocity for collisions, acceleration "
+    tables["table1"] = write_table(
+        report_dir, "table1", "Table 1: one-step error on the test split", columns, rows,
+        "MSE of the forward target (next velocity for collisions, acceleration "
                 "otherwise) in physical units; NMSE = MSE / training target variance. The "
                 "paper's columns are its published Table 1 values (it does not say which "
                 "metric); the baselines are single values per scene in the paper. The "
@@ -263,8 +268,9 @@ def write_report(cfg: DictConfig, cells: list[Cell],
             figure = Path(r["figure"])
             rows.append({"scene": c.scene, "fps": fmt(c.fps), "model": c.model,
                          **ev(c), "figure": f"figures/{figure.name}"})
-    write_table(report_dir, "inverse", "Inverse model: sampled vs true masses", inv_cols,
-                rows, "Log-masses (natural log) of every particle of a subset of test frames; "
+    tables["inverse"] = write_table(
+        report_dir, "inverse", "Inverse model: sampled vs true masses", inv_cols, rows,
+        "Log-masses (natural log) of every particle of a subset of test frames; "
                 "Welch p: t-test of true vs sampled log-masses (unequal variances); W1: "
                 "Wasserstein-1 distance of the log-masses; modes: KDE peaks of the true "
                 "log-masses and how many have a sampled peak within 0.5; coverage: fraction "
@@ -275,7 +281,7 @@ def write_report(cfg: DictConfig, cells: list[Cell],
     rows = [{"scene": c.scene, "fps": fmt(c.fps), "model": c.model, **ev(c)}
             for c in cells if c.ablation == "full" and c.train_sims is None
             and "type_accuracy" in ev(c)]
-    write_table(report_dir, "types", "Particle-type classification (test split)",
+    tables["types"] = write_table(report_dir, "types", "Particle-type classification (test split)",
                 ["scene", "fps", "model", "type_accuracy", "type_auroc"], rows,
                 "Accuracy and one-vs-rest AUROC of the type classifier (collisions).",
                 csv_too=False)
@@ -288,7 +294,7 @@ def write_report(cfg: DictConfig, cells: list[Cell],
             for k in ("contact_f1", "contact_auroc", "contact_r2"):
                 m[k] = test(c).get(f"test/{k}")  # from the trainer's test of best.ckpt
             rows.append({"scene": c.scene, "fps": fmt(c.fps), "ablation": c.ablation, **m})
-    write_table(report_dir, "ablations", "Ablations of BGN",
+    tables["ablations"] = write_table(report_dir, "ablations", "Ablations of BGN",
                 ["scene", "fps", "ablation", "nmse", "mse", "median_relative_error",
                  "type_accuracy", "type_auroc", "contact_f1", "contact_auroc", "contact_r2",
                  "relmass_r2", "wasserstein1", "coverage50", "coverage90"], rows,
@@ -300,7 +306,8 @@ def write_report(cfg: DictConfig, cells: list[Cell],
     rows = [{"scene": c.scene, "fps": fmt(c.fps), "model": c.model,
              "train_sims": c.train_sims, **ev(c)}
             for c in cells if "sample_efficiency" in c.groups]
-    write_table(report_dir, "sample_efficiency", "Sample efficiency",
+    tables["sample_efficiency"] = write_table(report_dir, "sample_efficiency",
+                "Sample efficiency",
                 ["scene", "fps", "model", "train_sims", "nmse", "mse",
                  "median_relative_error"], rows,
                 "Test error against the number of training simulations (val and test use "
@@ -320,8 +327,11 @@ def write_report(cfg: DictConfig, cells: list[Cell],
              "- [Particle types (collisions)](types.md)",
              "- [Ablations](ablations.md)",
              "- [Sample efficiency](sample_efficiency.md) ([csv](sample_efficiency.csv), "
-             "[plot](sample_efficiency.png))", "",
-             "## Cells", "", "| cell | groups | trained in (s) | test NMSE |", "|---|---|---|---|"]
+             "[plot](sample_efficiency.png))", ""]
+    for text in tables.values():  # every table inline too, one heading level down
+        lines += ["#" + text.rstrip("\n"), ""]
+    lines += ["![sample efficiency](sample_efficiency.png)", "",
+              "## Cells", "", "| cell | groups | trained in (s) | test NMSE |", "|---|---|---|---|"]
     lines += [f"| {c.name} | {', '.join(c.groups)} | "
               f"{fmt(test(c).get('wall_time_s'))} | {fmt(ev(c)['nmse'])} |" for c in cells]
     path = report_dir / "report.md"

@@ -31,7 +31,7 @@ from bgn.model.encoder import (
 )
 from bgn.model.inverse import FLOWS, InverseModel
 from bgn.model.normalizer import Normalizer
-from bgn.model.processor import CONTACT_MODES, MESSAGES, Processor
+from bgn.model.processor import CONTACT_MODES, MESSAGES, Processor, ProcessorOutput
 from bgn.model.target import LOSSES, PRIORS, TargetCoder
 from bgn.sim.scene import SceneMeta
 
@@ -58,7 +58,9 @@ class ModelConfig:
     contact_edge_term: bool = True
     # What the contact-weighted aggregation sums (processor.ContactHead): "linear", a linear map
     # of the edge features (our reading of the paper), or "mlp", an edge MLP that also reads
-    # both particles' H̃_V and can express an elastic impulse.
+    # both particles' H̃_V and can express an elastic impulse, or "vector", an edge MLP whose
+    # outputs weigh the edge's own vectors (direction, relative velocities): a D-vector
+    # impulse added to the decoded target.
     contact_message: str = "linear"
     shared_decoder: bool = False
     # D^-1/2 Â D^-1/2 in every GCN layer. The paper's plain sums grow like (degree+1)^layers
@@ -181,7 +183,7 @@ class BGN(nn.Module):
                                    contact=cfg.contact, contact_mode=cfg.contact_mode,
                                    contact_edge_term=((d, history) if cfg.contact_edge_term
                                                       else None),
-                                   message=cfg.contact_message, act=cfg.activation)
+                                   message=cfg.contact_message, act=cfg.activation, dim=d)
         self.decoder = Decoder(self.processor.out_features + (node_in if cfg.decoder_skip else 0),
                                cfg.decoder_hidden, d,
                                cfg.activation, cfg.shared_decoder)
@@ -215,15 +217,17 @@ class BGN(nn.Module):
         h_e, w = self.edge_encoder(x, e, g.edge_index)         # Eq. 1 with learned A
         return self.processor(h_v, h_e, e, g), w, x            # Eq. 2-3
 
-    def _decode(self, h_cv: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
-        """Eq. 5 on H̃_CV (and the node inputs with ``decoder_skip``)."""
-        return self.decoder(torch.cat([h_cv, x], -1) if self.cfg.decoder_skip else h_cv)
+    def _decode(self, p: ProcessorOutput, x: torch.Tensor) -> torch.Tensor:
+        """Eq. 5 on H̃_CV (and the node inputs with ``decoder_skip``), plus the contact
+        impulse of a vector message."""
+        y = self.decoder(torch.cat([p.h_cv, x], -1) if self.cfg.decoder_skip else p.h_cv)
+        return y if p.impulse is None else y + p.impulse
 
     def forward(self, g: Graph, noise: torch.Tensor | None = None) -> BGNOutput:
         """All heads on a graph (one frame or a batch). ``noise`` (N,): base draws of the
         flow sample behind ``relmass`` (drawn here when None)."""
         p, w, x = self._process(g)
-        target = self._decode(p.h_cv, x)                       # Eq. 5
+        target = self._decode(p, x)                            # Eq. 5
         mass_nll = relmass = z = None
         if self.inverse is not None:
             log_m = self.normalizer.log_mass(torch.log(g.mass))
@@ -288,7 +292,7 @@ class BGN(nn.Module):
 
         Runs only the forward path (no flow). Wrap in ``torch.no_grad()`` for rollouts."""
         p, _, x = self._process(g)
-        return self.target_coder.decode(g, self._decode(p.h_cv, x))
+        return self.target_coder.decode(g, self._decode(p, x))
 
     @torch.no_grad()
     def sample_log_mass(self, g: Graph, n_samples: int) -> torch.Tensor:

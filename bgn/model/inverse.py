@@ -23,6 +23,7 @@ from __future__ import annotations
 import torch
 import zuko
 from torch import nn
+from torch.nn import functional as F
 
 from bgn.model.ops import activation
 
@@ -75,7 +76,10 @@ class InverseModel(nn.Module):
         """Eq. 9-10 on edges: ``R̂_ij`` (E,) for edge j -> i (receiver minus sender)."""
         snd, rcv = edge_index[0], edge_index[1]
         zt = torch.stack([z, torch.ones_like(z)], -1)              # [z, 1]
-        h = self.act(self.bilinear(zt[rcv], zt[snd]))              # s(Z_Kᵀ W1 Z_K)
+        # s(Z_Kᵀ W1 Z_K): nn.Bilinear's own kernel is slow for 2 x 2 inputs on CPU; the same
+        # map as a linear layer on the 4 products [z_i, 1] ⊗ [z_j, 1]
+        outer = (zt[rcv, :, None] * zt[snd, None, :]).flatten(1)
+        h = self.act(F.linear(outer, self.bilinear.weight.flatten(1), self.bilinear.bias))
         return self.linear3(self.act(self.linear2(h))).squeeze(-1)
 
     def sample_log_mass(self, context: torch.Tensor, n: int) -> torch.Tensor:

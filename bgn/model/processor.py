@@ -23,7 +23,7 @@ from bgn.model.encoder import symmetric_edge_features, symmetric_edge_width
 from bgn.model.ops import EdgeMLP, scatter_sum
 
 CONTACT_MODES = ("aggregate", "dense")
-MESSAGES = ("linear", "mlp")
+MESSAGES = ("linear", "mlp", "vector")
 
 
 class TypeClassifier(nn.Module):
@@ -66,26 +66,46 @@ class ContactHead(nn.Module):
     product of edge features and of both particles' masses (their types): a linear message
     cannot carry it, and the decoder sees only the sum over contacts. Costs one edge MLP,
     O(E M), where the linear message costs O(E Fe).
+
+    ``message="vector"`` (not in the paper) builds the impulse itself: an edge MLP of
+    ``(e_ij, h̃_V,i, h̃_V,j)`` gives scalar coefficients ``a_ijb`` on the edge's own vectors
+    ``g_ijb`` (relative position, unit direction, relative velocity at each window step), and
+    ``m_ij = sum_b a_ijb g_ijb`` is a D-vector. An elastic impulse has this form exactly:
+    ``-2 m_j / (m_i + m_j) ((v_i - v_j) . n) n`` with the contact normal ``n`` at the impact,
+    which within a frame lies in the span of ``x_i - x_j`` and ``v_i - v_j``; and so does a
+    pairwise force ``f(r) u_ij``. The MLP then learns scalars of scalars (distance, speeds,
+    types) instead of a product with a direction. ``sum_j ĉ_ij m_ij`` (N, D) is added to the
+    decoded target (``ProcessorOutput.impulse``) and fed to the decoder. Costs one edge MLP.
     """
 
     def __init__(self, h_e_features: int, edge_features: int, message_features: int | None,
                  probability: bool, edge_term: tuple[int, int] | None = None,
-                 message: str = "linear", node_features: int = 0, act: str = "silu") -> None:
+                 message: str = "linear", node_features: int = 0, act: str = "silu",
+                 dim: int = 0) -> None:
         super().__init__()
         if message not in MESSAGES:
             raise ValueError(f"contact message={message!r}; choose one of {MESSAGES}")
+        if message == "vector" and dim < 1:
+            raise ValueError("a vector contact message needs the spatial dimension (dim >= 1)")
         self.inv_sqrt_f = 1.0 / math.sqrt(h_e_features)
         self.probability = probability  # contact scenes: sigmoid of the logits
+        self.kind, self.dim = message, dim
         self.message: nn.Module | None = None
         if message_features is not None:
-            self.message = (nn.Linear(edge_features, message_features) if message == "linear"
-                            else EdgeMLP(edge_features, node_features,
-                                         [message_features, message_features], act))
+            if message == "linear":
+                self.message = nn.Linear(edge_features, message_features)
+            elif message == "mlp":
+                self.message = EdgeMLP(edge_features, node_features,
+                                       [message_features, message_features], act)
+            else:  # one coefficient per edge vector (edge_vectors)
+                n_vectors = (edge_features - 1) // dim
+                self.message = EdgeMLP(edge_features, node_features,
+                                       [message_features, message_features, n_vectors], act)
         # Optional (not in the paper): + a . s_ij, s_ij the swap-symmetric edge features
         # (distance, radial and total relative speed). (dim, history) when enabled.
         self.edge_term = None
         if edge_term is not None:
-            self.dim = edge_term[0]
+            self.dim = edge_term[0]  # the same D as ``dim`` (Processor passes both)
             self.edge_term = nn.Linear(symmetric_edge_width(edge_term[1]), 1)
 
     def logits(self, h_e: torch.Tensor, edge_index: torch.Tensor,
@@ -109,7 +129,11 @@ class ContactHead(nn.Module):
         assert self.message is not None
         rcv, n = edge_index[1], h.shape[0]
         w = self.weights(c)
-        if isinstance(self.message, EdgeMLP):
+        if self.kind == "vector":
+            coef = self.message(e, h, edge_index)                       # (E, B)
+            vec = (coef[:, :, None] * edge_vectors(e, self.dim)).sum(1)  # (E, D)
+            return scatter_sum(w[:, None] * vec, rcv, n)
+        if self.kind == "mlp":
             return scatter_sum(w[:, None] * self.message(e, h, edge_index), rcv, n)
         weighted = scatter_sum(w[:, None] * e, rcv, n)        # sum_j ĉ_ij e_ij
         total = scatter_sum(w, rcv, n)                        # sum_j ĉ_ij
@@ -134,12 +158,19 @@ class ContactHead(nn.Module):
         return rows
 
 
+def edge_vectors(e: torch.Tensor, dim: int) -> torch.Tensor:
+    """The D-vectors among ``encoder.edge_features`` (E, B, D): relative position, unit
+    direction and the relative velocity of each window step (all but the distance)."""
+    return torch.cat([e[:, :dim], e[:, dim + 1:]], 1).unflatten(1, (-1, dim))
+
+
 @dataclass
 class ProcessorOutput:
     h_tilde_v: torch.Tensor            # (N, F_V)  H_V ‖ Ŷ: context of the inverse model
     h_cv: torch.Tensor                 # (N, F_CV) input of the forward decoder
     type_logits: torch.Tensor | None   # (N, n_types)
     contact: torch.Tensor | None       # (E,) contact logits (contact scenes) or magnitudes
+    impulse: torch.Tensor | None = None  # (N, D) sum_j ĉ_ij m_ij of a vector message
 
 
 class Processor(nn.Module):
@@ -153,7 +184,7 @@ class Processor(nn.Module):
                  contact_scene: bool, classifier: bool = True, contact: bool = True,
                  contact_mode: str = "aggregate", message_features: int | None = None,
                  contact_edge_term: tuple[int, int] | None = None, message: str = "linear",
-                 act: str = "silu") -> None:
+                 act: str = "silu", dim: int = 0) -> None:
         super().__init__()
         if contact_mode not in CONTACT_MODES:
             raise ValueError(f"contact_mode={contact_mode!r}; choose one of {CONTACT_MODES}")
@@ -165,11 +196,14 @@ class Processor(nn.Module):
         if contact:
             width = (message_features or hidden) if contact_mode == "aggregate" else None
             self.contact = ContactHead(hidden, edge_features, width, contact_scene,
-                                       contact_edge_term, message, self.tilde_v_features, act)
+                                       contact_edge_term, message, self.tilde_v_features, act,
+                                       dim)
         if self.contact is None:
             extra = hidden                                     # H_E
         elif contact_mode == "dense":
             extra = n_particles                                # row of Ĉ
+        elif message == "vector":
+            extra = dim                                        # sum_j ĉ_ij m_ij, a D-vector
         else:
             extra = message_features or hidden                 # sum_j ĉ_ij m_ij
         self.out_features = self.tilde_v_features + extra
@@ -181,7 +215,7 @@ class Processor(nn.Module):
         if self.classifier is not None:
             type_logits = self.classifier(h_v)
             h_tilde_v = torch.cat([h_v, torch.softmax(type_logits, -1)], -1)  # H_V ‖ Ŷ
-        contact = None
+        contact = impulse = None
         if self.contact is None:
             h_cv = torch.cat([h_tilde_v, h_e], -1)
         else:
@@ -192,4 +226,6 @@ class Processor(nn.Module):
             else:
                 agg = self.contact.aggregate(contact, e, g.edge_index, h_tilde_v)
                 h_cv = torch.cat([h_tilde_v, agg], -1)
-        return ProcessorOutput(h_tilde_v, h_cv, type_logits, contact)
+                if self.contact.kind == "vector":
+                    impulse = agg
+        return ProcessorOutput(h_tilde_v, h_cv, type_logits, contact, impulse)

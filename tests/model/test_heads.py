@@ -197,3 +197,29 @@ def test_contact_message_mlp_reads_both_particles(meta, stats, graph):
 def test_unknown_contact_message_is_clear(meta, stats):
     with pytest.raises(ValueError, match="contact_message='conv'"):
         small(contact_message="conv")
+
+
+def test_vector_message_is_an_impulse_in_the_pairs_plane(meta, stats, graph):
+    """An elastic impulse acts along the contact normal, which within a frame lies in the
+    plane of x_i - x_j and v_i - v_j. In 3D with a one-step window the vector message of an
+    isolated pair must stay in that plane, whatever the network's weights; with no contact it
+    vanishes and the forward target is the decoder's alone."""
+    torch.manual_seed(0)
+    model = BGN(meta(2, 2, "contact", "radius", dim=3), stats(3), 0,
+                small(contact_message="vector")).double()
+    g = graph(2, dim=3, history=0, kind="radius", contact=True, cutoff=10.0, seed=3)
+    assert g.edge_index.shape[1] == 2
+    p, _, x = model._process(g)
+    assert p.impulse is not None and p.impulse.shape == (2, 3)
+    assert p.impulse.abs().max() > 1e-6
+    normal = torch.linalg.cross(g.pos[0] - g.pos[1], g.vel[0, 0] - g.vel[1, 0])
+    cosine = (p.impulse @ normal) / (p.impulse.norm(dim=-1) * normal.norm())
+    torch.testing.assert_close(cosine, torch.zeros_like(cosine), atol=1e-10, rtol=0)
+    head = model.processor.contact
+    e = torch.randn(2, edge_input_dim(3, 0), dtype=torch.float64)
+    h = torch.randn(2, model.processor.tilde_v_features, dtype=torch.float64)
+    none = head.aggregate(torch.full((2,), -1e4, dtype=torch.float64), e, g.edge_index, h)
+    torch.testing.assert_close(none, torch.zeros_like(none))
+    # the impulse is added to the decoded target (Eq. 5 + sum_j ĉ_ij m_ij)
+    decoded = model.decoder(torch.cat([p.h_cv, x], -1))
+    torch.testing.assert_close(model(g).target, decoded + p.impulse)

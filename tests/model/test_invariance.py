@@ -17,6 +17,7 @@ SCENES = [  # interaction, graph kind, n_types, model options
     ("pairwise", "full", 3, {}),
     ("contact", "radius", 2, {}),
     ("contact", "radius", 2, {"contact_message": "mlp"}),
+    ("contact", "radius", 2, {"contact_message": "vector"}),
 ]
 
 
@@ -73,6 +74,7 @@ def test_permutation_equivariance(meta, stats, graph, interaction, kind, n_types
     ("pairwise", "full", 3, {}),
     ("contact", "radius", 2, {"degree_normalize": True}),
     ("contact", "radius", 2, {"contact_message": "mlp"}),
+    ("contact", "radius", 2, {"contact_message": "vector"}),
     ("pairwise", "full", 2, {"contact_mode": "dense"}),
 ])
 def test_batch_equals_graphs_alone(meta, stats, graph, interaction, kind, n_types, overrides):

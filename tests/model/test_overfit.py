@@ -2,18 +2,21 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
 from bgn.data.batch import collate
 from bgn.model import BGN, ModelConfig
 
-# Measured (seed 0): default config dynamics 0.03, contact 0.14, type 0.13 after 300 steps;
-# with degree normalisation every term is near its floor. Thresholds leave a 2-3x margin.
+# Each term is the median of the last 50 of 300 steps: the flow's sample behind relmass makes
+# single steps noisy (float rounding alone moved one step's relmass from 0.04 to 0.09).
+# Measured with degree normalisation, model seeds 0-3: dynamics <= 0.004, contact 0.001,
+# type <= 0.09, mass NLL -1.3 to -2.5 (1.4 at the start), relmass 0.02-0.18 (~1 at the start).
 CASES = [
     ({}, {"dynamics": 0.1, "contact": 0.35, "type": 0.35}),
     ({"degree_normalize": True},
-     {"dynamics": 0.01, "contact": 0.05, "type": 0.25, "relmass": 0.05, "mass_nll": -1.0}),
+     {"dynamics": 0.01, "contact": 0.05, "type": 0.25, "relmass": 0.3, "mass_nll": -0.5}),
 ]
 
 
@@ -29,11 +32,13 @@ def test_overfit_tiny_batch(meta, stats, graph, overrides, thresholds):
     batch = collate([graph(8, kind="radius", contact=True, box=box, seed=s,
                            dtype=torch.float32) for s in range(2)])
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    history = []
     for _ in range(300):
         terms = model.loss_terms(batch, model(batch))
         opt.zero_grad()
         model.total_loss(terms).backward()
         opt.step()
-    final = {k: float(v.detach()) for k, v in terms.items()}
+        history.append({k: float(v.detach()) for k, v in terms.items()})
+    final = {k: float(np.median([h[k] for h in history[-50:]])) for k in history[-1]}
     for key, limit in thresholds.items():
         assert final[key] < limit, (key, final)

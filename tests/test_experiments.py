@@ -36,6 +36,9 @@ def test_tiny_preset_end_to_end_and_resumes(tmp_path: Path, capsys) -> None:
                  "sample_efficiency.png"):
         assert (out / name).stat().st_size > 0, name
     text = report.read_text()
+    for name in ("table1", "inverse", "types", "ablations", "sample_efficiency"):
+        table = (out / f"{name}.md").read_text()  # report.md embeds every table whole
+        assert "\n#" + table.rstrip("\n") in text, name
     for cell in cells:  # every cell trained, evaluated and listed
         assert (tmp_path / "cells" / cell.name / "metrics.json").exists()
         assert f"| {cell.name} |" in text

@@ -251,12 +251,12 @@ def write_report(cfg: DictConfig, cells: list[Cell],
     tables["table1"] = write_table(
         report_dir, "table1", "Table 1: one-step error on the test split", columns, rows,
         "MSE of the forward target (next velocity for collisions, acceleration "
-                "otherwise) in physical units; NMSE = MSE / training target variance. The "
-                "paper's columns are its published Table 1 values (it does not say which "
-                "metric); the baselines are single values per scene in the paper. The "
-                "extrapolation columns learn nothing: they repeat the last observed target, or "
-                "extrapolate the last two linearly, from the input window (the floor a learned "
-                "model must beat; the models predict the change from the latter by default).")
+        "otherwise) in physical units; NMSE = MSE / training target variance. The "
+        "paper's columns are its published Table 1 values (it does not say which "
+        "metric); the baselines are single values per scene in the paper. The "
+        "extrapolation columns learn nothing: they repeat the last observed target, or "
+        "extrapolate the last two linearly, from the input window (the floor a learned "
+        "model must beat; the models predict the change from the latter by default).")
 
     # inverse: BGN cells with a mass head
     inv_cols = ["scene", "fps", "welch_p", "wasserstein1", "modes_true", "modes_recovered",
@@ -271,20 +271,20 @@ def write_report(cfg: DictConfig, cells: list[Cell],
     tables["inverse"] = write_table(
         report_dir, "inverse", "Inverse model: sampled vs true masses", inv_cols, rows,
         "Log-masses (natural log) of every particle of a subset of test frames; "
-                "Welch p: t-test of true vs sampled log-masses (unequal variances); W1: "
-                "Wasserstein-1 distance of the log-masses; modes: KDE peaks of the true "
-                "log-masses and how many have a sampled peak within 0.5; coverage: fraction "
-                "of particles whose true log-mass lies in the central 50% / 90% interval of "
-                "its samples (calibrated: 0.5 / 0.9); relmass R^2: relative log-mass head.")
+        "Welch p: t-test of true vs sampled log-masses (unequal variances); W1: "
+        "Wasserstein-1 distance of the log-masses; modes: KDE peaks of the true "
+        "log-masses and how many have a sampled peak within 0.5; coverage: fraction "
+        "of particles whose true log-mass lies in the central 50% / 90% interval of "
+        "its samples (calibrated: 0.5 / 0.9); relmass R^2: relative log-mass head.")
 
     # types: collisions (scenes with a type head)
     rows = [{"scene": c.scene, "fps": fmt(c.fps), "model": c.model, **ev(c)}
             for c in cells if c.ablation == "full" and c.train_sims is None
             and "type_accuracy" in ev(c)]
-    tables["types"] = write_table(report_dir, "types", "Particle-type classification (test split)",
-                ["scene", "fps", "model", "type_accuracy", "type_auroc"], rows,
-                "Accuracy and one-vs-rest AUROC of the type classifier (collisions).",
-                csv_too=False)
+    tables["types"] = write_table(
+        report_dir, "types", "Particle-type classification (test split)",
+        ["scene", "fps", "model", "type_accuracy", "type_auroc"], rows,
+        "Accuracy and one-vs-rest AUROC of the type classifier (collisions).", csv_too=False)
 
     # ablations: per scene at the preset's ablation fps
     rows = []
@@ -294,24 +294,24 @@ def write_report(cfg: DictConfig, cells: list[Cell],
             for k in ("contact_f1", "contact_auroc", "contact_r2"):
                 m[k] = test(c).get(f"test/{k}")  # from the trainer's test of best.ckpt
             rows.append({"scene": c.scene, "fps": fmt(c.fps), "ablation": c.ablation, **m})
-    tables["ablations"] = write_table(report_dir, "ablations", "Ablations of BGN",
-                ["scene", "fps", "ablation", "nmse", "mse", "median_relative_error",
-                 "type_accuracy", "type_auroc", "contact_f1", "contact_auroc", "contact_r2",
-                 "relmass_r2", "wasserstein1", "coverage50", "coverage90"], rows,
-                "Blank: the head is absent in that variant (or the scene has no such head). "
-                "Contact metrics come from the training run's test of its best checkpoint.",
-                csv_too=False)
+    tables["ablations"] = write_table(
+        report_dir, "ablations", "Ablations of BGN",
+        ["scene", "fps", "ablation", "nmse", "mse", "median_relative_error", "type_accuracy",
+         "type_auroc", "contact_f1", "contact_auroc", "contact_r2", "relmass_r2",
+         "wasserstein1", "coverage50", "coverage90"], rows,
+        "Blank: the head is absent in that variant (or the scene has no such head). "
+        "Contact metrics come from the training run's test of its best checkpoint.",
+        csv_too=False)
 
     # sample efficiency
     rows = [{"scene": c.scene, "fps": fmt(c.fps), "model": c.model,
              "train_sims": c.train_sims, **ev(c)}
             for c in cells if "sample_efficiency" in c.groups]
-    tables["sample_efficiency"] = write_table(report_dir, "sample_efficiency",
-                "Sample efficiency",
-                ["scene", "fps", "model", "train_sims", "nmse", "mse",
-                 "median_relative_error"], rows,
-                "Test error against the number of training simulations (val and test use "
-                "every simulation of their splits).")
+    tables["sample_efficiency"] = write_table(
+        report_dir, "sample_efficiency", "Sample efficiency",
+        ["scene", "fps", "model", "train_sims", "nmse", "mse", "median_relative_error"], rows,
+        "Test error against the number of training simulations (val and test use every "
+        "simulation of their splits).")
     _sample_efficiency_plot(rows, report_dir / "sample_efficiency.png")
 
     total = sum(results[c.name]["train"]["metrics"].get("wall_time_s", 0.0) for c in cells)

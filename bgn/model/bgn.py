@@ -181,7 +181,7 @@ class BGN(nn.Module):
         self.processor = Processor(h, edge_in, meta.n_types, meta.n_particles,
                                    contact_scene=self.contact_scene, classifier=cfg.classifier,
                                    contact=cfg.contact, contact_mode=cfg.contact_mode,
-                                   contact_edge_term=((d, history) if cfg.contact_edge_term
+                                   contact_edge_term=(history if cfg.contact_edge_term
                                                       else None),
                                    message=cfg.contact_message, act=cfg.activation, dim=d)
         self.decoder = Decoder(self.processor.out_features + (node_in if cfg.decoder_skip else 0),

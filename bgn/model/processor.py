@@ -79,14 +79,15 @@ class ContactHead(nn.Module):
     """
 
     def __init__(self, h_e_features: int, edge_features: int, message_features: int | None,
-                 probability: bool, edge_term: tuple[int, int] | None = None,
+                 probability: bool, edge_term: int | None = None,
                  message: str = "linear", node_features: int = 0, act: str = "silu",
                  dim: int = 0) -> None:
         super().__init__()
         if message not in MESSAGES:
             raise ValueError(f"contact message={message!r}; choose one of {MESSAGES}")
-        if message == "vector" and dim < 1:
-            raise ValueError("a vector contact message needs the spatial dimension (dim >= 1)")
+        if (message == "vector" or edge_term is not None) and dim < 1:
+            raise ValueError("a vector contact message and the contact edge term need the "
+                             "spatial dimension (dim >= 1)")
         self.inv_sqrt_f = 1.0 / math.sqrt(h_e_features)
         self.probability = probability  # contact scenes: sigmoid of the logits
         self.kind, self.dim = message, dim
@@ -102,11 +103,10 @@ class ContactHead(nn.Module):
                 self.message = EdgeMLP(edge_features, node_features,
                                        [message_features, message_features, n_vectors], act)
         # Optional (not in the paper): + a . s_ij, s_ij the swap-symmetric edge features
-        # (distance, radial and total relative speed). (dim, history) when enabled.
+        # (distance, radial and total relative speed). ``edge_term`` = the history k when enabled.
         self.edge_term = None
         if edge_term is not None:
-            self.dim = edge_term[0]  # the same D as ``dim`` (Processor passes both)
-            self.edge_term = nn.Linear(symmetric_edge_width(edge_term[1]), 1)
+            self.edge_term = nn.Linear(symmetric_edge_width(edge_term), 1)
 
     def logits(self, h_e: torch.Tensor, edge_index: torch.Tensor,
                e: torch.Tensor | None = None) -> torch.Tensor:
@@ -183,7 +183,7 @@ class Processor(nn.Module):
     def __init__(self, hidden: int, edge_features: int, n_types: int, n_particles: int,
                  contact_scene: bool, classifier: bool = True, contact: bool = True,
                  contact_mode: str = "aggregate", message_features: int | None = None,
-                 contact_edge_term: tuple[int, int] | None = None, message: str = "linear",
+                 contact_edge_term: int | None = None, message: str = "linear",
                  act: str = "silu", dim: int = 0) -> None:
         super().__init__()
         if contact_mode not in CONTACT_MODES:

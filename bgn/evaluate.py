@@ -16,8 +16,8 @@ import torch
 from scipy.signal import find_peaks
 from scipy.stats import gaussian_kde, ttest_ind, wasserstein_distance
 
-from bgn.data.batch import Graph, collate
 from bgn.data.dataset import FrameDataset
+from bgn.graph import Graph, collate
 from bgn.model.target import extrapolate, observed_targets
 from bgn.module import PhysicsModule
 
@@ -129,7 +129,7 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
     (``{"true_mass": (N,), "sampled_mass": (S, N)}``, empty without an inverse head)."""
     torch.manual_seed(seed)  # the flow's samples and relmass noise are random
     model = module.model
-    heads = getattr(model, "heads", frozenset())
+    heads = model.heads
     variance = module.target_variance.mean().item()
     indices = frame_indices(dataset, max_frames)
     sq_err, rel_err = [], []
@@ -164,7 +164,7 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
     if rel_pred:
         metrics["relmass_r2"] = r2_score(torch.cat(rel_pred).numpy(), torch.cat(rel_true).numpy())
     arrays: dict[str, np.ndarray] = {}
-    if "mass_nll" in heads and hasattr(model, "sample_mass"):
+    if model.has_inverse:
         # every particle of a subset of test frames, each sampled mass_samples times
         true_mass, sampled = [], []
         for g in batches(dataset, frame_indices(dataset, mass_frames), batch_size):

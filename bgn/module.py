@@ -23,7 +23,7 @@ from torchmetrics.classification import (
     MulticlassAUROC,
 )
 
-from bgn.data.batch import Graph
+from bgn.graph import Graph
 from bgn.model import build_model
 from bgn.sim import SceneMeta
 
@@ -67,7 +67,7 @@ class PhysicsModule(L.LightningModule):
     def _stage_metrics(self) -> MetricCollection:
         metrics: dict[str, Any] = {"mse": MeanSquaredError(),
                                    "relative_error": CatMetric(nan_strategy="ignore")}
-        heads = getattr(self.model, "heads", set())
+        heads = self.model.heads
         if "type" in heads:
             n = self.meta.n_types
             metrics["type_accuracy"] = MulticlassAccuracy(num_classes=n, average="micro")
@@ -97,7 +97,7 @@ class PhysicsModule(L.LightningModule):
             m["contact_f1"].update(prob, g.edge_contact.long())
             m["contact_auroc"].update(prob, g.edge_contact.long())
         if "contact_r2" in m:
-            m["contact_r2"].update(out.contact, self.model.normalize_contact(g.edge_contact))
+            m["contact_r2"].update(out.contact, self.model.contact_target(g))
         if "relmass_r2" in m:
             m["relmass_r2"].update(self.model.denormalize_relmass(out.relmass),
                                    g.edge_rel_log_mass)
@@ -188,7 +188,7 @@ class PhysicsModule(L.LightningModule):
         step = self.global_step
         experiment.add_figure("val/predicted_vs_true", figures.predicted_vs_true(
             pred, g.target.cpu().numpy(), self.meta.target), step)
-        if hasattr(self.model, "sample_mass") and "mass_nll" in getattr(self.model, "heads", ()):
+        if self.model.has_inverse:
             with torch.no_grad():
                 samples = self.model.sample_mass(g, 16).cpu().numpy()
             experiment.add_figure("val/mass_density", figures.mass_density(

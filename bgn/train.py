@@ -81,7 +81,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
         overrides = dict(o.split("=", 1) for o in HydraConfig.get().overrides.task if "=" in o)
     record = {"metrics": metrics, "overrides": overrides,
               "dataset": cfg.dataset.scene, "fps": float(cfg.fps),
-              "model": getattr(module.model, "label", cfg.model.name)}
+              "model": module.model.label}
     output_dir.mkdir(parents=True, exist_ok=True)
     (output_dir / "metrics.json").write_text(json.dumps(record, indent=2, sort_keys=True))
     print(json.dumps({k: round(v, 6) for k, v in sorted(metrics.items())

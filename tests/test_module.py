@@ -8,7 +8,7 @@ import torch
 from matplotlib.figure import Figure
 
 from bgn import figures
-from bgn.data.batch import collate
+from bgn.graph import collate
 from bgn.rollout import position_error, rollout
 from bgn.train import build
 from tests.conftest import SMALL, compose_config

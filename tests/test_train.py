@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from bgn.data.batch import collate
+from bgn.graph import collate
 from bgn.module import PhysicsModule
 from bgn.train import build, train
 from tests.conftest import SMALL, compose_config

@@ -9,11 +9,11 @@ import lightning as L
 import numpy as np
 from torch.utils.data import DataLoader, Subset
 
-from bgn.data.batch import collate
 from bgn.data.dataset import FrameDataset
 from bgn.data.files import DatasetFile
 from bgn.data.generate import ensure_splits
 from bgn.data.spec import DatasetSpec
+from bgn.graph import collate
 from bgn.sim import SceneMeta
 
 

@@ -8,10 +8,10 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from bgn.data.batch import Graph
 from bgn.data.files import DatasetFile
 from bgn.data.graphs import full_graph, pair_codes, scene_edges
 from bgn.data.targets import backward_velocities, targets
+from bgn.graph import Graph
 from bgn.sim import Scene, SceneMeta, make_scene
 
 

@@ -1,8 +1,10 @@
-"""Model layer: BGN (and later the baselines). Uses torch, zuko and the Graph/SceneMeta types
-only; no files, Lightning or Hydra (DESIGN section 0)."""
+"""Model layer: BGN, the baselines and the contract they share (``PhysicsModel``). Uses torch,
+zuko, the graph type and scene metadata only; no files, Lightning or Hydra (DESIGN section 0)."""
 
-from bgn.model.bgn import BGN, LOSS_KEYS, BGNOutput, ModelConfig
+from bgn.model.base import LOSS_KEYS, ModelOutput, PhysicsModel
+from bgn.model.bgn import BGN, ModelConfig
 from bgn.model.normalizer import Normalizer
-from bgn.model.registry import build_model
+from bgn.model.registry import MODELS, build_model
 
-__all__ = ["BGN", "BGNOutput", "ModelConfig", "Normalizer", "LOSS_KEYS", "build_model"]
+__all__ = ["BGN", "LOSS_KEYS", "MODELS", "ModelConfig", "ModelOutput", "Normalizer",
+           "PhysicsModel", "build_model"]

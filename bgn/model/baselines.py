@@ -20,44 +20,42 @@ methods as BGN's, so the ``dynamics`` losses of all three models are in the same
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, fields, replace
+from collections.abc import Mapping
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
 from torch import nn
 from torch.nn import functional as F
 
-from bgn.data.batch import Graph
+from bgn.graph import Graph
+from bgn.model.base import DynamicsConfig, ModelOutput, PhysicsModel, check_positive_ints
 from bgn.model.encoder import DIRECTION_EPS, node_features, node_input_dim
 from bgn.model.normalizer import Normalizer
 from bgn.model.ops import EdgeMLP, activation, mlp, scatter_sum
-from bgn.model.target import TargetCoder
 from bgn.sim.scene import SceneMeta
 
 
 # ----------------------------------------------------------------------------- configs
 @dataclass
-class CranmerGNConfig:
-    """BS1 options; defaults are the published ones (Cranmer et al. 2020, their ``GN``)."""
+class CranmerGNConfig(DynamicsConfig):
+    """BS1 options; defaults are the published ones (Cranmer et al. 2020, their ``GN``).
+    ``target_prior``, ``dynamics_loss``, ``huber_delta``: as BGN's (equal terms)."""
 
     hidden: int = 300          # width of every hidden layer
     message_dim: int = 100     # width of the messages (edge MLP output)
     hidden_layers: int = 3     # hidden layers per MLP (edge and node)
     activation: str = "relu"
     oracle: bool = False       # also feed true log-mass (and one-hot type) to the nodes
-    # what the head predicts and its loss, as BGN's (bgn.model.target): equal terms
-    target_prior: str = "auto"
-    dynamics_loss: str = "auto"
-    huber_delta: float = 1.0
 
     def __post_init__(self) -> None:
-        _check_positive(self, ("hidden", "message_dim", "hidden_layers"))
+        super().__post_init__()
+        check_positive_ints(self, ("hidden", "message_dim", "hidden_layers"))
         activation(self.activation)  # raises ValueError on an unknown name
 
 
 @dataclass
-class GNSConfig:
+class GNSConfig(DynamicsConfig):
     """BS2 options; defaults follow Sanchez-Gonzalez et al. 2020 (section 3 and appendix).
 
     ``noise_std`` is the std of the noise on the newest input velocity in *normalised* velocity
@@ -73,32 +71,14 @@ class GNSConfig:
     activation: str = "relu"
     noise_std: float = 0.5
     oracle: bool = False
-    target_prior: str = "auto"         # as BGN's (bgn.model.target): equal terms
-    dynamics_loss: str = "auto"
-    huber_delta: float = 1.0
 
     def __post_init__(self) -> None:
-        _check_positive(self, ("latent", "mlp_hidden", "mlp_layers", "message_passing_steps"))
+        super().__post_init__()
+        check_positive_ints(self, ("latent", "mlp_hidden", "mlp_layers",
+                                   "message_passing_steps"))
         if not self.noise_std >= 0.0:
             raise ValueError(f"noise_std={self.noise_std} must be >= 0")
         activation(self.activation)
-
-
-def _check_positive(cfg: Any, names: tuple[str, ...]) -> None:
-    for name in names:
-        value = getattr(cfg, name)
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-            raise ValueError(f"{name}={value!r} must be a positive integer")
-
-
-def config_from_params(cls: type, params: Mapping[str, Any], model: str) -> Any:
-    """``cls(**params)`` without ``name``; an unknown key (a typo in a yaml file) is an error."""
-    known = {f.name for f in fields(cls)}
-    values = {k: v for k, v in params.items() if k != "name"}
-    unknown = sorted(set(values) - known)
-    if unknown:
-        raise ValueError(f"unknown {model} model options {unknown}; known: {sorted(known)}")
-    return cls(**values)
 
 
 # ----------------------------------------------------------------------------- building blocks
@@ -114,56 +94,27 @@ def edge_geometry(g: Graph, norm: Normalizer) -> torch.Tensor:
     return torch.cat([rel, dist], dim=1)
 
 
-@dataclass
-class BaselineOutput:
-    """Same fields as ``BGNOutput``; a baseline has only the forward head, the rest is None."""
-
-    target: torch.Tensor                         # (N, D) normalised forward target
-    type_logits: torch.Tensor | None = None
-    contact: torch.Tensor | None = None
-    mass_nll: torch.Tensor | None = None
-    relmass: torch.Tensor | None = None
-    log_mass_sample: torch.Tensor | None = None
-    edge_weight: torch.Tensor | None = None
-
-
-class Baseline(nn.Module):
-    """What both baselines share with BGN's API: inputs, normalisation, loss and prediction.
-
-    Subclasses implement ``_target(x, e, edge_index)``: normalised node inputs (N, F) and edge
-    inputs (E, D+1) -> normalised target (N, D). ``history`` is k (window of k+1 velocities).
-    """
-
-    model_name = "baseline"
+class Baseline(PhysicsModel):
+    """What both baselines share: BGN's node inputs (plus oracle columns), edge geometry, and
+    one dynamics head. Subclasses implement ``_target(x, e, edge_index)``: normalised node
+    inputs (N, F) and edge inputs (E, D+1) -> normalised target (N, D)."""
 
     def __init__(self, meta: SceneMeta, stats: Mapping[str, Any], history: int,
-                 oracle: bool, target_prior: str = "none", dynamics_loss: str = "mse",
-                 huber_delta: float = 1.0) -> None:
-        super().__init__()
-        self.meta, self.history, self.oracle = meta, history, oracle
-        self.normalizer = Normalizer(stats, meta.dim)
-        self.target_coder = TargetCoder(self.normalizer, stats, meta, history, target_prior,
-                                        dynamics_loss, huber_delta)
+                 cfg: CranmerGNConfig | GNSConfig) -> None:
+        super().__init__(meta, stats, history, cfg)
+        self.oracle = cfg.oracle
         # one-hot types only carry information when there is more than one type
-        self.oracle_types = oracle and meta.n_types > 1
+        self.oracle_types = self.oracle and meta.n_types > 1
         self.node_in = (node_input_dim(meta.dim, history, meta.has_walls, False)
-                        + (1 + (meta.n_types if self.oracle_types else 0) if oracle else 0))
+                        + (1 + (meta.n_types if self.oracle_types else 0) if self.oracle else 0))
         self.edge_in = meta.dim + 1
-        self.label = self.model_name + ("+oracle" if oracle else "")
-        self.heads = frozenset({"dynamics"})  # the loss keys this model produces
 
     @property
-    def name(self) -> str:
+    def label(self) -> str:
         """``cranmer_gn`` / ``gns``, with ``+oracle`` when masses and types are inputs."""
-        return self.label
+        return self.name + ("+oracle" if self.oracle else "")
 
     # ------------------------------------------------------------------ inputs
-    def _check(self, g: Graph) -> None:
-        if g.vel.shape[1] != self.history + 1 or g.vel.shape[2] != self.meta.dim:
-            raise ValueError(f"graph velocity window {tuple(g.vel.shape[1:])} does not match "
-                             f"the model's (history + 1, dim) = "
-                             f"({self.history + 1}, {self.meta.dim})")
-
     def velocity_noise(self, g: Graph) -> torch.Tensor | None:
         """Training noise on the velocity window in normalised units, or None (none here)."""
         return None
@@ -186,36 +137,16 @@ class Baseline(nn.Module):
         raise NotImplementedError
 
     def _run(self, g: Graph, noisy: bool) -> torch.Tensor:
-        self._check(g)
+        self.check(g)
         x = self.node_inputs(g, noisy)
         return self._target(x, edge_geometry(g, self.normalizer), g.edge_index)
 
-    def forward(self, g: Graph) -> BaselineOutput:
+    def forward(self, g: Graph) -> ModelOutput:
         """Normalised forward target of a graph (one frame or a batch); noise only in training."""
-        return BaselineOutput(self._run(g, noisy=self.training))
+        return ModelOutput(self._run(g, noisy=self.training))
 
-    # ------------------------------------------------------------------ losses
-    def loss_terms(self, g: Graph, out: BaselineOutput) -> dict[str, torch.Tensor]:
-        """``{"dynamics": loss}`` in the head's units, exactly as BGN's ``L_Dec``."""
-        return {"dynamics": self.target_coder.loss(out.target, g)}
-
-    def total_loss(self, terms: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        if not terms:
-            raise ValueError("no loss terms to sum")
-        return torch.stack(list(terms.values())).sum()
-
-    # ------------------------------------------------------------------ inference
-    def normalized_target(self, g: Graph) -> torch.Tensor:
-        """The graph's target in the model's (normalised) units, (N, D)."""
-        return self.target_coder.encode(g)
-
-    def denormalize_target(self, target: torch.Tensor, g: Graph) -> torch.Tensor:
-        """``BaselineOutput.target`` of graph ``g`` -> physical units."""
-        return self.target_coder.decode(g, target)
-
-    def predict(self, g: Graph) -> torch.Tensor:
-        """Forward target in physical units, (N, D), never with noise (rollouts, figures)."""
-        return self.target_coder.decode(g, self._run(g, noisy=False))
+    def forward_target(self, g: Graph) -> torch.Tensor:
+        return self._run(g, noisy=False)
 
 
 # ----------------------------------------------------------------------------- BS1
@@ -228,14 +159,13 @@ class CranmerGN(Baseline):
     on the edge (translation invariance, DESIGN section 2), the same inputs BGN gets.
     """
 
-    model_name = "cranmer_gn"
+    name = "cranmer_gn"
+    config_class = CranmerGNConfig
 
     def __init__(self, meta: SceneMeta, stats: Mapping[str, Any], history: int,
                  cfg: CranmerGNConfig | None = None) -> None:
         cfg = cfg or CranmerGNConfig()
-        super().__init__(meta, stats, history, cfg.oracle, cfg.target_prior,
-                         cfg.dynamics_loss, cfg.huber_delta)
-        self.cfg = cfg
+        super().__init__(meta, stats, history, cfg)
         hidden = [cfg.hidden] * cfg.hidden_layers
         self.message = EdgeMLP(self.edge_in, self.node_in, [*hidden, cfg.message_dim],
                                cfg.activation)
@@ -282,14 +212,13 @@ class GNS(Baseline):
     not know. For next-velocity targets (collisions) their shift is zero anyway.
     """
 
-    model_name = "gns"
+    name = "gns"
+    config_class = GNSConfig
 
     def __init__(self, meta: SceneMeta, stats: Mapping[str, Any], history: int,
                  cfg: GNSConfig | None = None) -> None:
         cfg = cfg or GNSConfig()
-        super().__init__(meta, stats, history, cfg.oracle, cfg.target_prior,
-                         cfg.dynamics_loss, cfg.huber_delta)
-        self.cfg = cfg
+        super().__init__(meta, stats, history, cfg)
         hidden, act, h = [cfg.mlp_hidden] * cfg.mlp_layers, cfg.activation, cfg.latent
         self.node_encoder = mlp([self.node_in, *hidden, h], act, layer_norm=True)
         self.edge_encoder = mlp([self.edge_in, *hidden, h], act, layer_norm=True)
@@ -312,22 +241,3 @@ class GNS(Baseline):
         for step in self.processor:
             v, h_e = step(v, h_e, edge_index)
         return self.decoder(v)
-
-
-# ----------------------------------------------------------------------------- registry
-def build_cranmer_gn(meta: SceneMeta, stats: Mapping[str, Any], history: int,
-                     params: Mapping[str, Any]) -> CranmerGN:
-    """BS1 from a config dict (``conf/model/cranmer_gn.yaml`` without the optimiser keys)."""
-    return CranmerGN(meta, stats, history, config_from_params(CranmerGNConfig, params,
-                                                              "cranmer_gn"))
-
-
-def build_gns(meta: SceneMeta, stats: Mapping[str, Any], history: int,
-              params: Mapping[str, Any]) -> GNS:
-    """BS2 from a config dict (``conf/model/gns.yaml`` without the optimiser keys)."""
-    return GNS(meta, stats, history, config_from_params(GNSConfig, params, "gns"))
-
-
-# name -> callable(meta, stats, history, params) -> nn.Module, read by ``registry.build_model``
-ModelFactory = Callable[[SceneMeta, Mapping[str, Any], int, Mapping[str, Any]], nn.Module]
-MODELS: dict[str, ModelFactory] = {"cranmer_gn": build_cranmer_gn, "gns": build_gns}

@@ -16,10 +16,10 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch import nn
 from torch.nn import functional as F
 
-from bgn.data.batch import Graph
+from bgn.graph import Graph
+from bgn.model.base import LOSS_KEYS, DynamicsConfig, ModelOutput, PhysicsModel
 from bgn.model.decoder import Decoder
 from bgn.model.encoder import (
     EdgeEncoder,
@@ -30,16 +30,15 @@ from bgn.model.encoder import (
     node_input_dim,
 )
 from bgn.model.inverse import FLOWS, InverseModel
-from bgn.model.normalizer import Normalizer
 from bgn.model.processor import CONTACT_MODES, MESSAGES, Processor, ProcessorOutput
-from bgn.model.target import LOSSES, PRIORS, TargetCoder
 from bgn.sim.scene import SceneMeta
-
-LOSS_KEYS = ("dynamics", "contact", "type", "mass_nll", "relmass")
 
 
 @dataclass
-class ModelConfig:
+class ModelConfig(DynamicsConfig):
+    """BGN's options (``conf/model/bgn.yaml``); the shared ``target_prior``, ``dynamics_loss``
+    and ``huber_delta`` come from ``DynamicsConfig``."""
+
     hidden: int = 128
     node_layers: int = 2
     edge_layers: int = 2
@@ -89,18 +88,11 @@ class ModelConfig:
     # "balanced" = (1 - p) / p with p the training split's contact fraction; a number sets it;
     # 1 = the paper's plain BCE.
     contact_pos_weight: str | float = "balanced"
-    # Not in the paper: what the dynamics head predicts (bgn.model.target). "auto": the change
-    # of the target from a linear extrapolation of the history (accelerations) or from the
-    # last velocity (collisions); "none" = the paper's normalised target.
-    target_prior: str = "auto"
-    # Dynamics loss in the head's units: "huber" (robust to the heavy tail of the residuals),
-    # "mse" (the paper), "auto": huber for accelerations, mse for velocities (bgn.model.target).
-    dynamics_loss: str = "auto"
-    huber_delta: float = 1.0
     # Eq. 12 weights, one per task (keys: LOSS_KEYS); missing keys weigh 1.
     loss_weights: dict[str, float] = field(default_factory=lambda: dict.fromkeys(LOSS_KEYS, 1.0))
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if self.flow not in FLOWS:
             raise ValueError(f"flow={self.flow!r}; choose one of {FLOWS}")
         if self.contact_mode not in CONTACT_MODES:
@@ -114,27 +106,10 @@ class ModelConfig:
         if self.contact_pos_weight != "balanced" and not float(self.contact_pos_weight) > 0:
             raise ValueError(f"contact_pos_weight={self.contact_pos_weight!r}; use 'balanced' "
                              "or a positive number")
-        if self.target_prior not in PRIORS:
-            raise ValueError(f"target_prior={self.target_prior!r}; choose one of {PRIORS}")
-        if self.dynamics_loss not in LOSSES:
-            raise ValueError(f"dynamics_loss={self.dynamics_loss!r}; choose one of {LOSSES}")
         unknown = set(self.loss_weights) - set(LOSS_KEYS)
         if unknown:
             raise ValueError(f"unknown loss weights {sorted(unknown)}; keys are {LOSS_KEYS}")
-
-    def loss_weight(self, key: str) -> float:
-        return float(self.loss_weights.get(key, 1.0))
-
-
-@dataclass
-class BGNOutput:
-    target: torch.Tensor                     # (N, D) normalised forward target
-    type_logits: torch.Tensor | None         # (N, n_types)
-    contact: torch.Tensor | None             # (E,) logits (contact scenes) or force values
-    mass_nll: torch.Tensor | None            # (N,) NLL of the normalised log-mass
-    relmass: torch.Tensor | None             # (E,) normalised R̂_ij
-    log_mass_sample: torch.Tensor | None     # (N,) the sample z_K behind relmass (normalised)
-    edge_weight: torch.Tensor                # (E,) learned adjacency of the edge encoder
+        self.loss_weights = {str(k): float(v) for k, v in dict(self.loss_weights).items()}
 
 
 def contact_pos_weight(stats: Mapping[str, Any], setting: str | float) -> float:
@@ -148,25 +123,25 @@ def contact_pos_weight(stats: Mapping[str, Any], setting: str | float) -> float:
     return (1.0 - p) / p
 
 
-class BGN(nn.Module):
+class BGN(PhysicsModel):
     """Graph network for bi-directional physics, built from ``(meta, stats, history, cfg)``.
 
     ``history`` is k: the velocity window has k+1 steps, newest first.
     """
 
+    name = "bgn"
+    config_class = ModelConfig
+
     def __init__(self, meta: SceneMeta, stats: Mapping[str, Any], history: int,
                  cfg: ModelConfig | None = None) -> None:
-        super().__init__()
         cfg = cfg or ModelConfig()
+        super().__init__(meta, stats, history, cfg)
         if cfg.contact_mode == "dense" and cfg.contact and meta.graph != "full":
             raise ValueError(
                 f"contact_mode='dense' needs a full graph with a fixed number of particles; "
                 f"scene {meta.name!r} uses a {meta.graph} graph. Use contact_mode='aggregate'.")
-        self.meta, self.cfg, self.history = meta, cfg, history
         self.contact_scene = meta.interaction == "contact"
-        self.normalizer = Normalizer(stats, meta.dim)
-        self.target_coder = TargetCoder(self.normalizer, stats, meta, history, cfg.target_prior,
-                                        cfg.dynamics_loss, cfg.huber_delta)
+        self.loss_weights = dict(cfg.loss_weights)
         self.register_buffer("contact_pos_weight", torch.tensor(
             contact_pos_weight(stats, cfg.contact_pos_weight) if self.contact_scene else 1.0),
             persistent=False)  # rebuilt from the statistics, which the checkpoint carries
@@ -200,15 +175,9 @@ class BGN(nn.Module):
         self.heads = frozenset(heads)  # the loss keys this model produces
 
     # ------------------------------------------------------------------ forward
-    def _check(self, g: Graph) -> None:
-        if g.vel.shape[1] != self.history + 1 or g.vel.shape[2] != self.meta.dim:
-            raise ValueError(f"graph velocity window {tuple(g.vel.shape[1:])} does not match "
-                             f"the model's (history + 1, dim) = "
-                             f"({self.history + 1}, {self.meta.dim})")
-
     def _process(self, g: Graph):
         """Encoders and processor: (ProcessorOutput, edge weights)."""
-        self._check(g)
+        self.check(g)
         x = node_features(g, self.normalizer, self.meta.has_walls,
                           self.cfg.use_absolute_position, self.meta.box,
                           self.cfg.velocity_increments)
@@ -223,7 +192,7 @@ class BGN(nn.Module):
         y = self.decoder(torch.cat([p.h_cv, x], -1) if self.cfg.decoder_skip else p.h_cv)
         return y if p.impulse is None else y + p.impulse
 
-    def forward(self, g: Graph, noise: torch.Tensor | None = None) -> BGNOutput:
+    def forward(self, g: Graph, noise: torch.Tensor | None = None) -> ModelOutput:
         """All heads on a graph (one frame or a batch). ``noise`` (N,): base draws of the
         flow sample behind ``relmass`` (drawn here when None)."""
         p, w, x = self._process(g)
@@ -233,23 +202,28 @@ class BGN(nn.Module):
             log_m = self.normalizer.log_mass(torch.log(g.mass))
             mass_nll, z = self.inverse(p.h_tilde_v, log_m, noise)   # Eq. 7-8
             relmass = self.inverse.relative(z, g.edge_index)        # Eq. 9-10
-        return BGNOutput(target, p.type_logits, p.contact, mass_nll, relmass, z, w)
+        return ModelOutput(target, p.type_logits, p.contact, mass_nll, relmass, z, w)
+
+    def forward_target(self, g: Graph) -> torch.Tensor:
+        """The dynamics head alone (no flow): what ``predict`` and rollouts run."""
+        p, _, x = self._process(g)
+        return self._decode(p, x)
 
     # ------------------------------------------------------------------ losses
-    def normalize_contact(self, edge_contact: torch.Tensor) -> torch.Tensor:
-        """Per-edge contact target in the units of ``BGNOutput.contact``: 0/1 for contact
+    def contact_target(self, g: Graph) -> torch.Tensor:
+        """Per-edge contact target in the units of ``ModelOutput.contact``: 0/1 for contact
         scenes (``contact`` holds logits), else the (log1p-compressed) normalised pairwise
         force magnitude."""
         if self.contact_scene:
-            return edge_contact
-        c = self.normalizer.contact(edge_contact)
+            return g.edge_contact
+        c = self.normalizer.contact(g.edge_contact)
         return torch.log1p(c) if self.cfg.force_transform == "log1p" else c
 
-    def loss_terms(self, g: Graph, out: BGNOutput) -> dict[str, torch.Tensor]:
+    def loss_terms(self, g: Graph, out: ModelOutput) -> dict[str, torch.Tensor]:
         """Scalar losses of the heads present, keys among ``LOSS_KEYS``."""
-        terms = {"dynamics": self.target_coder.loss(out.target, g)}   # L_Dec
+        terms = super().loss_terms(g, out)                      # L_Dec
         if out.contact is not None:                             # Eq. 4 on edges
-            c = self.normalize_contact(g.edge_contact)
+            c = self.contact_target(g)
             if out.contact.numel() == 0:
                 terms["contact"] = out.contact.sum()            # no edges: 0, not NaN
             elif self.contact_scene:  # logits: BCE is the stable form of a sigmoid + 0/1 target
@@ -267,33 +241,7 @@ class BGN(nn.Module):
                                 else out.relmass.sum())
         return terms
 
-    def total_loss(self, terms: Mapping[str, torch.Tensor]) -> torch.Tensor:
-        """Eq. 12: weighted sum of the task losses (weights from the config)."""
-        if not terms:
-            raise ValueError("no loss terms to sum")
-        weighted = [self.cfg.loss_weight(k) * v for k, v in terms.items()]
-        return torch.stack(weighted).sum()
-
     # ------------------------------------------------------------------ inference
-    def normalized_target(self, g: Graph) -> torch.Tensor:
-        """The graph's target in the model's (normalised) units, (N, D)."""
-        return self.target_coder.encode(g)
-
-    def denormalize_target(self, target: torch.Tensor, g: Graph) -> torch.Tensor:
-        """``BGNOutput.target`` of graph ``g`` -> physical units."""
-        return self.target_coder.decode(g, target)
-
-    def denormalize_relmass(self, relmass: torch.Tensor) -> torch.Tensor:
-        """``BGNOutput.relmass`` -> ``log m_i - log m_j``."""
-        return self.normalizer.denormalize_rel_log_mass(relmass)
-
-    def predict(self, g: Graph) -> torch.Tensor:
-        """Forward target (next velocity or acceleration) in physical units, (N, D).
-
-        Runs only the forward path (no flow). Wrap in ``torch.no_grad()`` for rollouts."""
-        p, _, x = self._process(g)
-        return self.target_coder.decode(g, self._decode(p, x))
-
     @torch.no_grad()
     def sample_log_mass(self, g: Graph, n_samples: int) -> torch.Tensor:
         """Samples of every particle's normalised log-mass, (n_samples, N)."""

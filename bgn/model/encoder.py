@@ -16,7 +16,7 @@ from itertools import pairwise
 import torch
 from torch import nn
 
-from bgn.data.batch import Graph
+from bgn.graph import Graph
 from bgn.model.normalizer import Normalizer
 from bgn.model.ops import activation, gcn_aggregate, pad_features
 

@@ -27,7 +27,7 @@ import time
 import numpy as np
 import torch
 
-from bgn.data.batch import Graph, collate
+from bgn.graph import Graph, collate
 from bgn.model import BGN, ModelConfig
 from bgn.sim.scene import SceneMeta
 

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
-from bgn.data.batch import Graph
+from bgn.graph import Graph
 from bgn.model.encoder import symmetric_edge_features, symmetric_edge_width
 from bgn.model.ops import EdgeMLP, scatter_sum
 

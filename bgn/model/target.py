@@ -46,7 +46,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from bgn.data.batch import Graph
+from bgn.graph import Graph
 from bgn.model.normalizer import Normalizer, robust_scale
 from bgn.sim import SceneMeta
 

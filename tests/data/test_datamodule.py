@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 import torch
 
-from bgn.data.batch import collate
 from bgn.data.datamodule import ParticleDataModule, evenly_spaced
 from bgn.data.targets import step
+from bgn.graph import collate
 
 
 def _datamodule(cfg, **kw):

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from bgn.data.batch import Graph
+from bgn.graph import Graph
 from bgn.sim.scene import SceneMeta
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from bgn.data.batch import collate
+from bgn.graph import collate
 from bgn.model import BGN, LOSS_KEYS, ModelConfig, build_model
 from bgn.model.encoder import edge_input_dim
 
@@ -110,10 +110,10 @@ def test_contact_bce_balances_rare_contacts(meta, stats, graph):
 def test_force_scene_contact_target_is_compressed(meta, stats, graph):
     model = BGN(meta(6, 2), stats(), 2, small()).double()
     g = graph(6)
-    c = model.normalize_contact(g.edge_contact)
+    c = model.contact_target(g)
     torch.testing.assert_close(c, torch.log1p(g.edge_contact / 0.8))
     linear = BGN(meta(6, 2), stats(), 2, small(force_transform="linear")).double()
-    torch.testing.assert_close(linear.normalize_contact(g.edge_contact), g.edge_contact / 0.8)
+    torch.testing.assert_close(linear.contact_target(g), g.edge_contact / 0.8)
 
 
 def test_graph_without_edges(meta, stats, graph):
@@ -158,8 +158,8 @@ def test_build_model_from_config_dict(meta, stats):
                                "relmass": 1.0}}
     model = build_model(config, meta(6, 2), stats(), 2)
     assert isinstance(model, BGN) and model.cfg.flow == "naf"
-    assert model.cfg.loss_weight("contact") == 0.5
-    with pytest.raises(ValueError, match="unknown BGN model options"):
+    assert model.loss_weights["contact"] == 0.5
+    with pytest.raises(ValueError, match="unknown bgn model options.*hiden"):
         build_model({"name": "bgn", "hiden": 16}, meta(6, 2), stats(), 2)
     with pytest.raises(ValueError, match="unknown model"):
         build_model({"name": "nope"}, meta(6, 2), stats(), 2)

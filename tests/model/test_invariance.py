@@ -7,8 +7,8 @@ from dataclasses import replace
 import pytest
 import torch
 
-from bgn.data.batch import collate
-from bgn.model import BGN, BGNOutput, ModelConfig
+from bgn.graph import collate
+from bgn.model import BGN, ModelConfig, ModelOutput
 from tests.model.conftest import permute_graph
 
 NODE_FIELDS = ("target", "type_logits", "mass_nll", "log_mass_sample")
@@ -28,7 +28,7 @@ def build(meta, stats, interaction, kind, n_types, n=7, **overrides) -> BGN:
     return BGN(meta(n, n_types, interaction, kind), stats(), 2, cfg).double()
 
 
-def assert_outputs_close(a: BGNOutput, b: BGNOutput, node=None, edge=None) -> None:
+def assert_outputs_close(a: ModelOutput, b: ModelOutput, node=None, edge=None) -> None:
     for name in NODE_FIELDS + EDGE_FIELDS:
         x, y = getattr(a, name), getattr(b, name)
         assert (x is None) == (y is None), name

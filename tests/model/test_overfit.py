@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from bgn.data.batch import collate
+from bgn.graph import collate
 from bgn.model import BGN, ModelConfig
 
 # Each term is the median of the last 50 of 300 steps: the flow's sample behind relmass makes

@@ -1,0 +1,161 @@
+"""The contract every model of a scene fulfils (BGN and the baselines alike).
+
+A model is built from ``(meta, stats, history, config)``: the scene's metadata record, the
+training split's statistics and the window length k (k+1 velocities, newest first). It
+
+- runs all its heads on a graph (``forward`` -> ``ModelOutput``, in the head's units);
+- turns them into task losses (``loss_terms``) and their weighted sum (``total_loss``, Eq. 12);
+- predicts the forward target in physical units (``predict``), which is all a rollout needs;
+- says which heads it has (``heads``: the loss keys it produces) and how to label it;
+- samples masses (``sample_mass``) when it has an inverse head.
+
+Subclasses implement ``forward`` and ``forward_target`` (the dynamics head alone, without
+training noise) and declare ``name`` and ``config_class``; the registry
+(``bgn.model.registry``) builds them by name. Nothing here knows files, Lightning or Hydra.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from typing import Any, ClassVar
+
+import torch
+from torch import nn
+
+from bgn.graph import Graph
+from bgn.model.normalizer import Normalizer
+from bgn.model.target import LOSSES, PRIORS, TargetCoder
+from bgn.sim.scene import SceneMeta
+
+LOSS_KEYS = ("dynamics", "contact", "type", "mass_nll", "relmass")
+
+
+@dataclass
+class ModelOutput:
+    """Every head's output on a graph; heads a model does not have are None."""
+
+    target: torch.Tensor                         # (N, D) dynamics head, in its own units
+    type_logits: torch.Tensor | None = None      # (N, n_types)
+    contact: torch.Tensor | None = None          # (E,) logits (contact scenes) or force values
+    mass_nll: torch.Tensor | None = None         # (N,) NLL of the normalised log-mass
+    relmass: torch.Tensor | None = None          # (E,) normalised R̂_ij
+    log_mass_sample: torch.Tensor | None = None  # (N,) the flow sample z_K behind relmass
+    edge_weight: torch.Tensor | None = None      # (E,) learned adjacency (BGN's edge encoder)
+
+
+def check_positive_ints(cfg: Any, names: tuple[str, ...]) -> None:
+    """Raise ValueError naming the first of ``names`` on ``cfg`` that is not an int >= 1."""
+    for name in names:
+        value = getattr(cfg, name)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{name}={value!r} must be a positive integer")
+
+
+@dataclass
+class DynamicsConfig:
+    """Options every model shares: what its dynamics head predicts and its loss
+    (``bgn.model.target``), so that all models train on equal terms."""
+
+    target_prior: str = "auto"
+    dynamics_loss: str = "auto"
+    huber_delta: float = 1.0
+
+    def __post_init__(self) -> None:
+        if self.target_prior not in PRIORS:
+            raise ValueError(f"target_prior={self.target_prior!r}; choose one of {PRIORS}")
+        if self.dynamics_loss not in LOSSES:
+            raise ValueError(f"dynamics_loss={self.dynamics_loss!r}; choose one of {LOSSES}")
+        if not self.huber_delta > 0:
+            raise ValueError(f"huber_delta={self.huber_delta} must be > 0")
+
+
+def config_from_params(cls: type, params: Mapping[str, Any], model: str) -> Any:
+    """``cls(**params)`` without ``name``; an unknown key (a typo in a yaml file) is an error."""
+    known = {f.name for f in fields(cls)}
+    values = {k: v for k, v in params.items() if k != "name"}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise ValueError(f"unknown {model} model options {unknown}; known: {sorted(known)}")
+    return cls(**values)
+
+
+class PhysicsModel(nn.Module, ABC):
+    """Base of every model: inputs check, target coding, losses, prediction (see module doc)."""
+
+    name: ClassVar[str]                      # registry and config name (conf/model/<name>.yaml)
+    config_class: ClassVar[type[DynamicsConfig]]
+
+    def __init__(self, meta: SceneMeta, stats: Mapping[str, Any], history: int,
+                 cfg: DynamicsConfig) -> None:
+        super().__init__()
+        self.meta, self.history, self.cfg = meta, history, cfg
+        self.normalizer = Normalizer(stats, meta.dim)
+        self.target_coder = TargetCoder(self.normalizer, stats, meta, history, cfg.target_prior,
+                                        cfg.dynamics_loss, cfg.huber_delta)
+        self.heads: frozenset[str] = frozenset({"dynamics"})  # subclasses add theirs
+        self.loss_weights: dict[str, float] = {}              # missing keys weigh 1
+
+    @property
+    def label(self) -> str:
+        """How reports name this model (a variant may add to ``name``)."""
+        return self.name
+
+    @property
+    def has_inverse(self) -> bool:
+        return "mass_nll" in self.heads
+
+    # ------------------------------------------------------------------ forward
+    def check(self, g: Graph) -> None:
+        """One clear error when a graph's window does not fit the model."""
+        if g.vel.shape[1] != self.history + 1 or g.vel.shape[2] != self.meta.dim:
+            raise ValueError(f"graph velocity window {tuple(g.vel.shape[1:])} does not match "
+                             f"the model's (history + 1, dim) = "
+                             f"({self.history + 1}, {self.meta.dim})")
+
+    @abstractmethod
+    def forward(self, g: Graph) -> ModelOutput:
+        """All heads on a graph (one frame or a batch), in training mode with its noise."""
+
+    @abstractmethod
+    def forward_target(self, g: Graph) -> torch.Tensor:
+        """The dynamics head alone, (N, D) in its own units, never with training noise."""
+
+    # ------------------------------------------------------------------ losses
+    def loss_terms(self, g: Graph, out: ModelOutput) -> dict[str, torch.Tensor]:
+        """Scalar task losses, keys among ``LOSS_KEYS`` (here: ``L_Dec``; heads add theirs)."""
+        return {"dynamics": self.target_coder.loss(out.target, g)}
+
+    def total_loss(self, terms: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """Eq. 12: the weighted sum of the task losses."""
+        if not terms:
+            raise ValueError("no loss terms to sum")
+        return torch.stack([self.loss_weights.get(k, 1.0) * v for k, v in terms.items()]).sum()
+
+    # ------------------------------------------------------------------ units
+    def normalized_target(self, g: Graph) -> torch.Tensor:
+        """The graph's target in the dynamics head's units, (N, D)."""
+        return self.target_coder.encode(g)
+
+    def denormalize_target(self, target: torch.Tensor, g: Graph) -> torch.Tensor:
+        """``ModelOutput.target`` of graph ``g`` -> physical units."""
+        return self.target_coder.decode(g, target)
+
+    def denormalize_relmass(self, relmass: torch.Tensor) -> torch.Tensor:
+        """``ModelOutput.relmass`` -> ``log m_i - log m_j``."""
+        return self.normalizer.denormalize_rel_log_mass(relmass)
+
+    def contact_target(self, g: Graph) -> torch.Tensor:
+        """Per-edge contact target in the units of ``ModelOutput.contact``."""
+        raise RuntimeError(f"{self.label} has no contact head")
+
+    # ------------------------------------------------------------------ inference
+    def predict(self, g: Graph) -> torch.Tensor:
+        """Forward target (next velocity or acceleration) in physical units, (N, D).
+        Wrap in ``torch.no_grad()`` for rollouts."""
+        return self.target_coder.decode(g, self.forward_target(g))
+
+    def sample_mass(self, g: Graph, n_samples: int) -> torch.Tensor:
+        """Samples of every particle's mass in physical units, (n_samples, N)."""
+        raise RuntimeError(f"{self.label} has no inverse head")

@@ -58,3 +58,42 @@ def collate(graphs: list[Graph]) -> Graph:
         else:
             cat[f.name] = torch.cat(values)
     return Graph(**cat)
+
+
+def window_graph(window: torch.Tensor, dt: float, edge_index: torch.Tensor,
+                 masses: torch.Tensor, radii: torch.Tensor, types: torch.Tensor,
+                 box: float | None, sims: torch.Tensor, frames: torch.Tensor,
+                 dtype: torch.dtype = torch.float32) -> Graph:
+    """The graph of B frames from their position windows: what every model sees.
+
+    ``window`` (B, k+2, N, D) holds frames t-k-1 .. t of B simulations (float64 keeps the
+    finite differences exact); ``edge_index`` (2, E) indexes the B x N nodes (simulation b's
+    particles are nodes b*N .. b*N+N-1); ``masses``, ``radii``, ``types`` are (B, N);
+    ``sims``, ``frames`` (B,). Inputs follow DESIGN section 2: backward-difference velocities
+    ``v[t] = (x[t] - x[t-1]) / dt``, newest first. Targets and contact labels are zero (unknown
+    here); the data layer fills them for training samples.
+    """
+    b, _, n, d = window.shape
+    pos = window[:, -1]                                         # (B, N, D)
+    vel = (torch.diff(window, dim=1) / dt).flip(1).transpose(1, 2)  # (B, N, k+1, D), v[t] first
+    log_m = torch.log(masses.to(window.dtype)).reshape(-1)
+    snd, rcv = edge_index
+    wall = None if box is None else torch.cat([pos, box - pos], dim=-1).reshape(b * n, 2 * d)
+    device, n_edges = window.device, edge_index.shape[1]
+    return Graph(
+        pos=pos.reshape(b * n, d).to(dtype),
+        vel=vel.reshape(b * n, -1, d).to(dtype),
+        edge_index=edge_index,
+        target=torch.zeros(b * n, d, dtype=dtype, device=device),
+        edge_contact=torch.zeros(n_edges, dtype=dtype, device=device),
+        mass=masses.reshape(-1).to(dtype),
+        edge_rel_log_mass=(log_m[rcv] - log_m[snd]).to(dtype),
+        types=types.reshape(-1).long(),
+        radius=radii.reshape(-1).to(dtype),
+        wall=None if wall is None else wall.to(dtype),
+        batch=torch.arange(b, device=device).repeat_interleave(n),
+        num_nodes=torch.full((b,), n, device=device),
+        sim=sims.reshape(b).long(),
+        frame=frames.reshape(b).long(),
+        dt=torch.full((b,), dt, dtype=dtype, device=device),
+    )

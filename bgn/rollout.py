@@ -1,49 +1,64 @@
-"""Rollouts: feed a model its own predictions, frame after frame, and compare with the truth."""
+"""Rollouts of a model on a dataset's simulations, through the learned simulator.
+
+The bridge between the files (``FrameDataset``) and ``bgn.simulator.LearnedSimulator``: true
+windows and particles of chosen simulations in, predicted and true trajectories out.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 import torch
-from torch import nn
 
 from bgn.data.dataset import FrameDataset
-from bgn.data.targets import step
+from bgn.model.base import PhysicsModel
+from bgn.simulator import LearnedSimulator, Particles
+
+
+def simulator(model: PhysicsModel, dataset: FrameDataset) -> LearnedSimulator:
+    """The learned simulator of ``model`` at the dataset's frame spacing and graph margin."""
+    if model.history != dataset.history:
+        raise ValueError(f"the model reads {model.history + 1} velocities, the dataset's window "
+                         f"has {dataset.history + 1}: build the dataset with history="
+                         f"{model.history}")
+    return LearnedSimulator(model, dataset.dt, dataset.margin)
+
+
+def particles(dataset: FrameDataset, sims: list[int]) -> Particles:
+    """Masses, radii and types of the dataset's simulations ``sims``, (B, N) each."""
+    def read(name: str) -> torch.Tensor:
+        return torch.as_tensor(np.stack([dataset.file.read(name, s) for s in sims]))
+
+    return Particles(read("masses"), read("radii"), read("types"), torch.as_tensor(sims))
+
+
+def true_positions(dataset: FrameDataset, sims: list[int], first: int, last: int) -> np.ndarray:
+    """Recorded positions of frames ``first .. last`` (inclusive), (B, T, N, D) float64."""
+    return np.stack([dataset.file.read("positions", (s, slice(first, last + 1))) for s in sims])
 
 
 @torch.no_grad()
-def rollout(model: nn.Module, dataset: FrameDataset, sim: int, start: int | None = None,
+def rollout(model: PhysicsModel, dataset: FrameDataset, sim: int, start: int | None = None,
             n_steps: int = 100) -> dict[str, np.ndarray]:
     """Roll ``model`` out for ``n_steps`` from frame ``start`` of simulation ``sim``.
 
     The first window (k+2 frames) is true; every later frame is predicted. Returns true and
     predicted positions (n_steps+1, N, D), the true and predicted energy per frame, and the
-    first step with a non-finite value (-1 if none); a rollout stops before that step, so
-    every array it returns is finite.
+    first step with a non-finite value (-1 if none); the arrays stop before that step, so
+    every array returned is finite.
     """
     k = dataset.history
     start = k + 1 if start is None else start
-    last = dataset.file.n_frames - 1
-    n_steps = min(n_steps, last - start)
+    n_steps = min(n_steps, dataset.file.n_frames - 1 - start)
     if n_steps < 1:
         raise ValueError(f"rollout from frame {start} needs at least one later frame")
-    device = next(model.parameters()).device
-    truth = dataset.file.read("positions", (sim, slice(start - k - 1, start + n_steps + 1)))
-    window = truth[: k + 2].copy()
-    predicted = [window[-1]]
-    first_bad = -1
-    kind = dataset.meta.target
-    for i in range(n_steps):
-        g = dataset.graph(window, sim, start + i).to(device)
-        target = model.predict(g).double().cpu().numpy()
-        velocity = (window[-1] - window[-2]) / dataset.dt
-        position, _ = step(window[-1], velocity, target, dataset.dt, kind)
-        if not np.isfinite(position).all():
-            first_bad = i + 1  # stop here: nothing after a non-finite frame means anything
-            break
-        window = np.concatenate([window[1:], position[None]])
-        predicted.append(position)
-    predicted = np.stack(predicted)
-    true = truth[k + 1:k + 1 + len(predicted)]
+    truth = true_positions(dataset, [sim], start - k - 1, start + n_steps)
+    result = simulator(model, dataset).rollout(torch.as_tensor(truth[:, :k + 2]),
+                                               particles(dataset, [sim]), n_steps, start)
+    first_bad = int(result.first_non_finite[0])
+    predicted = result.positions[0].cpu().numpy()
+    if first_bad >= 0:
+        predicted = predicted[:first_bad]
+    true = truth[0, k + 1:k + 1 + len(predicted)]
     masses = dataset.file.read("masses", sim)
 
     def energy(x: np.ndarray) -> np.ndarray:

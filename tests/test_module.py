@@ -1,15 +1,14 @@
-"""LightningModule pieces: the NaN guard, rollouts and figures."""
+"""LightningModule pieces: the NaN guard and figures."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 from matplotlib.figure import Figure
 
 from bgn import figures
 from bgn.graph import collate
-from bgn.rollout import position_error, rollout
+from bgn.rollout import rollout
 from bgn.train import build
 from tests.conftest import SMALL, compose_config
 
@@ -35,50 +34,6 @@ def test_non_finite_loss_is_one_clear_error(built, monkeypatch):
     monkeypatch.setattr(module.model, "loss_terms", poisoned)
     with pytest.raises(FloatingPointError, match="train loss became nan.*dynamics"):
         module.training_step(batch, 0)
-
-
-class Oracle(torch.nn.Module):
-    """Returns the recorded target of the frame it is asked about (plus an optional blow-up)."""
-
-    def __init__(self, ds, blow_up_at: int | None = None) -> None:
-        super().__init__()
-        self.anchor = torch.nn.Parameter(torch.zeros(1))  # rollout reads the device from here
-        self.ds, self.blow_up_at = ds, blow_up_at
-
-    def predict(self, g):
-        t = int(g.frame)
-        x = self.ds.file.read("positions", (int(g.sim), slice(t - 1, t + 2)))
-        target = (x[2] - 2 * x[1] + x[0]) / self.ds.dt**2
-        if self.blow_up_at is not None and t - self.ds.history - 1 >= self.blow_up_at:
-            target = target * np.inf
-        return torch.as_tensor(target)
-
-
-def test_rollout_of_the_true_targets_reproduces_the_frames(built):
-    datamodule, _ = built
-    ds = datamodule.datasets["val"]
-    result = rollout(Oracle(ds), ds, sim=1, n_steps=20)
-    assert result["predicted"].shape == result["true"].shape == (21, 4, 2)
-    np.testing.assert_allclose(result["predicted"], result["true"], atol=1e-9)
-    assert int(result["first_non_finite"]) == -1
-    assert position_error(result, (10, 100)) == pytest.approx({10: 0.0}, abs=1e-9)
-    drift = np.abs(result["energy_predicted"] - result["energy_true"]).max()
-    assert drift < 1e-6 * np.abs(result["energy_true"]).max()
-
-
-def test_rollout_reports_the_first_non_finite_step(built):
-    datamodule, _ = built
-    ds = datamodule.datasets["val"]
-    result = rollout(Oracle(ds, blow_up_at=4), ds, sim=0, n_steps=10)
-    assert int(result["first_non_finite"]) == 5
-    assert len(result["predicted"]) == len(result["true"]) == 5  # stopped before the bad step
-    assert np.isfinite(result["predicted"]).all()
-
-
-def test_model_rollout_runs(built):
-    datamodule, module = built
-    result = rollout(module.model, datamodule.datasets["val"], sim=0, n_steps=3)
-    np.testing.assert_array_equal(result["predicted"][0], result["true"][0])  # true start
 
 
 def test_figures_are_drawn(built):

@@ -10,8 +10,8 @@ from torch.utils.data import Dataset
 
 from bgn.data.files import DatasetFile
 from bgn.data.graphs import full_graph, pair_codes, scene_edges
-from bgn.data.targets import backward_velocities, targets
-from bgn.graph import Graph
+from bgn.data.targets import targets
+from bgn.graph import Graph, window_graph
 from bgn.sim import Scene, SceneMeta, make_scene
 
 
@@ -101,16 +101,19 @@ def frame_graph(window: np.ndarray, dt: float, meta: SceneMeta, scene: Scene,
                 sim: int = 0, frame: int = 0, next_position: np.ndarray | None = None,
                 contact_codes: np.ndarray | None = None, edges: np.ndarray | None = None,
                 ) -> Graph:
-    """Inputs, edges and targets of one frame (DESIGN sections 2 and 4)."""
+    """Inputs, edges and targets of one frame (DESIGN sections 2 and 4). The inputs are
+    ``bgn.graph.window_graph``'s, which the learned simulator builds in rollouts."""
     pos = window[-1]
-    velocity = backward_velocities(window, dt)                 # frames t-k .. t
-    vel = velocity[::-1].transpose(1, 0, 2)                    # (N, k+1, D), v[t] first
-    if next_position is not None:
-        target = targets(np.concatenate([window[-2:], next_position[None]]), dt, meta.target)[0]
-    else:
-        target = np.zeros_like(pos)
     if edges is None:
         edges = scene_edges(meta.graph, pos, radii, margin)
+    g = window_graph(torch.as_tensor(window, dtype=torch.float64)[None], dt,
+                     torch.as_tensor(edges, dtype=torch.long),
+                     torch.as_tensor(masses)[None], torch.as_tensor(radii)[None],
+                     torch.as_tensor(types)[None], meta.box, torch.tensor([sim]),
+                     torch.tensor([frame]))
+    if next_position is not None:
+        target = targets(np.concatenate([window[-2:], next_position[None]]), dt, meta.target)[0]
+        g.target = torch.as_tensor(target, dtype=torch.float32)
     snd, rcv = edges
     if meta.interaction == "contact":
         codes = pair_codes(snd, rcv, len(pos))
@@ -118,23 +121,5 @@ def frame_graph(window: np.ndarray, dt: float, meta: SceneMeta, scene: Scene,
         contact = np.isin(codes, known).astype(np.float32)
     else:
         contact = scene.pair_force_magnitude(pos, masses, snd, rcv)
-    log_m = np.log(masses)
-    wall = np.concatenate([pos, meta.box - pos], axis=1) if meta.box is not None else None
-    f32 = torch.float32
-    return Graph(
-        pos=torch.as_tensor(pos, dtype=f32),
-        vel=torch.as_tensor(np.ascontiguousarray(vel), dtype=f32),
-        edge_index=torch.as_tensor(edges, dtype=torch.long),
-        target=torch.as_tensor(target, dtype=f32),
-        edge_contact=torch.as_tensor(contact, dtype=f32),
-        mass=torch.as_tensor(masses, dtype=f32),
-        edge_rel_log_mass=torch.as_tensor(log_m[rcv] - log_m[snd], dtype=f32),
-        types=torch.as_tensor(types, dtype=torch.long),
-        radius=torch.as_tensor(radii, dtype=f32),
-        wall=None if wall is None else torch.as_tensor(wall, dtype=f32),
-        batch=torch.zeros(len(pos), dtype=torch.long),
-        num_nodes=torch.tensor([len(pos)]),
-        sim=torch.tensor([sim]),
-        frame=torch.tensor([frame]),
-        dt=torch.tensor([dt], dtype=f32),
-    )
+    g.edge_contact = torch.as_tensor(contact, dtype=torch.float32)
+    return g

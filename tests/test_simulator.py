@@ -1,0 +1,138 @@
+"""The learned-simulator layer: graphs as the data builds them, oracle rollouts that reproduce
+the recorded frames in every scene, failures counted, batches equal to single simulations."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from bgn.data.datamodule import ParticleDataModule
+from bgn.data.targets import targets
+from bgn.model import build_model
+from bgn.rollout import particles, rollout, simulator, true_positions
+from tests.conftest import SMALL, compose_config
+
+SCENES = ["spring", "gravity_r1", "gravity_r2", "collisions"]
+
+
+@pytest.fixture(scope="module")
+def datasets(shared_data_dir):
+    """The small val split of every scene (generated once per session)."""
+    out = {}
+    for scene in SCENES:
+        cfg = compose_config("train", [f"dataset={scene}", *SMALL[scene],
+                                       f"paths.data_dir={shared_data_dir}"])
+        dm = ParticleDataModule(cfg.dataset, cfg.fps, cfg.paths.data_dir)
+        dm.prepare_data()
+        dm.setup()
+        out[scene] = dm.datasets["val"]
+        out[scene].train_stats = dm.stats()
+    return out
+
+
+class Oracle(torch.nn.Module):
+    """A model that predicts the recorded target of every frame it is asked about (by the
+    graph's simulation and frame index), in float64; ``poison`` = (sim, frame) from which it
+    predicts inf for that simulation."""
+
+    def __init__(self, ds, poison: tuple[int, int] | None = None) -> None:
+        super().__init__()
+        self.meta, self.history, self.ds, self.poison = ds.meta, ds.history, ds, poison
+
+    def predict(self, g):
+        out = []
+        for s, t in zip(g.sim.tolist(), g.frame.tolist()):
+            x = self.ds.file.read("positions", (s, slice(t - 1, t + 2)))
+            y = targets(x, self.ds.dt, self.meta.target)[0]
+            if self.poison is not None and s == self.poison[0] and t >= self.poison[1]:
+                y = y * np.inf
+            out.append(y)
+        return torch.as_tensor(np.concatenate(out))
+
+
+def start_windows(ds, sims, start):
+    k = ds.history
+    return torch.as_tensor(true_positions(ds, sims, start - k - 1, start))
+
+
+@pytest.mark.parametrize("scene", SCENES)
+def test_oracle_rollout_reproduces_the_recorded_frames(datasets, scene):
+    """The true targets, integrated by the simulator's step rule with the graph rebuilt every
+    step, give back every recorded frame of the whole trajectory (two simulations at once)."""
+    ds = datasets[scene]
+    sims, start = [0, 1], ds.history + 1
+    n_steps = ds.file.n_frames - 1 - start
+    result = simulator(Oracle(ds), ds).rollout(start_windows(ds, sims, start),
+                                               particles(ds, sims), n_steps, start)
+    truth = true_positions(ds, sims, start, start + n_steps)
+    assert result.positions.shape == truth.shape
+    assert not result.failed.any()
+    scale = np.abs(truth).max()
+    np.testing.assert_allclose(result.positions.numpy(), truth, rtol=0, atol=1e-10 * scale)
+
+
+@pytest.mark.parametrize("scene", ["spring", "collisions"])
+def test_graphs_are_the_training_graphs(datasets, scene):
+    """The simulator's graph of a true window is the data layer's training sample, input for
+    input (targets and contact labels aside, which a rollout does not know)."""
+    ds = datasets[scene]
+    index = 7
+    sim, t = ds.locate(index)
+    g = simulator(Oracle(ds), ds).graph(start_windows(ds, [sim], t), particles(ds, [sim]), t)
+    ref = ds[index]
+    for name in ("pos", "vel", "edge_index", "mass", "edge_rel_log_mass", "types", "radius",
+                 "batch", "num_nodes", "sim", "frame", "dt"):
+        torch.testing.assert_close(getattr(g, name), getattr(ref, name), rtol=0, atol=0,
+                                   msg=name)
+    assert (g.wall is None) == (ref.wall is None)
+    if ref.wall is not None:
+        torch.testing.assert_close(g.wall, ref.wall, rtol=0, atol=0)
+
+
+def test_a_failed_rollout_is_counted_and_the_others_go_on(datasets):
+    ds = datasets["spring"]
+    sims, start = [0, 1], ds.history + 1
+    result = simulator(Oracle(ds, poison=(0, start + 3)), ds).rollout(
+        start_windows(ds, sims, start), particles(ds, sims), 10, start)
+    assert result.first_non_finite.tolist() == [4, -1]
+    assert result.failed.tolist() == [True, False]
+    assert torch.isnan(result.positions[0, 4:]).all()
+    assert torch.isfinite(result.positions[0, :4]).all()
+    np.testing.assert_allclose(result.positions[1].numpy(),
+                               true_positions(ds, [1], start, start + 10)[0], atol=1e-9)
+    # the single-simulation wrapper stops before the bad frame and says where it was
+    single = rollout(Oracle(ds, poison=(0, start + 3)), ds, sim=0, start=start, n_steps=10)
+    assert int(single["first_non_finite"]) == 4
+    assert len(single["predicted"]) == len(single["true"]) == 4
+    assert np.isfinite(single["predicted"]).all()
+
+
+@pytest.mark.parametrize("scene", ["spring", "collisions"])
+@pytest.mark.parametrize("name", ["bgn", "gns"])
+def test_a_model_rolls_out_the_same_alone_and_in_a_batch(datasets, scene, name):
+    """Batching simulations changes nothing, and a rollout is next_frame applied repeatedly."""
+    ds = datasets[scene]
+    torch.manual_seed(0)
+    small = ({"hidden": 16, "decoder_hidden": 16, "flow_hidden": 16} if name == "bgn"
+             else {"latent": 16, "mlp_hidden": 16, "message_passing_steps": 2})
+    model = build_model({"name": name, **small}, ds.meta, ds.train_stats, ds.history).eval()
+    sim_, start = simulator(model, ds), ds.history + 1
+    batch = sim_.rollout(start_windows(ds, [0, 1], start), particles(ds, [0, 1]), 4, start)
+    for b in (0, 1):
+        alone = sim_.rollout(start_windows(ds, [b], start), particles(ds, [b]), 4, start)
+        torch.testing.assert_close(batch.positions[b], alone.positions[0], rtol=1e-6,
+                                   atol=1e-9)
+    with torch.no_grad():
+        first = sim_.next_frame(start_windows(ds, [0, 1], start), particles(ds, [0, 1]), start)
+    torch.testing.assert_close(batch.positions[:, 1], first)
+    assert not torch.equal(first, batch.positions[:, 0])  # it moved
+
+
+def test_bad_windows_are_one_clear_error(datasets):
+    ds = datasets["spring"]
+    sim_ = simulator(Oracle(ds), ds)
+    with pytest.raises(ValueError, match="history \\+ 2"):
+        sim_.graph(torch.zeros(1, 3, 4, 2, dtype=torch.float64), particles(ds, [0]))
+    with pytest.raises(ValueError, match="particles are"):
+        sim_.graph(start_windows(ds, [0, 1], ds.history + 1), particles(ds, [0]))

@@ -12,6 +12,7 @@ from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
+from bgn.checks import as_int
 from bgn.sim import SCENES, Scene, make_scene
 
 SPLITS = ("train", "val", "test")
@@ -54,10 +55,8 @@ class DatasetSpec:
             raise ValueError(f"split={self.split!r}; choose one of {SPLITS}")
         if not self.fps > 0:
             raise ValueError(f"fps={self.fps} must be a positive number of frames per time unit")
-        if self.n_sims < 1:
-            raise ValueError(f"dataset.n_sims={self.n_sims} must be at least 1")
-        if self.n_frames < 3:
-            raise ValueError(f"dataset.n_frames={self.n_frames} must be at least 3")
+        as_int(self.n_sims, "dataset.n_sims", 1)
+        as_int(self.n_frames, "dataset.n_frames", 3)
 
     @classmethod
     def from_config(cls, dataset: Any, fps: float, split: str) -> DatasetSpec:

@@ -16,9 +16,13 @@ import torch
 from bgn.data.dataset import FrameDataset
 from bgn.data.frames import evenly_spaced
 from bgn.graph import Graph, collate
-from bgn.metrics import inverse_metrics, r2_score, type_metrics
+from bgn.metrics import inverse_metrics, kde_modes, r2_score, recovered_modes, type_metrics
 from bgn.model.target import extrapolate, observed_targets
 from bgn.module import PhysicsModule
+
+# the metric functions live in bgn.metrics; imports of them from here keep working
+__all__ = ["batches", "evaluate_model", "inverse_metrics", "kde_modes", "load_model",
+           "mass_figure", "r2_score", "recovered_modes", "type_metrics"]
 
 
 # ----------------------------------------------------------------------------- loading

@@ -1,9 +1,8 @@
 """Evaluation of a trained checkpoint on the test split (used by ``bgn.experiments``).
 
 Forward metrics (MSE in physical units, NMSE = MSE / training target variance as the
-LightningModule logs it, median relative error), inverse metrics from mass samples (Welch
-t-test, Wasserstein-1, recovered KDE modes, relative-mass R^2, interval coverage) and type
-classification metrics. The metric functions take plain arrays so they are testable alone.
+LightningModule logs it, median relative error, the no-learning references), and the inverse
+and type metrics of ``bgn.metrics`` on the model's mass samples and type logits.
 """
 
 from __future__ import annotations
@@ -13,13 +12,17 @@ from typing import Any
 
 import numpy as np
 import torch
-from scipy.signal import find_peaks
-from scipy.stats import gaussian_kde, ttest_ind, wasserstein_distance
 
 from bgn.data.dataset import FrameDataset
+from bgn.data.frames import evenly_spaced
 from bgn.graph import Graph, collate
+from bgn.metrics import inverse_metrics, kde_modes, r2_score, recovered_modes, type_metrics
 from bgn.model.target import extrapolate, observed_targets
 from bgn.module import PhysicsModule
+
+# the metric functions live in bgn.metrics; imports of them from here keep working
+__all__ = ["batches", "evaluate_model", "inverse_metrics", "kde_modes", "load_model",
+           "mass_figure", "r2_score", "recovered_modes", "type_metrics"]
 
 
 # ----------------------------------------------------------------------------- loading
@@ -28,96 +31,10 @@ def load_model(ckpt: str | Path) -> PhysicsModule:
     return PhysicsModule.load_from_checkpoint(ckpt, map_location="cpu").eval()
 
 
-def frame_indices(dataset: FrameDataset, max_frames: int | None) -> np.ndarray:
-    """Evenly spaced test frames (all when ``max_frames`` is None): a fixed, reproducible
-    subset that still covers every test simulation."""
-    n = len(dataset)
-    if max_frames is None or max_frames >= n:
-        return np.arange(n)
-    return np.unique(np.linspace(0, n - 1, int(max_frames)).round().astype(int))
-
-
-def batches(dataset: FrameDataset, indices: np.ndarray, batch_size: int) -> list[Graph]:
-    return [collate([dataset[int(i)] for i in indices[s:s + batch_size]])
+def batches(dataset: FrameDataset, indices: list[int], batch_size: int) -> list[Graph]:
+    """The frames ``indices`` of ``dataset`` as batched graphs of ``batch_size`` frames."""
+    return [collate([dataset[i] for i in indices[s:s + batch_size]])
             for s in range(0, len(indices), batch_size)]
-
-
-# ----------------------------------------------------------------------------- metrics
-def r2_score(pred: np.ndarray, true: np.ndarray) -> float:
-    """Coefficient of determination (nan when the truth has no variance)."""
-    pred, true = np.ravel(pred), np.ravel(true)
-    total = float(np.sum((true - true.mean()) ** 2))
-    if len(true) < 2 or total == 0.0:
-        return float("nan")
-    return 1.0 - float(np.sum((pred - true) ** 2)) / total
-
-
-def kde_modes(values: np.ndarray, grid: np.ndarray, min_prominence: float = 0.05) -> np.ndarray:
-    """Locations of the peaks of a Gaussian KDE of ``values`` on ``grid``; a peak counts when
-    its prominence is at least ``min_prominence`` x the highest density (ignores wiggles)."""
-    values = np.asarray(values, dtype=np.float64)
-    values = values[np.isfinite(values)]
-    if len(values) < 2 or np.ptp(values) == 0:
-        return values[:1].copy()
-    density = gaussian_kde(values)(grid)
-    # pad with zeros so a peak on the edge of the grid is still a peak
-    padded = np.concatenate([[0.0], density, [0.0]])
-    peaks, _ = find_peaks(padded, prominence=min_prominence * density.max())
-    return grid[peaks - 1]
-
-
-def recovered_modes(true_log: np.ndarray, sampled_log: np.ndarray,
-                    tolerance: float = 0.5) -> tuple[int, int]:
-    """(number of KDE modes of the true log-masses, how many of them have a mode of the
-    sampled log-masses within ``tolerance``)."""
-    true_log = np.ravel(true_log)
-    sampled_log = np.ravel(sampled_log)
-    sampled_log = sampled_log[np.isfinite(sampled_log)]
-    lo = min(true_log.min(), np.percentile(sampled_log, 0.5)) - 1.0
-    hi = max(true_log.max(), np.percentile(sampled_log, 99.5)) + 1.0
-    grid = np.linspace(lo, hi, 512)
-    true_modes, sampled_modes = kde_modes(true_log, grid), kde_modes(sampled_log, grid)
-    if len(sampled_modes) == 0:
-        return len(true_modes), 0
-    matched = sum(bool(np.min(np.abs(sampled_modes - m)) <= tolerance) for m in true_modes)
-    return len(true_modes), int(matched)
-
-
-def inverse_metrics(true_log: np.ndarray, sampled_log: np.ndarray,
-                    mode_tolerance: float = 0.5) -> dict[str, float]:
-    """Metrics of mass samples. ``true_log`` (N,) true log-masses, ``sampled_log`` (S, N):
-    S samples for each particle (natural log).
-
-    Coverage: the fraction of particles whose true log-mass lies inside the central 50% / 90%
-    interval of its own samples (0.5 / 0.9 when calibrated). Welch p and W1 compare the pooled
-    distributions (all true values against all samples).
-    """
-    true_log = np.asarray(true_log, dtype=np.float64)
-    sampled_log = np.asarray(sampled_log, dtype=np.float64)
-    if sampled_log.ndim != 2 or sampled_log.shape[1] != true_log.shape[0]:
-        raise ValueError(f"samples {sampled_log.shape} must be (n_samples, {len(true_log)})")
-    pooled = sampled_log[np.isfinite(sampled_log)]
-    out: dict[str, float] = {}
-    out["welch_p"] = float(ttest_ind(true_log, pooled, equal_var=False).pvalue)
-    out["wasserstein1"] = float(wasserstein_distance(true_log, pooled))
-    for level in (50, 90):
-        tail = (100 - level) / 2
-        lo, hi = np.nanpercentile(sampled_log, [tail, 100 - tail], axis=0)
-        out[f"coverage{level}"] = float(np.mean((true_log >= lo) & (true_log <= hi)))
-    n_true, n_matched = recovered_modes(true_log, pooled, mode_tolerance)
-    out["modes_true"], out["modes_recovered"] = float(n_true), float(n_matched)
-    return out
-
-
-def type_metrics(logits: np.ndarray, types: np.ndarray) -> dict[str, float]:
-    """Accuracy and one-vs-rest macro AUROC (as the LightningModule's MulticlassAUROC)."""
-    from torchmetrics.functional.classification import multiclass_auroc
-
-    logits_t, types_t = torch.as_tensor(logits), torch.as_tensor(types).long()
-    n = logits_t.shape[1]
-    auroc = multiclass_auroc(logits_t.softmax(-1), types_t, num_classes=n)
-    return {"type_accuracy": float((logits_t.argmax(-1) == types_t).float().mean()),
-            "type_auroc": float(auroc)}
 
 
 # ----------------------------------------------------------------------------- evaluation
@@ -131,7 +48,7 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
     model = module.model
     heads = model.heads
     variance = module.target_variance.mean().item()
-    indices = frame_indices(dataset, max_frames)
+    indices = evenly_spaced(len(dataset), max_frames)  # covers every test simulation
     sq_err, rel_err = [], []
     # references without learning: repeat the last observed target, extrapolate the last two
     ref_err: dict[str, list[torch.Tensor]] = {"last": [], "linear": []}
@@ -167,7 +84,7 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
     if model.has_inverse:
         # every particle of a subset of test frames, each sampled mass_samples times
         true_mass, sampled = [], []
-        for g in batches(dataset, frame_indices(dataset, mass_frames), batch_size):
+        for g in batches(dataset, evenly_spaced(len(dataset), mass_frames), batch_size):
             sampled.append(model.sample_mass(g, mass_samples))
             true_mass.append(g.mass)
         arrays = {"true_mass": torch.cat(true_mass).double().numpy(),
@@ -181,13 +98,6 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
 
 def mass_figure(arrays: dict[str, np.ndarray], path: str | Path) -> Path:
     """Write the KDE of true vs sampled masses (``figures.mass_density``) as a PNG."""
-    import matplotlib.pyplot as plt
+    from bgn.figures import mass_density, save
 
-    from bgn.figures import mass_density
-
-    fig = mass_density(arrays["true_mass"], arrays["sampled_mass"].ravel())
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(mass_density(arrays["true_mass"], arrays["sampled_mass"].ravel()), path)

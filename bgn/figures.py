@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -74,3 +78,30 @@ def rollout(result: dict[str, np.ndarray]) -> Figure:
     ax_err.set_ylabel("mean position error")
     fig.tight_layout()
     return fig
+
+
+def sample_efficiency(rows: Sequence[dict[str, Any]]) -> Figure:
+    """Test NMSE against the number of training simulations, one line per (scene, fps,
+    model), log-log; ``rows`` hold scene, fps, model, train_sims and nmse."""
+    fig, ax = plt.subplots(figsize=(4.8, 3.4))
+    for key in dict.fromkeys((r["scene"], r["fps"], r["model"]) for r in rows):
+        pts = sorted((r["train_sims"], r["nmse"]) for r in rows
+                     if (r["scene"], r["fps"], r["model"]) == key)
+        ax.plot(*zip(*pts), "o-", label=f"{key[2]} ({key[0]}, fps {key[1]})")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("training simulations")
+    ax.set_ylabel("test NMSE")
+    if rows:
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def save(fig: Figure, path: str | Path, dpi: int = 110) -> Path:
+    """Write ``fig`` as an image (folders created) and close it; returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-import csv
 import json
 from pathlib import Path
 from typing import Any
 
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
+
+from bgn.tables import write_table
 
 SUMMARY_METRICS = ("val/nmse", "test/nmse", "test/mse", "test/median_relative_error",
                    "test/type_accuracy", "test/contact_f1", "test/contact_r2",
@@ -26,28 +27,18 @@ def collect(sweep_dir: Path) -> list[dict[str, Any]]:
 
 
 def write_summary(sweep_dir: Path, rows: list[dict[str, Any]]) -> str:
-    """Write summary.md and summary.csv in the sweep directory; return the markdown."""
+    """Write summary.md and summary.csv in the sweep directory (columns that some job filled
+    in); return the markdown."""
     if not rows:
         return "no finished runs"
     columns = list(dict.fromkeys(k for row in rows for k in row))
     columns = [c for c in columns if any(row.get(c) is not None for row in rows)]
-
-    def fmt(value: Any) -> str:
-        return f"{value:.4g}" if isinstance(value, float) else ("" if value is None else
-                                                                str(value))
-
-    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
-    lines += ["| " + " | ".join(fmt(row.get(c)) for c in columns) + " |" for row in rows]
-    markdown = "\n".join(lines) + "\n"
-    (sweep_dir / "summary.md").write_text(markdown)
-    with open(sweep_dir / "summary.csv", "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=columns, extrasaction="ignore")
-        writer.writeheader()
-        writer.writerows(rows)
-    return markdown
+    return write_table(sweep_dir, "summary", columns, rows)
 
 
 class SweepSummary(Callback):
+    """Writes the summary table when a multirun ends."""
+
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
         markdown = write_summary(sweep_dir, collect(sweep_dir))

@@ -11,15 +11,11 @@ from torch.utils.data import DataLoader, Subset
 
 from bgn.data.dataset import FrameDataset
 from bgn.data.files import DatasetFile
+from bgn.data.frames import evenly_spaced
 from bgn.data.generate import ensure_splits
 from bgn.data.spec import DatasetSpec
 from bgn.graph import collate
 from bgn.sim import SceneMeta
-
-
-def evenly_spaced(n: int, k: int) -> list[int]:
-    """``k`` distinct indices spread evenly over ``range(n)``, first and last included."""
-    return np.unique(np.linspace(0, n - 1, min(k, n)).round().astype(int)).tolist()
 
 
 class ParticleDataModule(L.LightningDataModule):

@@ -165,9 +165,6 @@ class DatasetFile:
         except (OSError, KeyError) as err:
             raise self._fail(f"reading {name!r} failed ({err})") from None
 
-    def has(self, name: str) -> bool:
-        return name in self._cache or name in self.handle
-
     @property
     def loaded(self) -> bool:
         """Whether ``load_all`` has put the arrays in memory."""

@@ -12,13 +12,13 @@ float64 formula, :func:`pair_distance`, so the same pair is always in or out who
 
 from __future__ import annotations
 
-import math
-import operator
 from collections.abc import Sequence
 
 import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
+
+from bgn.checks import as_float, as_int, as_real_array
 
 __all__ = [
     "batch_edges",
@@ -39,33 +39,6 @@ def _empty_edges() -> np.ndarray:
     return np.zeros((2, 0), dtype=np.int64)
 
 
-def _as_count(value: object, name: str) -> int:
-    """A non-negative Python int from an int-like value (bool is rejected: a likely bug)."""
-    if isinstance(value, bool | np.bool_):
-        raise ValueError(f"{name} must be an integer, got bool {value!r}")
-    try:
-        count = operator.index(value)  # type: ignore[arg-type]
-    except TypeError:
-        raise ValueError(
-            f"{name} must be an integer, got {type(value).__name__} {value!r}"
-        ) from None
-    if count < 0:
-        raise ValueError(f"{name} must be >= 0, got {count}")
-    return count
-
-
-def _as_finite_float(value: object, name: str, minimum: float | None = None) -> float:
-    try:
-        out = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a real number, got {value!r}") from None
-    if not math.isfinite(out):
-        raise ValueError(f"{name} must be finite, got {out}")
-    if minimum is not None and out < minimum:
-        raise ValueError(f"{name} must be >= {minimum}, got {out}")
-    return out
-
-
 def _as_positions(positions: np.ndarray) -> np.ndarray:
     pos = np.asarray(positions)
     if pos.ndim != 2:
@@ -75,12 +48,7 @@ def _as_positions(positions: np.ndarray) -> np.ndarray:
         )
     if pos.shape[1] < 1:
         raise ValueError(f"positions must have at least one coordinate (D >= 1), got {pos.shape}")
-    if not (np.issubdtype(pos.dtype, np.floating) or np.issubdtype(pos.dtype, np.integer)):
-        raise ValueError(f"positions must be real numbers, got dtype {pos.dtype}")
-    pos = pos.astype(np.float64, copy=False)
-    if not np.all(np.isfinite(pos)):
-        raise ValueError("positions must be finite (found NaN or inf)")
-    return pos
+    return as_real_array(pos, "positions")
 
 
 def full_graph(n: int) -> np.ndarray:
@@ -88,7 +56,7 @@ def full_graph(n: int) -> np.ndarray:
 
     Sorted by receiver, then sender.
     """
-    n = _as_count(n, "n")
+    n = as_int(n, "n")
     if n < 2:
         return _empty_edges()
     receivers = np.repeat(np.arange(n, dtype=np.int64), n - 1)
@@ -184,23 +152,19 @@ def radius_graph(
     n = pos.shape[0]
     if (radii is None) == (cutoff is None):
         raise ValueError("give exactly one of radii (with an optional margin) or cutoff")
-    margin = _as_finite_float(margin, "margin", minimum=0.0)
+    margin = as_float(margin, "margin", minimum=0.0)
 
     rad: np.ndarray | None = None
     if radii is not None:
         rad = np.asarray(radii)
         if rad.shape != (n,):
             raise ValueError(f"radii must have shape (N,) = ({n},), got {rad.shape}")
-        if not (np.issubdtype(rad.dtype, np.floating) or np.issubdtype(rad.dtype, np.integer)):
-            raise ValueError(f"radii must be real numbers, got dtype {rad.dtype}")
-        rad = rad.astype(np.float64, copy=False)
-        if not np.all(np.isfinite(rad)):
-            raise ValueError("radii must be finite (found NaN or inf)")
+        rad = as_real_array(rad, "radii")
         if n and rad.min() < 0:
             raise ValueError(f"radii must be >= 0, found {rad.min()}")
         reach = 2.0 * float(rad.max()) + margin if n else 0.0
     else:
-        cut = _as_finite_float(cutoff, "cutoff", minimum=0.0)
+        cut = as_float(cutoff, "cutoff", minimum=0.0)
         if margin != 0.0:
             raise ValueError("margin applies only with radii; fold it into cutoff instead")
         reach = cut
@@ -245,11 +209,11 @@ def contact_margin(max_relative_speed: float, dt: float, safety: float = 1.5) ->
     Returns:
         ``safety * max_relative_speed * dt``.
     """
-    speed = _as_finite_float(max_relative_speed, "max_relative_speed", minimum=0.0)
-    step = _as_finite_float(dt, "dt", minimum=0.0)
+    speed = as_float(max_relative_speed, "max_relative_speed", minimum=0.0)
+    step = as_float(dt, "dt", minimum=0.0)
     if step == 0.0:
         raise ValueError("dt must be > 0")
-    factor = _as_finite_float(safety, "safety", minimum=1.0)
+    factor = as_float(safety, "safety", minimum=1.0)
     return factor * speed * step
 
 
@@ -273,7 +237,7 @@ def batch_edges(edge_lists: Sequence[np.ndarray], n_nodes: Sequence[int]) -> np.
     pieces = []
     offset = 0
     for g, (edges, count) in enumerate(zip(edge_lists, n_nodes, strict=True)):
-        count = _as_count(count, f"n_nodes[{g}]")
+        count = as_int(count, f"n_nodes[{g}]")
         e = np.asarray(edges)
         if e.ndim != 2 or e.shape[0] != 2:
             raise ValueError(f"edge_lists[{g}] must have shape (2, E), got {e.shape}")

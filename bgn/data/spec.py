@@ -12,13 +12,14 @@ from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
+from bgn.checks import as_int
 from bgn.sim import SCENES, Scene, make_scene
 
 SPLITS = ("train", "val", "test")
 # Dataset config keys that do not change the generated numbers (they configure loading, or
 # the scene's default model options: target_prior for every model, bgn_defaults for BGN).
 LOADER_KEYS = frozenset({"history", "batch_size", "num_workers", "train_sims", "val_samples",
-                         "in_memory", "generate_workers", "target_prior", "bgn_defaults"})
+                         "in_memory", "target_prior", "bgn_defaults"})
 SIZE_KEYS = ("n_sims", "n_frames", "seed")
 
 
@@ -54,10 +55,8 @@ class DatasetSpec:
             raise ValueError(f"split={self.split!r}; choose one of {SPLITS}")
         if not self.fps > 0:
             raise ValueError(f"fps={self.fps} must be a positive number of frames per time unit")
-        if self.n_sims < 1:
-            raise ValueError(f"dataset.n_sims={self.n_sims} must be at least 1")
-        if self.n_frames < 3:
-            raise ValueError(f"dataset.n_frames={self.n_frames} must be at least 3")
+        as_int(self.n_sims, "dataset.n_sims", 1)
+        as_int(self.n_frames, "dataset.n_frames", 3)
 
     @classmethod
     def from_config(cls, dataset: Any, fps: float, split: str) -> DatasetSpec:

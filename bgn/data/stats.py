@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from bgn.data.frames import evenly_spaced
 from bgn.data.graphs import pair_codes, scene_edges
 from bgn.data.targets import backward_velocities, targets
 from bgn.sim import Scene
@@ -59,8 +60,7 @@ def compute_stats(scene: Scene, arrays: dict[str, np.ndarray], dt: float,
 
     rel_pos, rel_vel, rel_logm, contact = [], [], [], []
     n_sims, n_frames = positions.shape[:2]
-    frames = np.unique(np.linspace(1, n_frames - 2, min(MAX_EDGE_FRAMES, n_frames - 2))
-                       .astype(int))
+    frames = [1 + i for i in evenly_spaced(n_frames - 2, MAX_EDGE_FRAMES)]  # 1 .. T-2
     n = meta.n_particles
     if meta.interaction == "contact":
         c = arrays["contacts"]  # rows (sim, frame, i, j)

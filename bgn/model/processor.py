@@ -182,9 +182,8 @@ class Processor(nn.Module):
 
     def __init__(self, hidden: int, edge_features: int, n_types: int, n_particles: int,
                  contact_scene: bool, classifier: bool = True, contact: bool = True,
-                 contact_mode: str = "aggregate", message_features: int | None = None,
-                 contact_edge_term: int | None = None, message: str = "linear",
-                 act: str = "silu", dim: int = 0) -> None:
+                 contact_mode: str = "aggregate", contact_edge_term: int | None = None,
+                 message: str = "linear", act: str = "silu", dim: int = 0) -> None:
         super().__init__()
         if contact_mode not in CONTACT_MODES:
             raise ValueError(f"contact_mode={contact_mode!r}; choose one of {CONTACT_MODES}")
@@ -194,7 +193,7 @@ class Processor(nn.Module):
         self.tilde_v_features = hidden + (n_types if self.classifier is not None else 0)
         self.contact = None
         if contact:
-            width = (message_features or hidden) if contact_mode == "aggregate" else None
+            width = hidden if contact_mode == "aggregate" else None
             self.contact = ContactHead(hidden, edge_features, width, contact_scene,
                                        contact_edge_term, message, self.tilde_v_features, act,
                                        dim)
@@ -205,7 +204,7 @@ class Processor(nn.Module):
         elif message == "vector":
             extra = dim                                        # sum_j ĉ_ij m_ij, a D-vector
         else:
-            extra = message_features or hidden                 # sum_j ĉ_ij m_ij
+            extra = hidden                                     # sum_j ĉ_ij m_ij
         self.out_features = self.tilde_v_features + extra
 
     def forward(self, h_v: torch.Tensor, h_e: torch.Tensor, e: torch.Tensor,

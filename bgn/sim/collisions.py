@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from bgn.checks import as_float, as_int
 from bgn.sim.scene import SceneMeta, Trajectory
 
 # Safety net: a correct run never gets near this, an endless zero-time loop would.
@@ -47,13 +48,8 @@ class ParticleType:
 
     def __post_init__(self) -> None:
         for f in fields(self):
-            value = getattr(self, f.name)
-            if isinstance(value, bool) or not isinstance(value, (int, float, np.number)):
-                raise ValueError(f"ParticleType.{f.name} must be a number, got {value!r}")
-            value = float(value)
-            if not math.isfinite(value):
-                raise ValueError(f"ParticleType.{f.name} must be finite, got {value!r}")
-            object.__setattr__(self, f.name, value)
+            object.__setattr__(self, f.name,
+                               as_float(getattr(self, f.name), f"ParticleType.{f.name}"))
         if self.radius <= 0:
             raise ValueError(f"ParticleType.radius must be > 0 (got {self.radius}); "
                              "set a positive radius")
@@ -342,21 +338,10 @@ class CollisionScene:
 
     def __post_init__(self) -> None:
         for name in ("n_particles", "dim"):
-            value = getattr(self, name)
-            ok = isinstance(value, (int, float, np.number)) and not isinstance(value, bool) \
-                and float(value).is_integer() and value >= 1
-            if not ok:
-                raise ValueError(f"CollisionScene.{name} must be a positive integer, "
-                                 f"got {value!r}")
-            setattr(self, name, int(value))
+            setattr(self, name, as_int(getattr(self, name), f"CollisionScene.{name}", 1))
         for name in ("box", "velocity_std"):
-            value = getattr(self, name)
-            ok = isinstance(value, (int, float, np.number)) and not isinstance(value, bool) \
-                and math.isfinite(value) and value > 0
-            if not ok:
-                raise ValueError(f"CollisionScene.{name} must be a finite number > 0, "
-                                 f"got {value!r}")
-            setattr(self, name, float(value))
+            setattr(self, name, as_float(getattr(self, name), f"CollisionScene.{name}", 0.0,
+                                         strict=True))
         raw = self.types
         if isinstance(raw, (Mapping, ParticleType)) or not isinstance(raw, Sequence) \
                 or len(raw) == 0:

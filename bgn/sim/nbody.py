@@ -7,14 +7,13 @@ additively softened distance ``s = r + softening``; forces point along the unsof
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from numbers import Integral, Real
 
 import numpy as np
 from scipy.integrate import solve_ivp
 
+from bgn.checks import as_float, as_int
 from bgn.sim.scene import SceneMeta, Trajectory
 
 POTENTIALS = ("spring", "r1", "r2")
@@ -60,26 +59,20 @@ class NBodyScene:
             raise ValueError(f"potential={self.potential!r} is unknown; set potential to one of "
                              f"{list(POTENTIALS)}")
         for name, low in (("n_particles", 2), ("dim", 1)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, Integral) or value < low:
-                raise ValueError(f"{name}={value!r} is invalid; set {name} to an integer >= {low}")
-            setattr(self, name, int(value))
+            setattr(self, name, as_int(getattr(self, name), name, low))
         # per field: True -> must be > 0, False -> must be >= 0, None -> any finite value;
         # softening may be 0 only for the spring, whose force stays finite at r = 0
         checks = (("softening", self.potential != "spring"), ("mass_log_mean", None),
                   ("mass_log_std", False), ("position_std", True), ("velocity_std", False),
                   ("rtol", True), ("atol", True), ("segment", True))
         for name, strict in checks:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, Real) or not math.isfinite(value):
-                raise ValueError(f"{name}={value!r} is invalid; set {name} to a finite number")
-            value = float(value)
-            if strict is True and value <= 0.0:
+            try:
+                value = as_float(getattr(self, name), name,
+                                 None if strict is None else 0.0, strict=bool(strict))
+            except ValueError as err:
                 why = (" (gravity diverges at r = 0 without softening)"
                        if name == "softening" else "")
-                raise ValueError(f"{name}={value!r} is invalid{why}; set {name} to a value > 0")
-            if strict is False and value < 0.0:
-                raise ValueError(f"{name}={value!r} is invalid; set {name} to a value >= 0")
+                raise ValueError(f"{err}{why}") from None
             setattr(self, name, value)
 
     @property

@@ -1,0 +1,205 @@
+"""The study's report: one function per table (Table 1, inverse, types, ablations, sample
+efficiency) and report.md, from the cells' training records and test-split evaluations.
+
+Every number in the report comes from the cells' checkpoints except the paper's published
+Table 1 values below, the only ones typed by hand. ``results`` maps a cell's name to
+``{"train": metrics.json record, "eval": eval.json record}`` (``bgn.experiments``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from bgn.tables import fmt, write_table
+
+if TYPE_CHECKING:
+    from bgn.experiments import Cell
+
+Results = dict[str, dict[str, Any]]
+
+# The paper's Table 1. BGN per fps; the two baselines are single values per scene in its last
+# two columns. The paper does not say which metric.
+PAPER_BGN = {
+    "collisions": {10: 0.003, 30: 0.003, 50: 0.003, 100: 0.006},
+    "spring": {10: 0.0007, 30: 0.093, 50: 0.0009, 100: 0.08},
+    "gravity_r2": {10: 1.023, 30: 1.363, 50: 1.306, 100: 0.804},
+    "gravity_r1": {10: 0.129, 30: 0.561, 50: 0.588, 100: 0.836},
+}
+PAPER_CRANMER = {"collisions": 0.119, "spring": 0.047, "gravity_r2": 1.634, "gravity_r1": 0.077}
+PAPER_SANCHEZ = {"collisions": 0.053, "spring": 0.734, "gravity_r2": 1.804, "gravity_r1": 1.340}
+PAPER_LABEL = "paper (metric unstated)"
+PAPER_COLUMNS = {"BGN": PAPER_BGN, "Cranmer et al.": PAPER_CRANMER,
+                 "Sanchez-Gonzalez et al.": PAPER_SANCHEZ}
+
+# no-learning references in Table 1 (bgn.evaluate): metric suffix -> column
+REFERENCES = {"last": "repeat-last NMSE", "linear": "linear-extrapolation NMSE"}
+EMPTY = "(no cells of this kind in the preset)"
+
+
+def paper_value(source: str, scene: str, fps: float) -> float | None:
+    """The paper's Table 1 value of ``source`` (a key of ``PAPER_COLUMNS``) for a scene and
+    fps; the baselines have one value per scene, BGN one per integer fps."""
+    if source != "BGN":
+        return PAPER_COLUMNS[source].get(scene)
+    return PAPER_BGN.get(scene, {}).get(int(fps)) if float(fps).is_integer() else None
+
+
+def evaluation(results: Results, cell: Cell) -> dict[str, Any]:
+    """The test-split metrics of a cell (``bgn.evaluate``)."""
+    return results[cell.name]["eval"]["metrics"]
+
+
+def training(results: Results, cell: Cell) -> dict[str, Any]:
+    """The metrics the training run recorded (its own test of best.ckpt, wall time)."""
+    return results[cell.name]["train"]["metrics"]
+
+
+def _main(cells: list[Cell]) -> list[Cell]:
+    return [c for c in cells if "main" in c.groups]
+
+
+def table1(report_dir: Path, cells: list[Cell], results: Results) -> str:
+    """Table 1: one row per scene x fps of the main grid, MSE and NMSE per model, the
+    no-learning references and the paper's values beside them."""
+    main = _main(cells)
+    models = list(dict.fromkeys(c.model for c in main))
+    rows = []
+    for scene, fps in dict.fromkeys((c.scene, c.fps) for c in main):
+        row: dict[str, Any] = {"scene": scene, "fps": fmt(fps)}
+        for c in main:
+            if (c.scene, c.fps) == (scene, fps):
+                m = evaluation(results, c)
+                row[f"{c.model} MSE"], row[f"{c.model} NMSE"] = m["mse"], m["nmse"]
+                for ref, column in REFERENCES.items():  # the same test frames for every model
+                    row[column] = m.get(f"nmse_{ref}_extrapolation")
+        for source in PAPER_COLUMNS:
+            row[f"{source} {PAPER_LABEL}"] = paper_value(source, scene, fps)
+        rows.append(row)
+    columns = ["scene", "fps", *[f"{m} {k}" for m in models for k in ("MSE", "NMSE")],
+               *REFERENCES.values(), *[f"{source} {PAPER_LABEL}" for source in PAPER_COLUMNS]]
+    return write_table(
+        report_dir, "table1", columns, rows, "Table 1: one-step error on the test split",
+        "MSE of the forward target (next velocity for collisions, acceleration "
+        "otherwise) in physical units; NMSE = MSE / training target variance. The "
+        "paper's columns are its published Table 1 values (it does not say which "
+        "metric); the baselines are single values per scene in the paper. The "
+        "extrapolation columns learn nothing: they repeat the last observed target, or "
+        "extrapolate the last two linearly, from the input window (the floor a learned "
+        "model must beat; the models predict the change from the latter by default).",
+        empty=EMPTY)
+
+
+def inverse_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
+    """Inverse model: every full-model cell with a mass head (main grid first), its sample
+    metrics and KDE figure."""
+    columns = ["scene", "fps", "welch_p", "wasserstein1", "modes_true", "modes_recovered",
+               "relmass_r2", "coverage50", "coverage90", "mass_particles", "figure"]
+    main = _main(cells)
+    rows = []
+    for c in main + [c for c in cells if "main" not in c.groups]:
+        figure = results[c.name]["eval"].get("figure")
+        if c.ablation == "full" and c.train_sims is None and figure:
+            rows.append({"scene": c.scene, "fps": fmt(c.fps), "model": c.model,
+                         **evaluation(results, c), "figure": f"figures/{Path(figure).name}"})
+    return write_table(
+        report_dir, "inverse", columns, rows, "Inverse model: sampled vs true masses",
+        "Log-masses (natural log) of every particle of a subset of test frames; "
+        "Welch p: t-test of true vs sampled log-masses (unequal variances); W1: "
+        "Wasserstein-1 distance of the log-masses; modes: KDE peaks of the true "
+        "log-masses and how many have a sampled peak within 0.5; coverage: fraction "
+        "of particles whose true log-mass lies in the central 50% / 90% interval of "
+        "its samples (calibrated: 0.5 / 0.9); relmass R^2: relative log-mass head.",
+        empty=EMPTY, images=("figure",))
+
+
+def types_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
+    """Particle types: accuracy and AUROC of every full-model cell with a type head."""
+    rows = [{"scene": c.scene, "fps": fmt(c.fps), "model": c.model, **evaluation(results, c)}
+            for c in cells if c.ablation == "full" and c.train_sims is None
+            and "type_accuracy" in evaluation(results, c)]
+    return write_table(
+        report_dir, "types", ["scene", "fps", "model", "type_accuracy", "type_auroc"], rows,
+        "Particle-type classification (test split)",
+        "Accuracy and one-vs-rest AUROC of the type classifier (collisions).",
+        empty=EMPTY, csv_too=False)
+
+
+def ablations_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
+    """Ablations of BGN per scene: the forward error and every head's metric; contact
+    metrics from the training run's test of its best checkpoint."""
+    rows = []
+    for c in cells:
+        if "ablation" in c.groups:
+            m = {**evaluation(results, c)}
+            for k in ("contact_f1", "contact_auroc", "contact_r2"):
+                m[k] = training(results, c).get(f"test/{k}")
+            rows.append({"scene": c.scene, "fps": fmt(c.fps), "ablation": c.ablation, **m})
+    return write_table(
+        report_dir, "ablations",
+        ["scene", "fps", "ablation", "nmse", "mse", "median_relative_error", "type_accuracy",
+         "type_auroc", "contact_f1", "contact_auroc", "contact_r2", "relmass_r2",
+         "wasserstein1", "coverage50", "coverage90"], rows, "Ablations of BGN",
+        "Blank: the head is absent in that variant (or the scene has no such head). "
+        "Contact metrics come from the training run's test of its best checkpoint.",
+        empty=EMPTY, csv_too=False)
+
+
+def sample_efficiency_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
+    """Sample efficiency: test error against the number of training simulations, as a table
+    and as a log-log plot (``sample_efficiency.png``)."""
+    from bgn.figures import sample_efficiency, save
+
+    rows = [{"scene": c.scene, "fps": fmt(c.fps), "model": c.model,
+             "train_sims": c.train_sims, **evaluation(results, c)}
+            for c in cells if "sample_efficiency" in c.groups]
+    save(sample_efficiency(rows), report_dir / "sample_efficiency.png")
+    return write_table(
+        report_dir, "sample_efficiency",
+        ["scene", "fps", "model", "train_sims", "nmse", "mse", "median_relative_error"], rows,
+        "Sample efficiency",
+        "Test error against the number of training simulations (val and test use every "
+        "simulation of their splits).", empty=EMPTY)
+
+
+TABLES = {"table1": table1, "inverse": inverse_table, "types": types_table,
+          "ablations": ablations_table, "sample_efficiency": sample_efficiency_table}
+
+
+def report_md(report_dir: Path, preset: str, cells_dir: str | Path, cells: list[Cell],
+              results: Results, tables: dict[str, str]) -> Path:
+    """report.md: links to every file, every table inline (one heading level down), the
+    plot, and one line per cell (training time, test NMSE)."""
+    total = sum(training(results, c).get("wall_time_s", 0.0) for c in cells)
+    lines = [f"# Experiments report: preset `{preset}`", "",
+             f"{len(cells)} cells trained under `{cells_dir}` "
+             f"(total training wall time {total / 60:.1f} min). Every number comes from "
+             "the checkpoints of these cells, evaluated on the test split, except the "
+             "paper's published values (labelled).", "",
+             "- [Table 1: one-step MSE and NMSE per scene, fps and model](table1.md) "
+             "([csv](table1.csv))",
+             "- [Inverse model: mass samples, coverage, modes, relative-mass R^2](inverse.md) "
+             "([csv](inverse.csv)); KDE figures in [figures/](figures/)",
+             "- [Particle types (collisions)](types.md)",
+             "- [Ablations](ablations.md)",
+             "- [Sample efficiency](sample_efficiency.md) ([csv](sample_efficiency.csv), "
+             "[plot](sample_efficiency.png))", ""]
+    for text in tables.values():
+        lines += ["#" + text.rstrip("\n"), ""]
+    lines += ["![sample efficiency](sample_efficiency.png)", "",
+              "## Cells", "", "| cell | groups | trained in (s) | test NMSE |", "|---|---|---|---|"]
+    lines += [f"| {c.name} | {', '.join(c.groups)} | "
+              f"{fmt(training(results, c).get('wall_time_s'))} | "
+              f"{fmt(evaluation(results, c)['nmse'])} |" for c in cells]
+    path = report_dir / "report.md"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def write_report(report_dir: str | Path, preset: str, cells_dir: str | Path,
+                 cells: list[Cell], results: Results) -> Path:
+    """Every report file under ``report_dir``; returns report.md."""
+    report_dir = Path(report_dir)
+    (report_dir / "figures").mkdir(parents=True, exist_ok=True)
+    tables = {name: table(report_dir, cells, results) for name, table in TABLES.items()}
+    return report_md(report_dir, preset, cells_dir, cells, results, tables)

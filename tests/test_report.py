@@ -1,0 +1,106 @@
+"""Each report table from synthetic cell records (no training): rows, columns, the paper's
+values, figures and report.md embedding every table."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import Any
+
+from bgn.experiments import Cell
+from bgn.report import (
+    PAPER_LABEL,
+    ablations_table,
+    inverse_table,
+    paper_value,
+    sample_efficiency_table,
+    table1,
+    types_table,
+    write_report,
+)
+
+MAIN = [Cell("collisions", 10.0, "bgn"), Cell("collisions", 10.0, "gns"),
+        Cell("spring", 25.0, "bgn")]
+ABLATION = [Cell("collisions", 10.0, "bgn", "no_contact", groups=("ablation",))]
+EFFICIENCY = [Cell("spring", 25.0, "gns", "full", n, groups=("sample_efficiency",))
+              for n in (1, 3)]
+CELLS = MAIN + ABLATION + EFFICIENCY
+
+
+def record(cell: Cell) -> dict[str, Any]:
+    metrics: dict[str, Any] = {"mse": 0.1, "nmse": 0.2, "median_relative_error": 0.3,
+                               "nmse_last_extrapolation": 1.5,
+                               "nmse_linear_extrapolation": 2.5}
+    figure = None
+    if cell.scene == "collisions":
+        metrics.update(type_accuracy=0.9, type_auroc=0.95)
+    if cell.model == "bgn":
+        metrics.update(welch_p=0.5, wasserstein1=0.1, coverage50=0.5, coverage90=0.9)
+        figure = f"/elsewhere/figures/mass_{cell.name}.png"
+    if cell.train_sims is not None:
+        metrics["nmse"] = 1.0 / cell.train_sims
+    return {"train": {"metrics": {"wall_time_s": 60.0, "test/contact_f1": 0.7}},
+            "eval": {"metrics": metrics, "figure": figure}}
+
+
+RESULTS = {c.name: record(c) for c in CELLS}
+
+
+def csv_rows(path: Path) -> list[dict[str, str]]:
+    with open(path, newline="") as fh:
+        return list(csv.DictReader(fh))
+
+
+def test_paper_values() -> None:
+    assert paper_value("BGN", "collisions", 10.0) == 0.003
+    assert paper_value("BGN", "spring", 25.0) is None  # not a paper frame rate
+    assert paper_value("BGN", "spring", 12.5) is None
+    assert paper_value("Cranmer et al.", "spring", 25.0) == 0.047
+
+
+def test_table1(tmp_path: Path) -> None:
+    table1(tmp_path, CELLS, RESULTS)
+    rows = csv_rows(tmp_path / "table1.csv")
+    assert [(r["scene"], r["fps"]) for r in rows] == [("collisions", "10"), ("spring", "25")]
+    assert rows[0]["gns NMSE"] == "0.2" and rows[1]["gns NMSE"] == ""  # no gns spring cell
+    assert rows[0]["repeat-last NMSE"] == "1.5"
+    assert rows[0][f"BGN {PAPER_LABEL}"] == "0.003" and rows[1][f"BGN {PAPER_LABEL}"] == ""
+    assert rows[1][f"Sanchez-Gonzalez et al. {PAPER_LABEL}"] == "0.734"
+
+
+def test_inverse_table_lists_full_cells_with_a_figure(tmp_path: Path) -> None:
+    text = inverse_table(tmp_path, CELLS, RESULTS)
+    rows = csv_rows(tmp_path / "inverse.csv")
+    assert [(r["scene"], r["fps"]) for r in rows] == [("collisions", "10"), ("spring", "25")]
+    assert rows[0]["figure"] == f"figures/mass_{MAIN[0].name}.png"
+    assert f"![mass_{MAIN[0].name}](figures/mass_{MAIN[0].name}.png)" in text
+
+
+def test_types_and_ablations(tmp_path: Path) -> None:
+    types = types_table(tmp_path, CELLS, RESULTS)
+    assert types.count("| collisions |") == 2  # bgn and gns, not the ablation
+    ablations = ablations_table(tmp_path, CELLS, RESULTS)
+    assert "| no_contact |" in ablations and "| 0.7 |" in ablations  # contact from training
+    assert not (tmp_path / "types.csv").exists() and not (tmp_path / "ablations.csv").exists()
+
+
+def test_sample_efficiency_table_and_plot(tmp_path: Path) -> None:
+    sample_efficiency_table(tmp_path, CELLS, RESULTS)
+    rows = csv_rows(tmp_path / "sample_efficiency.csv")
+    assert [(r["train_sims"], float(r["nmse"])) for r in rows] == [("1", 1.0), ("3", 1 / 3)]
+    assert (tmp_path / "sample_efficiency.png").stat().st_size > 0
+
+
+def test_empty_table_says_so(tmp_path: Path) -> None:
+    assert "(no cells of this kind in the preset)" in ablations_table(tmp_path, MAIN, RESULTS)
+
+
+def test_report_md_embeds_every_table(tmp_path: Path) -> None:
+    report = write_report(tmp_path, "synthetic", "cells/", CELLS, RESULTS)
+    text = report.read_text()
+    assert text.startswith("# Experiments report: preset `synthetic`")
+    for name in ("table1", "inverse", "types", "ablations", "sample_efficiency"):
+        assert "\n#" + (tmp_path / f"{name}.md").read_text().rstrip("\n") in text, name
+    for cell in CELLS:
+        assert f"| {cell.name} | {', '.join(cell.groups)} | 60 |" in text
+    assert "total training wall time 6.0 min" in text

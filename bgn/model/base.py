@@ -9,8 +9,8 @@ training split's statistics and the window length k (k+1 velocities, newest firs
 - says which heads it has (``heads``: the loss keys it produces) and how to label it;
 - samples masses (``sample_mass``) when it has an inverse head.
 
-Subclasses implement ``forward`` and ``forward_target`` (the dynamics head alone, without
-training noise) and declare ``name`` and ``config_class``; the registry
+Subclasses implement ``build`` (their layers), ``forward`` and ``forward_target`` (the dynamics
+head alone, without training noise) and declare ``name`` and ``config_class``; the registry
 (``bgn.model.registry``) builds them by name. Nothing here knows files, Lightning or Hydra.
 """
 
@@ -88,14 +88,21 @@ class PhysicsModel(nn.Module, ABC):
     config_class: ClassVar[type[DynamicsConfig]]
 
     def __init__(self, meta: SceneMeta, stats: Mapping[str, Any], history: int,
-                 cfg: DynamicsConfig) -> None:
+                 cfg: DynamicsConfig | None = None) -> None:
         super().__init__()
+        cfg = self.config_class() if cfg is None else cfg
         self.meta, self.history, self.cfg = meta, history, cfg
         self.normalizer = Normalizer(stats, meta.dim)
         self.target_coder = TargetCoder(self.normalizer, stats, meta, history, cfg.target_prior,
                                         cfg.dynamics_loss, cfg.huber_delta)
         self.heads: frozenset[str] = frozenset({"dynamics"})  # subclasses add theirs
         self.loss_weights: dict[str, float] = {}              # missing keys weigh 1
+        self.build(cfg, stats)
+
+    @abstractmethod
+    def build(self, cfg: Any, stats: Mapping[str, Any]) -> None:
+        """Create the model's layers from its config (``__init__`` calls it once, after the
+        shared parts: ``meta``, ``history``, ``normalizer``, ``target_coder`` exist)."""
 
     @property
     def label(self) -> str:

@@ -33,7 +33,6 @@ from bgn.model.base import DynamicsConfig, ModelOutput, PhysicsModel, check_posi
 from bgn.model.encoder import DIRECTION_EPS, node_features, node_input_dim
 from bgn.model.normalizer import Normalizer
 from bgn.model.ops import EdgeMLP, activation, mlp, scatter_sum
-from bgn.sim.scene import SceneMeta
 
 
 # ----------------------------------------------------------------------------- configs
@@ -99,9 +98,8 @@ class Baseline(PhysicsModel):
     one dynamics head. Subclasses implement ``_target(x, e, edge_index)``: normalised node
     inputs (N, F) and edge inputs (E, D+1) -> normalised target (N, D)."""
 
-    def __init__(self, meta: SceneMeta, stats: Mapping[str, Any], history: int,
-                 cfg: CranmerGNConfig | GNSConfig) -> None:
-        super().__init__(meta, stats, history, cfg)
+    def build(self, cfg: CranmerGNConfig | GNSConfig, stats: Mapping[str, Any]) -> None:
+        meta, history = self.meta, self.history
         self.oracle = cfg.oracle
         # one-hot types only carry information when there is more than one type
         self.oracle_types = self.oracle and meta.n_types > 1
@@ -162,14 +160,12 @@ class CranmerGN(Baseline):
     name = "cranmer_gn"
     config_class = CranmerGNConfig
 
-    def __init__(self, meta: SceneMeta, stats: Mapping[str, Any], history: int,
-                 cfg: CranmerGNConfig | None = None) -> None:
-        cfg = cfg or CranmerGNConfig()
-        super().__init__(meta, stats, history, cfg)
+    def build(self, cfg: CranmerGNConfig, stats: Mapping[str, Any]) -> None:
+        super().build(cfg, stats)
         hidden = [cfg.hidden] * cfg.hidden_layers
         self.message = EdgeMLP(self.edge_in, self.node_in, [*hidden, cfg.message_dim],
                                cfg.activation)
-        self.node = mlp([self.node_in + cfg.message_dim, *hidden, meta.dim], cfg.activation)
+        self.node = mlp([self.node_in + cfg.message_dim, *hidden, self.meta.dim], cfg.activation)
 
     def _target(self, x: torch.Tensor, e: torch.Tensor,
                 edge_index: torch.Tensor) -> torch.Tensor:
@@ -215,16 +211,14 @@ class GNS(Baseline):
     name = "gns"
     config_class = GNSConfig
 
-    def __init__(self, meta: SceneMeta, stats: Mapping[str, Any], history: int,
-                 cfg: GNSConfig | None = None) -> None:
-        cfg = cfg or GNSConfig()
-        super().__init__(meta, stats, history, cfg)
+    def build(self, cfg: GNSConfig, stats: Mapping[str, Any]) -> None:
+        super().build(cfg, stats)
         hidden, act, h = [cfg.mlp_hidden] * cfg.mlp_layers, cfg.activation, cfg.latent
         self.node_encoder = mlp([self.node_in, *hidden, h], act, layer_norm=True)
         self.edge_encoder = mlp([self.edge_in, *hidden, h], act, layer_norm=True)
         self.processor = nn.ModuleList(InteractionNetwork(h, hidden, act)
                                        for _ in range(cfg.message_passing_steps))
-        self.decoder = mlp([h, *hidden, meta.dim], act)
+        self.decoder = mlp([h, *hidden, self.meta.dim], act)
 
     def velocity_noise(self, g: Graph) -> torch.Tensor | None:
         """(N, k+1, D) random-walk noise, newest first, in normalised units (None if std 0)."""

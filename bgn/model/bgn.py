@@ -31,7 +31,6 @@ from bgn.model.encoder import (
 )
 from bgn.model.inverse import FLOWS, InverseModel
 from bgn.model.processor import CONTACT_MODES, MESSAGES, Processor, ProcessorOutput
-from bgn.sim.scene import SceneMeta
 
 
 @dataclass
@@ -132,10 +131,8 @@ class BGN(PhysicsModel):
     name = "bgn"
     config_class = ModelConfig
 
-    def __init__(self, meta: SceneMeta, stats: Mapping[str, Any], history: int,
-                 cfg: ModelConfig | None = None) -> None:
-        cfg = cfg or ModelConfig()
-        super().__init__(meta, stats, history, cfg)
+    def build(self, cfg: ModelConfig, stats: Mapping[str, Any]) -> None:
+        meta, history = self.meta, self.history
         if cfg.contact_mode == "dense" and cfg.contact and meta.graph != "full":
             raise ValueError(
                 f"contact_mode='dense' needs a full graph with a fixed number of particles; "

@@ -94,7 +94,7 @@ class EdgeMLP(nn.Module):
     ``factored=True`` applies the first layer's node blocks per node and gathers the products,
     ``W [e, x_i, x_j] = W_e e + (W_r x)[i] + (W_s x)[j]``: the same function as the plain
     concatenation (``factored=False``), with fewer FLOPs and no (E, 2F) concatenated copy when
-    the node features are wide (DESIGN section 9: 0.22 -> 0.35 M edges/s forward+backward).
+    the node features are wide (faster forward and backward: DESIGN section 9).
     """
 
     def __init__(self, edge_in: int, node_in: int, sizes: list[int], act: str = "relu",

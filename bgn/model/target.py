@@ -1,11 +1,11 @@
 """What the dynamics head predicts: the target itself, or its change from the history.
 
-At the frame rates of the paper the target (acceleration of a force scene, next velocity of
-collisions) changes little from one frame to the next: on spring at fps 50, repeating the last
-observed acceleration has a median relative error of 7 %, and a linear extrapolation of the
-last two 0.7 %. A network that outputs the whole target must reproduce that smooth part to
-better than 1 % before it can improve on it. With a prior it predicts only what the history
-does not already say (the same idea as GNS predicting accelerations rather than positions):
+At the paper's frame rates the target (acceleration of a force scene, next velocity of
+collisions) changes little from one frame to the next, so repeating or linearly
+extrapolating the observed targets is already a strong prediction. A network that outputs
+the whole target must first reproduce that smooth part. With a prior it predicts only what
+the history does not already say (the same idea as GNS predicting accelerations rather than
+positions):
 
 - ``none``: the normalised target (the paper);
 - ``last``: target minus the last observed target, ``a[t-1] = (v[t] - v[t-1]) / dt`` for force
@@ -14,27 +14,21 @@ does not already say (the same idea as GNS predicting accelerations rather than 
 - ``auto`` (default): ``linear`` for accelerations, ``last`` for velocities (a linear
   extrapolation of velocities across an impact doubles the error there).
 
-gravity_r2 is the exception, set in its dataset config (``dataset.target_prior: none``, which
-the model configs read): at 1/r^2 close encounters the linear extrapolation errs with std 70
-against a target std of 30. Measured there (fps 50, default budget, one thread): linear prior
-+ Huber gives test NMSE 0.26 with median relative error 0.006; the paper's target + MSE 0.079
-with median 0.92; linear + MSE diverges. No parameterisation wins both; the dataset default
-takes the one that wins Table 1's MSE. The spread of the prior's error alone does not decide
-it: on spring at fps 10 it is also above the target's (12.8 vs 10.2), yet the linear prior
-wins there (90 s cells: test NMSE 0.0047 vs 0.011, median 0.13 vs 0.40).
+gravity_r2 is the exception (its scene default is ``none``): at 1/r^2 close encounters the
+linear extrapolation errs by more than the target varies, and no parameterisation wins both
+the MSE of Table 1 and the median error; the default takes the one that wins the MSE.
 
 The prior is computed from the clean input window only (no leak of the target; a baseline's
 training noise corrupts what its network sees, not the prior). Residuals are normalised by the
 robust scale of the training split's target differences (``target_diff1``, ``target_diff2`` in
 ``bgn.data.stats``). Those residuals are heavy-tailed (close encounters, light particles): an
-MSE in robust units is then ~1e4 and set by a handful of frames, so the default dynamics loss
-(``auto``) for accelerations is a Huber loss (quadratic within ``huber_delta`` robust units,
-linear beyond). For collisions the change of velocity is zero except at impacts, and impacts
-are what the MSE of Table 1 measures: a Huber loss fits them like a median and loses them
-(collisions fps 50, quick-preset cell, 60 s: test NMSE 0.095 with Huber, 0.082 with MSE, 0.080
-with the paper's target and MSE; median relative error 0.044, 0.100, 0.142), so ``auto`` keeps
+MSE in robust units is set by a handful of frames, so the default dynamics loss (``auto``) for
+accelerations is a Huber loss (quadratic within ``huber_delta`` robust units, linear beyond).
+For collisions the change of velocity is zero except at impacts, and impacts are what the MSE
+of Table 1 measures: a Huber loss fits them like a median and loses them, so ``auto`` keeps
 the MSE there, as it does with no prior (the paper). The metrics are always on the physical
-target.
+target. The measurements behind each choice: docs/results.md, "Measurements behind the
+defaults".
 """
 
 from __future__ import annotations

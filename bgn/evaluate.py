@@ -1,8 +1,9 @@
 """Evaluation of a trained checkpoint on the test split (used by ``bgn.experiments``).
 
 Forward metrics (MSE in physical units, NMSE = MSE / training target variance as the
-LightningModule logs it, median relative error, the no-learning references), and the inverse
-and type metrics of ``bgn.metrics`` on the model's mass samples and type logits.
+LightningModule logs it, median relative error, the no-learning references), the inverse
+and type metrics of ``bgn.metrics`` on the model's mass samples and type logits, and rollout
+metrics of the model and the no-learning references through the learned simulator.
 """
 
 from __future__ import annotations
@@ -16,13 +17,23 @@ import torch
 from bgn.data.dataset import FrameDataset
 from bgn.data.frames import evenly_spaced
 from bgn.graph import Graph, collate
-from bgn.metrics import inverse_metrics, kde_modes, r2_score, recovered_modes, type_metrics
+from bgn.metrics import (
+    inverse_metrics,
+    kde_modes,
+    r2_score,
+    recovered_modes,
+    rollout_metrics,
+    type_metrics,
+)
+from bgn.model.references import REFERENCES, Extrapolation
 from bgn.model.target import extrapolate, observed_targets
 from bgn.module import PhysicsModule
+from bgn.rollout import rollout_many, rollout_starts
+from bgn.simulator import Predictor
 
 # the metric functions live in bgn.metrics; imports of them from here keep working
-__all__ = ["batches", "evaluate_model", "inverse_metrics", "kde_modes", "load_model",
-           "mass_figure", "r2_score", "recovered_modes", "type_metrics"]
+__all__ = ["batches", "evaluate_model", "evaluate_rollouts", "inverse_metrics", "kde_modes",
+           "load_model", "mass_figure", "r2_score", "recovered_modes", "type_metrics"]
 
 
 # ----------------------------------------------------------------------------- loading
@@ -94,6 +105,34 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
                                            np.log(arrays["sampled_mass"])))
         metrics["mass_particles"] = int(arrays["true_mass"].shape[0])
     return metrics, arrays
+
+
+def evaluate_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 100,
+                      starts_per_sim: int = 1, max_sims: int | None = None,
+                      references: bool = True) -> dict[str, float]:
+    """Rollout metrics (``bgn.metrics.rollout_metrics``) of ``model`` from the same start
+    frames of every test simulation (frame 100 first), keyed ``rollout/<metric>``, and of the
+    no-learning references beside it (``rollout_last/...``, ``rollout_linear/...``). Steps
+    are capped by the file's length. Momentum is scored where the scene conserves it (no
+    walls)."""
+    n_steps = min(n_steps, dataset.file.n_frames - dataset.history - 2)
+    starts = rollout_starts(dataset, n_steps, starts_per_sim)
+    sims = evenly_spaced(dataset.file.n_sims, max_sims)
+    predictors: dict[str, Predictor] = {"rollout": model}
+    if references:
+        for prior in REFERENCES:
+            if prior == "linear" and dataset.meta.target == "velocity":
+                continue  # across an impact a linear extrapolation of velocities doubles it
+            predictors[f"rollout_{prior}"] = Extrapolation(dataset.meta, dataset.history, prior)
+    metrics: dict[str, float] = {}
+    for key, predictor in predictors.items():
+        t = rollout_many(predictor, dataset, sims, starts, n_steps)
+        values = rollout_metrics(t.predicted, t.true, t.masses, dataset.dt, dataset.scene.energy,
+                                 t.first_non_finite, dataset.meta.box,
+                                 momentum=dataset.meta.box is None)
+        values["seconds_per_step"] = t.seconds_per_step
+        metrics.update({f"{key}/{name}": value for name, value in values.items()})
+    return metrics
 
 
 def mass_figure(arrays: dict[str, np.ndarray], path: str | Path) -> Path:

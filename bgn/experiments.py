@@ -137,7 +137,7 @@ def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
     """Test-split metrics of a cell's best checkpoint (cached in eval.json), and its KDE
     figure under the report's figures/ when the model has an inverse head."""
     from bgn.data.datamodule import ParticleDataModule
-    from bgn.evaluate import evaluate_model, load_model, mass_figure
+    from bgn.evaluate import evaluate_model, evaluate_rollouts, load_model, mass_figure
 
     run_dir = Path(cfg.cells_dir) / cell.name
     ckpt = best_checkpoint(run_dir)
@@ -152,9 +152,12 @@ def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
                                     show_progress=False)
     datamodule.setup()
     e = cfg.preset.eval
-    metrics, arrays = evaluate_model(load_model(ckpt), datamodule.datasets["test"],
-                                     max_frames=e.max_frames, mass_frames=e.mass_frames,
-                                     mass_samples=e.mass_samples, batch_size=e.batch_size)
+    module, test = load_model(ckpt), datamodule.datasets["test"]
+    metrics, arrays = evaluate_model(module, test, max_frames=e.max_frames,
+                                     mass_frames=e.mass_frames, mass_samples=e.mass_samples,
+                                     batch_size=e.batch_size)
+    metrics.update(evaluate_rollouts(module.model, test, n_steps=e.rollout_steps,
+                                     starts_per_sim=e.rollout_starts, max_sims=e.rollout_sims))
     result = {"checkpoint": str(ckpt), "metrics": metrics, "figure": None}
     if arrays:
         result["figure"] = str(mass_figure(arrays, figure))

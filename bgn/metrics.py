@@ -2,10 +2,13 @@
 the evaluation of checkpoints (``bgn.evaluate``), the benchmarks and the tests.
 
 R^2; inverse metrics of mass samples (Welch t-test, Wasserstein-1, recovered KDE modes,
-interval coverage); type-classification accuracy and AUROC.
+interval coverage); type-classification accuracy and AUROC; rollout errors, energy and
+momentum drift and failures.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -88,3 +91,90 @@ def type_metrics(logits: np.ndarray, types: np.ndarray) -> dict[str, float]:
     auroc = multiclass_auroc(logits_t.softmax(-1), types_t, num_classes=n)
     return {"type_accuracy": float((logits_t.argmax(-1) == types_t).float().mean()),
             "type_auroc": float(auroc)}
+
+
+# ----------------------------------------------------------------------------- rollouts
+ROLLOUT_HORIZONS = (1, 10, 50, 100)
+ESCAPE_FACTOR = 10.0  # a rollout fails when a particle goes this many scene scales astray
+
+
+def rollout_failures(predicted: np.ndarray, true: np.ndarray, box: float | None,
+                     first_non_finite: np.ndarray) -> np.ndarray:
+    """(R,) the first step (index into the frames after the start) at which a rollout failed,
+    -1 if it did not: a non-finite value, or a particle further than ``ESCAPE_FACTOR`` scene
+    scales from the scene (the box, or the true trajectory's extent about its centre)."""
+    steps = predicted[:, 2:]                                    # frames after the start
+    if box is not None:
+        centre, scale = np.full(true.shape[-1], box / 2), np.full(len(true), box / 2)
+    else:
+        centre = true.mean(axis=(1, 2))[:, None, None, :]
+        scale = np.linalg.norm(true - centre, axis=-1).max(axis=(1, 2))
+        centre = centre[:, 0]
+    with np.errstate(invalid="ignore"):
+        far = np.linalg.norm(steps - centre, axis=-1).max(axis=-1) \
+            > ESCAPE_FACTOR * np.reshape(scale, (-1, 1))
+    escaped = np.where(far.any(axis=1), far.argmax(axis=1) + 1, -1)
+    both = np.stack([np.where(first_non_finite < 0, np.inf, first_non_finite),
+                     np.where(escaped < 0, np.inf, escaped)])
+    first = both.min(axis=0)
+    return np.where(np.isfinite(first), first, -1).astype(int)
+
+
+def rollout_metrics(predicted: np.ndarray, true: np.ndarray, masses: np.ndarray, dt: float,
+                    energy: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray],
+                    first_non_finite: np.ndarray, box: float | None = None,
+                    momentum: bool = False, horizons: tuple[int, ...] = ROLLOUT_HORIZONS,
+                    ) -> dict[str, float]:
+    """Rollout metrics (DESIGN section 8) of R rollouts: ``predicted``, ``true`` (R, T+2, N, D)
+    hold the frame before the start, the start and T steps; ``energy(x, v, m)`` is the scene's
+    energy of (T, N, D) arrays.
+
+    Per horizon h: ``pos_err@h`` the median over rollouts of the mean position error per
+    particle (a failed rollout counts as infinite), ``pos_mse@h`` the mean squared error over
+    the rollouts that did not fail by then; the same over the whole rollout (``@all``). Energy
+    error ``|E_t - E_0| / |E_0|`` (velocities are backward differences, E_0 from the true
+    start) at each horizon and at the end, beside the truth's own (its finite-difference
+    floor); momentum error likewise when the scene conserves momentum; the share of failed
+    rollouts (``rollout_failures``).
+    """
+    failed_at = rollout_failures(predicted, true, box, first_non_finite)
+    n_steps = predicted.shape[1] - 2
+    err = np.linalg.norm(predicted - true, axis=-1).mean(axis=-1)[:, 1:]  # (R, T+1) from start
+    sq = ((predicted - true) ** 2).mean(axis=(-1, -2))[:, 1:]
+    alive = np.ones_like(err, dtype=bool)
+    for r, step in enumerate(failed_at):
+        if step >= 0:
+            alive[r, step:] = False
+    err = np.where(alive, err, np.inf)
+    out: dict[str, float] = {"rollouts": float(len(predicted)), "rollout_steps": float(n_steps),
+                             "failed_share": float(np.mean(failed_at >= 0))}
+    chosen = [h for h in horizons if h <= n_steps] + ["all"]
+    v_pred, v_true = np.diff(predicted, axis=1) / dt, np.diff(true, axis=1) / dt
+    e0, e_pred, e_true = [], [], []
+    for r in range(len(predicted)):
+        e_true.append(energy(true[r, 1:], v_true[r], masses[r]))
+        with np.errstate(invalid="ignore", over="ignore"):
+            e_pred.append(energy(predicted[r, 1:], v_pred[r], masses[r]))
+        e0.append(abs(e_true[-1][0]))
+    e0 = np.asarray(e0)[:, None]
+    e_err = np.abs(np.asarray(e_pred) - np.asarray(e_true)[:, :1]) / e0
+    e_floor = np.abs(np.asarray(e_true) - np.asarray(e_true)[:, :1]) / e0
+    if momentum:
+        p_pred = np.einsum("rn,rtnd->rtd", masses, v_pred)
+        p_true = np.einsum("rn,rtnd->rtd", masses, v_true)
+        p_scale = np.einsum("rn,rnd->r", masses, np.abs(v_true[:, 0]))[:, None]
+        p_err = np.linalg.norm(p_pred - p_true[:, :1], axis=-1) / p_scale
+    for h in chosen:
+        if h == "all":
+            at, e_h, sq_h = n_steps, err[:, 1:].mean(axis=1), sq[:, 1:].mean(axis=1)
+        else:
+            at, e_h, sq_h = h, err[:, h], sq[:, h]
+        ok = alive[:, at]
+        out[f"pos_err@{h}"] = float(np.median(e_h))
+        out[f"pos_mse@{h}"] = float(sq_h[ok].mean()) if ok.any() else float("nan")
+        out[f"energy_err@{h}"] = float(np.median(np.where(alive[:, at], e_err[:, at], np.inf)))
+        out[f"energy_err_truth@{h}"] = float(np.median(e_floor[:, at]))
+        if momentum:
+            out[f"momentum_err@{h}"] = float(
+                np.median(np.where(alive[:, at], p_err[:, at], np.inf)))
+    return out

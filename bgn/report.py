@@ -162,7 +162,42 @@ def sample_efficiency_table(report_dir: Path, cells: list[Cell], results: Result
         "simulation of their splits).", empty=EMPTY)
 
 
-TABLES = {"table1": table1, "inverse": inverse_table, "types": types_table,
+ROLLOUT_COLUMNS = ["pos_err@1", "pos_err@10", "pos_err@50", "pos_err@100", "pos_err@all",
+                   "pos_mse@all", "energy_err@all", "energy_err_truth@all", "momentum_err@all",
+                   "failed_share", "rollout_steps", "seconds_per_step"]
+
+
+def rollout_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
+    """Rollouts beside Table 1: per scene x fps, every model of the main grid and the
+    no-learning references rolled out from the same test frames."""
+    rows = []
+    for scene, fps in dict.fromkeys((c.scene, c.fps) for c in _main(cells)):
+        group = [c for c in _main(cells) if (c.scene, c.fps) == (scene, fps)]
+        sources = [(c.model, evaluation(results, c), "rollout") for c in group]
+        sources += [(f"{ref} extrapolation", evaluation(results, group[0]), f"rollout_{ref}")
+                    for ref in REFERENCES]
+        for label, m, key in sources:
+            values = {k: m.get(f"{key}/{k}") for k in ROLLOUT_COLUMNS}
+            if any(v is not None for v in values.values()):
+                rows.append({"scene": scene, "fps": fmt(fps), "model": label, **values})
+    return write_table(
+        report_dir, "rollouts", ["scene", "fps", "model", *ROLLOUT_COLUMNS], rows,
+        "Rollouts on the test split",
+        "Each model fed its own frames from the same start frames of every test simulation "
+        "(frame 100 when the file is long enough), through the learned simulator. pos_err@h: "
+        "median over rollouts of the mean position error per particle after h steps (a "
+        "failed rollout counts as infinite; @all: mean over the whole rollout); pos_mse: mean "
+        "squared position error of the rollouts that did not fail. energy_err: median "
+        "|E_t - E_0| / |E_0| at the end, with velocities as backward differences; "
+        "energy_err_truth: the same for the true frames (the finite-difference floor). "
+        "momentum_err where momentum is conserved (no walls). A rollout fails on a non-finite "
+        "value or a particle more than 10 scene scales astray. The extrapolation rows learn "
+        "nothing (repeat the last observed target, or extrapolate the last two).",
+        empty=EMPTY)
+
+
+TABLES = {"table1": table1, "rollouts": rollout_table, "inverse": inverse_table,
+          "types": types_table,
           "ablations": ablations_table, "sample_efficiency": sample_efficiency_table}
 
 
@@ -178,6 +213,8 @@ def report_md(report_dir: Path, preset: str, cells_dir: str | Path, cells: list[
              "paper's published values (labelled).", "",
              "- [Table 1: one-step MSE and NMSE per scene, fps and model](table1.md) "
              "([csv](table1.csv))",
+             "- [Rollouts: trajectory error, energy, failures, beside the no-learning "
+             "references](rollouts.md) ([csv](rollouts.csv))",
              "- [Inverse model: mass samples, coverage, modes, relative-mass R^2](inverse.md) "
              "([csv](inverse.csv)); KDE figures in [figures/](figures/)",
              "- [Particle types (collisions)](types.md)",

@@ -6,15 +6,19 @@ windows and particles of chosen simulations in, predicted and true trajectories 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 
 from bgn.data.dataset import FrameDataset
-from bgn.model.base import PhysicsModel
-from bgn.simulator import LearnedSimulator, Particles
+from bgn.data.frames import evenly_spaced
+from bgn.simulator import LearnedSimulator, Particles, Predictor
+
+REFERENCE_START = 100  # frame 100 of every test simulation: the reference protocol (DESIGN 8)
 
 
-def simulator(model: PhysicsModel, dataset: FrameDataset) -> LearnedSimulator:
+def simulator(model: Predictor, dataset: FrameDataset) -> LearnedSimulator:
     """The learned simulator of ``model`` at the dataset's frame spacing and graph margin."""
     if model.history != dataset.history:
         raise ValueError(f"the model reads {model.history + 1} velocities, the dataset's window "
@@ -37,7 +41,7 @@ def true_positions(dataset: FrameDataset, sims: list[int], first: int, last: int
 
 
 @torch.no_grad()
-def rollout(model: PhysicsModel, dataset: FrameDataset, sim: int, start: int | None = None,
+def rollout(model: Predictor, dataset: FrameDataset, sim: int, start: int | None = None,
             n_steps: int = 100) -> dict[str, np.ndarray]:
     """Roll ``model`` out for ``n_steps`` from frame ``start`` of simulation ``sim``.
 
@@ -69,6 +73,57 @@ def rollout(model: PhysicsModel, dataset: FrameDataset, sim: int, start: int | N
             "energy_true": energy(true), "energy_predicted": energy(predicted),
             "first_non_finite": np.array(first_bad),
             "box": np.array(np.nan if dataset.meta.box is None else dataset.meta.box)}
+
+
+def rollout_starts(dataset: FrameDataset, n_steps: int, per_sim: int = 1) -> list[int]:
+    """Start frames shared by every simulation: frame 100 first (the reference protocol)
+    when the file is long enough, then evenly spaced frames that leave ``n_steps`` after them.
+    """
+    first, last = dataset.history + 1, dataset.file.n_frames - 1 - n_steps
+    if last < first:
+        raise ValueError(f"{dataset.file.path}: {dataset.file.n_frames} frames leave no start "
+                         f"for {n_steps}-step rollouts with history {dataset.history}")
+    starts = [REFERENCE_START] if first <= REFERENCE_START <= last else []
+    spread = [first + i for i in evenly_spaced(last - first + 1, per_sim)]
+    return sorted((starts + [t for t in spread if t not in starts])[:per_sim])
+
+
+@dataclass
+class Trajectories:
+    """Rollouts of one predictor from several (simulation, start) pairs, all ``n_steps`` long.
+    ``predicted``/``true`` (R, n_steps + 2, N, D) hold the frame before the start, the start
+    and the steps (NaN from a failed step on); ``first_non_finite`` (R,); masses and types
+    (R, N); ``seconds_per_step``: wall time of one step of one rollout."""
+
+    predicted: np.ndarray
+    true: np.ndarray
+    first_non_finite: np.ndarray
+    masses: np.ndarray
+    types: np.ndarray
+    radii: np.ndarray
+    seconds_per_step: float
+
+
+@torch.no_grad()
+def rollout_many(model: Predictor, dataset: FrameDataset, sims: list[int], starts: list[int],
+                 n_steps: int) -> Trajectories:
+    """Every simulation in ``sims`` rolled out from every frame in ``starts`` (batched over
+    the simulations of one start)."""
+    k, sim_ = dataset.history, simulator(model, dataset)
+    parts = particles(dataset, sims)
+    predicted, true, bad, seconds = [], [], [], []
+    for start in starts:
+        truth = true_positions(dataset, sims, start - k - 1, start + n_steps)
+        result = sim_.rollout(torch.as_tensor(truth[:, :k + 2]), parts, n_steps, start)
+        predicted.append(np.concatenate([truth[:, k:k + 1], result.positions.cpu().numpy()], 1))
+        true.append(truth[:, k:])
+        bad.append(result.first_non_finite.numpy())
+        seconds.append(result.seconds_per_step / len(sims))
+    reps = len(starts)
+    return Trajectories(np.concatenate(predicted), np.concatenate(true), np.concatenate(bad),
+                        np.tile(parts.masses.numpy(), (reps, 1)),
+                        np.tile(parts.types.numpy(), (reps, 1)),
+                        np.tile(parts.radii.numpy(), (reps, 1)), float(np.median(seconds)))
 
 
 def position_error(result: dict[str, np.ndarray], horizons: tuple[int, ...] = (10, 100, 1000),

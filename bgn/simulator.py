@@ -15,7 +15,9 @@ Nothing here knows files, Lightning or Hydra.
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import Protocol
 
 import torch
 from torch import nn
@@ -23,7 +25,19 @@ from torch import nn
 from bgn.data.graphs import batch_edges, full_graph, scene_edges
 from bgn.data.targets import step
 from bgn.graph import Graph, window_graph
-from bgn.model.base import PhysicsModel
+from bgn.sim.scene import SceneMeta
+
+
+class Predictor(Protocol):
+    """What the simulator needs of a model: every ``bgn.model.PhysicsModel`` has it, and so
+    do the no-learning references (``bgn.model.references``)."""
+
+    meta: SceneMeta
+    history: int
+
+    def predict(self, g: Graph) -> torch.Tensor: ...
+
+    def parameters(self) -> Iterator[nn.Parameter]: ...
 
 
 @dataclass
@@ -67,7 +81,7 @@ class LearnedSimulator(nn.Module):
     the dataset's ``margin`` attribute); ``dtype`` what the model's inputs are cast to.
     """
 
-    def __init__(self, model: PhysicsModel, dt: float, margin: float = 0.0,
+    def __init__(self, model: Predictor, dt: float, margin: float = 0.0,
                  dtype: torch.dtype = torch.float32) -> None:
         super().__init__()
         if not dt > 0:

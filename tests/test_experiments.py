@@ -27,12 +27,13 @@ def test_tiny_preset_end_to_end_and_resumes(tmp_path: Path, capsys) -> None:
     report = run(cfg)
     out = tmp_path / "report"
     assert report == out / "report.md"
-    for name in ("report.md", "table1.md", "table1.csv", "inverse.md", "inverse.csv",
+    for name in ("report.md", "table1.md", "table1.csv", "rollouts.md", "rollouts.csv",
+                 "inverse.md", "inverse.csv",
                  "types.md", "ablations.md", "sample_efficiency.md", "sample_efficiency.csv",
                  "sample_efficiency.png"):
         assert (out / name).stat().st_size > 0, name
     text = report.read_text()
-    for name in ("table1", "inverse", "types", "ablations", "sample_efficiency"):
+    for name in ("table1", "rollouts", "inverse", "types", "ablations", "sample_efficiency"):
         table = (out / f"{name}.md").read_text()  # report.md embeds every table whole
         assert "\n#" + table.rstrip("\n") in text, name
     for cell in cells:  # every cell trained, evaluated and listed
@@ -49,6 +50,14 @@ def test_tiny_preset_end_to_end_and_resumes(tmp_path: Path, capsys) -> None:
         assert row["BGN paper (metric unstated)"]  # 10 and 50 fps are in the paper
         assert float(row["repeat-last NMSE"]) >= 0  # no-learning references, every row
         assert float(row["linear-extrapolation NMSE"]) >= 0
+    rollouts = csv_rows(out / "rollouts.csv")
+    assert {(r["scene"], float(r["fps"]), r["model"]) for r in rollouts} == {
+        (s, float(f), m) for s in preset.scenes for f in preset.fps
+        for m in [*preset.models, "last extrapolation"]
+        + (["linear extrapolation"] if s != "collisions" else [])}
+    for row in rollouts:
+        assert 0 <= float(row["failed_share"]) <= 1
+        assert float(row["pos_err@1"]) >= 0 and float(row["seconds_per_step"]) > 0
     inverse = csv_rows(out / "inverse.csv")
     assert len(inverse) == len(preset.scenes) * len(preset.fps)
     for row in inverse:

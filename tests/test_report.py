@@ -13,6 +13,7 @@ from bgn.report import (
     ablations_table,
     inverse_table,
     paper_value,
+    rollout_table,
     sample_efficiency_table,
     table1,
     types_table,
@@ -39,6 +40,8 @@ def record(cell: Cell) -> dict[str, Any]:
         figure = f"/elsewhere/figures/mass_{cell.name}.png"
     if cell.train_sims is not None:
         metrics["nmse"] = 1.0 / cell.train_sims
+    for key, err in (("rollout", 0.01), ("rollout_last", 0.5), ("rollout_linear", 0.2)):
+        metrics.update({f"{key}/pos_err@10": err, f"{key}/failed_share": 0.0})
     return {"train": {"metrics": {"wall_time_s": 60.0, "test/contact_f1": 0.7}},
             "eval": {"metrics": metrics, "figure": figure}}
 
@@ -49,6 +52,18 @@ RESULTS = {c.name: record(c) for c in CELLS}
 def csv_rows(path: Path) -> list[dict[str, str]]:
     with open(path, newline="") as fh:
         return list(csv.DictReader(fh))
+
+
+def test_rollout_table(tmp_path: Path) -> None:
+    """One row per model of the main grid and per no-learning reference, per scene x fps."""
+    rollout_table(tmp_path, CELLS, RESULTS)
+    rows = csv_rows(tmp_path / "rollouts.csv")
+    assert [(r["scene"], r["model"]) for r in rows] == [
+        ("collisions", "bgn"), ("collisions", "gns"), ("collisions", "last extrapolation"),
+        ("collisions", "linear extrapolation"), ("spring", "bgn"),
+        ("spring", "last extrapolation"), ("spring", "linear extrapolation")]
+    assert [float(r["pos_err@10"]) for r in rows[:3]] == [0.01, 0.01, 0.5]
+    assert rows[0]["pos_err@100"] == ""  # not evaluated: blank, not zero
 
 
 def test_paper_values() -> None:
@@ -99,7 +114,7 @@ def test_report_md_embeds_every_table(tmp_path: Path) -> None:
     report = write_report(tmp_path, "synthetic", "cells/", CELLS, RESULTS)
     text = report.read_text()
     assert text.startswith("# Experiments report: preset `synthetic`")
-    for name in ("table1", "inverse", "types", "ablations", "sample_efficiency"):
+    for name in ("table1", "rollouts", "inverse", "types", "ablations", "sample_efficiency"):
         assert "\n#" + (tmp_path / f"{name}.md").read_text().rstrip("\n") in text, name
     for cell in CELLS:
         assert f"| {cell.name} | {', '.join(cell.groups)} | 60 |" in text

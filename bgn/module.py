@@ -159,8 +159,8 @@ class PhysicsModule(L.LightningModule):
         if not torch.isfinite(loss):
             raise FloatingPointError(
                 f"{stage} loss became {loss.item()} at step {self.global_step} "
-                f"(terms: { {k: float(v) for k, v in terms.items()} }); lower optimizer.lr or check "
-                "the data; the last good checkpoint is in the run's checkpoints/ folder")
+                f"(terms: { {k: float(v) for k, v in terms.items()} }); lower optimizer.lr or "
+                "check the data; the last good checkpoint is in the run's checkpoints/ folder")
         n = g.num_graphs
         self.log(f"{stage}/loss", loss, batch_size=n, prog_bar=stage != "test",
                  on_step=stage == "train", on_epoch=True)

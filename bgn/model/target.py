@@ -14,14 +14,15 @@ does not already say (the same idea as GNS predicting accelerations rather than 
 - ``auto`` (default): ``linear`` for accelerations, ``last`` for velocities (a linear
   extrapolation of velocities across an impact doubles the error there).
 
-gravity_r2 is the exception, set in its dataset config (``dataset.target_prior: none``, which
-the model configs read): at 1/r^2 close encounters the linear extrapolation errs with std 70
-against a target std of 30. Measured there (fps 50, default budget, one thread): linear prior
-+ Huber gives test NMSE 0.26 with median relative error 0.006; the paper's target + MSE 0.079
-with median 0.92; linear + MSE diverges. No parameterisation wins both; the dataset default
-takes the one that wins Table 1's MSE. The spread of the prior's error alone does not decide
-it: on spring at fps 10 it is also above the target's (12.8 vs 10.2), yet the linear prior
-wins there (90 s cells: test NMSE 0.0047 vs 0.011, median 0.13 vs 0.40).
+gravity_r2 is the exception (``target_prior: none`` for every model there, set in
+``conf/dataset_model/gravity_r2_<model>.yaml``): at 1/r^2 close encounters the linear
+extrapolation errs with std 70 against a target std of 30. Measured there (fps 50, default
+budget, one thread): linear prior + Huber gives test NMSE 0.26 with median relative error
+0.006; the paper's target + MSE 0.079 with median 0.92; linear + MSE diverges. No
+parameterisation wins both; the scene default takes the one that wins Table 1's MSE. The spread
+of the prior's error alone does not decide it: on spring at fps 10 it is also above the
+target's (12.8 vs 10.2), yet the linear prior wins there (90 s cells: test NMSE 0.0047 vs
+0.011, median 0.13 vs 0.40).
 
 The prior is computed from the clean input window only (no leak of the target; a baseline's
 training noise corrupts what its network sees, not the prior). Residuals are normalised by the

@@ -36,7 +36,7 @@ from bgn.rollout import rollout
 
 register_configs()  # the model schemas, before Hydra composes conf/train.yaml
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("bgn.train")  # not __main__ under python -m bgn.train
 
 # Keys of the scheduler config that tell Lightning how to step it (its lr_scheduler config);
 # the rest of the node is the scheduler's partial.

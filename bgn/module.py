@@ -3,11 +3,16 @@
 
 Models expose ``forward(g)``, ``loss_terms(g, out) -> {task: loss}``, ``total_loss(terms)``,
 ``predict(g)`` (physical units) and, with an inverse head, ``sample_mass(g, n)``.
+
+The optimiser and its learning-rate schedule are callables handed in by the entry point
+(``bgn.train`` instantiates ``conf/optimizer/`` and ``conf/scheduler/``, Hydra partials); without
+them the module uses ``DEFAULT_OPTIMIZER`` and ``reduce_on_plateau`` on val/nmse.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Mapping
+from functools import partial
 from typing import Any
 
 import lightning as L
@@ -29,6 +34,24 @@ from bgn.sim import SceneMeta
 
 STAGES = ("train", "val", "test")
 
+# What conf/optimizer/adamw.yaml and conf/scheduler/plateau.yaml give, for a module built
+# without them (a notebook, PhysicsModule.load_from_checkpoint).
+DEFAULT_OPTIMIZER = partial(torch.optim.AdamW, lr=1e-3, weight_decay=0.0)
+DEFAULT_SCHEDULER_CONFIG = {"monitor": "val/nmse", "interval": "epoch", "frequency": 1,
+                            "strict": False}
+
+
+def reduce_on_plateau(optimizer: torch.optim.Optimizer, mode: str = "min", factor: float = 0.5,
+                      patience: int = 5, lr_min_ratio: float = 0.01,
+                      **kwargs: Any) -> torch.optim.lr_scheduler.ReduceLROnPlateau:
+    """``ReduceLROnPlateau`` whose floor follows the optimiser's lr: ``min_lr = lr_min_ratio x``
+    each parameter group's lr. On plateaus rather than on a fixed schedule: runs end by a time
+    budget (``max_time``), so the number of epochs is not known in advance."""
+    min_lr = [group["lr"] * lr_min_ratio for group in optimizer.param_groups]
+    return torch.optim.lr_scheduler.ReduceLROnPlateau(optimizer, mode=mode, factor=factor,
+                                                      patience=patience, min_lr=min_lr,
+                                                      **kwargs)
+
 
 class PhysicsModule(L.LightningModule):
     """Training, validation and test of one model on one scene.
@@ -37,24 +60,35 @@ class PhysicsModule(L.LightningModule):
     is the scene's metadata record as a dict; ``stats`` the training split's statistics (plain
     lists are fine). The target variance of the training split turns the MSE into the
     normalised MSE of Table 1, comparable across frame rates.
+
+    ``optimizer(params)`` builds the optimiser, ``scheduler(optimizer)`` its lr scheduler and
+    ``scheduler_config`` says how Lightning steps it (``monitor``, ``interval``, ``frequency``,
+    ``strict``); absent, today's defaults (``DEFAULT_OPTIMIZER``, ``reduce_on_plateau``,
+    ``DEFAULT_SCHEDULER_CONFIG``).
     """
 
     def __init__(self, model_config: dict[str, Any], meta: dict[str, Any],
-                 stats: dict[str, dict[str, Any]], history: int, lr: float = 1e-3,
-                 weight_decay: float = 0.0, lr_min_ratio: float = 0.01,
-                 lr_patience: int = 5, figures: bool = True,
+                 stats: dict[str, dict[str, Any]], history: int,
+                 optimizer: Callable[[Iterable[nn.Parameter]], torch.optim.Optimizer]
+                 | None = None,
+                 scheduler: Callable[[torch.optim.Optimizer], Any] | None = None,
+                 scheduler_config: Mapping[str, Any] | None = None, figures: bool = True,
                  rollout: Callable[[nn.Module], dict] | None = None) -> None:
         super().__init__()
         # everything needed to rebuild the model goes into the checkpoint's hyperparameters,
-        # so PhysicsModule.load_from_checkpoint(path) alone restores it
-        self.save_hyperparameters(ignore=["rollout"])
+        # so PhysicsModule.load_from_checkpoint(path) alone restores it; the optimiser and
+        # scheduler callables are training settings (in the run's .hydra/config.yaml), and
+        # hyperparameters of older checkpoints that __init__ no longer takes (lr, ...) are
+        # dropped by Lightning when loading
+        self.save_hyperparameters(ignore=["rollout", "optimizer", "scheduler"])
         self.meta = SceneMeta(**meta)
         stats_arrays = {g: {k: np.asarray(v, dtype=np.float64) for k, v in entries.items()}
                         for g, entries in stats.items()}
         self.model = build_model(dict(model_config), self.meta, stats_arrays, history)
         target_variance = stats_arrays["target"]["std"] ** 2
-        self.lr, self.weight_decay = lr, weight_decay
-        self.lr_min_ratio, self.lr_patience = lr_min_ratio, lr_patience
+        self.optimizer_factory = optimizer or DEFAULT_OPTIMIZER
+        self.scheduler_factory = scheduler or reduce_on_plateau
+        self.scheduler_config = {**DEFAULT_SCHEDULER_CONFIG, **dict(scheduler_config or {})}
         self.figures = figures
         self.rollout = rollout  # draws the validation rollout figure; not part of the state
         self.register_buffer("target_variance",
@@ -125,8 +159,8 @@ class PhysicsModule(L.LightningModule):
         if not torch.isfinite(loss):
             raise FloatingPointError(
                 f"{stage} loss became {loss.item()} at step {self.global_step} "
-                f"(terms: { {k: float(v) for k, v in terms.items()} }); lower model.lr or check "
-                "the data; the last good checkpoint is in the run's checkpoints/ folder")
+                f"(terms: { {k: float(v) for k, v in terms.items()} }); lower optimizer.lr or "
+                "check the data; the last good checkpoint is in the run's checkpoints/ folder")
         n = g.num_graphs
         self.log(f"{stage}/loss", loss, batch_size=n, prog_bar=stage != "test",
                  on_step=stage == "train", on_epoch=True)
@@ -165,16 +199,10 @@ class PhysicsModule(L.LightningModule):
         return batch.to(device)
 
     def configure_optimizers(self) -> dict[str, Any]:
-        optimizer = torch.optim.AdamW(self.parameters(), lr=self.lr,
-                                      weight_decay=self.weight_decay)
-        # on plateaus rather than on a fixed schedule: runs end by a time budget (max_time),
-        # so the number of epochs is not known in advance
-        scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
-            optimizer, mode="min", factor=0.5, patience=self.lr_patience,
-            min_lr=self.lr * self.lr_min_ratio)
-        return {"optimizer": optimizer, "lr_scheduler": {
-            "scheduler": scheduler, "monitor": "val/nmse", "interval": "epoch",
-            "strict": False}}
+        optimizer = self.optimizer_factory(self.parameters())
+        scheduler = self.scheduler_factory(optimizer)
+        return {"optimizer": optimizer,
+                "lr_scheduler": {"scheduler": scheduler, **self.scheduler_config}}
 
     # -- figures --------------------------------------------------------------------------
     def _log_figures(self, g: Graph) -> None:

@@ -4,11 +4,18 @@ Generates the dataset on first use, trains with Lightning, evaluates the best ch
 the test split and writes ``metrics.json`` in the run directory (sweeps gather these into a
 summary table). The run's full config is saved by Hydra in ``<run>/.hydra/config.yaml``;
 ``python -m bgn.train --config-path <run>/.hydra --config-name config`` reproduces it.
+
+Config: ``model`` (the model's options, typed by its dataclass: ``bgn.config``), ``optimizer``
+and ``scheduler`` (Hydra partials, instantiated here and handed to ``PhysicsModule``), and
+``dataset_model`` (a scene's own model defaults, ``conf/dataset_model/<scene>_<model>.yaml``).
+Messages go through ``logging`` from the rank-zero process only (DDP runs one process per
+device, each running this module).
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import time
 from functools import partial
 from pathlib import Path
@@ -19,11 +26,27 @@ import lightning as L
 import numpy as np
 from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
+from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
+from bgn.config import register_configs
 from bgn.data.datamodule import ParticleDataModule
 from bgn.module import PhysicsModule
 from bgn.rollout import rollout
+
+register_configs()  # the model schemas, before Hydra composes conf/train.yaml
+
+log = logging.getLogger("bgn.train")  # not __main__ under python -m bgn.train
+
+# Keys of the scheduler config that tell Lightning how to step it (its lr_scheduler config);
+# the rest of the node is the scheduler's partial.
+LIGHTNING_SCHEDULER_KEYS = ("monitor", "interval", "frequency", "strict", "name")
+
+
+@rank_zero_only
+def info(message: str) -> None:
+    """Log once per run, from the rank-zero process (not once per DDP process)."""
+    log.info(message)
 
 
 def plain_stats(stats: dict[str, dict[str, np.ndarray]]) -> dict[str, dict[str, Any]]:
@@ -38,18 +61,30 @@ def build(cfg: DictConfig) -> tuple[ParticleDataModule, PhysicsModule]:
     datamodule = ParticleDataModule(cfg.dataset, cfg.fps, cfg.paths.data_dir)
     datamodule.prepare_data()
     datamodule.setup()
-    model_config = OmegaConf.to_container(cfg.model, resolve=True)
-    lr = model_config.pop("lr", 1e-3)
-    weight_decay = model_config.pop("weight_decay", 0.0)
     rollout_fn = None
     if cfg.get("figures", True) and cfg.get("rollout_steps", 0) > 0:
         rollout_fn = partial(rollout, dataset=datamodule.datasets["val"], sim=0,
                              n_steps=int(cfg.rollout_steps))
-    module = PhysicsModule(model_config, dict(vars(datamodule.meta)),
-                           plain_stats(datamodule.stats()), datamodule.history, lr=lr,
-                           weight_decay=weight_decay, figures=bool(cfg.get("figures", True)),
-                           rollout=rollout_fn)
+    module = build_module(cfg, dict(vars(datamodule.meta)), plain_stats(datamodule.stats()),
+                          datamodule.history, rollout=rollout_fn)
     return datamodule, module
+
+
+def build_module(cfg: DictConfig, meta: dict[str, Any], stats: dict[str, Any], history: int,
+                 rollout: Any = None) -> PhysicsModule:
+    """The LightningModule of a composed config: the model from ``cfg.model``, the optimiser
+    and scheduler partials from ``cfg.optimizer`` and ``cfg.scheduler``."""
+    model_config = OmegaConf.to_container(cfg.model, resolve=True)
+    optimizer = scheduler = scheduler_config = None
+    if cfg.get("optimizer") is not None:
+        optimizer = instantiate(cfg.optimizer, _convert_="all")
+    if cfg.get("scheduler") is not None:
+        node = OmegaConf.to_container(cfg.scheduler, resolve=True)
+        scheduler_config = {k: node.pop(k) for k in LIGHTNING_SCHEDULER_KEYS if k in node}
+        scheduler = instantiate(node, _convert_="all")
+    return PhysicsModule(model_config, meta, stats, history, optimizer=optimizer,
+                         scheduler=scheduler, scheduler_config=scheduler_config,
+                         figures=bool(cfg.get("figures", True)), rollout=rollout)
 
 
 def train(cfg: DictConfig) -> dict[str, float]:
@@ -57,10 +92,10 @@ def train(cfg: DictConfig) -> dict[str, float]:
     start = time.perf_counter()
     L.seed_everything(int(cfg.seed), workers=True)
     output_dir = Path(cfg.paths.output_dir)
-    print(f"run directory: {output_dir}")
+    info(f"run directory: {output_dir}")
     datamodule, module = build(cfg)
     coder = module.model.target_coder  # what target_prior=auto and dynamics_loss=auto chose
-    print(f"dynamics target: prior={coder.prior_name}, loss={coder.loss_name}")
+    info(f"dynamics target: prior={coder.prior_name}, loss={coder.loss_name}")
     # a group entry set to null (callbacks.early_stopping=null) switches that callback off
     callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c]
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c]
@@ -84,8 +119,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
               "model": module.model.label}
     output_dir.mkdir(parents=True, exist_ok=True)
     (output_dir / "metrics.json").write_text(json.dumps(record, indent=2, sort_keys=True))
-    print(json.dumps({k: round(v, 6) for k, v in sorted(metrics.items())
-                      if k.startswith(("test/", "val/nmse"))}, indent=1))
+    info("final metrics:\n" + json.dumps({k: round(v, 6) for k, v in sorted(metrics.items())
+                                          if k.startswith(("test/", "val/nmse"))}, indent=1))
     return metrics
 
 

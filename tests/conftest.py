@@ -8,6 +8,8 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
+from bgn.config import register_configs
+
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
 # Small but meaningful sizes per scene, so data tests run in seconds.
@@ -21,6 +23,7 @@ SMALL = {
 
 
 def compose_config(config_name: str, overrides: list[str]) -> DictConfig:
+    register_configs()  # the model schemas (conf/model/<name>.yaml build on them)
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         return compose(config_name=config_name, overrides=overrides)
 

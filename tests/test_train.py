@@ -127,35 +127,3 @@ def test_ddp_on_two_cpu_processes_splits_the_epoch_and_writes_one_record(tmp_pat
     assert (run / ".hydra" / "config.yaml").exists()
     # both processes share the pipe: only process 0 prints the final summary
     assert sum(line.startswith(' "test/nmse":') for line in result.stdout.splitlines()) == 1
-
-
-def test_scene_defaults_of_bgn_apply_and_yield_to_the_command_line():
-    """conf/dataset/collisions.yaml sets BGN's contact message, lr and auxiliary loss weights
-    (dataset.bgn_defaults); other scenes keep the paper's; model.<key>=... wins; the baselines
-    are untouched; and the data cache key does not see these model options."""
-    from omegaconf import OmegaConf
-
-    from bgn.data.spec import DatasetSpec
-
-    def model(*overrides: str) -> dict:
-        cfg = compose_config("train", list(overrides))
-        return OmegaConf.to_container(cfg.model, resolve=True)
-
-    collisions = model("dataset=collisions")
-    assert collisions["contact_message"] == "vector" and collisions["lr"] == 3e-3
-    assert collisions["loss_weights"] == {"dynamics": 1.0, "contact": 0.1, "type": 0.1,
-                                          "mass_nll": 0.1, "relmass": 0.1}
-    spring = model("dataset=spring")
-    assert spring["contact_message"] == "linear" and spring["lr"] == 1e-3
-    assert set(spring["loss_weights"].values()) == {1.0}
-    mine = model("dataset=collisions", "model.contact_message=linear", "model.lr=0.01",
-                 "model.loss_weights.type=1.0")
-    assert (mine["contact_message"], mine["lr"], mine["loss_weights"]["type"]) == \
-        ("linear", 0.01, 1.0)
-    assert model("dataset=collisions", "model=gns")["lr"] == 1e-3
-
-    with_defaults = compose_config("train", ["dataset=collisions"]).dataset
-    without = OmegaConf.masked_copy(with_defaults, [k for k in with_defaults
-                                                    if k != "bgn_defaults"])
-    assert DatasetSpec.from_config(with_defaults, 50, "train").key() == \
-        DatasetSpec.from_config(without, 50, "train").key()

@@ -16,10 +16,9 @@ from bgn.checks import as_int
 from bgn.sim import SCENES, Scene, make_scene
 
 SPLITS = ("train", "val", "test")
-# Dataset config keys that do not change the generated numbers (they configure loading, or
-# the scene's default model options: target_prior for every model, bgn_defaults for BGN).
+# Dataset config keys that do not change the generated numbers (they configure loading).
 LOADER_KEYS = frozenset({"history", "batch_size", "num_workers", "train_sims", "val_samples",
-                         "in_memory", "target_prior", "bgn_defaults"})
+                         "in_memory"})
 SIZE_KEYS = ("n_sims", "n_frames", "seed")
 
 

@@ -56,9 +56,13 @@ def check_positive_ints(cfg: Any, names: tuple[str, ...]) -> None:
 @dataclass
 class DynamicsConfig:
     """Options every model shares: what its dynamics head predicts and its loss
-    (``bgn.model.target``), so that all models train on equal terms."""
+    (``bgn.model.target``), so that all models train on equal terms.
+    ``target_prior=none dynamics_loss=mse`` is the paper's (and the baselines' published)
+    parameterisation; a scene may set its own default (``conf/dataset_model/``)."""
 
+    # auto | none (paper) | last | linear: predict the change from the history
     target_prior: str = "auto"
+    # auto (huber for accelerations with a prior, else mse) | huber | mse (paper)
     dynamics_loss: str = "auto"
     huber_delta: float = 1.0
 

@@ -38,14 +38,17 @@ from bgn.model.ops import EdgeMLP, activation, mlp, scatter_sum
 # ----------------------------------------------------------------------------- configs
 @dataclass
 class CranmerGNConfig(DynamicsConfig):
-    """BS1 options; defaults are the published ones (Cranmer et al. 2020, their ``GN``).
-    ``target_prior``, ``dynamics_loss``, ``huber_delta``: as BGN's (equal terms)."""
+    """BS1 options (the schema of ``conf/model/cranmer_gn.yaml``); defaults are the published
+    ones (Cranmer et al. 2020, their ``GN``). ``target_prior``, ``dynamics_loss``,
+    ``huber_delta``: as BGN's (equal terms); ``target_prior=none dynamics_loss=mse`` is the
+    published parameterisation."""
 
-    hidden: int = 300          # width of every hidden layer
-    message_dim: int = 100     # width of the messages (edge MLP output)
-    hidden_layers: int = 3     # hidden layers per MLP (edge and node)
-    activation: str = "relu"
-    oracle: bool = False       # also feed true log-mass (and one-hot type) to the nodes
+    hidden: int = 300          # width of every hidden layer (their `hidden`)
+    message_dim: int = 100     # width of the messages, the edge MLP output (their `msg_dim`)
+    hidden_layers: int = 3     # hidden layers per MLP, edge and node (their Seq of 4 Linear)
+    activation: str = "relu"   # relu (theirs) | silu | gelu | tanh | softplus
+    # also feed the true log-mass (and one-hot type) to the nodes -> "cranmer_gn+oracle"
+    oracle: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -55,20 +58,28 @@ class CranmerGNConfig(DynamicsConfig):
 
 @dataclass
 class GNSConfig(DynamicsConfig):
-    """BS2 options; defaults follow Sanchez-Gonzalez et al. 2020 (section 3 and appendix).
+    """BS2 options (the schema of ``conf/model/gns.yaml``); defaults follow Sanchez-Gonzalez
+    et al. 2020 (section 3 and appendix). ``target_prior``, ``dynamics_loss``,
+    ``huber_delta``: as BGN's (equal terms); ``target_prior=none dynamics_loss=mse`` is the
+    published parameterisation.
 
-    ``noise_std`` is the std of the noise on the newest input velocity in *normalised* velocity
-    units (random walk over the window, as in their ``noise_utils``). Their default is 6.7e-4 in
-    position units per step, against a per-step velocity std of about 1.35e-3 on their WaterDrop
-    data (``metadata.json``): a ratio of 0.5, hence 0.5 here.
+    ``noise_std`` is the std of the training-only random-walk noise on the input velocity
+    window, at the newest velocity, in *normalised* velocity units (as in their
+    ``noise_utils``). Their default is 6.7e-4 in position units per step, against a per-step
+    velocity std of about 1.35e-3 on their WaterDrop data (``metadata.json``): a ratio of 0.5,
+    hence 0.5 here. Noise is on velocities only and the target is not shifted (BGN's loss,
+    comparable): for next-velocity targets (collisions) this sets a floor of about
+    ``noise_std**2 / (history + 1)`` (~0.04) on the normalised training MSE; lower it (e.g.
+    0.05) or set 0 for one-step comparisons. Off in eval mode and in ``predict()``.
     """
 
     latent: int = 128                  # width of the node and edge latents
     mlp_hidden: int = 128              # width of the hidden layers of every MLP
     mlp_layers: int = 2                # hidden layers per MLP
-    message_passing_steps: int = 10    # unshared interaction networks
-    activation: str = "relu"
+    message_passing_steps: int = 10    # unshared interaction networks (their M = 10)
+    activation: str = "relu"           # relu (theirs) | silu | gelu | tanh | softplus
     noise_std: float = 0.5
+    # also feed the true log-mass (and one-hot type) to the nodes -> "gns+oracle"
     oracle: bool = False
 
     def __post_init__(self) -> None:

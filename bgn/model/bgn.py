@@ -35,21 +35,23 @@ from bgn.model.processor import CONTACT_MODES, MESSAGES, Processor, ProcessorOut
 
 @dataclass
 class ModelConfig(DynamicsConfig):
-    """BGN's options (``conf/model/bgn.yaml``); the shared ``target_prior``, ``dynamics_loss``
-    and ``huber_delta`` come from ``DynamicsConfig``."""
+    """BGN's options and their defaults (the schema of ``conf/model/bgn.yaml``, DESIGN section
+    5); the shared ``target_prior``, ``dynamics_loss`` and ``huber_delta`` come from
+    ``DynamicsConfig``. Heads a scene does not need are never built."""
 
     hidden: int = 128
-    node_layers: int = 2
-    edge_layers: int = 2
-    decoder_hidden: int = 128
+    node_layers: int = 2               # raw-residual GCN layers of the node encoder (Eq. 1)
+    edge_layers: int = 2               # weighted GCN layers of the edge encoder
+    decoder_hidden: int = 128          # per-dimension raw-residual decoders (Eq. 5)
     activation: str = "silu"
-    flow: str = "nsf"                  # "nsf" | "naf"
+    flow: str = "nsf"                  # conditional flow of the inverse model: nsf | naf (README)
     flow_transforms: int = 3
     flow_hidden: int = 64
-    classifier: bool = True            # only built when the scene has n_types > 1
-    contact: bool = True
-    inverse: bool = True
-    contact_mode: str = "aggregate"    # "aggregate" | "dense" (paper-literal, full graphs)
+    classifier: bool = True            # particle-type head (Eq. 2), only with n_types > 1
+    contact: bool = True               # contact decoder (Eq. 3-4)
+    inverse: bool = True               # mass flow + relative-mass decoder (Eq. 6-10)
+    # aggregate (sparse, any N) | dense (the paper's literal C || H_V; fixed-N full graphs)
+    contact_mode: str = "aggregate"
     # Not in the paper: add a linear term of the swap-symmetric edge features (distance, radial
     # and total relative speed) to the contact logit <h_E,i, h_E,j>. Node embeddings that do
     # not know positions cannot say from an inner product alone whether two particles touch.
@@ -58,7 +60,8 @@ class ModelConfig(DynamicsConfig):
     # of the edge features (our reading of the paper), or "mlp", an edge MLP that also reads
     # both particles' H̃_V and can express an elastic impulse, or "vector", an edge MLP whose
     # outputs weigh the edge's own vectors (direction, relative velocities): a D-vector
-    # impulse added to the decoded target.
+    # impulse added to the decoded target (README). collisions defaults to "vector"
+    # (conf/dataset_model/collisions_bgn.yaml).
     contact_message: str = "linear"
     shared_decoder: bool = False
     # D^-1/2 Â D^-1/2 in every GCN layer. The paper's plain sums grow like (degree+1)^layers
@@ -74,7 +77,8 @@ class ModelConfig(DynamicsConfig):
     use_absolute_position: bool = False
     # Not in the paper: the window's velocity increments (finite-difference accelerations) as
     # node inputs in their own scale. They are linear in the window, but at high fps they are
-    # tiny differences of normalised velocities that GCN averaging washes out.
+    # tiny differences of normalised velocities that GCN averaging washes out (70x lower val
+    # NMSE on spring).
     velocity_increments: bool = True
     # Not in the paper: the decoder also sees the node's own input features (a skip past the
     # GCN layers, which mix each node with its neighbours).
@@ -85,9 +89,11 @@ class ModelConfig(DynamicsConfig):
     # Contact scenes: weight of the positive class in the contact BCE. About 1 % of candidate
     # edges touch; unweighted, the head learns to say "no contact" everywhere (F1 0).
     # "balanced" = (1 - p) / p with p the training split's contact fraction; a number sets it;
-    # 1 = the paper's plain BCE.
-    contact_pos_weight: str | float = "balanced"
-    # Eq. 12 weights, one per task (keys: LOSS_KEYS); missing keys weigh 1.
+    # 1 = the paper's plain BCE. Typed Any for Hydra (OmegaConf's Union[str, float] refuses
+    # the int that `model.contact_pos_weight=1` parses to); __post_init__ checks it.
+    contact_pos_weight: Any = "balanced"
+    # Eq. 12 weights, one per task (keys: LOSS_KEYS); missing keys weigh 1. collisions
+    # down-weights the auxiliary tasks (conf/dataset_model/collisions_bgn.yaml).
     loss_weights: dict[str, float] = field(default_factory=lambda: dict.fromkeys(LOSS_KEYS, 1.0))
 
     def __post_init__(self) -> None:

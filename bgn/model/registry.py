@@ -2,7 +2,8 @@
 
 A model is a ``bgn.model.base.PhysicsModel`` subclass with a ``name`` and a ``config_class``
 (a dataclass of its options). To add one, write its module, list its class in ``MODELS``
-below and add ``conf/model/<name>.yaml`` (README, "Adding a model").
+below and add ``conf/model/<name>.yaml`` on its ``<name>_base`` schema (``bgn.config``;
+README, "Adding a model"). The optimiser is not a model option (``conf/optimizer/``).
 """
 
 from __future__ import annotations
@@ -17,9 +18,6 @@ from bgn.sim.scene import SceneMeta
 
 MODELS: dict[str, type[PhysicsModel]] = {cls.name: cls for cls in (BGN, CranmerGN, GNS)}
 
-# Config keys that belong to the optimiser, not to the model.
-TRAINING_KEYS = frozenset({"lr", "weight_decay", "lr_min_ratio"})
-
 
 def build_model(config: Mapping[str, Any], meta: SceneMeta, stats: Mapping[str, Any],
                 history: int) -> PhysicsModel:
@@ -30,5 +28,4 @@ def build_model(config: Mapping[str, Any], meta: SceneMeta, stats: Mapping[str, 
     if name not in MODELS:
         raise ValueError(f"unknown model {name!r}; known: {sorted(MODELS)}")
     cls = MODELS[name]
-    params = {k: v for k, v in config.items() if k not in TRAINING_KEYS}
-    return cls(meta, stats, history, config_from_params(cls.config_class, params, name))
+    return cls(meta, stats, history, config_from_params(cls.config_class, config, name))

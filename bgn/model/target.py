@@ -14,9 +14,10 @@ positions):
 - ``auto`` (default): ``linear`` for accelerations, ``last`` for velocities (a linear
   extrapolation of velocities across an impact doubles the error there).
 
-gravity_r2 is the exception (its scene default is ``none``): at 1/r^2 close encounters the
-linear extrapolation errs by more than the target varies, and no parameterisation wins both
-the MSE of Table 1 and the median error; the default takes the one that wins the MSE.
+gravity_r2 is the exception (``target_prior: none`` for every model there, set in
+``conf/dataset_model/gravity_r2_<model>.yaml``): at 1/r^2 close encounters the linear
+extrapolation errs by more than the target varies, and no parameterisation wins both the MSE
+of Table 1 and the median error; the scene default takes the one that wins the MSE.
 
 The prior is computed from the clean input window only (no leak of the target; a baseline's
 training noise corrupts what its network sees, not the prior). Residuals are normalised by the

@@ -78,14 +78,16 @@ def test_graph_without_edges(meta, stats, graph, name):
 
 @pytest.mark.parametrize("name", NAMES)
 def test_build_model_by_name(meta, stats, name):
-    # published default sizes, optimiser keys stripped by the registry
-    model = build_model({"name": name, "lr": 1e-3, "weight_decay": 0.0}, meta(4, 1), stats(), 5)
+    # published default sizes; the optimiser is no model option (conf/optimizer/)
+    model = build_model({"name": name}, meta(4, 1), stats(), 5)
     assert isinstance(model, CranmerGN if name == "cranmer_gn" else GNS)
     assert model.name == name
     if name == "gns":
         assert len(model.processor) == 10 and model.cfg.latent == 128
     else:
         assert model.cfg.hidden == 300 and model.cfg.message_dim == 100
+    with pytest.raises(ValueError, match=f"unknown {name} model options.*'lr'"):
+        build_model({"name": name, "lr": 1e-3}, meta(4, 1), stats(), 5)
 
 
 @pytest.mark.parametrize("name", NAMES)

@@ -153,7 +153,7 @@ def test_history_mismatch_is_clear(meta, stats, graph):
 
 
 def test_build_model_from_config_dict(meta, stats):
-    config = {"name": "bgn", "hidden": 16, "flow": "naf", "lr": 1e-3, "weight_decay": 0.0,
+    config = {"name": "bgn", "hidden": 16, "flow": "naf",
               "loss_weights": {"dynamics": 1.0, "contact": 0.5, "type": 1.0, "mass_nll": 1.0,
                                "relmass": 1.0}}
     model = build_model(config, meta(6, 2), stats(), 2)

@@ -109,7 +109,7 @@ def test_auto_picks_prior_and_loss_by_target_kind(stats, kind, prior, loss):
 
 
 def test_no_prior_means_the_papers_mse_under_auto(stats):
-    """dataset.target_prior=none (gravity_r2) with dynamics_loss=auto: the paper's target and
+    """target_prior=none (gravity_r2's default) with dynamics_loss=auto: the paper's target and
     loss, in the normaliser's units."""
     g, meta = polynomial_graph(2, "acceleration")
     c = TargetCoder(Normalizer(stats(), 2), stats(), meta, 3, "none", "auto").double()

@@ -109,7 +109,6 @@ def rollout_failures(predicted: np.ndarray, true: np.ndarray, box: float | None,
     else:
         centre = true.mean(axis=(1, 2))[:, None, None, :]
         scale = np.linalg.norm(true - centre, axis=-1).max(axis=(1, 2))
-        centre = centre[:, 0]
     with np.errstate(invalid="ignore"):
         far = np.linalg.norm(steps - centre, axis=-1).max(axis=-1) \
             > ESCAPE_FACTOR * np.reshape(scale, (-1, 1))

@@ -1,12 +1,20 @@
 """Metrics on synthetic arrays: calibrated, shifted and collapsed mass samples, KDE modes,
-R^2 and type metrics."""
+R^2, type metrics and rollout metrics."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from bgn.metrics import inverse_metrics, kde_modes, r2_score, recovered_modes, type_metrics
+from bgn.metrics import (
+    inverse_metrics,
+    kde_modes,
+    r2_score,
+    recovered_modes,
+    rollout_failures,
+    rollout_metrics,
+    type_metrics,
+)
 
 
 def bimodal_log_masses(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -69,3 +77,49 @@ def test_type_metrics() -> None:
     assert type_metrics(logits, np.array([0, 1, 0, 1])) == {"type_accuracy": 1.0,
                                                             "type_auroc": 1.0}
     assert type_metrics(logits, np.array([1, 0, 1, 0]))["type_accuracy"] == 0.0
+
+
+# ----------------------------------------------------------------------------- rollouts
+def free_flight(r: int = 3, steps: int = 12, n: int = 4, dt: float = 0.1, seed: int = 0):
+    """(R, steps+2, N, 2) particles in uniform motion, their masses, and a kinetic energy."""
+    rng = np.random.default_rng(seed)
+    x0, v = rng.normal(size=(r, 1, n, 2)), rng.normal(size=(r, 1, n, 2))
+    t = np.arange(steps + 2)[None, :, None, None] * dt
+    masses = np.exp(rng.normal(size=(r, n)))
+
+    def kinetic(x, vel, m):
+        return 0.5 * np.einsum("n,tnd->t", m, vel**2)
+
+    return x0 + v * t, masses, kinetic, dt
+
+
+def test_rollout_metrics_of_the_truth_are_zero():
+    x, m, energy, dt = free_flight()
+    out = rollout_metrics(x, x.copy(), m, dt, energy, np.full(3, -1), momentum=True)
+    for key in ("pos_err@1", "pos_err@10", "pos_err@all", "pos_mse@all", "energy_err@all",
+                "momentum_err@all", "failed_share"):
+        assert out[key] == pytest.approx(0.0, abs=1e-12), key
+    assert "pos_err@50" not in out and out["rollout_steps"] == 12
+
+
+def test_rollout_metrics_measure_drift_and_count_failures():
+    x, m, energy, dt = free_flight()
+    pred = x.copy()
+    pred[:, 2:] += 0.5                          # every particle 0.5 * sqrt(2) off from step 1
+    pred[0, 5:] = np.nan                        # rollout 0 fails at step 4 (index 5)
+    out = rollout_metrics(pred, x, m, dt, energy, np.array([4, -1, -1]))
+    assert out["failed_share"] == pytest.approx(1 / 3)
+    assert out["pos_err@1"] == pytest.approx(0.5 * np.sqrt(2))   # median of three equal errors
+    assert out["pos_err@10"] == pytest.approx(0.5 * np.sqrt(2))  # inf, e, e: median e
+    assert out["pos_mse@10"] == pytest.approx(0.25)              # the two that did not fail
+    assert out["energy_err@1"] > 0                               # the jump shows in dx/dt
+    assert out["energy_err@10"] == pytest.approx(0.0, abs=1e-12)  # uniform motion again
+
+
+def test_a_particle_far_astray_fails_the_rollout():
+    x, m, energy, dt = free_flight()
+    pred = x.copy()
+    pred[1, 5:, 0] += 1e3                       # finite, but far outside the scene's scale
+    assert rollout_failures(pred, x, None, np.full(3, -1)).tolist() == [-1, 4, -1]
+    boxed = rollout_failures(pred, x, 10.0, np.full(3, -1))
+    assert boxed[1] == 4

@@ -9,6 +9,7 @@ import torch
 
 from bgn.data.datamodule import ParticleDataModule
 from bgn.data.targets import targets
+from bgn.evaluate import evaluate_rollouts
 from bgn.model import build_model
 from bgn.rollout import particles, rollout, simulator, true_positions
 from tests.conftest import SMALL, compose_config
@@ -136,3 +137,23 @@ def test_bad_windows_are_one_clear_error(datasets):
         sim_.graph(torch.zeros(1, 3, 4, 2, dtype=torch.float64), particles(ds, [0]))
     with pytest.raises(ValueError, match="particles are"):
         sim_.graph(start_windows(ds, [0, 1], ds.history + 1), particles(ds, [0]))
+
+
+def test_rollout_metrics_of_an_oracle_are_zero_and_a_poisoned_model_fails(datasets):
+    """Through the evaluation: the oracle's rollout error is zero to round-off, the
+    references' is not, and a model that blows up in one of two simulations counts as half
+    the rollouts failed."""
+    ds = datasets["gravity_r2"]
+    out = evaluate_rollouts(Oracle(ds), ds, n_steps=30)
+    assert out["rollout/rollouts"] == 2 and out["rollout/rollout_steps"] == 30
+    assert out["rollout/failed_share"] == 0
+    for key in ("pos_err@1", "pos_err@10", "pos_err@all", "pos_mse@all", "momentum_err@all"):
+        assert out[f"rollout/{key}"] < 1e-9, key
+    assert out["rollout/energy_err@all"] == pytest.approx(out["rollout/energy_err_truth@all"],
+                                                          abs=1e-9)
+    assert out["rollout_last/pos_err@all"] > 1e-6 and out["rollout_linear/pos_err@all"] > 0
+    start = ds.history + 1
+    poisoned = evaluate_rollouts(Oracle(ds, poison=(0, start + 2)), ds, n_steps=30,
+                                 references=False)
+    assert poisoned["rollout/failed_share"] == 0.5
+    assert "rollout_last/pos_err@1" not in poisoned

@@ -64,9 +64,9 @@ class ModelConfig(DynamicsConfig):
     # (conf/dataset_model/collisions_bgn.yaml).
     contact_message: str = "linear"
     shared_decoder: bool = False
-    # D^-1/2 Â D^-1/2 in every GCN layer. The paper's plain sums grow like (degree+1)^layers
-    # (contact logits ~1e4 at initialisation on a 2000-particle radius graph) and in
-    # flow_benchmark neither flow trains in 300 steps without it; with it relmass R^2 ~0.97.
+    # D^-1/2 Â D^-1/2 in every GCN layer. The paper's plain sums grow like (degree+1)^layers,
+    # so contact logits explode at initialisation on large radius graphs and the flows do not
+    # train (docs/results.md, "Measurements behind the defaults").
     degree_normalize: bool = True
     # Not in the paper: a separate weight on each node's own features in every GCN layer
     # (H' = s(Â H W + H W_self + Â H)). Eq. 1 alone gives every node of a clique the same
@@ -77,8 +77,7 @@ class ModelConfig(DynamicsConfig):
     use_absolute_position: bool = False
     # Not in the paper: the window's velocity increments (finite-difference accelerations) as
     # node inputs in their own scale. They are linear in the window, but at high fps they are
-    # tiny differences of normalised velocities that GCN averaging washes out (70x lower val
-    # NMSE on spring).
+    # tiny differences of normalised velocities that GCN averaging washes out.
     velocity_increments: bool = True
     # Not in the paper: the decoder also sees the node's own input features (a skip past the
     # GCN layers, which mix each node with its neighbours).

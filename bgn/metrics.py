@@ -98,17 +98,32 @@ ROLLOUT_HORIZONS = (1, 10, 50, 100)
 ESCAPE_FACTOR = 10.0  # a rollout fails when a particle goes this many scene scales astray
 
 
+def scene_scale(true: np.ndarray, box: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """Centre and size of the scene of each of R true trajectories (R, T, N, D): the box's
+    centre and half side, or the trajectory's mean position and largest distance from it."""
+    if box is not None:
+        return np.full(true.shape[-1], box / 2), np.full(len(true), box / 2)
+    centre = true.mean(axis=(1, 2))[:, None, None, :]
+    return centre, np.linalg.norm(true - centre, axis=-1).max(axis=(1, 2))
+
+
+def capped_rollout_error(predicted: np.ndarray, true: np.ndarray, box: float | None) -> float:
+    """One number for a training monitor: the mean position error per particle over every
+    step of R rollouts (R, T+2, N, D), each step's error capped at ``ESCAPE_FACTOR`` scene
+    scales (where a rollout counts as failed), and a non-finite step counted at that cap, so
+    the value stays finite and a failed rollout is the worst case."""
+    cap = ESCAPE_FACTOR * scene_scale(true, box)[1][:, None]
+    err = np.linalg.norm(predicted[:, 2:] - true[:, 2:], axis=-1).mean(axis=-1)
+    return float(np.where(np.isfinite(err), np.minimum(err, cap), cap).mean())
+
+
 def rollout_failures(predicted: np.ndarray, true: np.ndarray, box: float | None,
                      first_non_finite: np.ndarray) -> np.ndarray:
     """(R,) the first step (index into the frames after the start) at which a rollout failed,
     -1 if it did not: a non-finite value, or a particle further than ``ESCAPE_FACTOR`` scene
     scales from the scene (the box, or the true trajectory's extent about its centre)."""
     steps = predicted[:, 2:]                                    # frames after the start
-    if box is not None:
-        centre, scale = np.full(true.shape[-1], box / 2), np.full(len(true), box / 2)
-    else:
-        centre = true.mean(axis=(1, 2))[:, None, None, :]
-        scale = np.linalg.norm(true - centre, axis=-1).max(axis=(1, 2))
+    centre, scale = scene_scale(true, box)
     with np.errstate(invalid="ignore"):
         far = np.linalg.norm(steps - centre, axis=-1).max(axis=-1) \
             > ESCAPE_FACTOR * np.reshape(scale, (-1, 1))

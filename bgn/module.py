@@ -73,14 +73,15 @@ class PhysicsModule(L.LightningModule):
                  | None = None,
                  scheduler: Callable[[torch.optim.Optimizer], Any] | None = None,
                  scheduler_config: Mapping[str, Any] | None = None, figures: bool = True,
-                 rollout: Callable[[nn.Module], dict] | None = None) -> None:
+                 rollout: Callable[[nn.Module], dict] | None = None,
+                 rollout_error: Callable[[nn.Module], float] | None = None) -> None:
         super().__init__()
         # everything needed to rebuild the model goes into the checkpoint's hyperparameters,
         # so PhysicsModule.load_from_checkpoint(path) alone restores it; the optimiser and
         # scheduler callables are training settings (in the run's .hydra/config.yaml), and
         # hyperparameters of older checkpoints that __init__ no longer takes (lr, ...) are
         # dropped by Lightning when loading
-        self.save_hyperparameters(ignore=["rollout", "optimizer", "scheduler"])
+        self.save_hyperparameters(ignore=["rollout", "rollout_error", "optimizer", "scheduler"])
         self.meta = SceneMeta(**meta)
         stats_arrays = {g: {k: np.asarray(v, dtype=np.float64) for k, v in entries.items()}
                         for g, entries in stats.items()}
@@ -91,6 +92,7 @@ class PhysicsModule(L.LightningModule):
         self.scheduler_config = {**DEFAULT_SCHEDULER_CONFIG, **dict(scheduler_config or {})}
         self.figures = figures
         self.rollout = rollout  # draws the validation rollout figure; not part of the state
+        self.rollout_error = rollout_error  # val/rollout_error of the model; not in the state
         self.register_buffer("target_variance",
                              torch.as_tensor(np.asarray(target_variance), dtype=torch.float32))
         # "train" is taken by nn.Module.train, hence the suffix
@@ -188,6 +190,9 @@ class PhysicsModule(L.LightningModule):
 
     def on_validation_epoch_end(self) -> None:
         self._log_metrics("val")
+        if self.rollout_error is not None and not self.trainer.sanity_checking:
+            with torch.no_grad():  # every process rolls out the same starts: no reduction
+                self.log("val/rollout_error", float(self.rollout_error(self.model)))
         if self.figures and self._figure_batch is not None and not self.trainer.sanity_checking:
             self._log_figures(self._figure_batch)
 

@@ -13,6 +13,7 @@ import torch
 
 from bgn.data.dataset import FrameDataset
 from bgn.data.frames import evenly_spaced
+from bgn.metrics import capped_rollout_error
 from bgn.simulator import LearnedSimulator, Particles, Predictor
 
 REFERENCE_START = 100  # frame 100 of every test simulation: the reference protocol (DESIGN 8)
@@ -124,6 +125,17 @@ def rollout_many(model: Predictor, dataset: FrameDataset, sims: list[int], start
                         np.tile(parts.masses.numpy(), (reps, 1)),
                         np.tile(parts.types.numpy(), (reps, 1)),
                         np.tile(parts.radii.numpy(), (reps, 1)), float(np.median(seconds)))
+
+
+def rollout_error(model: Predictor, dataset: FrameDataset, n_sims: int = 2,
+                  n_steps: int = 50) -> float:
+    """A cheap rollout score for training (``val/rollout_error``): ``n_steps`` from one fixed
+    start in ``n_sims`` evenly spaced simulations of ``dataset``, scored by
+    ``bgn.metrics.capped_rollout_error``."""
+    n_steps = min(n_steps, dataset.file.n_frames - dataset.history - 2)
+    t = rollout_many(model, dataset, evenly_spaced(dataset.file.n_sims, n_sims),
+                     rollout_starts(dataset, n_steps), n_steps)
+    return capped_rollout_error(t.predicted, t.true, dataset.meta.box)
 
 
 def position_error(result: dict[str, np.ndarray], horizons: tuple[int, ...] = (10, 100, 1000),

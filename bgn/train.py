@@ -32,7 +32,7 @@ from omegaconf import DictConfig, OmegaConf
 from bgn.config import register_configs
 from bgn.data.datamodule import ParticleDataModule
 from bgn.module import PhysicsModule
-from bgn.rollout import rollout
+from bgn.rollout import rollout, rollout_error
 
 register_configs()  # the model schemas, before Hydra composes conf/train.yaml
 
@@ -65,13 +65,17 @@ def build(cfg: DictConfig) -> tuple[ParticleDataModule, PhysicsModule]:
     if cfg.get("figures", True) and cfg.get("rollout_steps", 0) > 0:
         rollout_fn = partial(rollout, dataset=datamodule.datasets["val"], sim=0,
                              n_steps=int(cfg.rollout_steps))
+    error_fn = None
+    if cfg.get("val_rollout_steps", 0) > 0:
+        error_fn = partial(rollout_error, dataset=datamodule.datasets["val"],
+                           n_sims=int(cfg.val_rollout_sims), n_steps=int(cfg.val_rollout_steps))
     module = build_module(cfg, dict(vars(datamodule.meta)), plain_stats(datamodule.stats()),
-                          datamodule.history, rollout=rollout_fn)
+                          datamodule.history, rollout=rollout_fn, rollout_error=error_fn)
     return datamodule, module
 
 
 def build_module(cfg: DictConfig, meta: dict[str, Any], stats: dict[str, Any], history: int,
-                 rollout: Any = None) -> PhysicsModule:
+                 rollout: Any = None, rollout_error: Any = None) -> PhysicsModule:
     """The LightningModule of a composed config: the model from ``cfg.model``, the optimiser
     and scheduler partials from ``cfg.optimizer`` and ``cfg.scheduler``."""
     model_config = OmegaConf.to_container(cfg.model, resolve=True)
@@ -84,7 +88,8 @@ def build_module(cfg: DictConfig, meta: dict[str, Any], stats: dict[str, Any], h
         scheduler = instantiate(node, _convert_="all")
     return PhysicsModule(model_config, meta, stats, history, optimizer=optimizer,
                          scheduler=scheduler, scheduler_config=scheduler_config,
-                         figures=bool(cfg.get("figures", True)), rollout=rollout)
+                         figures=bool(cfg.get("figures", True)), rollout=rollout,
+                         rollout_error=rollout_error)
 
 
 def train(cfg: DictConfig) -> dict[str, float]:

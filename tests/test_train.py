@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -30,7 +31,8 @@ def tiny_train_cfg(tmp_path: Path, shared_data_dir: Path):
         return compose_config("train", [
             f"dataset={scene}", *SMALL[scene], f"paths.data_dir={shared_data_dir}",
             f"paths.output_dir={tmp_path / 'run'}", "model.hidden=16",
-            "model.decoder_hidden=16", "model.flow_hidden=16", "rollout_steps=3", *overrides])
+            "model.decoder_hidden=16", "model.flow_hidden=16", "rollout_steps=3",
+            "val_rollout_steps=5", *overrides])
 
     return make
 
@@ -63,10 +65,27 @@ def test_each_task_is_logged_on_its_own(tiny_train_cfg, tmp_path):
     for task in ("dynamics", "contact", "type", "mass_nll", "relmass"):
         assert f"train/loss_{task}" in metrics and f"val/loss_{task}" in metrics
     for name in ("val/nmse", "val/type_accuracy", "val/type_auroc", "val/contact_f1",
-                 "val/contact_auroc", "val/relmass_r2", "val/median_relative_error"):
+                 "val/contact_auroc", "val/relmass_r2", "val/median_relative_error",
+                 "val/rollout_error"):
         assert name in metrics, name
     events = list((tmp_path / "run" / "tensorboard").glob("events.out.tfevents.*"))
     assert events
+
+
+def test_rollout_error_can_pick_checkpoints_and_stop_training(tiny_train_cfg, tmp_path):
+    """val/rollout_error is logged every validation, finite even when a rollout fails, and
+    usable as the checkpoint and early-stopping monitor."""
+    metrics = train(tiny_train_cfg(
+        "spring", "trainer.max_epochs=2", "+trainer.limit_train_batches=2",
+        "trainer.limit_val_batches=2", "test=false", "figures=false",
+        "callbacks.model_checkpoint.monitor=val/rollout_error",
+        "callbacks.early_stopping.monitor=val/rollout_error"))
+    assert np.isfinite(metrics["val/rollout_error"]) and metrics["val/rollout_error"] > 0
+    best = torch.load(tmp_path / "run" / "checkpoints" / "best.ckpt", map_location="cpu",
+                      weights_only=False)
+    callback = next(v for k, v in best["callbacks"].items() if "ModelCheckpoint" in k)
+    assert callback["monitor"] == "val/rollout_error"
+    assert np.isfinite(float(callback["best_model_score"]))
 
 
 def test_checkpoint_reload_reproduces_predictions(tiny_train_cfg, tmp_path):

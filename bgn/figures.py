@@ -105,3 +105,51 @@ def save(fig: Figure, path: str | Path, dpi: int = 110) -> Path:
     fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return path
+
+
+def rollout_animation(result: dict[str, np.ndarray], path: str | Path, fps: int = 20,
+                      max_frames: int = 200, dpi: int = 80) -> Path:
+    """An animation of a predicted against a true rollout (``bgn.rollout.rollout``'s result):
+    true particles filled, predicted ones hollow in the same colour, a short trail behind
+    each, the mean position error in the title. ``.gif`` (Pillow, always available) or
+    ``.mp4`` (needs ffmpeg on the PATH)."""
+    from matplotlib.animation import FFMpegWriter, FuncAnimation, PillowWriter
+
+    path = Path(path)
+    if path.suffix not in (".gif", ".mp4"):
+        raise ValueError(f"{path}: write a .gif or an .mp4")
+    if path.suffix == ".mp4" and not FFMpegWriter.isAvailable():
+        raise RuntimeError(f"{path}: an .mp4 needs ffmpeg on the PATH; write a .gif instead")
+    true, pred = result["true"][..., :2], result["predicted"][..., :2]
+    frames = np.unique(np.linspace(0, len(pred) - 1, min(max_frames, len(pred))).astype(int))
+    err = np.linalg.norm(result["predicted"] - result["true"][:len(pred)], axis=-1).mean(-1)
+    box = float(result["box"]) if np.isfinite(result["box"]) else None
+    both = np.concatenate([true.reshape(-1, 2), pred.reshape(-1, 2)])
+    lo, hi = (np.zeros(2), np.full(2, box)) if box else (both.min(0), both.max(0))
+    pad = 0.05 * float(np.max(hi - lo))
+    fig, ax = plt.subplots(figsize=(4.5, 4.5))
+    ax.set_xlim(lo[0] - pad, hi[0] + pad)
+    ax.set_ylim(lo[1] - pad, hi[1] + pad)
+    ax.set_aspect("equal")
+    colours = plt.cm.tab10(np.arange(true.shape[1]) % 10)
+    size = 300.0 / max(true.shape[1], 10) ** 0.5
+    truth = ax.scatter(true[0, :, 0], true[0, :, 1], s=size, c=colours)
+    model = ax.scatter(pred[0, :, 0], pred[0, :, 1], s=size, facecolors="none",
+                       edgecolors=colours, linewidths=1.2)
+    trails = [ax.plot([], [], lw=0.6, color=c)[0] for c in colours[:min(len(colours), 20)]]
+
+    def draw(i: int) -> list:
+        truth.set_offsets(true[i])
+        model.set_offsets(pred[i])
+        for p, line in enumerate(trails):
+            line.set_data(pred[max(0, i - 20):i + 1, p, 0], pred[max(0, i - 20):i + 1, p, 1])
+        ax.set_title(f"step {i}: mean position error {err[i]:.3g}\n"
+                     "filled: truth, hollow: model", fontsize=9)
+        return [truth, model, *trails]
+
+    animation = FuncAnimation(fig, draw, frames=frames, blit=False)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    writer = PillowWriter(fps=fps) if path.suffix == ".gif" else FFMpegWriter(fps=fps)
+    animation.save(path, writer=writer, dpi=dpi)
+    plt.close(fig)
+    return path

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Mapping
 from functools import partial
+from pathlib import Path
 from typing import Any
 
 import lightning as L
@@ -74,7 +75,8 @@ class PhysicsModule(L.LightningModule):
                  scheduler: Callable[[torch.optim.Optimizer], Any] | None = None,
                  scheduler_config: Mapping[str, Any] | None = None, figures: bool = True,
                  rollout: Callable[[nn.Module], dict] | None = None,
-                 rollout_error: Callable[[nn.Module], float] | None = None) -> None:
+                 rollout_error: Callable[[nn.Module], float] | None = None,
+                 animation_every: int = 10) -> None:
         super().__init__()
         # everything needed to rebuild the model goes into the checkpoint's hyperparameters,
         # so PhysicsModule.load_from_checkpoint(path) alone restores it; the optimiser and
@@ -93,6 +95,8 @@ class PhysicsModule(L.LightningModule):
         self.figures = figures
         self.rollout = rollout  # draws the validation rollout figure; not part of the state
         self.rollout_error = rollout_error  # val/rollout_error of the model; not in the state
+        self.animation_every = animation_every  # validations between rollout animations
+        self._validations = 0
         self.register_buffer("target_variance",
                              torch.as_tensor(np.asarray(target_variance), dtype=torch.float32))
         # "train" is taken by nn.Module.train, hence the suffix
@@ -229,3 +233,27 @@ class PhysicsModule(L.LightningModule):
         if self.rollout is not None:
             result = self.rollout(self.model)
             experiment.add_figure("val/rollout", figures.rollout(result), step)
+            if self.animation_every > 0 and self._validations % self.animation_every == 0:
+                add_animation(experiment, "val/rollout_animation", result, step)
+        self._validations += 1
+
+
+def add_animation(experiment: Any, tag: str, result: dict[str, np.ndarray], step: int) -> None:
+    """A rollout animation as an animated GIF image in TensorBoard (the way torch's
+    ``add_video`` stores one, without its moviepy dependency)."""
+    import tempfile
+
+    from PIL import Image
+    from tensorboard.compat.proto.summary_pb2 import Summary
+
+    from bgn.figures import rollout_animation
+
+    writer = getattr(experiment, "_get_file_writer", None)
+    if writer is None:  # not torch's SummaryWriter: no animated images
+        return
+    with tempfile.TemporaryDirectory() as tmp:
+        path = rollout_animation(result, Path(tmp) / "rollout.gif", max_frames=60, dpi=60)
+        data = path.read_bytes()
+        width, height = Image.open(path).size
+    image = Summary.Image(height=height, width=width, colorspace=4, encoded_image_string=data)
+    writer().add_summary(Summary(value=[Summary.Value(tag=tag, image=image)]), step)

@@ -89,7 +89,8 @@ def build_module(cfg: DictConfig, meta: dict[str, Any], stats: dict[str, Any], h
     return PhysicsModule(model_config, meta, stats, history, optimizer=optimizer,
                          scheduler=scheduler, scheduler_config=scheduler_config,
                          figures=bool(cfg.get("figures", True)), rollout=rollout,
-                         rollout_error=rollout_error)
+                         rollout_error=rollout_error,
+                         animation_every=int(cfg.get("animation_every", 10)))
 
 
 def train(cfg: DictConfig) -> dict[str, float]:

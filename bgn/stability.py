@@ -460,14 +460,14 @@ def run(cfg: DictConfig) -> Path:
     report = write_report(Path(cfg.report_dir), str(preset.name), cases, sim_rows,
                           model_rows, checkpoints,  # type: ignore[arg-type]
                           bool(preset.get("untrained_model")), time.perf_counter() - start)
-    print(f"report: {report} ({time.perf_counter() - start:.0f} s)")
     return report
 
 
 @hydra.main(config_path="../conf/stability", config_name="stability", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     """``python -m bgn.stability preset=quick checkpoints.spring=...``: see the module doc."""
-    run(cfg)
+    start = time.perf_counter()
+    print(f"report: {run(cfg)} ({time.perf_counter() - start:.0f} s)")
 
 
 if __name__ == "__main__":

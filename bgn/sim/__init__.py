@@ -6,7 +6,7 @@ from typing import Any
 
 from bgn.sim.collisions import CollisionScene
 from bgn.sim.nbody import NBodyScene
-from bgn.sim.scene import Scene, SceneMeta, Trajectory
+from bgn.sim.scene import Scene, SceneMeta, State, Trajectory
 
 # name -> (class, fixed arguments). Everything else is a config value.
 SCENES: dict[str, tuple[type, dict[str, Any]]] = {
@@ -28,5 +28,5 @@ def make_scene(name: str, **params: Any) -> Scene:
         raise ValueError(f"bad parameters for scene {name!r}: {err}") from err
 
 
-__all__ = ["SCENES", "Scene", "SceneMeta", "Trajectory", "make_scene", "CollisionScene",
+__all__ = ["SCENES", "Scene", "SceneMeta", "State", "Trajectory", "make_scene", "CollisionScene",
            "NBodyScene"]

@@ -23,7 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from bgn.checks import as_float, as_int
-from bgn.sim.scene import SceneMeta, Trajectory
+from bgn.sim.scene import SceneMeta, State, Trajectory
 
 # Safety net: a correct run never gets near this, an endless zero-time loop would.
 _MAX_EVENTS = 50_000_000
@@ -455,6 +455,11 @@ class CollisionScene:
             f"in box={box} (random sequential addition stops near 40-50% coverage in 2D, less "
             "in 3D and in small boxes); lower n_particles or the radii, or increase box")
 
+    def draw_state(self, rng: np.random.Generator) -> State:
+        """The start ``simulate`` draws from ``rng`` (``draw_initial``) as a ``State``."""
+        types, masses, radii, positions, velocities = self.draw_initial(rng)
+        return State(positions, velocities, masses, radii, types)
+
     def simulate(self, rng: np.random.Generator, times: np.ndarray) -> Trajectory:
         """Draw a start from ``rng`` and sample the exact motion at ``times`` (increasing)."""
         traj, _ = self.simulate_events(rng, times, return_events=False)
@@ -463,12 +468,24 @@ class CollisionScene:
     def simulate_events(self, rng: np.random.Generator, times: np.ndarray, *,
                         return_events: bool = True) -> tuple[Trajectory, EventLog | None]:
         """``simulate`` plus the full event log (for checks and debugging)."""
+        return self.simulate_events_from(self.draw_state(rng), times,
+                                         return_events=return_events)
+
+    def simulate_from(self, state: State, times: np.ndarray) -> Trajectory:
+        """The exact motion from ``state`` (at ``times[0]``, discs inside this scene's box and
+        not overlapping; any number of discs) sampled at ``times`` (increasing)."""
+        return self.simulate_events_from(state, times, return_events=False)[0]
+
+    def simulate_events_from(self, state: State, times: np.ndarray, *,
+                             return_events: bool = True) -> tuple[Trajectory, EventLog | None]:
+        """``simulate_from`` plus the full event log."""
         times = np.asarray(times, dtype=np.float64)
-        types, masses, radii, positions, velocities = self.draw_initial(rng)
-        pos, vel, contacts, log = integrate(positions, velocities, masses, radii, self.box,
-                                            times, return_events=return_events)
-        traj = Trajectory(times=times.copy(), positions=pos, velocities=vel, masses=masses,
-                          types=types, radii=radii, accelerations=None, contacts=contacts)
+        pos, vel, contacts, log = integrate(state.positions, state.velocities, state.masses,
+                                            state.radii, self.box, times,
+                                            return_events=return_events)
+        traj = Trajectory(times=times.copy(), positions=pos, velocities=vel,
+                          masses=state.masses, types=state.types, radii=state.radii,
+                          accelerations=None, contacts=contacts)
         return traj, log
 
 

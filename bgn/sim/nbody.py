@@ -14,7 +14,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 from bgn.checks import as_float, as_int
-from bgn.sim.scene import SceneMeta, Trajectory
+from bgn.sim.scene import SceneMeta, State, Trajectory
 
 POTENTIALS = ("spring", "r1", "r2")
 _SCENE_NAMES = {"spring": "spring", "r1": "gravity_r1", "r2": "gravity_r2"}
@@ -201,11 +201,24 @@ class NBodyScene:
 
         return rhs
 
-    def simulate(self, rng: np.random.Generator, times: np.ndarray) -> Trajectory:
-        """Draw masses, positions, velocities from ``rng`` (in that order); sample at ``times``.
+    def draw_state(self, rng: np.random.Generator) -> State:
+        """Draw masses, positions, velocities from ``rng`` (in that order)."""
+        n, d = self.n_particles, self.dim
+        masses = np.exp(self.mass_log_mean + self.mass_log_std * rng.standard_normal(n))
+        x0 = self.position_std * rng.standard_normal((n, d))
+        v0 = self.velocity_std * rng.standard_normal((n, d))
+        return State(x0, v0, masses)
 
-        The integration restarts at every multiple of ``segment`` so that the state at a time
-        depends only on that physical time, never on which other times were asked for.
+    def simulate(self, rng: np.random.Generator, times: np.ndarray) -> Trajectory:
+        """Draw a state from ``rng`` (``draw_state``) and sample its motion at ``times``."""
+        return self.simulate_from(self.draw_state(rng), times)
+
+    def simulate_from(self, state: State, times: np.ndarray) -> Trajectory:
+        """Sample at ``times`` (non-decreasing, >= 0) the motion from ``state`` at time 0.
+
+        The state must have ``n_particles`` bodies in ``dim`` dimensions (radii and types are
+        ignored). The integration restarts at every multiple of ``segment`` so that the state
+        at a time depends only on that physical time, never on which other times were asked for.
         """
         t = np.asarray(times, dtype=np.float64)
         if t.ndim != 1 or t.size == 0 or not np.all(np.isfinite(t)) or t[0] < 0.0 \
@@ -213,9 +226,14 @@ class NBodyScene:
             raise ValueError("times must be a non-empty, finite, non-decreasing 1-D array "
                              "starting at >= 0")
         n, d = self.n_particles, self.dim
-        masses = np.exp(self.mass_log_mean + self.mass_log_std * rng.standard_normal(n))
-        x0 = self.position_std * rng.standard_normal((n, d))
-        v0 = self.velocity_std * rng.standard_normal((n, d))
+        if state.positions.shape != (n, d):
+            raise ValueError(f"the state has {state.positions.shape} positions; this scene has "
+                             f"(n_particles, dim) = ({n}, {d}): set them in the scene's config")
+        if not (np.isfinite(state.positions).all() and np.isfinite(state.velocities).all()
+                and np.all(state.masses > 0)):
+            raise ValueError("the state needs finite positions and velocities and positive "
+                             "masses")
+        masses, x0, v0 = state.masses, state.positions, state.velocities
 
         rhs = self._rhs(masses)
         states = np.empty((t.size, 2 * n * d))

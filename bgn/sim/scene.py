@@ -60,6 +60,38 @@ class Trajectory:
     contacts: np.ndarray | None = None
 
 
+@dataclass
+class State:
+    """An initial state to simulate from (``Scene.simulate_from``), float64.
+
+    positions, velocities: (N, D); masses: (N,). radii (N,) and types (N,) int matter for
+    contact scenes only (None: zeros).
+    """
+
+    positions: np.ndarray
+    velocities: np.ndarray
+    masses: np.ndarray
+    radii: np.ndarray | None = None
+    types: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.positions = np.array(self.positions, dtype=np.float64, ndmin=2)
+        self.velocities = np.array(self.velocities, dtype=np.float64, ndmin=2)
+        self.masses = np.array(self.masses, dtype=np.float64, ndmin=1)
+        n = self.positions.shape[0]
+        self.radii = (np.zeros(n) if self.radii is None
+                      else np.array(self.radii, dtype=np.float64, ndmin=1))
+        self.types = (np.zeros(n, dtype=np.int64) if self.types is None
+                      else np.array(self.types, dtype=np.int64, ndmin=1))
+        if self.positions.ndim != 2 or self.velocities.shape != self.positions.shape:
+            raise ValueError(f"positions and velocities must both be (N, D); got "
+                             f"{self.positions.shape} and {self.velocities.shape}")
+        for name in ("masses", "radii", "types"):
+            if getattr(self, name).shape != (n,):
+                raise ValueError(f"{name} must be (N,) = ({n},); got "
+                                 f"{getattr(self, name).shape}")
+
+
 class Scene(Protocol):
     """A simulator plus its metadata. Parameters are dataclass fields (config, not code)."""
 
@@ -76,6 +108,15 @@ class Scene(Protocol):
         ``times`` (integration accuracy is independent of the frame rate), so sampling the
         same ``rng`` state at every 5th time gives every 5th frame bit for bit.
         """
+        ...
+
+    def draw_state(self, rng: np.random.Generator) -> State:
+        """The initial state ``simulate`` draws from ``rng``."""
+        ...
+
+    def simulate_from(self, state: State, times: np.ndarray) -> Trajectory:
+        """Simulate from a given state at time 0; ``simulate(rng, times)`` is
+        ``simulate_from(draw_state(rng), times)`` bit for bit."""
         ...
 
     def energy(self, positions: np.ndarray, velocities: np.ndarray,

@@ -1,0 +1,95 @@
+"""The hard-case stability suite (``python -m bgn.stability``): the tiny preset end to end,
+every case config loads and builds, checkpoints are wired per scene."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+from hydra import compose, initialize_config_dir
+
+from bgn.stability import CONF_DIR, build, load_case, run
+
+
+def compose_stability(overrides: list[str]):
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose(config_name="stability", overrides=overrides)
+
+
+def test_tiny_preset_runs_end_to_end(tmp_path):
+    cfg = compose_stability(["preset=tiny", f"report_dir={tmp_path}"])
+    report = run(cfg)
+    for name in ("report.md", "simulator.csv", "model.csv", "stability.png"):
+        assert (tmp_path / name).stat().st_size > 0, name
+    with (tmp_path / "simulator.csv").open() as f:
+        sim_rows = list(csv.DictReader(f))
+    assert [r["case"] for r in sim_rows] == list(cfg.preset.cases)
+    assert all(r["passed"] == "True" for r in sim_rows), sim_rows
+    with (tmp_path / "model.csv").open() as f:
+        model_rows = list(csv.DictReader(f))
+    # one row per case and dtype (the float32-vs-float64 case has two)
+    assert len(model_rows) == len(sim_rows) + 1
+    assert {r["dtype"] for r in model_rows} == {"float32", "float64"}
+    assert all(r["one_step_rel_error"] not in ("", "nan") for r in model_rows)
+    text = report.read_text()
+    assert "untrained" in text and "| spring_6_bodies |" in text
+
+
+def test_without_checkpoints_the_model_part_is_skipped(tmp_path):
+    cfg = compose_stability(["preset=tiny", f"report_dir={tmp_path}",
+                             "preset.cases=[spring_6_bodies]", "preset.untrained_model=null"])
+    report = run(cfg)
+    assert "skipped" in report.read_text()
+    assert (tmp_path / "model.csv").read_text().count("\n") == 1  # the header only
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in (CONF_DIR / "case").glob("*.yaml")))
+def test_every_case_loads_and_builds(name):
+    case = load_case(name)
+    scene, state, _, base = build(case)
+    assert state.positions.shape == (scene.meta.n_particles, scene.meta.dim)
+    assert case.n_frames > 2 and case.fps > 0
+    if case.transform:
+        assert not np.array_equal(state.positions, base.positions)
+
+
+def test_every_case_is_in_the_quick_preset():
+    cfg = compose_stability(["preset=quick"])
+    assert sorted(cfg.preset.cases) == sorted(p.stem for p in (CONF_DIR / "case").glob("*.yaml"))
+
+
+def test_unknown_case_keys_are_errors(tmp_path):
+    (tmp_path / "case").mkdir()
+    (tmp_path / "case" / "bad.yaml").write_text("scene: spring\nfsp: 10\n")
+    with pytest.raises(ValueError, match="fsp"):
+        load_case("bad", tmp_path)
+    with pytest.raises(ValueError, match="known"):
+        load_case("missing", tmp_path)
+def test_a_checkpoint_per_scene_is_used_and_must_match_its_scene(tmp_path, monkeypatch):
+    """``checkpoints.<scene>`` is loaded with ``bgn.evaluate.load_model`` (stubbed here with a
+    small untrained model) and used for that scene's cases only."""
+    import types
+
+    import bgn.evaluate
+    from bgn.stability import model_for
+
+    cfg = compose_stability(["preset=tiny", f"report_dir={tmp_path}",
+                             "preset.cases=[spring_6_bodies]"])
+    case = load_case("spring_6_bodies")
+    scene, state, _, _ = build(case)
+    traj = scene.simulate_from(state, np.arange(30) / case.fps)
+    untrained, _ = model_for(case, scene, traj, cfg)
+    monkeypatch.setattr(bgn.evaluate, "load_model",
+                        lambda path: types.SimpleNamespace(model=untrained))
+    cfg.checkpoints.spring = "spring.ckpt"
+    _, label = model_for(case, scene, traj, cfg)
+    assert label == "spring.ckpt"
+    run(cfg)
+    assert "spring: `spring.ckpt`" in (tmp_path / "report.md").read_text()
+    cfg.checkpoints.spring = None
+    cfg.checkpoints.gravity_r2 = "spring.ckpt"  # a spring model given for gravity_r2
+    gcase = load_case("gravity_r2_6_bodies")
+    gscene, gstate, _, _ = build(gcase)
+    with pytest.raises(ValueError, match="spring model"):
+        model_for(gcase, gscene, gscene.simulate_from(gstate, np.arange(10) / 50), cfg)

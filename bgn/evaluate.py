@@ -28,7 +28,7 @@ from bgn.metrics import (
 from bgn.model.references import REFERENCES, Extrapolation
 from bgn.model.target import extrapolate, observed_targets
 from bgn.module import PhysicsModule
-from bgn.rollout import rollout_many, rollout_starts
+from bgn.rollout import predictability, rollout_many, rollout_starts
 from bgn.simulator import Predictor
 
 # the metric functions live in bgn.metrics; imports of them from here keep working
@@ -112,7 +112,9 @@ def evaluate_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 10
                       references: bool = True) -> dict[str, float]:
     """Rollout metrics (``bgn.metrics.rollout_metrics``) of ``model`` from the same start
     frames of every test simulation (frame 100 first), keyed ``rollout/<metric>``, and of the
-    no-learning references beside it (``rollout_last/...``, ``rollout_linear/...``). Steps
+    no-learning references beside it (``rollout_last/...``, ``rollout_linear/...``) and the
+    scene's predictability limit (``predictability/...``: the exact simulator from positions
+    1e-6 off, ``bgn.rollout.predictability``). Steps
     are capped by the file's length. Momentum is scored where the scene conserves it (no
     walls)."""
     n_steps = min(n_steps, dataset.file.n_frames - dataset.history - 2)
@@ -125,8 +127,13 @@ def evaluate_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 10
                 continue  # across an impact a linear extrapolation of velocities doubles it
             predictors[f"rollout_{prior}"] = Extrapolation(dataset.meta, dataset.history, prior)
     metrics: dict[str, float] = {}
-    for key, predictor in predictors.items():
-        t = rollout_many(predictor, dataset, sims, starts, n_steps)
+    for key, predictor in [*predictors.items(), ("predictability", None)]:
+        if predictor is None:  # the true simulator from positions 1e-6 off: the chaos floor
+            if not references:
+                continue
+            t = predictability(dataset, sims, starts, n_steps)
+        else:
+            t = rollout_many(predictor, dataset, sims, starts, n_steps)
         values = rollout_metrics(t.predicted, t.true, t.masses, dataset.dt, dataset.scene.energy,
                                  t.first_non_finite, dataset.meta.box,
                                  momentum=dataset.meta.box is None)

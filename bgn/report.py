@@ -176,6 +176,8 @@ def rollout_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
         sources = [(c.model, evaluation(results, c), "rollout") for c in group]
         sources += [(f"{ref} extrapolation", evaluation(results, group[0]), f"rollout_{ref}")
                     for ref in REFERENCES]
+        sources.append(("predictability limit (simulator, 1e-6 off)",
+                        evaluation(results, group[0]), "predictability"))
         for label, m, key in sources:
             values = {k: m.get(f"{key}/{k}") for k in ROLLOUT_COLUMNS}
             if any(v is not None for v in values.values()):
@@ -192,7 +194,9 @@ def rollout_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
         "energy_err_truth: the same for the true frames (the finite-difference floor). "
         "momentum_err where momentum is conserved (no walls). A rollout fails on a non-finite "
         "value or a particle more than 10 scene scales astray. The extrapolation rows learn "
-        "nothing (repeat the last observed target, or extrapolate the last two).",
+        "nothing (repeat the last observed target, or extrapolate the last two). The "
+        "predictability row is the exact simulator started with every position 1e-6 off: "
+        "chaos alone; a rollout error above it is the model's.",
         empty=EMPTY)
 
 

@@ -6,7 +6,7 @@ windows and particles of chosen simulations in, predicted and true trajectories 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -14,6 +14,7 @@ import torch
 from bgn.data.dataset import FrameDataset
 from bgn.data.frames import evenly_spaced
 from bgn.metrics import capped_rollout_error
+from bgn.sim.scene import State
 from bgn.simulator import LearnedSimulator, Particles, Predictor
 
 REFERENCE_START = 100  # frame 100 of every test simulation: the reference protocol (DESIGN 8)
@@ -125,6 +126,36 @@ def rollout_many(model: Predictor, dataset: FrameDataset, sims: list[int], start
                         np.tile(parts.masses.numpy(), (reps, 1)),
                         np.tile(parts.types.numpy(), (reps, 1)),
                         np.tile(parts.radii.numpy(), (reps, 1)), float(np.median(seconds)))
+
+
+def predictability(dataset: FrameDataset, sims: list[int], starts: list[int], n_steps: int,
+                   eps: float = 1e-6, seed: int = 0) -> Trajectories:
+    """The scene's predictability limit on the rollouts' protocol (DESIGN section 8): the exact
+    simulator run twice from the recorded state one frame before each start, once as recorded
+    and once with every position moved by ``eps`` in a random direction. ``true`` is the
+    first, ``predicted`` the second: their distance is what chaos alone does to an error of
+    ``eps``; a model's rollout error above it is the model's."""
+    rng = np.random.default_rng(seed)
+    times = np.arange(n_steps + 2) * dataset.dt
+    predicted, true = [], []
+    for start in starts:
+        for sim in sims:
+            frame = (sim, start - 1)
+            state = State(dataset.file.read("positions", frame),
+                          dataset.file.read("velocities", frame),
+                          dataset.file.read("masses", sim), dataset.file.read("radii", sim),
+                          dataset.file.read("types", sim))
+            kick = rng.standard_normal(state.positions.shape)
+            kick *= eps / np.linalg.norm(kick, axis=-1, keepdims=True)
+            moved = replace(state, positions=state.positions + kick)
+            true.append(dataset.scene.simulate_from(state, times).positions)
+            predicted.append(dataset.scene.simulate_from(moved, times).positions)
+    parts = particles(dataset, sims)
+    reps = len(starts)
+    return Trajectories(np.stack(predicted), np.stack(true), np.full(len(true), -1),
+                        np.tile(parts.masses.numpy(), (reps, 1)),
+                        np.tile(parts.types.numpy(), (reps, 1)),
+                        np.tile(parts.radii.numpy(), (reps, 1)), float("nan"))
 
 
 def rollout_error(model: Predictor, dataset: FrameDataset, n_sims: int = 2,

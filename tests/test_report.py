@@ -40,7 +40,8 @@ def record(cell: Cell) -> dict[str, Any]:
         figure = f"/elsewhere/figures/mass_{cell.name}.png"
     if cell.train_sims is not None:
         metrics["nmse"] = 1.0 / cell.train_sims
-    for key, err in (("rollout", 0.01), ("rollout_last", 0.5), ("rollout_linear", 0.2)):
+    for key, err in (("rollout", 0.01), ("rollout_last", 0.5), ("rollout_linear", 0.2),
+                     ("predictability", 1e-6)):
         metrics.update({f"{key}/pos_err@10": err, f"{key}/failed_share": 0.0})
     return {"train": {"metrics": {"wall_time_s": 60.0, "test/contact_f1": 0.7}},
             "eval": {"metrics": metrics, "figure": figure}}
@@ -54,14 +55,18 @@ def csv_rows(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(fh))
 
 
+LIMIT = "predictability limit (simulator, 1e-6 off)"
+
+
 def test_rollout_table(tmp_path: Path) -> None:
-    """One row per model of the main grid and per no-learning reference, per scene x fps."""
+    """One row per model of the main grid, per no-learning reference and for the scene's
+    predictability limit, per scene x fps."""
     rollout_table(tmp_path, CELLS, RESULTS)
     rows = csv_rows(tmp_path / "rollouts.csv")
     assert [(r["scene"], r["model"]) for r in rows] == [
         ("collisions", "bgn"), ("collisions", "gns"), ("collisions", "last extrapolation"),
-        ("collisions", "linear extrapolation"), ("spring", "bgn"),
-        ("spring", "last extrapolation"), ("spring", "linear extrapolation")]
+        ("collisions", "linear extrapolation"), ("collisions", LIMIT), ("spring", "bgn"),
+        ("spring", "last extrapolation"), ("spring", "linear extrapolation"), ("spring", LIMIT)]
     assert [float(r["pos_err@10"]) for r in rows[:3]] == [0.01, 0.01, 0.5]
     assert rows[0]["pos_err@100"] == ""  # not evaluated: blank, not zero
 

@@ -152,6 +152,9 @@ def test_rollout_metrics_of_an_oracle_are_zero_and_a_poisoned_model_fails(datase
     assert out["rollout/energy_err@all"] == pytest.approx(out["rollout/energy_err_truth@all"],
                                                           abs=1e-9)
     assert out["rollout_last/pos_err@all"] > 1e-6 and out["rollout_linear/pos_err@all"] > 0
+    # the chaos floor: the exact simulator from positions 1e-6 off stays near 1e-6 early on
+    assert 1e-8 < out["predictability/pos_err@1"] < 1e-5
+    assert out["predictability/pos_err@all"] >= out["predictability/pos_err@1"] * 0.1
     start = ds.history + 1
     poisoned = evaluate_rollouts(Oracle(ds, poison=(0, start + 2)), ds, n_steps=30,
                                  references=False)

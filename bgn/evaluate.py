@@ -18,6 +18,7 @@ from bgn.data.dataset import FrameDataset
 from bgn.data.frames import evenly_spaced
 from bgn.graph import Graph, collate
 from bgn.metrics import (
+    binary_f1,
     inverse_metrics,
     kde_modes,
     r2_score,
@@ -25,6 +26,7 @@ from bgn.metrics import (
     rollout_metrics,
     type_metrics,
 )
+from bgn.model.encoder import approach_gap
 from bgn.model.references import REFERENCES, Extrapolation
 from bgn.model.target import extrapolate, observed_targets
 from bgn.module import PhysicsModule
@@ -64,6 +66,8 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
     # references without learning: repeat the last observed target, extrapolate the last two
     ref_err: dict[str, list[torch.Tensor]] = {"last": [], "linear": []}
     logits, types, rel_pred, rel_true = [], [], [], []
+    contact_scene = module.meta.interaction == "contact"
+    contacts: dict[str, list[torch.Tensor]] = {"true": [], "head": [], "toi_rule": []}
     for g in batches(dataset, indices, batch_size):
         pred = model.predict(g)
         sq_err.append(((pred - g.target) ** 2).flatten())
@@ -72,8 +76,13 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
             ref_err[name].append(((extrapolate(seen, name) - g.target) ** 2).flatten())
         rel_err.append((pred - g.target).norm(dim=-1)
                        / g.target.norm(dim=-1).clamp_min(1e-12))
-        if heads & {"type", "relmass"}:
+        if contact_scene:  # the window's time-of-impact rule, with or without a contact head
+            contacts["true"].append(g.edge_contact > 0.5)
+            contacts["toi_rule"].append(approach_gap(g) <= 0)
+        if heads & {"type", "relmass", "contact"}:
             out = model(g)
+            if "contact" in heads and contact_scene:
+                contacts["head"].append(out.contact > 0)       # logit > 0: probability > 0.5
             if "type" in heads:
                 logits.append(out.type_logits)
                 types.append(g.types)
@@ -89,6 +98,13 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
             metrics[f"nmse_{name}_extrapolation"] = torch.cat(errors).mean().item() / variance
     if logits:
         metrics.update(type_metrics(torch.cat(logits).numpy(), torch.cat(types).numpy()))
+    if contacts["true"]:
+        true_contacts = torch.cat(contacts["true"]).numpy()
+        metrics["contact_rate"] = float(true_contacts.mean())
+        for name in ("head", "toi_rule"):
+            if contacts[name]:
+                metrics[f"contact_f1_{name}"] = binary_f1(torch.cat(contacts[name]).numpy(),
+                                                          true_contacts)
     if rel_pred:
         metrics["relmass_r2"] = r2_score(torch.cat(rel_pred).numpy(), torch.cat(rel_true).numpy())
     arrays: dict[str, np.ndarray] = {}

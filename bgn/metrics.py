@@ -25,6 +25,14 @@ def r2_score(pred: np.ndarray, true: np.ndarray) -> float:
     return 1.0 - float(np.sum((pred - true) ** 2)) / total
 
 
+def binary_f1(pred: np.ndarray, true: np.ndarray) -> float:
+    """F1 of boolean predictions (nan when there is nothing to find and nothing found)."""
+    pred, true = np.ravel(pred).astype(bool), np.ravel(true).astype(bool)
+    tp = np.sum(pred & true)
+    denominator = 2 * tp + np.sum(pred & ~true) + np.sum(~pred & true)
+    return float(2 * tp / denominator) if denominator else float("nan")
+
+
 def kde_modes(values: np.ndarray, grid: np.ndarray, min_prominence: float = 0.05) -> np.ndarray:
     """Locations of the peaks of a Gaussian KDE of ``values`` on ``grid``; a peak counts when
     its prominence is at least ``min_prominence`` x the highest density (ignores wiggles)."""

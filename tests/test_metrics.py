@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from bgn.metrics import (
+    binary_f1,
     inverse_metrics,
     kde_modes,
     r2_score,
@@ -123,3 +124,9 @@ def test_a_particle_far_astray_fails_the_rollout():
     assert rollout_failures(pred, x, None, np.full(3, -1)).tolist() == [-1, 4, -1]
     boxed = rollout_failures(pred, x, 10.0, np.full(3, -1))
     assert boxed[1] == 4
+
+
+def test_binary_f1():
+    assert binary_f1(np.array([1, 1, 0, 0]), np.array([1, 0, 1, 0])) == pytest.approx(0.5)
+    assert binary_f1(np.ones(3), np.ones(3)) == 1.0
+    assert np.isnan(binary_f1(np.zeros(3), np.zeros(3)))

@@ -56,6 +56,10 @@ class ModelConfig(DynamicsConfig):
     # and total relative speed) to the contact logit <h_E,i, h_E,j>. Node embeddings that do
     # not know positions cannot say from an inner product alone whether two particles touch.
     contact_edge_term: bool = True
+    # Not in the paper, contact scenes: + the window's time-of-impact features in that edge
+    # term (how close each pair comes within the next frame in free flight, against the sum
+    # of the radii, and the rule "they touch"): encoder.approach_gap.
+    contact_gap: bool = False
     # What the contact-weighted aggregation sums (processor.ContactHead): "linear", a linear map
     # of the edge features (our reading of the paper), or "mlp", an edge MLP that also reads
     # both particles' H̃_V and can express an elastic impulse, or "vector", an edge MLP whose
@@ -160,7 +164,8 @@ class BGN(PhysicsModel):
                                    contact=cfg.contact, contact_mode=cfg.contact_mode,
                                    contact_edge_term=(history if cfg.contact_edge_term
                                                       else None),
-                                   message=cfg.contact_message, act=cfg.activation, dim=d)
+                                   message=cfg.contact_message, act=cfg.activation, dim=d,
+                                   contact_gap=cfg.contact_gap and self.contact_scene)
         self.decoder = Decoder(self.processor.out_features + (node_in if cfg.decoder_skip else 0),
                                cfg.decoder_hidden, d,
                                cfg.activation, cfg.shared_decoder)

@@ -69,6 +69,30 @@ def edge_features(g: Graph, norm: Normalizer) -> torch.Tensor:
     return torch.cat([rel, dist, rel / dist, rel_vel], dim=1)
 
 
+def approach_gap(g: Graph) -> torch.Tensor:
+    """(E,) how close each pair comes before the next frame if both keep their newest window
+    velocity, as a fraction of their contact distance: ``min over tau in [0, dt] of
+    |dx + dv tau| / (r_i + r_j) - 1`` (<= 0: they touch). The time-of-impact rule of the window
+    alone (free flight; walls and other impacts ignored). Swap-symmetric; contact scenes only
+    (it needs radii and the frame spacing ``g.dt``)."""
+    if g.dt is None:
+        raise ValueError("the approach gap needs the frame spacing: the graph has no dt")
+    snd, rcv = g.edge_index[0], g.edge_index[1]
+    dx = g.pos[rcv] - g.pos[snd]
+    dv = g.vel[rcv, 0] - g.vel[snd, 0]
+    dt = g.dt.to(dx.dtype)[g.batch[rcv]]
+    speed2 = (dv * dv).sum(-1)
+    tau = torch.minimum((-(dx * dv).sum(-1) / speed2.clamp_min(1e-30)).clamp_min(0.0), dt)
+    closest = dx + dv * tau[:, None]
+    reach = (g.radius[rcv] + g.radius[snd]).clamp_min(1e-12)
+    return torch.sqrt((closest * closest).sum(-1) + DIRECTION_EPS**2) / reach - 1.0
+
+
+def gap_features(gap: torch.Tensor) -> torch.Tensor:
+    """(E, 2): the approach gap, clipped to [-1, 3], and the time-of-impact rule (gap <= 0)."""
+    return torch.stack([gap.clamp(-1.0, 3.0), (gap <= 0).to(gap.dtype)], dim=1)
+
+
 def symmetric_edge_width(history: int) -> int:
     """Width of ``symmetric_edge_features``."""
     return 1 + 2 * (history + 1)

@@ -19,7 +19,12 @@ import torch
 from torch import nn
 
 from bgn.graph import Graph
-from bgn.model.encoder import symmetric_edge_features, symmetric_edge_width
+from bgn.model.encoder import (
+    approach_gap,
+    gap_features,
+    symmetric_edge_features,
+    symmetric_edge_width,
+)
 from bgn.model.ops import EdgeMLP, scatter_sum
 
 CONTACT_MODES = ("aggregate", "dense")
@@ -81,7 +86,7 @@ class ContactHead(nn.Module):
     def __init__(self, h_e_features: int, edge_features: int, message_features: int | None,
                  probability: bool, edge_term: int | None = None,
                  message: str = "linear", node_features: int = 0, act: str = "silu",
-                 dim: int = 0) -> None:
+                 dim: int = 0, gap: bool = False) -> None:
         super().__init__()
         if message not in MESSAGES:
             raise ValueError(f"contact message={message!r}; choose one of {MESSAGES}")
@@ -104,18 +109,30 @@ class ContactHead(nn.Module):
                                        [message_features, message_features, n_vectors], act)
         # Optional (not in the paper): + a . s_ij, s_ij the swap-symmetric edge features
         # (distance, radial and total relative speed). ``edge_term`` = the history k when enabled.
+        # ``gap`` (not in the paper, contact scenes): + the time-of-impact features of the
+        # window (encoder.approach_gap), which the inner product and the linear edge term
+        # cannot form (a closest approach within the frame, against the sum of the radii).
+        if gap and edge_term is None:
+            raise ValueError("the approach-gap features enter through the contact edge term: "
+                             "set contact_edge_term=true with contact_gap=true")
+        self.gap = gap
         self.edge_term = None
         if edge_term is not None:
-            self.edge_term = nn.Linear(symmetric_edge_width(edge_term), 1)
+            self.edge_term = nn.Linear(symmetric_edge_width(edge_term) + (2 if gap else 0), 1)
 
     def logits(self, h_e: torch.Tensor, edge_index: torch.Tensor,
-               e: torch.Tensor | None = None) -> torch.Tensor:
-        """Eq. 3 on edges: ``ĉ_ij = <h_E,i, h_E,j> / sqrt(F)`` (E,) [+ the edge term]."""
+               e: torch.Tensor | None = None, gap: torch.Tensor | None = None) -> torch.Tensor:
+        """Eq. 3 on edges: ``ĉ_ij = <h_E,i, h_E,j> / sqrt(F)`` (E,) [+ the edge term of the
+        symmetric edge features and, with ``gap``, the approach-gap features]."""
         snd, rcv = edge_index[0], edge_index[1]
         c = (h_e[rcv] * h_e[snd]).sum(-1) * self.inv_sqrt_f
         if self.edge_term is not None:
             assert e is not None
-            c = c + self.edge_term(symmetric_edge_features(e, self.dim)).squeeze(-1)
+            s = symmetric_edge_features(e, self.dim)
+            if self.gap:
+                assert gap is not None
+                s = torch.cat([s, gap_features(gap).to(s.dtype)], dim=1)
+            c = c + self.edge_term(s).squeeze(-1)
         return c
 
     def weights(self, c: torch.Tensor) -> torch.Tensor:
@@ -183,7 +200,8 @@ class Processor(nn.Module):
     def __init__(self, hidden: int, edge_features: int, n_types: int, n_particles: int,
                  contact_scene: bool, classifier: bool = True, contact: bool = True,
                  contact_mode: str = "aggregate", contact_edge_term: int | None = None,
-                 message: str = "linear", act: str = "silu", dim: int = 0) -> None:
+                 message: str = "linear", act: str = "silu", dim: int = 0,
+                 contact_gap: bool = False) -> None:
         super().__init__()
         if contact_mode not in CONTACT_MODES:
             raise ValueError(f"contact_mode={contact_mode!r}; choose one of {CONTACT_MODES}")
@@ -196,7 +214,7 @@ class Processor(nn.Module):
             width = hidden if contact_mode == "aggregate" else None
             self.contact = ContactHead(hidden, edge_features, width, contact_scene,
                                        contact_edge_term, message, self.tilde_v_features, act,
-                                       dim)
+                                       dim, contact_gap)
         if self.contact is None:
             extra = hidden                                     # H_E
         elif contact_mode == "dense":
@@ -218,7 +236,8 @@ class Processor(nn.Module):
         if self.contact is None:
             h_cv = torch.cat([h_tilde_v, h_e], -1)
         else:
-            contact = self.contact.logits(h_e, g.edge_index, e)
+            gap = approach_gap(g) if self.contact.gap else None
+            contact = self.contact.logits(h_e, g.edge_index, e, gap)
             if self.contact_mode == "dense":  # literal Ĉ_i ‖ H̃_V
                 rows = self.contact.dense_rows(contact, h_e, g, self.n_particles)
                 h_cv = torch.cat([rows, h_tilde_v], -1)

@@ -181,6 +181,18 @@ class PhysicsModule(L.LightningModule):
     def training_step(self, g: Graph, batch_idx: int) -> torch.Tensor:
         return self._step("train", g)
 
+    def on_before_optimizer_step(self, optimizer: torch.optim.Optimizer) -> None:
+        """A finite loss can still give a non-finite gradient (a 0/0 in a backward): stop
+        with one clear error before the optimiser writes it into the weights."""
+        grads = [p.grad for p in self.parameters() if p.grad is not None]
+        if grads and not torch.isfinite(torch.stack([g.norm() for g in grads])).all():
+            bad = [n for n, p in self.named_parameters()
+                   if p.grad is not None and not torch.isfinite(p.grad).all()]
+            raise FloatingPointError(
+                f"the gradient became non-finite at step {self.global_step} in {len(bad)} "
+                f"parameters (first: {bad[0]}); lower optimizer.lr or check the data; the last "
+                "good checkpoint is in the run's checkpoints/ folder")
+
     def validation_step(self, g: Graph, batch_idx: int) -> None:
         if batch_idx == 0:
             self._figure_batch = g

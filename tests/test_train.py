@@ -88,6 +88,29 @@ def test_rollout_error_can_pick_checkpoints_and_stop_training(tiny_train_cfg, tm
     assert np.isfinite(float(callback["best_model_score"]))
 
 
+def test_non_finite_gradient_stops_training_and_keeps_good_checkpoints(tiny_train_cfg,
+                                                                       tmp_path, monkeypatch):
+    """A finite loss whose gradient is NaN (from step 3 on) stops training with one clear
+    error before the weights change; the checkpoints written before it stay finite."""
+    real = PhysicsModule.training_step
+
+    def poisoned(self, g, batch_idx):
+        loss = real(self, g, batch_idx)
+        if self.global_step >= 3:
+            loss.register_hook(lambda grad: grad * float("nan"))
+        return loss
+
+    monkeypatch.setattr(PhysicsModule, "training_step", poisoned)
+    with pytest.raises(FloatingPointError, match="gradient became non-finite at step 3"):
+        train(tiny_train_cfg("spring", "trainer.max_epochs=3", "+trainer.limit_train_batches=2",
+                             "trainer.limit_val_batches=1", "test=false", "figures=false",
+                             "val_rollout_steps=0"))
+    for name in ("last.ckpt", "on_exception.ckpt"):
+        state = torch.load(tmp_path / "run" / "checkpoints" / name, map_location="cpu",
+                           weights_only=False)["state_dict"]
+        assert all(torch.isfinite(v).all() for v in state.values() if v.is_floating_point())
+
+
 def test_checkpoint_reload_reproduces_predictions(tiny_train_cfg, tmp_path):
     cfg = tiny_train_cfg("spring", "trainer.max_epochs=1",
                          "+trainer.limit_train_batches=3", "trainer.limit_val_batches=2",

@@ -152,7 +152,9 @@ def evaluate_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 10
             t = rollout_many(predictor, dataset, sims, starts, n_steps)
         values = rollout_metrics(t.predicted, t.true, t.masses, dataset.dt, dataset.scene.energy,
                                  t.first_non_finite, dataset.meta.box,
-                                 momentum=dataset.meta.box is None)
+                                 momentum=dataset.meta.box is None,
+                                 contacts=((t.radii, t.types)
+                                           if dataset.meta.interaction == "contact" else None))
         values["seconds_per_step"] = t.seconds_per_step
         metrics.update({f"{key}/{name}": value for name, value in values.items()})
     return metrics

@@ -146,6 +146,7 @@ def rollout_metrics(predicted: np.ndarray, true: np.ndarray, masses: np.ndarray,
                     energy: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray],
                     first_non_finite: np.ndarray, box: float | None = None,
                     momentum: bool = False, horizons: tuple[int, ...] = ROLLOUT_HORIZONS,
+                    contacts: tuple[np.ndarray, np.ndarray] | None = None,
                     ) -> dict[str, float]:
     """Rollout metrics (DESIGN section 8) of R rollouts: ``predicted``, ``true`` (R, T+2, N, D)
     hold the frame before the start, the start and T steps; ``energy(x, v, m)`` is the scene's
@@ -157,7 +158,8 @@ def rollout_metrics(predicted: np.ndarray, true: np.ndarray, masses: np.ndarray,
     error ``|E_t - E_0| / |E_0|`` (velocities are backward differences, E_0 from the true
     start) at each horizon and at the end, beside the truth's own (its finite-difference
     floor); momentum error likewise when the scene conserves momentum; the share of failed
-    rollouts (``rollout_failures``).
+    rollouts (``rollout_failures``). ``contacts`` = (radii, types), each (R, N), for a disc
+    gas adds ``contact_rollout_metrics``.
     """
     failed_at = rollout_failures(predicted, true, box, first_non_finite)
     n_steps = predicted.shape[1] - 2
@@ -199,4 +201,56 @@ def rollout_metrics(predicted: np.ndarray, true: np.ndarray, masses: np.ndarray,
         if momentum:
             out[f"momentum_err@{h}"] = float(
                 np.median(np.where(alive[:, at], p_err[:, at], np.inf)))
+    if contacts is not None:
+        out.update(contact_rollout_metrics(predicted, true, *contacts, dt, failed_at))
+    return out
+
+
+def collisions_per_frame(positions: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """(T-1,) pairs that touch between consecutive frames of one trajectory (T, N, D): the
+    straight path between the two frames brings them within ``r_i + r_j``. The same detector
+    scores the truth and a rollout, so their rates compare."""
+    from scipy.spatial import cKDTree
+
+    counts = np.zeros(len(positions) - 1, dtype=int)
+    reach_max = 2 * float(radii.max())
+    for t in range(len(positions) - 1):
+        a, b = positions[t], positions[t + 1]
+        if not (np.isfinite(a).all() and np.isfinite(b).all()):
+            counts[t:] = -1
+            break
+        step = float(np.linalg.norm(b - a, axis=-1).max())
+        pairs = cKDTree(a).query_pairs(reach_max + 2 * step, output_type="ndarray")
+        if len(pairs) == 0:
+            continue
+        i, j = pairs[:, 0], pairs[:, 1]
+        dx, dv = a[i] - a[j], (b[i] - a[i]) - (b[j] - a[j])
+        tau = np.clip(-(dx * dv).sum(-1) / np.maximum((dv * dv).sum(-1), 1e-300), 0.0, 1.0)
+        closest = np.linalg.norm(dx + dv * tau[:, None], axis=-1)
+        counts[t] = int(np.sum(closest <= radii[i] + radii[j]))
+    return counts
+
+
+def contact_rollout_metrics(predicted: np.ndarray, true: np.ndarray, radii: np.ndarray,
+                            types: np.ndarray, dt: float, failed_at: np.ndarray,
+                            ) -> dict[str, float]:
+    """What stays predictable in a chaotic disc gas, for R rollouts (R, T+2, N, D): each
+    type's speed distribution at the last step against the truth's (Wasserstein-1 over the
+    true mean speed of that type, pooled over the rollouts that did not fail), and the
+    collision rate over the rollout against the truth's (``collisions_per_frame``)."""
+    ok = failed_at < 0
+    out: dict[str, float] = {}
+    if ok.any():
+        v_pred = np.linalg.norm(predicted[ok, -1] - predicted[ok, -2], axis=-1) / dt
+        v_true = np.linalg.norm(true[ok, -1] - true[ok, -2], axis=-1) / dt
+        for k in np.unique(types):
+            mask = types[ok] == k
+            mean = float(v_true[mask].mean())
+            out[f"speed_w1_type{k}"] = float(wasserstein_distance(v_pred[mask], v_true[mask])
+                                             / mean) if mean > 0 else float("nan")
+        hits_pred = sum(collisions_per_frame(predicted[r, 1:], radii[r]).sum()
+                        for r in np.flatnonzero(ok))
+        hits_true = sum(collisions_per_frame(true[r, 1:], radii[r]).sum()
+                        for r in np.flatnonzero(ok))
+        out["collision_rate_ratio"] = float(hits_pred / hits_true) if hits_true else float("nan")
     return out

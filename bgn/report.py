@@ -164,7 +164,8 @@ def sample_efficiency_table(report_dir: Path, cells: list[Cell], results: Result
 
 ROLLOUT_COLUMNS = ["pos_err@1", "pos_err@10", "pos_err@50", "pos_err@100", "pos_err@all",
                    "pos_mse@all", "energy_err@all", "energy_err_truth@all", "momentum_err@all",
-                   "failed_share", "rollout_steps", "seconds_per_step"]
+                   "speed_w1_type0", "speed_w1_type1", "collision_rate_ratio", "failed_share",
+                   "rollout_steps", "seconds_per_step"]
 
 
 def rollout_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
@@ -192,7 +193,10 @@ def rollout_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
         "squared position error of the rollouts that did not fail. energy_err: median "
         "|E_t - E_0| / |E_0| at the end, with velocities as backward differences; "
         "energy_err_truth: the same for the true frames (the finite-difference floor). "
-        "momentum_err where momentum is conserved (no walls). A rollout fails on a non-finite "
+        "momentum_err where momentum is conserved (no walls). Disc gas: speed_w1_type<k>, "
+        "the Wasserstein-1 distance of type k's speeds at the last step from the truth's, "
+        "over the true mean speed; collision_rate_ratio, predicted over true pairs touching "
+        "between frames (one detector for both). A rollout fails on a non-finite "
         "value or a particle more than 10 scene scales astray. The extrapolation rows learn "
         "nothing (repeat the last observed target, or extrapolate the last two). The "
         "predictability row is the exact simulator started with every position 1e-6 off: "

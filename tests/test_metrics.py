@@ -8,6 +8,8 @@ import pytest
 
 from bgn.metrics import (
     binary_f1,
+    collisions_per_frame,
+    contact_rollout_metrics,
     inverse_metrics,
     kde_modes,
     r2_score,
@@ -130,3 +132,26 @@ def test_binary_f1():
     assert binary_f1(np.array([1, 1, 0, 0]), np.array([1, 0, 1, 0])) == pytest.approx(0.5)
     assert binary_f1(np.ones(3), np.ones(3)) == 1.0
     assert np.isnan(binary_f1(np.zeros(3), np.zeros(3)))
+
+
+def test_collisions_between_frames_are_counted():
+    radii = np.array([0.1, 0.1, 0.1])
+    # discs 0 and 1 close from 0.5 apart at 0.4 per frame: they touch in the second interval
+    x = np.zeros((4, 3, 2))
+    x[:, 1, 0] = 0.5 - 0.2 * np.arange(4)
+    x[:, 0, 0] = 0.2 * np.arange(4) * 0.0
+    x[:, 2] = [5.0, 5.0]
+    assert collisions_per_frame(x, radii).tolist() == [0, 1, 1]
+
+
+def test_contact_rollout_metrics_of_the_truth():
+    rng = np.random.default_rng(1)
+    true = np.cumsum(rng.normal(scale=0.05, size=(2, 12, 20, 2)), axis=1) + 5.0
+    radii, types = np.full((2, 20), 0.1), np.tile(np.arange(20) % 2, (2, 1))
+    out = contact_rollout_metrics(true, true, radii, types, 0.1, np.full(2, -1))
+    assert out["speed_w1_type0"] == 0 and out["speed_w1_type1"] == 0
+    assert out["collision_rate_ratio"] == 1.0
+    slower = true.copy()
+    slower[:, -1] = slower[:, -2] + 0.5 * (true[:, -1] - true[:, -2])
+    assert contact_rollout_metrics(slower, true, radii, types, 0.1,
+                                   np.full(2, -1))["speed_w1_type0"] == pytest.approx(0.5)

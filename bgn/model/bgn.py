@@ -64,7 +64,7 @@ class ModelConfig(DynamicsConfig):
     shared_decoder: bool = False
     # D^-1/2 Â D^-1/2 in every GCN layer. The paper's plain sums grow like (degree+1)^layers
     # (contact logits ~1e4 at initialisation on a 2000-particle radius graph) and in
-    # flow_benchmark neither flow trains in 300 steps without it; with it relmass R^2 ~0.97.
+    # bgn.benchmarks.flow neither flow trains in 300 steps without it.
     degree_normalize: bool = True
     # Not in the paper: a separate weight on each node's own features in every GCN layer
     # (H' = s(Â H W + H W_self + Â H)). Eq. 1 alone gives every node of a clique the same

@@ -58,7 +58,10 @@ def build(cfg: DictConfig) -> tuple[ParticleDataModule, PhysicsModule]:
     """DataModule (data generated if missing) and LightningModule from a composed config."""
     if not cfg.fps or float(cfg.fps) <= 0:
         raise ValueError(f"fps={cfg.fps} must be a positive number of frames per time unit")
-    datamodule = ParticleDataModule(cfg.dataset, cfg.fps, cfg.paths.data_dir)
+    # dataset.generate_workers: simulation processes when the data are generated here
+    # (default one per core; 1 generates in this process)
+    datamodule = ParticleDataModule(cfg.dataset, cfg.fps, cfg.paths.data_dir,
+                                    generate_workers=cfg.dataset.get("generate_workers"))
     datamodule.prepare_data()
     datamodule.setup()
     rollout_fn = None

@@ -12,13 +12,16 @@ from bgn.config import register_configs
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
-# Small but meaningful sizes per scene, so data tests run in seconds.
+# Small but meaningful sizes per scene, so data tests run in seconds. Data that a training
+# config generates are simulated in the test's process (dataset.generate_workers=1): spawning
+# a pool of workers costs more than these simulations.
+IN_PROCESS = "+dataset.generate_workers=1"
 SMALL = {
-    "spring": ["dataset.n_sims=2", "dataset.n_frames=60"],
-    "gravity_r1": ["dataset.n_sims=2", "dataset.n_frames=60"],
-    "gravity_r2": ["dataset.n_sims=2", "dataset.n_frames=60"],
+    "spring": ["dataset.n_sims=2", "dataset.n_frames=60", IN_PROCESS],
+    "gravity_r1": ["dataset.n_sims=2", "dataset.n_frames=60", IN_PROCESS],
+    "gravity_r2": ["dataset.n_sims=2", "dataset.n_frames=60", IN_PROCESS],
     "collisions": ["dataset.n_sims=2", "dataset.n_frames=40", "dataset.n_particles=30",
-                   "dataset.box=4.0"],
+                   "dataset.box=4.0", IN_PROCESS],
 }
 
 

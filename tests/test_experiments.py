@@ -21,6 +21,7 @@ def csv_rows(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(fh))
 
 
+@pytest.mark.slow  # the tiny study end to end: every cell trained, evaluated, reported
 def test_tiny_preset_end_to_end_and_resumes(tmp_path: Path, capsys) -> None:
     cfg = tiny_cfg(tmp_path)
     cells = plan_cells(cfg.preset)

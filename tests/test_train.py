@@ -1,5 +1,5 @@
-"""The command line: every dataset and ablation composes and runs; checkpoints reload exactly;
-a multirun sweep ends with a summary table."""
+"""The command line: every dataset, model and ablation composes and runs in-process; checkpoints
+reload exactly; (slow tier) a multirun sweep ends with a summary table, and DDP runs."""
 
 from __future__ import annotations
 
@@ -20,19 +20,24 @@ from tests.conftest import SMALL, compose_config
 
 ROOT = Path(__file__).resolve().parents[1]
 ABLATIONS = ["full", "no_classifier", "no_contact", "no_inverse"]
+SMALL_MODELS = {  # test-sized versions of every model
+    "bgn": ["model.hidden=16", "model.decoder_hidden=16", "model.flow_hidden=16"],
+    "cranmer_gn": ["model.hidden=16", "model.message_dim=8", "model.hidden_layers=1"],
+    "gns": ["model.latent=16", "model.mlp_hidden=16", "model.mlp_layers=1",
+            "model.message_passing_steps=2"],
+}
 
 
 @pytest.fixture
 def tiny_train_cfg(tmp_path: Path, shared_data_dir: Path):
-    """``tiny_train_cfg(scene, *overrides)``: a small real train config; the run writes to
-    tmp_path/run, datasets are shared by the whole session."""
+    """``tiny_train_cfg(scene, *overrides, model="bgn")``: a small real train config; the run
+    writes to tmp_path/run, datasets are shared by the whole session."""
 
-    def make(scene: str, *overrides: str):
+    def make(scene: str, *overrides: str, model: str = "bgn"):
         return compose_config("train", [
             f"dataset={scene}", *SMALL[scene], f"paths.data_dir={shared_data_dir}",
-            f"paths.output_dir={tmp_path / 'run'}", "model.hidden=16",
-            "model.decoder_hidden=16", "model.flow_hidden=16", "rollout_steps=3",
-            "val_rollout_steps=5", *overrides])
+            f"paths.output_dir={tmp_path / 'run'}", f"model={model}", *SMALL_MODELS[model],
+            "rollout_steps=3", "val_rollout_steps=5", *overrides])
 
     return make
 
@@ -44,6 +49,14 @@ def test_every_dataset_runs_fast_dev_run(tiny_train_cfg, tmp_path, scene):
     assert torch.isfinite(torch.tensor(metrics["train/loss"]))
     record = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert record["dataset"] == scene
+
+
+@pytest.mark.parametrize("model", ["cranmer_gn", "gns"])  # bgn: every dataset, above
+def test_every_model_runs_fast_dev_run(tiny_train_cfg, tmp_path, model):
+    metrics = train(tiny_train_cfg("spring", "+trainer.fast_dev_run=true", model=model))
+    assert torch.isfinite(torch.tensor(metrics["train/loss"]))
+    record = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert record["model"] == model
 
 
 @pytest.mark.parametrize("ablation", [*ABLATIONS, "dense_contact"])
@@ -129,6 +142,7 @@ def test_checkpoint_reload_reproduces_predictions(tiny_train_cfg, tmp_path):
         assert torch.equal(loaded.model.predict(batch), again.model.predict(batch))
 
 
+@pytest.mark.slow  # a Hydra multirun in a subprocess: two trainings
 def test_multirun_sweep_writes_summary(tmp_path, shared_data_dir):
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     cmd = [sys.executable, "-m", "bgn.train", "-m", "dataset=spring", "fps=10,50",
@@ -146,6 +160,7 @@ def test_multirun_sweep_writes_summary(tmp_path, shared_data_dir):
                                   for r in runs)
 
 
+@pytest.mark.slow  # two DDP processes started from the command line
 def test_ddp_on_two_cpu_processes_splits_the_epoch_and_writes_one_record(tmp_path,
                                                                          shared_data_dir):
     """trainer=ddp through the real command line (Lightning relaunches the Hydra command for

@@ -14,12 +14,9 @@ defaults ``t(200k) / t(20k) / 10``: 1 is linear, above 1 is worse than linear.
 from __future__ import annotations
 
 import argparse
-import csv
 import ctypes
 import ctypes.util
 import math
-import os
-import platform
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import scipy
 
+from bgn.benchmarks._report import console, machine, markdown_table, print_table, write_csv
 from bgn.data.graphs import radius_graph
 
 CUTOFF = 1.0
@@ -122,42 +120,29 @@ def formatted(row: Row) -> list[str]:
     ]
 
 
-def write_csv(rows: list[Row], path: Path) -> None:
-    with path.open("w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(
-            [
-                "n",
-                "edges",
-                "mean_degree",
-                "seconds",
-                "edges_per_second",
-                "us_per_particle",
-                "runs",
-                "first_call_seconds",
-            ]
-        )
-        for r in rows:
-            writer.writerow(
-                [
-                    r.n,
-                    r.edges,
-                    f"{r.mean_degree:.4f}",
-                    f"{r.seconds:.6f}",
-                    f"{r.edges_per_second:.1f}",
-                    f"{r.us_per_particle:.4f}",
-                    r.repeats,
-                    f"{r.first_call:.6f}",
-                ]
-            )
+CSV_HEADER = [
+    "n",
+    "edges",
+    "mean_degree",
+    "seconds",
+    "edges_per_second",
+    "us_per_particle",
+    "runs",
+    "first_call_seconds",
+]
 
 
-def machine() -> str:
-    return (
-        f"{platform.platform()}, {platform.processor() or platform.machine()}, "
-        f"{os.cpu_count()} logical CPUs, Python {platform.python_version()}, "
-        f"numpy {np.__version__}, scipy {scipy.__version__}"
-    )
+def csv_row(r: Row) -> list:
+    return [
+        r.n,
+        r.edges,
+        f"{r.mean_degree:.4f}",
+        f"{r.seconds:.6f}",
+        f"{r.edges_per_second:.1f}",
+        f"{r.us_per_particle:.4f}",
+        r.repeats,
+        f"{r.first_call:.6f}",
+    ]
 
 
 def write_markdown(
@@ -177,7 +162,7 @@ def write_markdown(
         "first call at that size; `first call s` is that first call, which also pays for "
         "first-touch page faults on fresh memory.",
         "",
-        f"Machine: {machine()}",
+        f"Machine: {machine(scipy=scipy.__version__)}",
         "",
         "Allocator: "
         + (
@@ -187,10 +172,8 @@ def write_markdown(
             "`--retain-memory` measures without that)."
         ),
         "",
-        "| " + " | ".join(HEADERS) + " |",
-        "|" + "|".join("---:" for _ in HEADERS) + "|",
+        *markdown_table(HEADERS, [formatted(r) for r in rows]),
     ]
-    lines += ["| " + " | ".join(formatted(r)) + " |" for r in rows]
     lines.append("")
     if ratio is not None:
         a, b, value, cold = ratio
@@ -270,16 +253,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from rich.console import Console
-    from rich.table import Table
-
     args = parse_args(argv)
-    console = Console()
-    if not console.is_terminal:
-        console.width = max(console.width, 110)  # logs and pipes: keep the table on one line
+    out = console()
     retained = args.retain_memory and retain_freed_memory()
     if args.retain_memory and not retained:
-        console.print("[yellow]--retain-memory: not glibc, ignored[/yellow]")
+        out.print("[yellow]--retain-memory: not glibc, ignored[/yellow]")
     rng = np.random.default_rng(args.seed)
     # Warm-up: first calls pay for lazy imports and page faults, not for the search.
     radius_graph(rng.uniform(size=(1000, 2)), cutoff=0.05)
@@ -288,27 +266,23 @@ def main(argv: list[str] | None = None) -> int:
     for n in sorted(set(args.sizes)):
         repeats = 3 if n < BEST_OF_3_BELOW else 1
         rows.append(time_one(n, args.neighbours, repeats, rng))
-        console.log(f"N = {n:,}: {rows[-1].seconds:.4f} s (first call {rows[-1].first_call:.4f} s)")
+        out.log(f"N = {n:,}: {rows[-1].seconds:.4f} s (first call {rows[-1].first_call:.4f} s)")
 
-    table = Table(title=f"radius_graph, 2-D uniform, ~{args.neighbours:g} neighbours")
-    for h in HEADERS:
-        table.add_column(h, justify="right")
-    for r in rows:
-        table.add_row(*formatted(r))
-    console.print(table)
+    print_table(out, f"radius_graph, 2-D uniform, ~{args.neighbours:g} neighbours", HEADERS,
+                [formatted(r) for r in rows])
     ratio = scaling_ratio(rows)
     if ratio is not None:
         a, b, value, cold = ratio
-        console.print(
+        out.print(
             f"linear-scaling ratio (t({b.n:,}) / t({a.n:,})) / {b.n / a.n:g} = "
             f"[bold]{value:.2f}[/bold] (1 = linear); from the first calls: {cold:.2f}"
         )
 
     args.out.mkdir(parents=True, exist_ok=True)
-    write_csv(rows, args.out / "neighbours.csv")
+    write_csv(args.out / "neighbours.csv", CSV_HEADER, [csv_row(r) for r in rows])
     write_markdown(rows, ratio, args.neighbours, retained, args.out / "neighbours.md")
     write_plot(rows, args.out / "neighbours.png")
-    console.print(f"wrote {args.out / 'neighbours.md'}, .csv, .png")
+    out.print(f"wrote {args.out / 'neighbours.md'}, .csv, .png")
     return 0
 
 

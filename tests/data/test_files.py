@@ -99,6 +99,7 @@ def _generate(args):
     return str(ensure_dataset(spec, data_dir, workers=1))
 
 
+@pytest.mark.slow  # two spawned processes
 def test_concurrent_generators_leave_one_valid_file(small_cfg):
     cfg = small_cfg("spring", "dataset.n_frames=400")
     spec = DatasetSpec.from_config(cfg.dataset, cfg.fps, "train")

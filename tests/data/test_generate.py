@@ -16,6 +16,7 @@ def _arrays(path):
         return {k: f[k][...] for k in f if isinstance(f[k], h5py.Dataset)}
 
 
+@pytest.mark.slow  # a pool of two spawned simulation processes per scene
 @pytest.mark.parametrize("scene", SCENES)
 def test_same_seed_same_bits_whatever_the_workers(small_cfg, tmp_path, scene):
     cfg = small_cfg(scene)
@@ -88,7 +89,7 @@ def test_every_recorded_contact_is_a_candidate_edge(small_cfg):
 
 
 def test_main_generates_all_splits(small_cfg, capsys):
-    paths = main(small_cfg("gravity_r2"))
+    paths = main(small_cfg("gravity_r2", "workers=1"))  # in-process: no spawned pool
     assert set(paths) == {"train", "val", "test"} and all(p.exists() for p in paths.values())
     assert "done in" in capsys.readouterr().out
 

@@ -414,17 +414,3 @@ def test_radius_graph_validation(positions, kwargs, match) -> None:
 def test_integer_positions_accepted() -> None:
     positions = np.array([[0, 0], [1, 0], [3, 0]])
     np.testing.assert_array_equal(radius_graph(positions, cutoff=1), np.array([[1, 0], [0, 1]]))
-
-
-# ----------------------------------------------------------------------------- benchmark smoke
-
-
-def test_neighbours_benchmark_runs(tmp_path) -> None:
-    from bgn.benchmarks.neighbours import main
-
-    assert main(["--sizes", "300", "600", "--neighbours", "8", "--out", str(tmp_path)]) == 0
-    for name in ("neighbours.md", "neighbours.csv", "neighbours.png"):
-        assert (tmp_path / name).stat().st_size > 0
-    lines = (tmp_path / "neighbours.csv").read_text().splitlines()
-    assert len(lines) == 3 and lines[1].startswith("300,")
-    assert "Linear-scaling ratio" in (tmp_path / "neighbours.md").read_text()

@@ -1,0 +1,62 @@
+"""What every benchmark command shares: the machine line, the CSV and markdown table writers and
+the console table. A helper module, not a command (its name starts with ``_``, so the smoke
+tests that run every command in ``bgn.benchmarks`` skip it)."""
+
+from __future__ import annotations
+
+import csv
+import os
+import platform
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def machine(**versions: str) -> str:
+    """One line: platform, processor, logical CPUs, Python and numpy, then ``versions``
+    (library name -> version string) in the order given."""
+    libs = {"numpy": np.__version__, **versions}
+    return (
+        f"{platform.platform()}, {platform.processor() or platform.machine()}, "
+        f"{os.cpu_count()} logical CPUs, Python {platform.python_version()}, "
+        + ", ".join(f"{name} {version}" for name, version in libs.items())
+    )
+
+
+def write_csv(path: Path, header: Sequence[str], rows: Sequence[Sequence[Any]]) -> None:
+    """A CSV file with one header line and one line per row."""
+    with path.open("w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(header)
+        writer.writerows(rows)
+
+
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]],
+                   align: str = "---:") -> list[str]:
+    """The lines of a markdown table (every column aligned by ``align``)."""
+    return ["| " + " | ".join(header) + " |", "|" + "|".join(align for _ in header) + "|",
+            *("| " + " | ".join(row) + " |" for row in rows)]
+
+
+def console():
+    """A rich console that keeps a wide table on one line in logs and pipes."""
+    from rich.console import Console
+
+    out = Console()
+    if not out.is_terminal:
+        out.width = max(out.width, 110)
+    return out
+
+
+def print_table(out, title: str, header: Sequence[str], rows: Sequence[Sequence[str]]) -> None:
+    """``rows`` as a rich table on ``out`` (a console from ``console()``)."""
+    from rich.table import Table
+
+    table = Table(title=title)
+    for name in header:
+        table.add_column(name, justify="right")
+    for row in rows:
+        table.add_row(*row)
+    out.print(table)

@@ -1,0 +1,120 @@
+"""Every benchmark command runs: each module of ``bgn.benchmarks`` on tiny sizes, in-process,
+writing its report files with finite numbers; a new benchmark without a smoke test here fails."""
+
+from __future__ import annotations
+
+import csv
+import importlib
+import math
+import pkgutil
+import re
+from pathlib import Path
+
+import pytest
+import torch
+
+import bgn.benchmarks
+
+# command -> (tiny arguments, the report files it writes under --out)
+SMOKE = {
+    "neighbours": (["--sizes", "300", "600", "--neighbours", "8"],
+                   ["neighbours.md", "neighbours.csv", "neighbours.png"]),
+    "flow": (["--particles", "40", "--per-frame", "20", "--hidden", "8", "--steps", "3",
+              "--pool", "2", "--repeat", "1", "--threads", "1"],
+             ["flow.md", "flow.csv", "flow.png"]),
+}
+
+NUMBER = re.compile(r"^-?[\d,]*\.?\d+(e[-+]?\d+)?( M)?$")
+
+
+def commands() -> set[str]:
+    """The benchmark commands: every module of bgn/benchmarks except helpers (``_name``)."""
+    return {m.name for m in pkgutil.iter_modules(bgn.benchmarks.__path__)
+            if not m.name.startswith("_")}
+
+
+@pytest.fixture
+def keep_threads():
+    before = torch.get_num_threads()
+    yield
+    torch.set_num_threads(before)
+
+
+def test_every_benchmark_has_a_smoke_test() -> None:
+    missing = commands() - set(SMOKE)
+    assert not missing, f"benchmarks without a smoke test in {__file__}: {sorted(missing)}"
+    assert not set(SMOKE) - commands(), "smoke tests of benchmarks that no longer exist"
+
+
+def numbers_of_csv(path: Path) -> list[list[float]]:
+    """Each data row's numeric cells (the header and text cells left out)."""
+    with path.open(newline="") as f:
+        rows = list(csv.reader(f))[1:]
+    out = []
+    for row in rows:
+        values = []
+        for cell in row:
+            try:
+                values.append(float(cell))
+            except ValueError:
+                continue  # a label (a flow's name)
+        out.append(values)
+    return out
+
+
+def numbers_of_markdown_tables(text: str) -> list[str]:
+    """The cells of the markdown tables' body rows that should be numbers."""
+    cells = []
+    for line in text.splitlines():
+        if line.startswith("|") and not set(line) <= set("|-: "):
+            cells += [c.strip() for c in line.strip("|").split("|")]
+    return cells
+
+
+@pytest.mark.parametrize("name", sorted(SMOKE))
+def test_benchmark_writes_reports_with_finite_numbers(name, tmp_path, keep_threads) -> None:
+    argv, files = SMOKE[name]
+    main = importlib.import_module(f"bgn.benchmarks.{name}").main
+    assert main([*argv, "--out", str(tmp_path)]) == 0
+    for file in files:
+        assert (tmp_path / file).stat().st_size > 0, file
+
+    rows = numbers_of_csv(tmp_path / f"{name}.csv")
+    assert rows and all(rows), "a CSV row without numbers"
+    for values in rows:
+        assert all(math.isfinite(v) for v in values), values
+
+    cells = numbers_of_markdown_tables((tmp_path / f"{name}.md").read_text())
+    numeric = [c for c in cells if NUMBER.match(c.removeprefix("best of "))]
+    assert numeric, "the markdown report has no table of numbers"
+    for cell in cells:
+        assert cell.lower() not in ("nan", "inf", "-inf"), cells
+
+
+def test_neighbours_report_has_the_scaling_ratio(tmp_path) -> None:
+    from bgn.benchmarks.neighbours import main
+
+    assert main(["--sizes", "300", "600", "--neighbours", "8", "--out", str(tmp_path)]) == 0
+    lines = (tmp_path / "neighbours.csv").read_text().splitlines()
+    assert len(lines) == 3 and lines[1].startswith("300,")
+    assert "Linear-scaling ratio" in (tmp_path / "neighbours.md").read_text()
+
+
+def test_flow_statistics_have_what_the_target_coder_needs() -> None:
+    """The synthetic statistics carry every entry real ones have (target_diff1/2 included), so
+    BGN builds with its default target prior (``last`` for a velocity target)."""
+    from bgn.benchmarks.flow import BOX, HISTORY, synthetic_batch, synthetic_stats
+    from bgn.data.stats import summarize
+    from bgn.model.registry import build_model
+    from bgn.sim.scene import SceneMeta
+
+    g = synthetic_batch(2, 20, torch.Generator().manual_seed(0))
+    stats = synthetic_stats(g)
+    for name in ("velocity", "velocity_increment", "target", "target_diff1", "target_diff2",
+                 "log_mass", "rel_position", "rel_velocity", "rel_log_mass", "contact"):
+        assert set(stats[name]) == set(summarize(g.target.numpy())), name
+    meta = SceneMeta(name="synthetic_collisions", dim=2, n_particles=20, n_types=2,
+                     interaction="contact", target="velocity", graph="radius", box=BOX)
+    model = build_model({"name": "bgn", "hidden": 8}, meta, stats, HISTORY)
+    assert model.target_coder.prior_name == "last"
+    assert torch.isfinite(model.total_loss(model.loss_terms(g, model(g))))

@@ -6,6 +6,8 @@ from __future__ import annotations
 import csv
 from pathlib import Path
 
+import pytest
+
 from bgn.experiments import plan_cells, run
 from tests.conftest import compose_config
 

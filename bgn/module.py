@@ -260,12 +260,13 @@ def add_animation(experiment: Any, tag: str, result: dict[str, np.ndarray], step
 
     from bgn.figures import rollout_animation
 
-    writer = getattr(experiment, "_get_file_writer", None)
-    if writer is None:  # not torch's SummaryWriter: no animated images
-        return
+    get_writer = getattr(experiment, "_get_file_writer", None)
+    writer = get_writer() if callable(get_writer) else None
+    if writer is None or not hasattr(writer, "add_summary"):
+        return  # not torch's SummaryWriter (fast_dev_run's dummy logger): no animations
     with tempfile.TemporaryDirectory() as tmp:
         path = rollout_animation(result, Path(tmp) / "rollout.gif", max_frames=60, dpi=60)
         data = path.read_bytes()
         width, height = Image.open(path).size
     image = Summary.Image(height=height, width=width, colorspace=4, encoded_image_string=data)
-    writer().add_summary(Summary(value=[Summary.Value(tag=tag, image=image)]), step)
+    writer.add_summary(Summary(value=[Summary.Value(tag=tag, image=image)]), step)

@@ -113,8 +113,11 @@ def rollout_animation(result: dict[str, np.ndarray], path: str | Path, fps: int 
     true particles filled, predicted ones hollow in the same colour, a short trail behind
     each, the mean position error in the title. ``.gif`` (Pillow, always available) or
     ``.mp4`` (needs ffmpeg on the PATH)."""
+    import logging
+
     from matplotlib.animation import FFMpegWriter, FuncAnimation, PillowWriter
 
+    logging.getLogger("matplotlib.animation").setLevel(logging.WARNING)  # no line per save
     path = Path(path)
     if path.suffix not in (".gif", ".mp4"):
         raise ValueError(f"{path}: write a .gif or an .mp4")

@@ -76,7 +76,7 @@ class PhysicsModule(L.LightningModule):
                  scheduler_config: Mapping[str, Any] | None = None, figures: bool = True,
                  rollout: Callable[[nn.Module], dict] | None = None,
                  rollout_error: Callable[[nn.Module], float] | None = None,
-                 animation_every: int = 10) -> None:
+                 animation_every: int = 25) -> None:
         super().__init__()
         # everything needed to rebuild the model goes into the checkpoint's hyperparameters,
         # so PhysicsModule.load_from_checkpoint(path) alone restores it; the optimiser and

@@ -93,7 +93,7 @@ def build_module(cfg: DictConfig, meta: dict[str, Any], stats: dict[str, Any], h
                          scheduler=scheduler, scheduler_config=scheduler_config,
                          figures=bool(cfg.get("figures", True)), rollout=rollout,
                          rollout_error=rollout_error,
-                         animation_every=int(cfg.get("animation_every", 10)))
+                         animation_every=int(cfg.get("animation_every", 25)))
 
 
 def train(cfg: DictConfig) -> dict[str, float]:

@@ -1,8 +1,10 @@
 """The LightningModule: wraps any forward model (BGN or a baseline), sums its task losses
 (Eq. 12), logs every task on its own, computes the metrics and draws validation figures.
 
-Models expose ``forward(g)``, ``loss_terms(g, out) -> {task: loss}``, ``total_loss(terms)``,
-``predict(g)`` (physical units) and, with an inverse head, ``sample_mass(g, n)``.
+Every model fulfils one contract (``bgn.model.PhysicsModel``): ``forward(g)``, ``loss_terms``,
+``total_loss`` (Eq. 12), ``predict(g)`` (physical units), ``heads`` and, with an inverse head,
+``sample_mass(g, n)``; the module uses nothing else. Rollouts (the validation figure,
+animation and ``val/rollout_error``) come in as callables from the entry point.
 
 The optimiser and its learning-rate schedule are callables handed in by the entry point
 (``bgn.train`` instantiates ``conf/optimizer/`` and ``conf/scheduler/``, Hydra partials); without

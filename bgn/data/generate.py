@@ -144,7 +144,9 @@ def ensure_splits(spec: DatasetSpec, data_dir: str | Path, workers: int | None =
 
 def main(cfg) -> dict[str, Path]:  # noqa: ANN001 (an OmegaConf DictConfig)
     """Entry point body: generate every split of ``cfg.dataset`` at ``cfg.fps``."""
-    spec = DatasetSpec.from_config(cfg.dataset, cfg.fps, "train")
+    from bgn.validate import validate_generate
+
+    spec = validate_generate(cfg)  # bad values fail here, before any simulation
     start = time.perf_counter()
     paths = ensure_splits(spec, cfg.paths.data_dir, cfg.get("workers"))
     elapsed = time.perf_counter() - start
@@ -158,6 +160,9 @@ def main(cfg) -> dict[str, Path]:  # noqa: ANN001 (an OmegaConf DictConfig)
 
 
 if __name__ == "__main__":
-    import hydra
+    from bgn.config import register_configs
+    from bgn.validate import cli
 
-    hydra.main(config_path="../../conf", config_name="generate", version_base="1.3")(main)()
+    register_configs(models=False)  # the dataset schemas conf/generate.yaml builds on
+    # a Hydra app; bad input: one line, exit 2 (main validates first)
+    cli("generate")(main)()

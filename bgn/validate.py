@@ -316,15 +316,17 @@ def cli(config_name: str, validate: Callable[[Any], Any] | None = None,
 
     Hydra reports its own errors (a value the schema refuses, an unknown config) in several
     lines with exit code 1; so until the task starts, ``HYDRA_FULL_ERROR`` is set and the
-    error reaches this wrapper, which prints it on one line. The task restores the user's
-    setting first thing, so errors at run time keep Hydra's usual report. Called with a
+    error reaches this wrapper, which prints it on one line (or re-raises it: full trace). The
+    task restores the user's setting first thing (unless ``BGN_FULL_ERROR`` is set), so
+    errors at run time keep Hydra's usual report. Called with a
     config (``main(cfg)``), the function validates and runs it without Hydra.
     """
 
     def decorate(task: Callable[[Any], Any]) -> Callable[..., Any]:
         @functools.wraps(task)
         def checked(cfg: Any) -> Any:
-            _restore_hydra_env()
+            if not _env_set(FULL_ERROR_ENV):  # BGN_FULL_ERROR: full traces at run time too
+                _restore_hydra_env()
             with reported():
                 if validate is not None:
                     validate(cfg)
@@ -340,9 +342,8 @@ def cli(config_name: str, validate: Callable[[Any], Any] | None = None,
             if cfg is not None:
                 return checked(cfg)
             full = full_error()
-            if not full:
-                _saved_hydra_env.append(os.environ.get("HYDRA_FULL_ERROR", _NOT_SET))
-                os.environ["HYDRA_FULL_ERROR"] = "1"
+            _saved_hydra_env.append(os.environ.get("HYDRA_FULL_ERROR", _NOT_SET))
+            os.environ["HYDRA_FULL_ERROR"] = "1"
             try:
                 return app()
             except Exception as err:  # raised before the task ran: Hydra's own (bad input)

@@ -40,14 +40,10 @@ def model_schema(model: type) -> type:
 
 
 # ----------------------------------------------------------------------------- dataset
-@dataclass
-class ParticleTypeNode:
-    """A collisions particle type in config (``bgn.sim.collisions.ParticleType``'s fields)."""
-
-    radius: float = 0.1
-    mass_mode: float = 1.0
-    mass_log_std: float = 0.0
-    fraction: float = 1.0
+# A collisions particle type in config: ``ParticleType``'s fields, not frozen (a frozen
+# dataclass would make the config node read-only)
+ParticleTypeNode = make_dataclass(
+    "ParticleTypeNode", [(f.name, float, field(default=f.default)) for f in fields(ParticleType)])
 
 
 @dataclass
@@ -97,8 +93,8 @@ def dataset_schema(scene: str) -> type:
 
 # ----------------------------------------------------------------------------- top level
 @dataclass
-class TrainNode:
-    """Top-level keys of ``conf/train.yaml``; the groups are filled by its defaults list."""
+class TrainKeys:
+    """Top-level keys of ``conf/train.yaml`` (``TrainNode`` adds its groups' slots)."""
 
     task_name: str = "train"
     fps: float = 50.0                 # frames per unit of simulated time (> 0)
@@ -109,25 +105,27 @@ class TrainNode:
     val_rollout_steps: int = 50       # val/rollout_error rollout length (0: off)
     val_rollout_sims: int = 2
     test: bool = True
-    ckpt_path: str | None = None
-    paths: Any = None
-    dataset: Any = None
-    model: Any = None
-    optimizer: Any = None
-    scheduler: Any = None
-    trainer: Any = None
-    logger: Any = None
-    callbacks: Any = None
+    ckpt_path: str | None = None      # resume from this checkpoint
 
 
 @dataclass
-class GenerateNode:
+class GenerateKeys:
     """Top-level keys of ``conf/generate.yaml``."""
 
     fps: float = 50.0
-    workers: int | None = None     # simulation processes (null: one per core)
-    paths: Any = None
-    dataset: Any = None
+    workers: int | None = None        # simulation processes (null: one per core)
+
+
+def with_groups(keys: type, groups: tuple[str, ...]) -> type:
+    """``keys`` plus an untyped slot per config group (each group is typed by its own
+    schema, or is Lightning's / Hydra's)."""
+    slots = [(group, Any, field(default=None)) for group in groups]
+    return make_dataclass(keys.__name__.replace("Keys", "Node"), slots, bases=(keys,))
+
+
+TrainNode = with_groups(TrainKeys, ("paths", "dataset", "model", "optimizer", "scheduler",
+                                    "trainer", "logger", "callbacks"))
+GenerateNode = with_groups(GenerateKeys, ("paths", "dataset"))
 
 
 def register_configs(models: bool = True) -> None:

@@ -142,3 +142,25 @@ def test_train_command_exits_2_without_traceback(tmp_path, args):
     full = subprocess.run(cmd, capture_output=True, text=True, timeout=120,
                           env={**env, "BGN_FULL_ERROR": "1"})
     assert full.returncode != 0 and "Traceback" in full.stderr
+
+
+def test_study_validates_every_cell_before_training(monkeypatch, capsys):
+    """A bad preset fails before the first cell trains, naming the cell."""
+    from hydra import initialize_config_dir
+    from omegaconf import OmegaConf
+
+    import bgn.experiments as experiments
+    from tests.conftest import CONF_DIR
+
+    cfg = compose_config("experiments", ["preset=tiny"])
+    OmegaConf.update(cfg, "preset.scene_overrides.collisions",
+                     ["dataset.n_particles=30", "dataset.box=4.0", "dataset.n_frames=5"])
+    trained = []
+    monkeypatch.setattr(experiments, "train_cell", lambda *a: trained.append(a))
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        with pytest.raises(SystemExit) as exit_:
+            experiments.main(cfg)
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and len(err.strip().splitlines()) == 1
+    assert "bgn: error: cell collisions_" in err and "dataset.n_frames=5" in err
+    assert not trained

@@ -1,24 +1,35 @@
-"""Hydra's ConfigStore entries of the model configs: each model's dataclass is the schema
-and the base of ``conf/model/<name>.yaml``.
+"""Hydra's ConfigStore entries: the typed schemas of every config group a user sets.
 
-The dataclasses (``cls.config_class`` of every model in ``bgn.model.registry.MODELS``) are the
-one source of the model defaults; a model yaml only names its base (``defaults: [<name>_base,
-_self_]``) and the model. A composed ``model`` node is then typed: ``model.hidden=64`` is
-checked against the field's type and a typo (``model.hiden=3``) is an error at composition.
+- ``model/<name>_base``: each model's config dataclass (``cls.config_class`` of every model in
+  ``bgn.model.registry.MODELS``), the one source of the model defaults; ``conf/model/<name>.yaml``
+  only names its base (``defaults: [<name>_base, _self_]``) and the model.
+- ``dataset/<scene>_base``: the scene's own parameters (the fields of its ``bgn.sim`` class, so
+  the scene dataclass stays their one source), the sizes and seed (``DatasetNode``) and the
+  loader keys; ``conf/dataset/<scene>.yaml`` builds on it.
+- ``train_base`` and ``generate_base``: the top-level keys of ``conf/train.yaml`` and
+  ``conf/generate.yaml`` (fps, seed, ...); the config groups are untyped slots there.
 
-Call ``register_configs()`` before composing ``conf/train.yaml`` (``bgn.train`` does it at
-import, the tests in ``compose_config``); calling it again does nothing.
+A composed node is then typed: ``model.hidden=abc`` or ``fps=abc`` is refused at composition
+and a typo (``model.hiden=3``) is an error. Ranges and cross-checks (``fps > 0``, enough
+frames for the window, ...) are ``bgn.validate``'s.
+
+Call ``register_configs()`` before composing a config (``bgn.train`` and
+``bgn.data.generate`` do it at import, the tests in ``compose_config``); calling it again does
+nothing.
 """
 
 from __future__ import annotations
 
-from dataclasses import field, make_dataclass
+import typing
+from dataclasses import MISSING, dataclass, field, fields, make_dataclass
+from typing import Any
 
 from hydra.core.config_store import ConfigStore
 
-from bgn.model.registry import MODELS
+from bgn.sim import SCENES
+from bgn.sim.collisions import ParticleType
 
-_registered = False
+_registered: set[str] = set()  # the parts stored so far
 
 
 def model_schema(model: type) -> type:
@@ -28,12 +39,108 @@ def model_schema(model: type) -> type:
                           bases=(cfg,))
 
 
-def register_configs() -> None:
-    """Store ``model/<name>_base`` for every registered model (idempotent)."""
-    global _registered
-    if _registered:
-        return
+# ----------------------------------------------------------------------------- dataset
+# A collisions particle type in config: ``ParticleType``'s fields, not frozen (a frozen
+# dataclass would make the config node read-only)
+ParticleTypeNode = make_dataclass(
+    "ParticleTypeNode", [(f.name, float, field(default=f.default)) for f in fields(ParticleType)])
+
+
+@dataclass
+class DatasetNode:
+    """Keys of every ``dataset`` node besides the scene's own parameters."""
+
+    scene: str = MISSING
+    # sizes and seed (keyed into the cache file name with the scene parameters)
+    n_sims: int = 10                  # simulations per split (train, val, test)
+    n_frames: int = 1000              # frames per simulation (>= history + 3)
+    seed: int = 0
+    # loading (bgn.data.spec.LOADER_KEYS: not part of the cache key)
+    history: int = 5                  # k previous velocities in the input window (>= 0)
+    batch_size: int = 64
+    val_samples: int | None = None  # validation frames spread over all val sims (null: all)
+    num_workers: int = 0
+    train_sims: int | None = None  # train on the first n simulations only (null: all)
+    in_memory: bool = True
+    generate_workers: int | None = None  # simulation processes (null: one per core)
+
+
+def _config_type(tp: Any) -> Any:
+    """A scene field's annotation as OmegaConf accepts it (``tuple`` of types -> a list)."""
+    if tp is tuple:
+        return list[ParticleTypeNode]
+    return tp
+
+
+def _config_default(value: Any) -> Any:
+    if isinstance(value, tuple) and value and isinstance(value[0], ParticleType):
+        nodes = [ParticleTypeNode(**{f.name: getattr(t, f.name) for f in fields(t)})
+                 for t in value]
+        return field(default_factory=lambda: list(nodes))
+    return field(default=value)
+
+
+def dataset_schema(scene: str) -> type:
+    """``DatasetNode`` plus the parameters of scene ``scene`` (its class's fields, less those
+    fixed by the scene's name), with the class's defaults."""
+    cls, fixed = SCENES[scene]
+    hints = typing.get_type_hints(cls)
+    own = [(f.name, _config_type(hints[f.name]), _config_default(f.default))
+           for f in fields(cls) if f.name not in fixed]
+    name = "".join(part.title() for part in scene.split("_")) + "DatasetNode"
+    return make_dataclass(name, own, bases=(DatasetNode,))
+
+
+# ----------------------------------------------------------------------------- top level
+@dataclass
+class TrainKeys:
+    """Top-level keys of ``conf/train.yaml`` (``TrainNode`` adds its groups' slots)."""
+
+    task_name: str = "train"
+    fps: float = 50.0                 # frames per unit of simulated time (> 0)
+    seed: int = 0                     # training seed (the data seed is dataset.seed)
+    figures: bool = True
+    rollout_steps: int = 50           # validation rollout figure length (>= 0)
+    animation_every: int = 10         # validations between TensorBoard animations (0: off)
+    val_rollout_steps: int = 50       # val/rollout_error rollout length (0: off)
+    val_rollout_sims: int = 2
+    test: bool = True
+    ckpt_path: str | None = None      # resume from this checkpoint
+
+
+@dataclass
+class GenerateKeys:
+    """Top-level keys of ``conf/generate.yaml``."""
+
+    fps: float = 50.0
+    workers: int | None = None        # simulation processes (null: one per core)
+
+
+def with_groups(keys: type, groups: tuple[str, ...]) -> type:
+    """``keys`` plus an untyped slot per config group (each group is typed by its own
+    schema, or is Lightning's / Hydra's)."""
+    slots = [(group, Any, field(default=None)) for group in groups]
+    return make_dataclass(keys.__name__.replace("Keys", "Node"), slots, bases=(keys,))
+
+
+TrainNode = with_groups(TrainKeys, ("paths", "dataset", "model", "optimizer", "scheduler",
+                                    "trainer", "logger", "callbacks"))
+GenerateNode = with_groups(GenerateKeys, ("paths", "dataset"))
+
+
+def register_configs(models: bool = True) -> None:
+    """Store the dataset and top-level schemas and, with ``models``, the model schemas (which
+    import torch; ``conf/generate.yaml`` needs none). Idempotent."""
     cs = ConfigStore.instance()
-    for name, model in MODELS.items():
-        cs.store(group="model", name=f"{name}_base", node=model_schema(model))
-    _registered = True
+    if "data" not in _registered:
+        for scene in SCENES:
+            cs.store(group="dataset", name=f"{scene}_base", node=dataset_schema(scene))
+        cs.store(name="train_base", node=TrainNode)
+        cs.store(name="generate_base", node=GenerateNode)
+        _registered.add("data")
+    if models and "models" not in _registered:
+        from bgn.model.registry import MODELS  # torch
+
+        for name, model in MODELS.items():
+            cs.store(group="model", name=f"{name}_base", node=model_schema(model))
+        _registered.add("models")

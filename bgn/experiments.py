@@ -17,10 +17,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-import hydra
 from omegaconf import DictConfig, OmegaConf
 
 from bgn.report import write_report
+from bgn.validate import cli
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
@@ -186,7 +186,19 @@ def run(cfg: DictConfig) -> Path:
     return report
 
 
-@hydra.main(config_path="../conf", config_name="experiments", version_base="1.3")
+def validate_cells(cfg: DictConfig) -> None:
+    """The train config of every cell, checked before the first cell trains
+    (``bgn.validate.validate_train``): a bad preset fails at once, naming the cell."""
+    from bgn.validate import ConfigError, validate_train
+
+    for cell in plan_cells(cfg.preset):
+        try:
+            validate_train(compose_train(cell_overrides(cell, cfg)))
+        except ConfigError as err:
+            raise ConfigError(err.key, message=f"cell {cell.name}: {err}") from err
+
+
+@cli("experiments", validate_cells)  # Hydra app; bad input: one line, exit 2
 def main(cfg: DictConfig) -> None:
     """``python -m bgn.experiments preset=...``: see the module docstring."""
     run(cfg)

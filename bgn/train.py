@@ -19,22 +19,22 @@ import logging
 import time
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import hydra
-import lightning as L
 import numpy as np
 from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
-from lightning.pytorch.utilities import rank_zero_only
 from omegaconf import DictConfig, OmegaConf
 
 from bgn.config import register_configs
-from bgn.data.datamodule import ParticleDataModule
-from bgn.module import PhysicsModule
-from bgn.rollout import rollout, rollout_error
+from bgn.validate import cli, validate_train
 
-register_configs()  # the model schemas, before Hydra composes conf/train.yaml
+if TYPE_CHECKING:  # Lightning and the data and model modules load when they are used, so
+    # that bad input is refused (bgn.validate) before the seconds their import takes
+    from bgn.data.datamodule import ParticleDataModule
+    from bgn.module import PhysicsModule
+
+register_configs()  # the schemas (bgn.config), before Hydra composes conf/train.yaml
 
 log = logging.getLogger("bgn.train")  # not __main__ under python -m bgn.train
 
@@ -43,10 +43,11 @@ log = logging.getLogger("bgn.train")  # not __main__ under python -m bgn.train
 LIGHTNING_SCHEDULER_KEYS = ("monitor", "interval", "frequency", "strict", "name")
 
 
-@rank_zero_only
 def info(message: str) -> None:
     """Log once per run, from the rank-zero process (not once per DDP process)."""
-    log.info(message)
+    from lightning.pytorch.utilities import rank_zero_only
+
+    rank_zero_only(log.info)(message)
 
 
 def plain_stats(stats: dict[str, dict[str, np.ndarray]]) -> dict[str, dict[str, Any]]:
@@ -56,8 +57,10 @@ def plain_stats(stats: dict[str, dict[str, np.ndarray]]) -> dict[str, dict[str, 
 
 def build(cfg: DictConfig) -> tuple[ParticleDataModule, PhysicsModule]:
     """DataModule (data generated if missing) and LightningModule from a composed config."""
-    if not cfg.fps or float(cfg.fps) <= 0:
-        raise ValueError(f"fps={cfg.fps} must be a positive number of frames per time unit")
+    from bgn.data.datamodule import ParticleDataModule
+    from bgn.rollout import rollout, rollout_error
+
+    validate_train(cfg)  # bad values fail here, before any data are generated
     # dataset.generate_workers: simulation processes when the data are generated here
     # (default one per core; 1 generates in this process)
     datamodule = ParticleDataModule(cfg.dataset, cfg.fps, cfg.paths.data_dir,
@@ -81,6 +84,8 @@ def build_module(cfg: DictConfig, meta: dict[str, Any], stats: dict[str, Any], h
                  rollout: Any = None, rollout_error: Any = None) -> PhysicsModule:
     """The LightningModule of a composed config: the model from ``cfg.model``, the optimiser
     and scheduler partials from ``cfg.optimizer`` and ``cfg.scheduler``."""
+    from bgn.module import PhysicsModule
+
     model_config = OmegaConf.to_container(cfg.model, resolve=True)
     optimizer = scheduler = scheduler_config = None
     if cfg.get("optimizer") is not None:
@@ -98,6 +103,8 @@ def build_module(cfg: DictConfig, meta: dict[str, Any], stats: dict[str, Any], h
 
 def train(cfg: DictConfig) -> dict[str, float]:
     """Fit, test, and write metrics.json; returns the final metrics."""
+    import lightning as L
+
     start = time.perf_counter()
     L.seed_everything(int(cfg.seed), workers=True)
     output_dir = Path(cfg.paths.output_dir)
@@ -133,7 +140,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     return metrics
 
 
-@hydra.main(config_path="../conf", config_name="train", version_base="1.3")
+@cli("train", validate_train)  # Hydra app; bad input: one line, exit 2 (bgn.validate)
 def main(cfg: DictConfig) -> float:
     metrics = train(cfg)
     return metrics.get("val/nmse", float("nan"))  # the objective a sweeper would minimise

@@ -33,12 +33,22 @@ STATE_ARRAYS = ("positions", "velocities")
 PARTICLE_ARRAYS = ("masses", "radii", "types")
 
 
+# The statistics groups of a train file (bgn.data.stats.compute_stats) and their columns:
+# "dim" (one per spatial dimension) or 1.
+STATS_GROUPS = {"velocity": "dim", "velocity_increment": "dim", "target": "dim",
+                "target_diff1": "dim", "target_diff2": "dim", "log_mass": 1,
+                "rel_position": "dim", "rel_velocity": "dim", "rel_log_mass": 1, "contact": 1}
+STATS_ENTRIES = ("mean", "std", "median", "robust_scale", "min", "max", "count")
+# Groups recomputed from the arrays on open (cheap): stored values must match them
+RECOMPUTED_STATS = ("velocity", "target", "log_mass")
+
+
 class DatasetFileError(RuntimeError):
     """A dataset file that cannot be used; the message names the file and the fix."""
 
     def __init__(self, path: str | Path, problem: str, hint: str | None = None) -> None:
-        fix = (f"Delete it and regenerate it with `{hint}` (with the same dataset overrides)"
-               if hint else "Delete it and regenerate it with `python -m bgn.data.generate`")
+        fix = (f"Delete it and regenerate it with `{hint}`" if hint
+               else "Delete it and regenerate it with `python -m bgn.data.generate`")
         super().__init__(f"dataset file {path}: {problem}. {fix}; nothing else is touched.")
         self.path = Path(path)
 
@@ -80,6 +90,13 @@ def write_dataset(path: Path, spec: DatasetSpec, meta: SceneMeta, arrays: dict[s
             tmp.unlink()
 
 
+def _within(value: np.ndarray, low: np.ndarray, high: np.ndarray) -> bool:
+    """``low <= value <= high`` up to round-off (a mean of equal values may differ in the last
+    bit)."""
+    slack = 1e-12 * np.maximum(np.abs(low), np.abs(high))
+    return bool(((value >= low - slack) & (value <= high + slack)).all())
+
+
 class DatasetFile:
     """A validated dataset file. Arrays are read on demand; the handle opens lazily.
 
@@ -90,11 +107,43 @@ class DatasetFile:
     def __init__(self, path: str | Path, spec: DatasetSpec | None = None,
                  check_values: bool = True) -> None:
         self.path = Path(path)
-        self.hint = spec.regenerate_hint() if spec else None
+        self.spec = spec
+        self.hint = spec.regenerate_hint(self.path.parent) if spec else self._own_hint()
         self._handle: h5py.File | None = None
         self._cache: dict[str, np.ndarray] = {}
         self.attrs = self._validate(check_values)
         self.meta = SceneMeta(**json.loads(self.attrs["meta"]))
+        if spec is not None:
+            self._compare(spec)
+
+    def _own_hint(self) -> str | None:
+        """The regenerate command of the file's own generating config (None if unreadable)."""
+        try:
+            with h5py.File(self.path, "r") as f:
+                config = json.loads(f.attrs["config"])
+                spec = DatasetSpec(config["scene"], int(config["n_sims"]),
+                                   int(config["n_frames"]), int(config["seed"]),
+                                   float(f.attrs["fps"]), str(f.attrs["split"]),
+                                   config["params"])
+            return spec.regenerate_hint(self.path.parent)
+        except Exception:  # noqa: BLE001 (a corrupt file: the generic hint)
+            return None
+
+    def _compare(self, spec: DatasetSpec) -> None:
+        """The file's attributes against the config it is opened for: a file renamed or
+        copied under another config's name is refused."""
+        asked = {"scene": spec.scene, "split": spec.split, "n_sims": spec.n_sims,
+                 "n_frames": spec.n_frames, "seed": spec.seed}
+        differ = [f"{k}={self.attrs.get(k)!r} (the config asks for {v!r})"
+                  for k, v in asked.items() if self.attrs.get(k) != v]
+        if not np.isclose(float(self.attrs["fps"]), spec.fps, rtol=1e-12, atol=0.0):
+            differ.append(f"fps={self.attrs['fps']:g} (the config asks for {spec.fps:g})")
+        if not differ and json.loads(self.attrs["config"]) != json.loads(
+                json.dumps(spec.generating_config(), sort_keys=True)):
+            differ.append("its generating parameters (attribute 'config') differ from the "
+                          "config's")
+        if differ:
+            raise self._fail("was not written for this config: it holds " + "; ".join(differ))
 
     # -- validation ---------------------------------------------------------------------
     def _fail(self, problem: str) -> DatasetFileError:
@@ -133,9 +182,13 @@ class DatasetFile:
                             f["contacts"].shape[1] != 4:
                         raise self._fail("lacks a (M, 4) 'contacts' array")
                 if check_values:
-                    for name in (*expected, "contacts"):
-                        if name in f:
-                            self._check_finite(name, f[name][...])
+                    arrays = {name: f[name][...] for name in (*expected, "contacts")
+                              if name in f}
+                    for name, value in arrays.items():
+                        self._check_finite(name, value)
+                    self._check_particles(arrays, meta)
+                    if "stats" in f:
+                        self._check_stats(f["stats"], arrays, float(attrs["dt"]), d, meta)
         except DatasetFileError:
             raise
         except (OSError, KeyError, ValueError, RuntimeError) as err:
@@ -143,6 +196,61 @@ class DatasetFile:
             raise self._fail(f"cannot be read as HDF5, it is truncated or corrupt ({err})"
                              ) from None
         return attrs
+
+    def _check_particles(self, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> None:
+        """Masses positive, radii non-negative, types among the scene's."""
+        if not (arrays["masses"] > 0).all():
+            bad = int((~(arrays["masses"] > 0)).sum())
+            raise self._fail(f"array 'masses' holds {bad} masses that are not positive")
+        if not (arrays["radii"] >= 0).all():
+            raise self._fail("array 'radii' holds negative radii")
+        types = arrays["types"]
+        if types.size and (types.min() < 0 or types.max() >= int(meta["n_types"])):
+            raise self._fail(f"array 'types' holds types outside 0..{int(meta['n_types']) - 1}")
+
+    def _check_stats(self, group: h5py.Group, arrays: dict[str, np.ndarray], dt: float,
+                     dim: int, meta: dict[str, Any]) -> None:
+        """Normalisation statistics: every group and entry present with the arrays' number of
+        columns, finite, scales >= 0, min <= mean, median <= max, and the groups that are
+        cheap to recompute (``RECOMPUTED_STATS``) equal to what the arrays give."""
+        from bgn.data.stats import summarize  # the one definition of the statistics
+        from bgn.data.targets import backward_velocities, targets
+
+        for name, columns in STATS_GROUPS.items():
+            width = dim if columns == "dim" else columns
+            if name not in group:
+                raise self._fail(f"lacks the statistics group 'stats/{name}'")
+            for key in STATS_ENTRIES:
+                if key not in group[name]:
+                    raise self._fail(f"lacks the statistics 'stats/{name}/{key}'")
+                value = group[name][key][...]
+                shape = () if key == "count" else (width,)
+                where = f"statistics 'stats/{name}/{key}'"
+                if value.shape != shape:
+                    raise self._fail(f"{where} have shape {value.shape}, expected {shape}")
+                if not np.isfinite(value).all():
+                    raise self._fail(f"{where} hold non-finite values (NaN or inf)")
+                if key in ("std", "robust_scale") and (value < 0).any():
+                    raise self._fail(f"{where} hold negative scales")
+            s = {key: group[name][key][...] for key in STATS_ENTRIES}
+            if s["count"] > 0 and not ((s["min"] <= s["max"]).all()
+                                       and _within(s["mean"], s["min"], s["max"])
+                                       and _within(s["median"], s["min"], s["max"])):
+                raise self._fail(f"statistics 'stats/{name}' are inconsistent (a mean or median "
+                                 "outside [min, max])")
+        x = np.moveaxis(arrays["positions"], 1, 0)
+        fresh = {"velocity": lambda: backward_velocities(x, dt).reshape(-1, dim),
+                 "target": lambda: targets(x, dt, meta["target"]).reshape(-1, dim),
+                 "log_mass": lambda: np.log(arrays["masses"]).reshape(-1, 1)}
+        for name in RECOMPUTED_STATS:
+            expected = summarize(fresh[name]())
+            for key, value in expected.items():
+                stored = group[name][key][...]
+                scale = float(np.max(np.abs(value))) if np.size(value) else 0.0
+                if not np.allclose(stored, value, rtol=1e-9, atol=1e-12 * scale):
+                    raise self._fail(f"statistics 'stats/{name}/{key}' do not match the arrays "
+                                     f"(stored {np.round(stored, 6).tolist()}, the arrays give "
+                                     f"{np.round(value, 6).tolist()})")
 
     def _check_finite(self, name: str, value: np.ndarray) -> None:
         if value.dtype.kind == "f" and not np.isfinite(value).all():

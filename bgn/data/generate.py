@@ -8,10 +8,14 @@ workers, and the simulations of a larger ``n_sims`` extend those of a smaller on
 
 from __future__ import annotations
 
+import ctypes
 import os
+import signal
+import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import nullcontext
+from glob import escape as glob_escape
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -36,6 +40,35 @@ def simulate_one(spec: DatasetSpec, index: int) -> Trajectory:
     return spec.build_scene().simulate(rng, times)
 
 
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def end_with_parent(parent: int) -> None:
+    """Initializer of a generation worker: the worker ends when its parent does.
+
+    On Linux the kernel sends SIGKILL to the worker when the parent dies (PR_SET_PDEATHSIG),
+    even by kill -9, which no Python-level handler sees; without this the workers of a
+    killed generation keep simulating, re-parented. A parent already gone: exit at once.
+    """
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        except (OSError, AttributeError):  # no prctl: the pool's own checks remain
+            pass
+    if os.getppid() != parent:  # died before prctl took effect
+        os._exit(1)
+
+
+def remove_stale_temporaries(path: Path) -> list[Path]:
+    """Remove the temporary files (``<name>.tmp<pid>``) that a killed writer of ``path``
+    left. Call with the file's lock held: no live writer of it exists then."""
+    stale = sorted(path.parent.glob(f"{glob_escape(path.name)}.tmp*"))
+    for tmp in stale:
+        tmp.unlink(missing_ok=True)
+    return stale
+
+
 def _simulate_indexed(args: tuple[DatasetSpec, int]) -> tuple[int, Trajectory]:
     return args[1], simulate_one(*args)
 
@@ -52,7 +85,8 @@ def simulate_split(spec: DatasetSpec, workers: int = 1,
         pool = None
     else:
         # spawn: safe even when torch (and its thread pools) is already imported
-        pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"))
+        pool = ProcessPoolExecutor(workers, mp_context=get_context("spawn"),
+                                   initializer=end_with_parent, initargs=(os.getpid(),))
         finished = pool.map(_simulate_indexed, jobs)
     try:
         for index, trajectory in finished:
@@ -118,6 +152,7 @@ def ensure_dataset(spec: DatasetSpec, data_dir: str | Path, workers: int | None 
         path.parent.mkdir(parents=True, exist_ok=True)
         with FileLock(path.with_name(f".{path.name}.lock")):  # hidden; never removed (safe)
             if not path.exists():
+                remove_stale_temporaries(path)  # a killed writer's partial file
                 workers = default_workers(spec.n_sims) if workers is None else workers
                 generate_file(spec, path, workers, progress)
     DatasetFile(path, spec).close()  # validate (cheap at our sizes) before anyone trains on it
@@ -144,7 +179,9 @@ def ensure_splits(spec: DatasetSpec, data_dir: str | Path, workers: int | None =
 
 def main(cfg) -> dict[str, Path]:  # noqa: ANN001 (an OmegaConf DictConfig)
     """Entry point body: generate every split of ``cfg.dataset`` at ``cfg.fps``."""
-    spec = DatasetSpec.from_config(cfg.dataset, cfg.fps, "train")
+    from bgn.validate import validate_generate
+
+    spec = validate_generate(cfg)  # bad values fail here, before any simulation
     start = time.perf_counter()
     paths = ensure_splits(spec, cfg.paths.data_dir, cfg.get("workers"))
     elapsed = time.perf_counter() - start
@@ -158,6 +195,9 @@ def main(cfg) -> dict[str, Path]:  # noqa: ANN001 (an OmegaConf DictConfig)
 
 
 if __name__ == "__main__":
-    import hydra
+    from bgn.config import register_configs
+    from bgn.validate import cli
 
-    hydra.main(config_path="../../conf", config_name="generate", version_base="1.3")(main)()
+    register_configs(models=False)  # the dataset schemas conf/generate.yaml builds on
+    # a Hydra app; bad input: one line, exit 2 (main validates first)
+    cli("generate")(main)()

@@ -102,5 +102,34 @@ class DatasetSpec:
         return DatasetSpec(self.scene, self.n_sims, self.n_frames, self.seed, self.fps, split,
                            self.params)
 
-    def regenerate_hint(self) -> str:
-        return f"python -m bgn.data.generate dataset={self.scene} fps={self.fps:g}"
+    def regenerate_hint(self, data_dir: str | Path | None = None) -> str:
+        """The command that writes this spec's files: the scene, fps, sizes, seed, every
+        parameter that differs from the scene's default, and the data directory."""
+        cls, fixed = SCENES[self.scene]
+        defaults = {f.name: _plain(f.default) for f in fields(cls) if f.name not in fixed}
+        resolved = self.generating_config()["params"]
+        parts = [f"dataset={self.scene}", f"fps={self.fps:g}", f"dataset.n_sims={self.n_sims}",
+                 f"dataset.n_frames={self.n_frames}", f"dataset.seed={self.seed}"]
+        parts += [_shell(f"dataset.{k}={_override(v)}") for k, v in resolved.items()
+                  if k in defaults and v != defaults[k]]
+        if data_dir is not None:
+            parts.append(_shell(f"paths.data_dir={data_dir}"))
+        return "python -m bgn.data.generate " + " ".join(parts)
+
+
+def _override(value: Any) -> str:
+    """A config value in Hydra's override syntax (lists and dicts included)."""
+    if isinstance(value, dict):
+        return "{" + ",".join(f"{k}:{_override(v)}" for k, v in value.items()) + "}"
+    if isinstance(value, list | tuple):
+        return "[" + ",".join(_override(v) for v in value) + "]"
+    if isinstance(value, bool):
+        return str(value).lower()
+    return repr(value) if isinstance(value, float) else str(value)
+
+
+def _shell(arg: str) -> str:
+    """``arg`` quoted for a POSIX shell when it needs it."""
+    import shlex
+
+    return shlex.quote(arg)

@@ -19,7 +19,13 @@ import torch
 from torch.nn import functional as F
 
 from bgn.graph import Graph
-from bgn.model.base import LOSS_KEYS, DynamicsConfig, ModelOutput, PhysicsModel
+from bgn.model.base import (
+    LOSS_KEYS,
+    DynamicsConfig,
+    ModelOutput,
+    PhysicsModel,
+    check_positive_ints,
+)
 from bgn.model.decoder import Decoder
 from bgn.model.encoder import (
     EdgeEncoder,
@@ -101,6 +107,8 @@ class ModelConfig(DynamicsConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        check_positive_ints(self, ("hidden", "node_layers", "edge_layers", "decoder_hidden",
+                                   "flow_transforms", "flow_hidden"))
         if self.flow not in FLOWS:
             raise ValueError(f"flow={self.flow!r}; choose one of {FLOWS}")
         if self.contact_mode not in CONTACT_MODES:

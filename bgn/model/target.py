@@ -73,6 +73,26 @@ def extrapolate(seen: torch.Tensor, prior: str) -> torch.Tensor:
     raise ValueError(f"no extrapolation named {prior!r}; use last or linear")
 
 
+def resolve_prior(prior: str, target: str, history: int) -> tuple[str, int, int]:
+    """``(prior, needed, available)``: the prior ``auto`` stands for, the observed targets it
+    needs and those a window of ``history`` past velocities gives."""
+    if prior == "auto":
+        prior = "linear" if target == "acceleration" and history >= 2 else "last"
+    available = history + 1 if target == "velocity" else history
+    return prior, {"none": 0, "last": 1, "linear": 2}.get(prior, 0), available
+
+
+def prior_hint(prior: str, needed: int, history: int, available: int,
+               asked: str | None = None) -> str:
+    """Why a window is too short for a prior, and the settings that work (``asked``: the
+    setting that chose ``prior``, e.g. auto)."""
+    fits = [p for p, n in (("last", 1), ("none", 0)) if n <= available and p != prior]
+    shown = prior if asked in (None, prior) else f"{asked} (here {prior})"
+    return (f"model.target_prior={shown} needs {needed} observed target(s), a window of "
+            f"dataset.history={history} gives {available}: raise dataset.history to "
+            f"{history + needed - available} or set model.target_prior={fits[0]}")
+
+
 class TargetCoder(nn.Module):
     """Physical target <-> what the dynamics head outputs, for one ``prior`` (see module doc)."""
 
@@ -86,17 +106,12 @@ class TargetCoder(nn.Module):
             raise ValueError(f"dynamics_loss={loss!r}; choose one of {LOSSES}")
         if not huber_delta > 0:
             raise ValueError(f"huber_delta={huber_delta} must be > 0")
-        if prior == "auto":
-            prior = "linear" if meta.target == "acceleration" and history >= 2 else "last"
+        prior, needed, available = resolve_prior(prior, meta.target, history)
         if loss == "auto":  # heavy-tailed residuals (force scenes) vs impacts that are the signal
             loss = "huber" if meta.target == "acceleration" and prior != "none" else "mse"
         self.loss_name, self.huber_delta = loss, float(huber_delta)
-        available = history + 1 if meta.target == "velocity" else history
-        needed = {"none": 0, "last": 1, "linear": 2}[prior]
         if available < needed:
-            raise ValueError(f"target_prior={prior!r} needs {needed} observed targets, a window "
-                             f"of history={history} gives {available}: raise dataset.history "
-                             "or use target_prior=last")
+            raise ValueError(prior_hint(prior, needed, history, available))
         self.normalizer, self.prior_name, self.kind = normalizer, prior, meta.target
         if prior != "none":
             name = _DIFF_STATS[prior]

@@ -1,0 +1,358 @@
+"""Bad input, refused at once: config checks before any work, and the one-line exit.
+
+The typed schemas (``bgn.config``) fix the types at composition; here are the ranges and the
+cross-checks, run by every entry point (``bgn.train``, ``bgn.data.generate``,
+``bgn.experiments``) before data are generated or a model is built:
+
+- ``fps`` > 0 and low enough that the frame spacing is resolved by the stored float64
+  positions (``check_resolution``); the sizes ``dataset.n_sims``, ``n_frames``,
+  ``n_particles``, ``dim`` >= 1, ``history`` >= 0, ``n_frames >= history + 3`` (the window
+  and the next frame, what ``bgn.data.dataset.FrameDataset`` samples), ``batch_size``,
+  ``val_samples``, ``train_sims``; the scene's own parameter checks (``bgn.sim``);
+- the model's options (its config dataclass: sizes >= 1, choices) and whether the window of
+  ``dataset.history`` past velocities feeds its ``target_prior``;
+- ``optimizer.lr`` > 0 and the other optimiser and scheduler numbers;
+- the top-level keys (``seed``, ``rollout_steps``, ...).
+
+A bad value raises ``ConfigError`` (a ``ValueError``) naming the key, the value and what is
+accepted. ``cli`` turns an entry point into a Hydra app whose bad input (a value refused at
+composition, an unknown config, a ``ConfigError``) ends with that one line on stderr and exit
+code 2, and a bad dataset file with its one line and exit code 1; ``BGN_FULL_ERROR=1`` (or
+Hydra's ``HYDRA_FULL_ERROR=1``) shows the full trace instead.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+import sys
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bgn.checks import as_float, as_int
+from bgn.data.spec import DatasetSpec
+from bgn.sim import SCENES, Scene
+
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+FULL_ERROR_ENV = "BGN_FULL_ERROR"
+CONFIG_EXIT = 2       # bad input (the usual exit code of a command-line usage error)
+DATA_EXIT = 1         # a dataset file that cannot be used
+# Largest accepted round-off of a finite-difference target relative to its typical size
+MAX_ROUNDOFF = 1e-4
+MAX_SEED = 2**32 - 1  # numpy's and Lightning's seed range
+
+
+class ConfigError(ValueError):
+    """A config value bgn cannot use; the message names the key, the value and what is
+    accepted (or is given whole as ``message``)."""
+
+    def __init__(self, key: str, value: Any = None, accepted: str = "",
+                 message: str | None = None) -> None:
+        self.key, self.value = key, value
+        shown = repr(value) if isinstance(value, str) else f"{value}"
+        super().__init__(message or f"{key}={shown}: {accepted}")
+
+
+def _get(node: Any, key: str, default: Any = None) -> Any:
+    if isinstance(node, Mapping) or hasattr(node, "get"):
+        return node.get(key, default)
+    return getattr(node, key, default)
+
+
+def _keys(node: Any) -> list[Any]:
+    return list(node.keys()) if hasattr(node, "keys") else []
+
+
+def need_int(value: Any, key: str, minimum: int, maximum: int | None = None,
+             optional: bool = False, why: str = "") -> int | None:
+    """``value`` as an int in ``[minimum, maximum]`` (``None`` allowed when ``optional``)."""
+    if value is None and optional:
+        return None
+    span = f"an integer >= {minimum}" if maximum is None else \
+        f"an integer in {minimum}..{maximum}"
+    accepted = f"must be {span}{' (or null)' if optional else ''}{why}"
+    try:
+        out = as_int(value, key, minimum)
+    except ValueError:
+        raise ConfigError(key, value, accepted) from None
+    if maximum is not None and out > maximum:
+        raise ConfigError(key, value, accepted)
+    return out
+
+
+def need_float(value: Any, key: str, low: float | None = None, high: float | None = None,
+               strict_low: bool = True, strict_high: bool = False, why: str = "") -> float:
+    """``value`` as a finite float above ``low`` (at least, unless ``strict_low``) and below
+    ``high`` (at most, unless ``strict_high``)."""
+    parts = []
+    if low is not None:
+        parts.append(f"{'>' if strict_low else '>='} {low:g}")
+    if high is not None:
+        parts.append(f"{'<' if strict_high else '<='} {high:g}")
+    accepted = f"must be a finite number{' ' + ' and '.join(parts) if parts else ''}{why}"
+    try:
+        out = as_float(value, key)
+    except ValueError:
+        raise ConfigError(key, value, accepted) from None
+    if low is not None and (out <= low if strict_low else out < low):
+        raise ConfigError(key, value, accepted)
+    if high is not None and (out >= high if strict_high else out > high):
+        raise ConfigError(key, value, accepted)
+    return out
+
+
+# ----------------------------------------------------------------------------- data
+def frame_roundoff(scene: Scene, fps: float) -> tuple[float, float]:
+    """``(round-off, largest fps)``: the relative float64 round-off of the finite-difference
+    target of a typical frame at ``fps``, and the largest fps that keeps it <= MAX_ROUNDOFF.
+
+    Typical sizes from the scene's parameters: positions ``box`` (walls) or 3 x
+    ``position_std``; speeds ``velocity_std``; accelerations speed^2 / position. The velocity
+    target is a first difference of positions (step v dt), the acceleration target a second
+    one (step a dt^2); a position x carries an absolute round-off of eps x.
+    """
+    meta = scene.meta
+    eps = float(np.finfo(np.float64).eps)
+    size = float(meta.box) if meta.box else 3.0 * float(getattr(scene, "position_std", 1.0))
+    speed = float(getattr(scene, "velocity_std", 0.0)) or 1.0
+    dt = 1.0 / fps
+    floor = eps * size / MAX_ROUNDOFF  # the smallest step resolved well enough
+    if meta.target == "velocity":
+        return eps * size / (speed * dt), speed / floor
+    accel = speed * speed / size
+    return eps * size / (accel * dt * dt), math.sqrt(accel / floor)
+
+
+def check_resolution(scene: Scene, fps: float) -> None:
+    """Refuse an fps whose frame spacing the stored float64 positions do not resolve (the
+    targets would be round-off: at fps=1e9 the spring's target median is exactly 0)."""
+    roundoff, fps_max = frame_roundoff(scene, fps)
+    if roundoff > MAX_ROUNDOFF:
+        raise ConfigError("fps", fps, (
+            f"too high for {scene.meta.name}: the frame spacing is below what float64 positions "
+            f"resolve (round-off {roundoff:.1e} of a typical {scene.meta.target} target, at most "
+            f"{MAX_ROUNDOFF:g} accepted); use fps <= {fps_max:.3g}"))
+
+
+def validate_dataset(dataset: Any, fps: Any) -> DatasetSpec:
+    """Check a ``dataset`` node and ``fps`` (types, ranges, the scene's parameters, enough
+    frames, a resolved frame spacing); returns the train split's ``DatasetSpec``."""
+    fps = need_float(fps, "fps", 0.0, why=" (frames per unit of simulated time)")
+    scene_name = _get(dataset, "scene")
+    if scene_name not in SCENES:
+        raise ConfigError("dataset.scene", scene_name, f"choose one of {sorted(SCENES)}")
+    n_sims = need_int(_get(dataset, "n_sims"), "dataset.n_sims", 1)
+    history = need_int(_get(dataset, "history", 5), "dataset.history", 0)
+    assert n_sims is not None and history is not None
+    n_frames = need_int(_get(dataset, "n_frames"), "dataset.n_frames", 3)
+    if n_frames is not None and n_frames < history + 3:
+        raise ConfigError("dataset.n_frames", n_frames, (
+            f"must be >= dataset.history + 3 = {history + 3} (a sample needs the "
+            f"{history + 2} frames of its velocity window and the next frame); raise "
+            f"dataset.n_frames or lower dataset.history"))
+    need_int(_get(dataset, "seed"), "dataset.seed", 0, MAX_SEED)
+    for key in ("n_particles", "dim"):
+        if _get(dataset, key) is not None:
+            need_int(_get(dataset, key), f"dataset.{key}", 1)
+    need_int(_get(dataset, "batch_size", 1), "dataset.batch_size", 1)
+    need_int(_get(dataset, "num_workers", 0), "dataset.num_workers", 0)
+    need_int(_get(dataset, "val_samples"), "dataset.val_samples", 1, optional=True,
+             why=": validation frames (null: the whole validation split)")
+    need_int(_get(dataset, "train_sims"), "dataset.train_sims", 1, n_sims, optional=True,
+             why=f" (at most dataset.n_sims={n_sims})")
+    need_int(_get(dataset, "generate_workers"), "dataset.generate_workers", 1, optional=True)
+    try:
+        spec = DatasetSpec.from_config(dataset, fps, "train")
+    except ValueError as err:  # the scene's own check of its parameters: "name must be ..."
+        text = str(err).removeprefix("CollisionScene.")
+        key = text.split()[0].split("=")[0].split("[")[0] if text else ""
+        if key in set(map(str, _keys(dataset))):
+            text = f"dataset.{text}"
+        raise ConfigError("dataset", message=f"{text} (scene {scene_name})") from None
+    check_resolution(spec.build_scene(), fps)
+    return spec
+
+
+# ----------------------------------------------------------------------------- model
+def validate_model(model: Any, scene: Scene, history: int) -> None:
+    """The model's options (its config dataclass checks them) and whether the window of
+    ``history`` past velocities feeds its target prior."""
+    from bgn.model.base import config_from_params
+    from bgn.model.registry import MODELS
+    from bgn.model.target import prior_hint, resolve_prior
+
+    name = _get(model, "name")
+    if name not in MODELS:
+        raise ConfigError("model", name, f"choose one of {sorted(MODELS)}")
+    params = {str(k): v for k, v in (model.items() if hasattr(model, "items") else {})}
+    try:
+        cfg = config_from_params(MODELS[name].config_class, params, name)
+    except (TypeError, ValueError) as err:  # messages start with the option: "hidden=0 ..."
+        raise ConfigError("model", message=f"model.{err}") from None
+    prior, needed, available = resolve_prior(cfg.target_prior, scene.meta.target, history)
+    if available < needed:
+        raise ConfigError("model.target_prior", message=prior_hint(
+            prior, needed, history, available, asked=cfg.target_prior))
+
+
+def validate_optimization(optimizer: Any, scheduler: Any) -> None:
+    """Numbers of the optimiser and scheduler partials (when present)."""
+    if optimizer is not None:
+        if _get(optimizer, "lr") is not None:
+            need_float(_get(optimizer, "lr"), "optimizer.lr", 0.0, why=" (the learning rate)")
+        if _get(optimizer, "weight_decay") is not None:
+            need_float(_get(optimizer, "weight_decay"), "optimizer.weight_decay", 0.0,
+                       strict_low=False)
+        if _get(optimizer, "eps") is not None:
+            need_float(_get(optimizer, "eps"), "optimizer.eps", 0.0)
+        for i, beta in enumerate(_get(optimizer, "betas") or ()):
+            need_float(beta, f"optimizer.betas.{i}", 0.0, 1.0, strict_low=False,
+                       strict_high=True)
+    if scheduler is not None:
+        if _get(scheduler, "factor") is not None:
+            need_float(_get(scheduler, "factor"), "scheduler.factor", 0.0, 1.0,
+                       strict_high=True)
+        if _get(scheduler, "patience") is not None:
+            need_int(_get(scheduler, "patience"), "scheduler.patience", 0)
+        if _get(scheduler, "lr_min_ratio") is not None:
+            need_float(_get(scheduler, "lr_min_ratio"), "scheduler.lr_min_ratio", 0.0, 1.0,
+                       strict_low=False)
+
+
+# ----------------------------------------------------------------------------- entry configs
+def validate_train(cfg: Any) -> DatasetSpec:
+    """Everything ``bgn.train`` is given, before data or a model are made."""
+    need_int(_get(cfg, "seed", 0), "seed", 0, MAX_SEED)
+    for key in ("rollout_steps", "val_rollout_steps", "animation_every"):
+        need_int(_get(cfg, key, 0), key, 0, why=" (0: off)")
+    spec = validate_dataset(_get(cfg, "dataset"), _get(cfg, "fps"))
+    if (_get(cfg, "val_rollout_steps", 0) or 0) > 0:
+        need_int(_get(cfg, "val_rollout_sims", 1), "val_rollout_sims", 1, spec.n_sims,
+                 why=f" (validation simulations: dataset.n_sims={spec.n_sims})")
+    history = need_int(_get(_get(cfg, "dataset"), "history", 5), "dataset.history", 0)
+    assert history is not None
+    if _get(cfg, "model") is not None:
+        validate_model(_get(cfg, "model"), spec.build_scene(), history)
+    validate_optimization(_get(cfg, "optimizer"), _get(cfg, "scheduler"))
+    return spec
+
+
+def validate_generate(cfg: Any) -> DatasetSpec:
+    """Everything ``bgn.data.generate`` is given."""
+    need_int(_get(cfg, "workers"), "workers", 1, optional=True,
+             why=" (simulation processes; null: one per core)")
+    return validate_dataset(_get(cfg, "dataset"), _get(cfg, "fps"))
+
+
+# ----------------------------------------------------------------------------- the exit
+def _env_set(name: str) -> bool:
+    return os.environ.get(name, "") not in ("", "0")
+
+
+def full_error() -> bool:
+    """Whether the user asked for full traces (``BGN_FULL_ERROR`` or ``HYDRA_FULL_ERROR``)."""
+    return _env_set(FULL_ERROR_ENV) or _env_set("HYDRA_FULL_ERROR")
+
+
+def one_line(err: BaseException) -> str:
+    """The message of ``err`` (and of its cause, as Hydra reports composition errors) on one
+    line, without OmegaConf's ``full_key``/``object_type`` detail lines."""
+    parts = []
+    for e in (err, err.__cause__):
+        if e is None:
+            continue
+        lines = [ln.strip() for ln in str(e).splitlines()
+                 if ln.strip() and not ln.strip().startswith(("full_key:", "object_type=",
+                                                              "reference_type="))]
+        if lines and (not parts or lines[0] not in parts[-1]):
+            parts.append(" ".join(lines))
+    text = ": ".join(parts) or type(err).__name__
+    return text.split(" Config search path:")[0]  # Hydra's search path: no help here
+
+
+def fail(err: BaseException, code: int) -> None:
+    """Print ``err`` as one line on stderr and exit with ``code``."""
+    sys.stderr.write(f"bgn: error: {one_line(err)}  [{FULL_ERROR_ENV}=1 for the full trace]\n")
+    sys.stderr.flush()
+    raise SystemExit(code)
+
+
+@contextmanager
+def reported() -> Iterator[None]:
+    """Inside: a ``ConfigError`` exits 2 and a ``DatasetFileError`` exits 1, each with one
+    line (the full trace when ``full_error()``)."""
+    from bgn.data.files import DatasetFileError
+
+    try:
+        yield
+    except (ConfigError, DatasetFileError) as err:
+        if full_error():
+            raise
+        fail(err, CONFIG_EXIT if isinstance(err, ConfigError) else DATA_EXIT)
+
+
+_NOT_SET = object()
+_saved_hydra_env: list[Any] = []  # HYDRA_FULL_ERROR as the user set it, while cli forces it
+
+
+def _restore_hydra_env() -> None:
+    while _saved_hydra_env:
+        saved = _saved_hydra_env.pop()
+        if saved is _NOT_SET:
+            os.environ.pop("HYDRA_FULL_ERROR", None)
+        else:
+            os.environ["HYDRA_FULL_ERROR"] = saved
+
+
+def cli(config_name: str, validate: Callable[[Any], Any] | None = None,
+        config_dir: Path = CONF_DIR) -> Callable[[Callable[[Any], Any]], Callable[..., Any]]:
+    """``@cli("train", validate_train)`` on ``def main(cfg)``: a Hydra app (``conf/<config_name>
+    .yaml``) whose bad input ends with one line and exit code 2, before any work.
+
+    Hydra reports its own errors (a value the schema refuses, an unknown config) in several
+    lines with exit code 1; so until the task starts, ``HYDRA_FULL_ERROR`` is set and the
+    error reaches this wrapper, which prints it on one line (or re-raises it: full trace). The
+    task restores the user's setting first thing (unless ``BGN_FULL_ERROR`` is set), so
+    errors at run time keep Hydra's usual report. Called with a
+    config (``main(cfg)``), the function validates and runs it without Hydra.
+    """
+
+    def decorate(task: Callable[[Any], Any]) -> Callable[..., Any]:
+        @functools.wraps(task)
+        def checked(cfg: Any) -> Any:
+            if not _env_set(FULL_ERROR_ENV):  # BGN_FULL_ERROR: full traces at run time too
+                _restore_hydra_env()
+            with reported():
+                if validate is not None:
+                    validate(cfg)
+                return task(cfg)
+
+        import hydra
+
+        app = hydra.main(config_path=str(config_dir), config_name=config_name,
+                         version_base="1.3")(checked)
+
+        @functools.wraps(task)
+        def main(cfg: Any = None) -> Any:
+            if cfg is not None:
+                return checked(cfg)
+            full = full_error()
+            _saved_hydra_env.append(os.environ.get("HYDRA_FULL_ERROR", _NOT_SET))
+            os.environ["HYDRA_FULL_ERROR"] = "1"
+            try:
+                return app()
+            except Exception as err:  # raised before the task ran: Hydra's own (bad input)
+                if full:
+                    raise
+                fail(err, CONFIG_EXIT)
+            finally:
+                _restore_hydra_env()
+
+        return main
+
+    return decorate

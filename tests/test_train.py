@@ -95,7 +95,7 @@ def test_rollout_error_can_pick_checkpoints_and_stop_training(tiny_train_cfg, tm
         "callbacks.early_stopping.monitor=val/rollout_error"))
     assert np.isfinite(metrics["val/rollout_error"]) and metrics["val/rollout_error"] > 0
     best = torch.load(tmp_path / "run" / "checkpoints" / "best.ckpt", map_location="cpu",
-                      weights_only=False)
+                      weights_only=True)
     callback = next(v for k, v in best["callbacks"].items() if "ModelCheckpoint" in k)
     assert callback["monitor"] == "val/rollout_error"
     assert np.isfinite(float(callback["best_model_score"]))
@@ -120,7 +120,7 @@ def test_non_finite_gradient_stops_training_and_keeps_good_checkpoints(tiny_trai
                              "val_rollout_steps=0"))
     for name in ("last.ckpt", "on_exception.ckpt"):
         state = torch.load(tmp_path / "run" / "checkpoints" / name, map_location="cpu",
-                           weights_only=False)["state_dict"]
+                           weights_only=True)["state_dict"]
         assert all(torch.isfinite(v).all() for v in state.values() if v.is_floating_point())
 
 
@@ -135,7 +135,7 @@ def test_checkpoint_reload_reproduces_predictions(tiny_train_cfg, tmp_path):
     batch = collate([datamodule.datasets["test"][i] for i in range(5)])
     loaded = PhysicsModule.load_from_checkpoint(ckpt, map_location="cpu").eval()
     again = PhysicsModule.load_from_checkpoint(ckpt, map_location="cpu").eval()
-    state = torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]
+    state = torch.load(ckpt, map_location="cpu", weights_only=True)["state_dict"]
     for name, value in loaded.state_dict().items():
         assert torch.equal(value, state[name]), name
     with torch.no_grad():
@@ -179,7 +179,7 @@ def test_ddp_on_two_cpu_processes_splits_the_epoch_and_writes_one_record(tmp_pat
     assert result.returncode == 0, result.stderr[-3000:]
     record = json.loads((run / "metrics.json").read_text())
     assert record["dataset"] == "spring" and "test/nmse" in record["metrics"]
-    last = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    last = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     assert last["global_step"] == -(-single_process_steps // 2)  # ceil: DistributedSampler pads
     assert (run / ".hydra" / "config.yaml").exists()
     # both processes share the pipe: only process 0 prints the final summary

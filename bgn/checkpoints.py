@@ -1,4 +1,6 @@
-"""Checkpoint files: read safely, named when unreadable, checked against the run that loads them.
+"""Run files: checkpoints read safely, named when unreadable, checked against the run that
+loads them; JSON records (``metrics.json``, ``eval.json``, ``cell.json``) written atomically and
+named when damaged.
 
 Every checkpoint is read with ``torch.load(weights_only=True)``: tensors and plain values only,
 never arbitrary pickled objects (a checkpoint from elsewhere cannot run code). bgn's
@@ -16,11 +18,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 from pathlib import Path
 from typing import Any
 
-import torch
+log = logging.getLogger(__name__)
 
 # what a run is, for a checkpoint: a difference in any of these and its weights mean
 # something else (or do not fit)
@@ -48,6 +51,8 @@ def provenance(scene: str, params: dict[str, Any], fps: float, model: str,
 def read(path: str | Path) -> dict[str, Any]:
     """The checkpoint's dictionary, loaded with ``weights_only=True`` on the CPU; a missing,
     truncated or foreign file gives one ``CheckpointError`` naming it."""
+    import torch  # here: the JSON helpers below serve modules that need no torch
+
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
@@ -132,3 +137,21 @@ def write_atomic(path: str | Path, text: str) -> None:
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+
+
+def read_record(path: str | Path) -> dict[str, Any] | None:
+    """The JSON record at ``path``; ``None`` when it is missing, or damaged (half-written by a
+    killed writer of an older bgn, edited by hand): then a warning names the file, and the
+    caller redoes the work that writes it."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    try:
+        record = json.loads(path.read_text())
+        if not isinstance(record, dict):
+            raise ValueError(f"a JSON {type(record).__name__}, not an object")
+    except (ValueError, UnicodeDecodeError) as err:
+        log.warning("%s is damaged (%s): ignoring it and redoing the work that writes it",
+                    path, str(err).splitlines()[0][:100])
+        return None
+    return record

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from bgn.checkpoints import read
 from bgn.data.dataset import FrameDataset
 from bgn.data.frames import evenly_spaced
 from bgn.graph import Graph, collate
@@ -40,8 +41,10 @@ __all__ = ["batches", "evaluate_model", "evaluate_rollouts", "inverse_metrics", 
 
 # ----------------------------------------------------------------------------- loading
 def load_model(ckpt: str | Path) -> PhysicsModule:
-    """The LightningModule of a checkpoint, on the CPU, in eval mode."""
-    return PhysicsModule.load_from_checkpoint(ckpt, map_location="cpu").eval()
+    """The LightningModule of a checkpoint, on the CPU, in eval mode; read with
+    ``weights_only=True``, and an unreadable file is named (``bgn.checkpoints.read``)."""
+    read(ckpt)  # a missing, truncated or foreign file: one CheckpointError naming it
+    return PhysicsModule.load_from_checkpoint(ckpt, map_location="cpu", weights_only=True).eval()
 
 
 def batches(dataset: FrameDataset, indices: list[int], batch_size: int) -> list[Graph]:

@@ -4,9 +4,11 @@ Trains every cell of a preset (scene x fps x model, BGN ablations, sample effici
 composing the real ``train`` config and calling ``bgn.train.train``, evaluates each cell's
 best checkpoint on the test split (``bgn.evaluate``), and writes the report (``bgn.report``:
 Table 1, inverse, types, ablations, sample efficiency, report.md) under ``report_dir``.
-Resumable: a cell whose ``metrics.json`` exists is not retrained, a cell whose ``eval.json``
-is newer than its checkpoint is not re-evaluated; the report is always rewritten from what is
-on disk.
+Resumable: a cell whose ``metrics.json`` exists is not retrained (an interrupted cell
+continues from its ``last.ckpt``), a cell whose ``eval.json`` is newer than its checkpoint is not
+re-evaluated; the report is always rewritten from what is on disk. Those files are written
+atomically (a temporary file, then a rename); a damaged one (an older bgn killed while writing
+it, a hand edit) is named in a warning and its cell trained or evaluated again.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
+from bgn.checkpoints import read_record, write_atomic
 from bgn.report import write_report
 from bgn.validate import cli
 
@@ -110,17 +113,18 @@ def train_cell(cell: Cell, cfg: DictConfig) -> tuple[dict[str, Any], bool]:
 
     run_dir = Path(cfg.cells_dir) / cell.name
     metrics_path = run_dir / "metrics.json"
-    if metrics_path.exists():
-        return json.loads(metrics_path.read_text()), False
+    record = read_record(metrics_path)  # None: missing, or damaged (named in a warning)
+    if record is not None:
+        return record, False
     overrides = cell_overrides(cell, cfg)
     train_cfg = compose_train(overrides)
     last = run_dir / "checkpoints" / "last.ckpt"
     if last.exists():  # an interrupted cell continues from its last checkpoint
         train_cfg.ckpt_path = str(last)
     run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "cell.json").write_text(json.dumps(
+    write_atomic(run_dir / "cell.json", json.dumps(
         {**asdict(cell), "name": cell.name, "overrides": overrides}, indent=2))
-    OmegaConf.save(train_cfg, run_dir / "train_config.yaml", resolve=False)
+    write_atomic(run_dir / "train_config.yaml", OmegaConf.to_yaml(train_cfg, resolve=False))
     train(train_cfg)
     return json.loads(metrics_path.read_text()), True
 
@@ -147,8 +151,8 @@ def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
     eval_path = run_dir / "eval.json"
     figure = Path(cfg.report_dir) / "figures" / f"mass_{cell.name}.png"
     if eval_path.exists() and eval_path.stat().st_mtime >= ckpt.stat().st_mtime:
-        result = json.loads(eval_path.read_text())
-        if not result.get("figure") or figure.exists():
+        result = read_record(eval_path)  # None when damaged (named in a warning): redone
+        if result is not None and (not result.get("figure") or figure.exists()):
             return result
     train_cfg = OmegaConf.load(run_dir / "train_config.yaml")
     datamodule = ParticleDataModule(train_cfg.dataset, train_cfg.fps, cfg.data_dir,
@@ -164,7 +168,7 @@ def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
     result = {"checkpoint": str(ckpt), "metrics": metrics, "figure": None}
     if arrays:
         result["figure"] = str(mass_figure(arrays, figure))
-    eval_path.write_text(json.dumps(result, indent=2, sort_keys=True))
+    write_atomic(eval_path, json.dumps(result, indent=2, sort_keys=True))
     return result
 
 

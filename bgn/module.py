@@ -67,7 +67,7 @@ class PhysicsModule(L.LightningModule):
     ``optimizer(params)`` builds the optimiser, ``scheduler(optimizer)`` its lr scheduler and
     ``scheduler_config`` says how Lightning steps it (``monitor``, ``interval``, ``frequency``,
     ``strict``); absent, today's defaults (``DEFAULT_OPTIMIZER``, ``reduce_on_plateau``,
-    ``DEFAULT_SCHEDULER_CONFIG``).
+    ``DEFAULT_SCHEDULER_CONFIG``). ``provenance`` is kept in the checkpoint only.
     """
 
     def __init__(self, model_config: dict[str, Any], meta: dict[str, Any],
@@ -78,13 +78,16 @@ class PhysicsModule(L.LightningModule):
                  scheduler_config: Mapping[str, Any] | None = None, figures: bool = True,
                  rollout: Callable[[nn.Module], dict] | None = None,
                  rollout_error: Callable[[nn.Module], float] | None = None,
-                 animation_every: int = 25) -> None:
+                 animation_every: int = 25,
+                 provenance: dict[str, Any] | None = None) -> None:
         super().__init__()
         # everything needed to rebuild the model goes into the checkpoint's hyperparameters,
         # so PhysicsModule.load_from_checkpoint(path) alone restores it; the optimiser and
         # scheduler callables are training settings (in the run's .hydra/config.yaml), and
         # hyperparameters of older checkpoints that __init__ no longer takes (lr, ...) are
-        # dropped by Lightning when loading
+        # dropped by Lightning when loading. All are plain types (checkpoints are read with
+        # weights_only=True). ``provenance``: the run that trained it (scene, scene parameters
+        # hash, fps, model, history: bgn.checkpoints.provenance), checked when a run resumes.
         self.save_hyperparameters(ignore=["rollout", "rollout_error", "optimizer", "scheduler"])
         self.meta = SceneMeta(**meta)
         stats_arrays = {g: {k: np.asarray(v, dtype=np.float64) for k, v in entries.items()}

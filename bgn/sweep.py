@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
+from bgn.checkpoints import read_record
 from bgn.tables import write_table
 
 SUMMARY_METRICS = ("val/nmse", "test/nmse", "test/mse", "test/median_relative_error",
@@ -20,7 +20,9 @@ def collect(sweep_dir: Path) -> list[dict[str, Any]]:
     """One row per job directory that wrote ``metrics.json``."""
     rows = []
     for path in sorted(sweep_dir.rglob("metrics.json"), key=lambda p: p.parent.name):
-        record = json.loads(path.read_text())
+        record = read_record(path)  # a damaged one is named in a warning and left out
+        if record is None:
+            continue
         rows.append({"run": str(path.parent.relative_to(sweep_dir)), **record.get("overrides", {}),
                      **{k: record["metrics"].get(k) for k in SUMMARY_METRICS}})
     return rows

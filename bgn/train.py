@@ -26,6 +26,13 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from bgn.checkpoints import (
+    CheckpointError,
+    check_compatible,
+    provenance,
+    resolve_last,
+    write_atomic,
+)
 from bgn.config import register_configs
 from bgn.validate import cli, validate_train
 
@@ -55,16 +62,31 @@ def plain_stats(stats: dict[str, dict[str, np.ndarray]]) -> dict[str, dict[str, 
             for g, entries in stats.items()}
 
 
-def build(cfg: DictConfig) -> tuple[ParticleDataModule, PhysicsModule]:
-    """DataModule (data generated if missing) and LightningModule from a composed config."""
+def data_module(cfg: DictConfig) -> ParticleDataModule:
+    """The DataModule of a composed config (nothing generated or read yet); bad values fail
+    here, before any data are generated."""
     from bgn.data.datamodule import ParticleDataModule
-    from bgn.rollout import rollout, rollout_error
 
-    validate_train(cfg)  # bad values fail here, before any data are generated
+    validate_train(cfg)
     # dataset.generate_workers: simulation processes when the data are generated here
     # (default one per core; 1 generates in this process)
-    datamodule = ParticleDataModule(cfg.dataset, cfg.fps, cfg.paths.data_dir,
-                                    generate_workers=cfg.dataset.get("generate_workers"))
+    return ParticleDataModule(cfg.dataset, cfg.fps, cfg.paths.data_dir,
+                              generate_workers=cfg.dataset.get("generate_workers"))
+
+
+def run_provenance(cfg: DictConfig, datamodule: ParticleDataModule) -> dict[str, Any]:
+    """What this run's checkpoints record of it (``bgn.checkpoints.provenance``)."""
+    spec = datamodule.spec
+    return provenance(spec.scene, spec.generating_config()["params"], spec.fps,
+                      str(cfg.model.get("name", "bgn")), datamodule.history)
+
+
+def build(cfg: DictConfig, datamodule: ParticleDataModule | None = None,
+          ) -> tuple[ParticleDataModule, PhysicsModule]:
+    """DataModule (data generated if missing) and LightningModule from a composed config."""
+    from bgn.rollout import rollout, rollout_error
+
+    datamodule = datamodule or data_module(cfg)
     datamodule.prepare_data()
     datamodule.setup()
     rollout_fn = None
@@ -76,12 +98,14 @@ def build(cfg: DictConfig) -> tuple[ParticleDataModule, PhysicsModule]:
         error_fn = partial(rollout_error, dataset=datamodule.datasets["val"],
                            n_sims=int(cfg.val_rollout_sims), n_steps=int(cfg.val_rollout_steps))
     module = build_module(cfg, dict(vars(datamodule.meta)), plain_stats(datamodule.stats()),
-                          datamodule.history, rollout=rollout_fn, rollout_error=error_fn)
+                          datamodule.history, rollout=rollout_fn, rollout_error=error_fn,
+                          provenance=run_provenance(cfg, datamodule))
     return datamodule, module
 
 
 def build_module(cfg: DictConfig, meta: dict[str, Any], stats: dict[str, Any], history: int,
-                 rollout: Any = None, rollout_error: Any = None) -> PhysicsModule:
+                 rollout: Any = None, rollout_error: Any = None,
+                 provenance: dict[str, Any] | None = None) -> PhysicsModule:
     """The LightningModule of a composed config: the model from ``cfg.model``, the optimiser
     and scheduler partials from ``cfg.optimizer`` and ``cfg.scheduler``."""
     from bgn.module import PhysicsModule
@@ -98,32 +122,50 @@ def build_module(cfg: DictConfig, meta: dict[str, Any], stats: dict[str, Any], h
                          scheduler=scheduler, scheduler_config=scheduler_config,
                          figures=bool(cfg.get("figures", True)), rollout=rollout,
                          rollout_error=rollout_error,
-                         animation_every=int(cfg.get("animation_every", 25)))
+                         animation_every=int(cfg.get("animation_every", 25)),
+                         provenance=provenance)
 
 
 def train(cfg: DictConfig) -> dict[str, float]:
     """Fit, test, and write metrics.json; returns the final metrics."""
     import lightning as L
 
+    from bgn.signals import SignalCheckpoint, interrupted
+
     start = time.perf_counter()
     L.seed_everything(int(cfg.seed), workers=True)
     output_dir = Path(cfg.paths.output_dir)
     info(f"run directory: {output_dir}")
-    datamodule, module = build(cfg)
+    datamodule = data_module(cfg)
+    checkpoint_dir = output_dir / "checkpoints"
+    ckpt_path = resolve_last(cfg.get("ckpt_path"), checkpoint_dir)
+    if cfg.get("ckpt_path") == "last":
+        info(f"resuming from {ckpt_path}" if ckpt_path
+             else f"ckpt_path=last: no last.ckpt in {checkpoint_dir} yet, starting afresh")
+    if ckpt_path:  # before any data is generated: another scene or model is refused here
+        check_compatible(ckpt_path, run_provenance(cfg, datamodule),
+                         OmegaConf.to_container(cfg.model, resolve=True))
+    datamodule, module = build(cfg, datamodule)
     coder = module.model.target_coder  # what target_prior=auto and dynamics_loss=auto chose
     info(f"dynamics target: prior={coder.prior_name}, loss={coder.loss_name}")
     # a group entry set to null (callbacks.early_stopping=null) switches that callback off
     callbacks = [instantiate(c) for c in (cfg.get("callbacks") or {}).values() if c]
+    stop = SignalCheckpoint(checkpoint_dir)
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c]
-    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=callbacks, logger=loggers)
-    resume = {"ckpt_path": cfg.ckpt_path} if cfg.get("ckpt_path") else {}
-    trainer.fit(module, datamodule=datamodule, **resume)
-    metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
-    if cfg.get("test", True) and not trainer.interrupted:
-        best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback \
-            else ""
-        trainer.test(module, datamodule=datamodule, ckpt_path=best or None)
-        metrics.update({k: float(v) for k, v in trainer.callback_metrics.items()})
+    trainer: L.Trainer = instantiate(cfg.trainer, callbacks=[*callbacks, stop], logger=loggers)
+    try:
+        trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
+        metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
+        if cfg.get("test", True) and not trainer.interrupted:
+            best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback \
+                else ""
+            trainer.test(module, datamodule=datamodule, ckpt_path=best or None,
+                         weights_only=True)
+            metrics.update({k: float(v) for k, v in trainer.callback_metrics.items()})
+    except (SystemExit, KeyboardInterrupt):  # SIGTERMException is a SystemExit
+        if stop.signal is None:
+            raise
+        raise interrupted(stop, trainer, output_dir) from None
     metrics["wall_time_s"] = time.perf_counter() - start
     if not trainer.is_global_zero:  # DDP: one process writes the run's record
         return metrics
@@ -133,8 +175,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     record = {"metrics": metrics, "overrides": overrides,
               "dataset": cfg.dataset.scene, "fps": float(cfg.fps),
               "model": module.model.label}
-    output_dir.mkdir(parents=True, exist_ok=True)
-    (output_dir / "metrics.json").write_text(json.dumps(record, indent=2, sort_keys=True))
+    write_atomic(output_dir / "metrics.json", json.dumps(record, indent=2, sort_keys=True))
     info("final metrics:\n" + json.dumps({k: round(v, 6) for k, v in sorted(metrics.items())
                                           if k.startswith(("test/", "val/nmse"))}, indent=1))
     return metrics
@@ -142,7 +183,10 @@ def train(cfg: DictConfig) -> dict[str, float]:
 
 @cli("train", validate_train)  # Hydra app; bad input: one line, exit 2 (bgn.validate)
 def main(cfg: DictConfig) -> float:
-    metrics = train(cfg)
+    try:
+        metrics = train(cfg)
+    except CheckpointError as err:  # one line, no traceback
+        raise SystemExit(f"bgn.train: {err}") from None
     return metrics.get("val/nmse", float("nan"))  # the objective a sweeper would minimise
 
 

@@ -4,6 +4,7 @@ and resumability."""
 from __future__ import annotations
 
 import csv
+import json
 from pathlib import Path
 
 import pytest
@@ -93,3 +94,40 @@ def test_tiny_preset_end_to_end_and_resumes(tmp_path: Path, capsys) -> None:
     run(tiny_cfg(tmp_path))
     assert capsys.readouterr().out.count("  trained\n") == 1
     assert interrupted.exists()
+
+
+def test_a_damaged_study_file_is_named_and_its_cell_redone(tmp_path: Path, shared_data_dir,
+                                                           caplog) -> None:
+    """A half-written eval.json (or metrics.json) is named in a warning and the cell is
+    evaluated (trained) again, instead of a JSONDecodeError that blocks the study."""
+    from bgn.experiments import Cell, evaluate_cell, train_cell
+
+    cfg = tiny_cfg(tmp_path)
+    cfg.data_dir = str(shared_data_dir)
+    cfg.preset.overrides.append("+dataset.generate_workers=1")
+    cell = Cell("spring", 50.0, "cranmer_gn")
+    record, trained = train_cell(cell, cfg)
+    assert trained and "test/nmse" in record["metrics"]
+    first = evaluate_cell(cell, cfg)
+    run_dir = tmp_path / "cells" / cell.name
+    for name in ("eval.json", "metrics.json", "cell.json"):
+        json.loads((run_dir / name).read_text())  # whole files
+    assert not list(run_dir.glob(".*.tmp*"))  # no temporary file left behind
+
+    eval_path = run_dir / "eval.json"
+    text = eval_path.read_text()
+    eval_path.write_text(text[: len(text) // 2])  # a writer killed half-way (older bgn)
+    with caplog.at_level("WARNING"):
+        again = evaluate_cell(cell, cfg)
+    assert f"{eval_path} is damaged" in caplog.text
+    rewritten = json.loads(eval_path.read_text())  # whole again
+    assert rewritten["metrics"].keys() == again["metrics"].keys() == first["metrics"].keys()
+    assert rewritten["checkpoint"] == again["checkpoint"]
+
+    metrics_path = run_dir / "metrics.json"
+    metrics_path.write_text('{"metrics": {"test/nmse": 0.')
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        record, trained = train_cell(cell, cfg)
+    assert trained and f"{metrics_path} is damaged" in caplog.text
+    assert json.loads(metrics_path.read_text())["metrics"]["test/nmse"] >= 0

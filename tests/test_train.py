@@ -5,14 +5,18 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from lightning.pytorch.callbacks import Callback
 
+from bgn.checkpoints import CheckpointError
 from bgn.graph import collate
 from bgn.module import PhysicsModule
 from bgn.train import build, train
@@ -26,6 +30,34 @@ SMALL_MODELS = {  # test-sized versions of every model
     "gns": ["model.latent=16", "model.mlp_hidden=16", "model.mlp_layers=1",
             "model.message_passing_steps=2"],
 }
+
+
+class SendSignal(Callback):
+    """Test helper: the process sends itself ``signal`` (a name) once training reaches
+    ``step``, at the end of a training batch (``at=train``) or of a validation batch."""
+
+    def __init__(self, signal: str = "SIGTERM", step: int = 3, at: str = "train") -> None:
+        self.signal, self.step, self.at = getattr(__import__("signal"), signal), step, at
+
+    def _maybe(self, trainer, at: str) -> None:
+        if at == self.at and trainer.global_step >= self.step and not trainer.sanity_checking:
+            os.kill(os.getpid(), self.signal)
+
+    def on_train_batch_end(self, trainer, *args, **kwargs) -> None:
+        self._maybe(trainer, "train")
+
+    def on_validation_batch_end(self, trainer, *args, **kwargs) -> None:
+        self._maybe(trainer, "validation")
+
+
+def command_line(*overrides: str) -> list[str]:
+    return [sys.executable, "-m", "bgn.train", *overrides]
+
+
+CLI_ENV = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+TINY_CLI = ["dataset=spring", *SMALL["spring"], "model.hidden=16", "model.decoder_hidden=16",
+            "model.flow_hidden=16", "figures=false", "val_rollout_steps=0",
+            "callbacks.progress_bar=null", "dataset.batch_size=16"]
 
 
 @pytest.fixture
@@ -95,7 +127,7 @@ def test_rollout_error_can_pick_checkpoints_and_stop_training(tiny_train_cfg, tm
         "callbacks.early_stopping.monitor=val/rollout_error"))
     assert np.isfinite(metrics["val/rollout_error"]) and metrics["val/rollout_error"] > 0
     best = torch.load(tmp_path / "run" / "checkpoints" / "best.ckpt", map_location="cpu",
-                      weights_only=False)
+                      weights_only=True)
     callback = next(v for k, v in best["callbacks"].items() if "ModelCheckpoint" in k)
     assert callback["monitor"] == "val/rollout_error"
     assert np.isfinite(float(callback["best_model_score"]))
@@ -120,7 +152,7 @@ def test_non_finite_gradient_stops_training_and_keeps_good_checkpoints(tiny_trai
                              "val_rollout_steps=0"))
     for name in ("last.ckpt", "on_exception.ckpt"):
         state = torch.load(tmp_path / "run" / "checkpoints" / name, map_location="cpu",
-                           weights_only=False)["state_dict"]
+                           weights_only=True)["state_dict"]
         assert all(torch.isfinite(v).all() for v in state.values() if v.is_floating_point())
 
 
@@ -135,7 +167,7 @@ def test_checkpoint_reload_reproduces_predictions(tiny_train_cfg, tmp_path):
     batch = collate([datamodule.datasets["test"][i] for i in range(5)])
     loaded = PhysicsModule.load_from_checkpoint(ckpt, map_location="cpu").eval()
     again = PhysicsModule.load_from_checkpoint(ckpt, map_location="cpu").eval()
-    state = torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]
+    state = torch.load(ckpt, map_location="cpu", weights_only=True)["state_dict"]
     for name, value in loaded.state_dict().items():
         assert torch.equal(value, state[name]), name
     with torch.no_grad():
@@ -179,8 +211,139 @@ def test_ddp_on_two_cpu_processes_splits_the_epoch_and_writes_one_record(tmp_pat
     assert result.returncode == 0, result.stderr[-3000:]
     record = json.loads((run / "metrics.json").read_text())
     assert record["dataset"] == "spring" and "test/nmse" in record["metrics"]
-    last = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=False)
+    last = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     assert last["global_step"] == -(-single_process_steps // 2)  # ceil: DistributedSampler pads
     assert (run / ".hydra" / "config.yaml").exists()
     # both processes share the pipe: only process 0 prints the final summary
     assert sum(line.startswith(' "test/nmse":') for line in result.stdout.splitlines()) == 1
+
+
+# ----------------------------------------------------------------------------- checkpoints
+def test_a_checkpoint_of_another_scene_or_model_is_refused_in_one_line(tiny_train_cfg,
+                                                                       tmp_path):
+    """A spring checkpoint with dataset=gravity_r1 (once silently tested on gravity data), or
+    with another model or model size: one line saying what differs, before any data is made."""
+    train(tiny_train_cfg("spring", "trainer.max_epochs=1", "+trainer.limit_train_batches=2",
+                         "trainer.limit_val_batches=1", "test=false", "figures=false"))
+    ckpt = tmp_path / "run" / "checkpoints" / "last.ckpt"
+    saved = torch.load(ckpt, map_location="cpu", weights_only=True)  # plain types only
+    assert saved["hyper_parameters"]["provenance"]["scene"] == "spring"
+    cases = {("dataset=gravity_r1",): "scene=spring but this run has scene=gravity_r1",
+             ("fps=10",): "fps=50 but this run has fps=10",
+             ("dataset.n_particles=5",): "scene_params=",
+             ("model.hidden=32",): "model.hidden=16 but this run has model.hidden=32"}
+    for overrides, expected in cases.items():
+        scene = overrides[0].split("=")[1] if overrides[0].startswith("dataset=") else "spring"
+        cfg = tiny_train_cfg(scene, *overrides[1:] if scene != "spring" else overrides,
+                             f"ckpt_path={ckpt}", f"paths.output_dir={tmp_path / 'other'}",
+                             f"paths.data_dir={tmp_path / 'no_data'}")
+        with pytest.raises(CheckpointError) as err:
+            train(cfg)
+        message = str(err.value)
+        assert expected in message and str(ckpt) in message and "\n" not in message, message
+        assert not (tmp_path / "no_data").exists()  # refused before generating anything
+    # a collisions checkpoint (other heads and sizes) with dataset=spring
+    forged = dict(saved, hyper_parameters={**saved["hyper_parameters"], "provenance": {
+        **saved["hyper_parameters"]["provenance"], "scene": "collisions"}})
+    torch.save(forged, tmp_path / "collisions.ckpt")
+    with pytest.raises(CheckpointError, match="scene=collisions but this run has scene=spring"):
+        train(tiny_train_cfg("spring", f"ckpt_path={tmp_path / 'collisions.ckpt'}"))
+
+
+def test_a_truncated_checkpoint_is_named_in_one_line(tmp_path, shared_data_dir):
+    """From the command line: exit 1, one line naming the file, no traceback."""
+    bad = tmp_path / "cut.ckpt"
+    bad.write_bytes(b"PK\x03\x04" + bytes(5000))  # the head of a zip, cut short
+    result = subprocess.run(
+        command_line(*TINY_CLI, f"paths.data_dir={shared_data_dir}", f"ckpt_path={bad}",
+                     f"hydra.run.dir={tmp_path / 'run'}"),
+        cwd=tmp_path, env=CLI_ENV, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 1, result.stderr[-2000:]
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith(f"bgn.train: checkpoint {bad} cannot be read: it is truncated")
+    assert "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize(("name", "at", "code"), [("SIGTERM", "validation", 143),
+                                                  ("SIGINT", "train", 130)])
+def test_a_signal_saves_last_ckpt_and_exits_non_zero(tiny_train_cfg, tmp_path, caplog, name,
+                                                     at, code):
+    """SIGTERM (also during validation) and SIGINT: last.ckpt where training stopped, no
+    metrics.json, exit 128 + signal with a message; ckpt_path=last then finishes the run."""
+    common = ["trainer.max_epochs=3", "test=false", "figures=false", "trainer.max_time=null",
+              "dataset.batch_size=16"]
+    kill = [f"+callbacks.kill._target_={__name__}.SendSignal", f"+callbacks.kill.signal={name}",
+            "+callbacks.kill.step=9", f"+callbacks.kill.at={at}"]
+    with pytest.raises(SystemExit) as stop, caplog.at_level("ERROR"):
+        train(tiny_train_cfg("spring", *common, *kill))
+    assert stop.value.code == code
+    assert f"training stopped by {name}" in caplog.text and "ckpt_path=last" in caplog.text
+    run = tmp_path / "run"
+    assert not (run / "metrics.json").exists()
+    last = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    assert last["global_step"] >= 9
+    train(tiny_train_cfg("spring", *common, "ckpt_path=last"))  # continues and ends
+    final = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    assert final["global_step"] > last["global_step"] and final["epoch"] == 3  # all 3 done
+    assert (run / "metrics.json").exists()
+
+
+@pytest.mark.slow  # a real training process killed by SIGTERM
+def test_sigterm_to_a_training_process_saves_a_checkpoint_and_exits_non_zero(tmp_path,
+                                                                            shared_data_dir):
+    run = tmp_path / "run"
+    proc = subprocess.Popen(
+        command_line(*TINY_CLI, f"paths.data_dir={shared_data_dir}", "trainer.max_epochs=10000",
+                     "trainer.max_time=null", f"hydra.run.dir={run}"),
+        cwd=tmp_path, env=CLI_ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 300
+    while not (run / "checkpoints" / "last.ckpt").exists() and time.monotonic() < deadline:
+        time.sleep(0.5)  # training has run an epoch
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err[-3000:]
+    assert "training stopped by SIGTERM" in out + err
+    assert "ckpt_path=last hydra.run.dir=" in out + err
+    assert not (run / "metrics.json").exists()
+    last = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
+    assert last["global_step"] > 0
+
+
+@pytest.mark.slow  # three training processes, one killed with SIGKILL
+def test_kill_9_mid_epoch_then_resume_ends_like_an_uninterrupted_run(tmp_path,
+                                                                     shared_data_dir):
+    """A time-based last.ckpt (here every ~10 ms: every batch) survives kill -9 mid-epoch;
+    rerunning the command with ckpt_path=last in the same run directory ends at the same
+    step with the same metrics, within tolerance (the interrupted epoch's remaining batches
+    come in a new order)."""
+    common = [*TINY_CLI, f"paths.data_dir={shared_data_dir}", "+trainer.max_steps=40",
+              "trainer.max_time=null", "seed=3",
+              "callbacks.time_checkpoint.train_time_interval.minutes=0.0002"]
+
+    def train_run(run: Path, *extra: str) -> subprocess.CompletedProcess:
+        return subprocess.run(command_line(*common, f"hydra.run.dir={run}", *extra),
+                              cwd=tmp_path, env=CLI_ENV, capture_output=True, text=True,
+                              timeout=600)
+
+    whole, killed = tmp_path / "whole", tmp_path / "killed"
+    assert train_run(whole).returncode == 0
+    result = train_run(killed, f"+callbacks.kill._target_={__name__}.SendSignal",
+                       "+callbacks.kill.signal=SIGKILL", "+callbacks.kill.step=23")
+    assert result.returncode == -signal.SIGKILL
+    assert not (killed / "metrics.json").exists()
+    saved = torch.load(killed / "checkpoints" / "last.ckpt", map_location="cpu",
+                       weights_only=True)
+    batches_per_epoch = saved["global_step"] // max(saved["epoch"], 1)
+    assert 15 <= saved["global_step"] <= 23 and saved["global_step"] % batches_per_epoch
+    result = train_run(killed, "ckpt_path=last")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "Restored all states from the checkpoint" in result.stderr
+    a = json.loads((whole / "metrics.json").read_text())["metrics"]
+    b = json.loads((killed / "metrics.json").read_text())["metrics"]
+    for run in (whole, killed):
+        end = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu",
+                         weights_only=True)
+        assert end["global_step"] == 40
+    for key in ("val/nmse", "test/nmse"):
+        assert b[key] == pytest.approx(a[key], rel=0.1), key

@@ -264,10 +264,19 @@ def test_a_truncated_checkpoint_is_named_in_one_line(tmp_path, shared_data_dir):
     assert "Traceback" not in result.stderr
 
 
+@pytest.fixture
+def interactive_sigint():
+    """A shell starts background jobs with SIGINT ignored, and CI may run the tests so; Python
+    then never raises KeyboardInterrupt. Give the test the handler an interactive run has."""
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, before)
+
+
 @pytest.mark.parametrize(("name", "at", "code"), [("SIGTERM", "validation", 143),
                                                   ("SIGINT", "train", 130)])
 def test_a_signal_saves_last_ckpt_and_exits_non_zero(tiny_train_cfg, tmp_path, caplog, name,
-                                                     at, code):
+                                                     at, code, interactive_sigint):
     """SIGTERM (also during validation) and SIGINT: last.ckpt where training stopped, no
     metrics.json, exit 128 + signal with a message; ckpt_path=last then finishes the run."""
     common = ["trainer.max_epochs=3", "test=false", "figures=false", "trainer.max_time=null",

@@ -207,27 +207,34 @@ def rollout_metrics(predicted: np.ndarray, true: np.ndarray, masses: np.ndarray,
 
 
 def collisions_per_frame(positions: np.ndarray, radii: np.ndarray) -> np.ndarray:
-    """(T-1,) pairs that touch between consecutive frames of one trajectory (T, N, D): the
-    straight path between the two frames brings them within ``r_i + r_j``. The same detector
-    scores the truth and a rollout, so their rates compare."""
+    """(T-2,) impacts per frame interval of one trajectory (T, N, D): pairs that, moving on
+    with their incoming displacement (frame t-1 to t), would touch before frame t+1 (the
+    time-of-impact rule), and whose relative displacement then changes (by more than 10 %):
+    they bounced. The same detector scores the truth and a rollout, so their rates compare;
+    pairs that merely pass each other, or touch without a change, do not count."""
     from scipy.spatial import cKDTree
 
-    counts = np.zeros(len(positions) - 1, dtype=int)
+    counts = np.zeros(max(len(positions) - 2, 0), dtype=int)
     reach_max = 2 * float(radii.max())
-    for t in range(len(positions) - 1):
-        a, b = positions[t], positions[t + 1]
-        if not (np.isfinite(a).all() and np.isfinite(b).all()):
-            counts[t:] = -1
+    for t in range(1, len(positions) - 1):
+        before, now, after = positions[t - 1], positions[t], positions[t + 1]
+        if not (np.isfinite(before).all() and np.isfinite(now).all()
+                and np.isfinite(after).all()):
+            counts[t - 1:] = -1
             break
-        step = float(np.linalg.norm(b - a, axis=-1).max())
-        pairs = cKDTree(a).query_pairs(reach_max + 2 * step, output_type="ndarray")
+        step_in, step_out = now - before, after - now
+        reach = reach_max + 2 * float(np.linalg.norm(step_in, axis=-1).max())
+        pairs = cKDTree(now).query_pairs(reach, output_type="ndarray")
         if len(pairs) == 0:
             continue
         i, j = pairs[:, 0], pairs[:, 1]
-        dx, dv = a[i] - a[j], (b[i] - a[i]) - (b[j] - a[j])
-        tau = np.clip(-(dx * dv).sum(-1) / np.maximum((dv * dv).sum(-1), 1e-300), 0.0, 1.0)
-        closest = np.linalg.norm(dx + dv * tau[:, None], axis=-1)
-        counts[t] = int(np.sum(closest <= radii[i] + radii[j]))
+        dx, dv_in = now[i] - now[j], step_in[i] - step_in[j]
+        tau = np.clip(-(dx * dv_in).sum(-1) / np.maximum((dv_in * dv_in).sum(-1), 1e-300),
+                      0.0, 1.0)
+        touch = np.linalg.norm(dx + dv_in * tau[:, None], axis=-1) <= radii[i] + radii[j]
+        change = np.linalg.norm((step_out[i] - step_out[j]) - dv_in, axis=-1)
+        bounced = change > 0.1 * np.linalg.norm(dv_in, axis=-1) + 1e-300
+        counts[t - 1] = int(np.sum(touch & bounced))
     return counts
 
 
@@ -237,7 +244,7 @@ def contact_rollout_metrics(predicted: np.ndarray, true: np.ndarray, radii: np.n
     """What stays predictable in a chaotic disc gas, for R rollouts (R, T+2, N, D): each
     type's speed distribution at the last step against the truth's (Wasserstein-1 over the
     true mean speed of that type, pooled over the rollouts that did not fail), and the
-    collision rate over the rollout against the truth's (``collisions_per_frame``)."""
+    impact rate over the rollout against the truth's (``collisions_per_frame``)."""
     ok = failed_at < 0
     out: dict[str, float] = {}
     if ok.any():

@@ -134,14 +134,18 @@ def test_binary_f1():
     assert np.isnan(binary_f1(np.zeros(3), np.zeros(3)))
 
 
-def test_collisions_between_frames_are_counted():
-    radii = np.array([0.1, 0.1, 0.1])
-    # discs 0 and 1 close from 0.5 apart at 0.4 per frame: they touch in the second interval
-    x = np.zeros((4, 3, 2))
-    x[:, 1, 0] = 0.5 - 0.2 * np.arange(4)
-    x[:, 0, 0] = 0.2 * np.arange(4) * 0.0
-    x[:, 2] = [5.0, 5.0]
-    assert collisions_per_frame(x, radii).tolist() == [0, 1, 1]
+def test_impacts_between_frames_are_counted():
+    """Two discs approach head on and bounce back in the second interval; a third passes
+    the first at a distance; a fourth pair touches a grazing path without any change."""
+    radii = np.full(4, 0.1)
+    x = np.zeros((5, 4, 2))
+    x[:, 1, 0] = [0.8, 0.55, 0.3, 0.5, 0.7]           # approaches disc 0, bounces back
+    x[:, 2] = np.stack([np.linspace(-1, 1, 5), np.full(5, 0.5)], 1)  # passes at 0.5
+    x[:, 3] = [5.0, 5.0]
+    assert collisions_per_frame(x, radii).tolist() == [0, 1, 0]
+    passing = x.copy()
+    passing[:, 1, 0] = [0.8, 0.55, 0.3, 0.05, -0.2]   # straight through: touches, no change
+    assert collisions_per_frame(passing, radii).tolist() == [0, 0, 0]
 
 
 def test_contact_rollout_metrics_of_the_truth():

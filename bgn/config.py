@@ -101,7 +101,7 @@ class TrainKeys:
     seed: int = 0                     # training seed (the data seed is dataset.seed)
     figures: bool = True
     rollout_steps: int = 50           # validation rollout figure length (>= 0)
-    animation_every: int = 10         # validations between TensorBoard animations (0: off)
+    animation_every: int = 25         # validations between TensorBoard animations (0: off)
     val_rollout_steps: int = 50       # val/rollout_error rollout length (0: off)
     val_rollout_sims: int = 2
     test: bool = True

@@ -90,11 +90,11 @@ def build(cfg: DictConfig, datamodule: ParticleDataModule | None = None,
     datamodule.prepare_data()
     datamodule.setup()
     rollout_fn = None
-    if cfg.get("figures", True) and cfg.get("rollout_steps", 0) > 0:
+    if cfg.figures and cfg.rollout_steps > 0:
         rollout_fn = partial(rollout, dataset=datamodule.datasets["val"], sim=0,
                              n_steps=int(cfg.rollout_steps))
     error_fn = None
-    if cfg.get("val_rollout_steps", 0) > 0:
+    if cfg.val_rollout_steps > 0:
         error_fn = partial(rollout_error, dataset=datamodule.datasets["val"],
                            n_sims=int(cfg.val_rollout_sims), n_steps=int(cfg.val_rollout_steps))
     module = build_module(cfg, dict(vars(datamodule.meta)), plain_stats(datamodule.stats()),
@@ -120,9 +120,9 @@ def build_module(cfg: DictConfig, meta: dict[str, Any], stats: dict[str, Any], h
         scheduler = instantiate(node, _convert_="all")
     return PhysicsModule(model_config, meta, stats, history, optimizer=optimizer,
                          scheduler=scheduler, scheduler_config=scheduler_config,
-                         figures=bool(cfg.get("figures", True)), rollout=rollout,
+                         figures=bool(cfg.figures), rollout=rollout,
                          rollout_error=rollout_error,
-                         animation_every=int(cfg.get("animation_every", 25)),
+                         animation_every=int(cfg.animation_every),
                          provenance=provenance)
 
 
@@ -156,7 +156,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
         metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
-        if cfg.get("test", True) and not trainer.interrupted:
+        if cfg.test and not trainer.interrupted:
             best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback \
                 else ""
             trainer.test(module, datamodule=datamodule, ckpt_path=best or None,

@@ -23,10 +23,8 @@ The report (``report.md``, ``simulator.csv``, ``model.csv``, ``stability.png``) 
 from __future__ import annotations
 
 import copy
-import csv
 import dataclasses
 import json
-import math
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -39,6 +37,7 @@ from omegaconf import DictConfig, OmegaConf
 from bgn.sim import Scene, State, Trajectory, make_scene
 from bgn.sim.collisions import CollisionScene
 from bgn.sim.transform import offset, scaled
+from bgn.tables import markdown_table, write_csv
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf" / "stability"
 # default limits of the simulator checks; a case's ``limits`` overrides them
@@ -244,6 +243,7 @@ def model_checks(case: Case, scene: Scene, traj: Trajectory, model: Any, label: 
     import torch
 
     from bgn.data.targets import targets
+    from bgn.metrics import rollout_failures
     from bgn.simulator import LearnedSimulator, Particles
 
     k = model.history
@@ -281,10 +281,11 @@ def model_checks(case: Case, scene: Scene, traj: Trajectory, model: Any, label: 
         pred = result.positions[0].numpy()
         truth = x[k + 1:k + 2 + n_steps]
         err_t = np.linalg.norm(pred - truth, axis=-1).mean(axis=-1)
-        centre = truth.mean(axis=(0, 1))
-        extent = float(np.abs(truth - centre).max())
-        with np.errstate(invalid="ignore"):
-            left = bool(np.nanmax(np.abs(pred - centre)) > 10 * extent)
+        # the evaluation's failure rule: a particle more than ESCAPE_FACTOR scene scales astray
+        before = x[k:k + 1]
+        left = bool(rollout_failures(np.concatenate([before, pred])[None],
+                                     np.concatenate([before, truth])[None], scene.meta.box,
+                                     np.array([-1]))[0] >= 0)
         row = {"case": case.name, "scene": case.scene, "model": label, "dtype": dtype_name,
                "steps": n_steps, "finite": not bool(result.failed[0]),
                "first_non_finite": int(result.first_non_finite[0]), "left_scale": left,
@@ -329,29 +330,6 @@ def run_case(case: Case, cfg: DictConfig) -> tuple[dict[str, Any], list[dict[str
     return row, model_rows
 
 
-def fmt(value: Any) -> str:
-    if value is None or (isinstance(value, float) and math.isnan(value)):
-        return "-"
-    if isinstance(value, bool):
-        return "yes" if value else "NO"
-    if isinstance(value, float):
-        return f"{value:.3g}"
-    return str(value)
-
-
-def table(rows: list[dict[str, Any]], columns: list[str]) -> str:
-    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
-    lines += ["| " + " | ".join(fmt(r.get(c)) for c in columns) + " |" for r in rows]
-    return "\n".join(lines)
-
-
-def write_csv(path: Path, rows: list[dict[str, Any]], columns: list[str]) -> None:
-    with path.open("w", newline="") as f:
-        writer = csv.DictWriter(f, columns, extrasaction="ignore")
-        writer.writeheader()
-        writer.writerows(rows)
-
-
 def figure(path: Path, sim_rows: list[dict[str, Any]], model_rows: list[dict[str, Any]]) -> None:
     """Energy drift per case (simulator), and rollout errors per case (model) if any."""
     import matplotlib.pyplot as plt
@@ -389,8 +367,8 @@ def write_report(out: Path, preset: str, cases: list[Case], sim_rows: list[dict[
                  model_rows: list[dict[str, Any]], checkpoints: Mapping[str, Any],
                  untrained: bool, seconds: float) -> Path:
     out.mkdir(parents=True, exist_ok=True)
-    write_csv(out / "simulator.csv", sim_rows, SIM_COLUMNS)
-    write_csv(out / "model.csv", model_rows, MODEL_COLUMNS)
+    write_csv(out / "simulator.csv", SIM_COLUMNS, sim_rows)
+    write_csv(out / "model.csv", MODEL_COLUMNS, model_rows)
     figure(out / "stability.png", sim_rows, model_rows)
     (out / "results.json").write_text(json.dumps({"simulator": sim_rows, "model": model_rows},
                                                  indent=1, default=str))
@@ -419,7 +397,7 @@ def write_report(out: Path, preset: str, cases: list[Case], sim_rows: list[dict[
         "max distance to the untransformed twin over its first `compare_frames` frames / "
         "position std. Limits: " + ", ".join(f"{k} {v:g}" for k, v in LIMITS.items())
         + " (a case may set its own).", "",
-        table(sim_rows, SIM_COLUMNS), "",
+        markdown_table(SIM_COLUMNS, sim_rows), "",
         "## Cases", "",
         *[f"- `{c.name}` ({c.scene}): {c.description.strip()}" for c in cases], "",
         "## Model rollouts", "", model_note, "",
@@ -429,8 +407,9 @@ def write_report(out: Path, preset: str, cases: list[Case], sim_rows: list[dict[
                  "trajectory. one_step_rel_error: RMS target error / RMS target over "
                  "several starts; error_h: mean position error per particle after h steps; "
                  "energy_error: |E_end - E_start| / |E_start| (finite-difference velocities); "
-                 "left_scale: a predicted position more than 10x the true extent from its "
-                 "centre.", "", table(model_rows, MODEL_COLUMNS), ""]
+                 "left_scale: a particle more than 10 scene scales astray (the box, or the true "
+                 "trajectory's extent; the evaluation's failure rule).", "",
+                 markdown_table(MODEL_COLUMNS, model_rows), ""]
     text += ["![stability](stability.png)", ""]
     path = out / "report.md"
     path.write_text("\n".join(text))

@@ -14,9 +14,12 @@ from typing import Any
 
 
 def fmt(value: Any) -> str:
-    """A table cell: floats to four significant digits, None and NaN blank."""
+    """A table cell: floats to four significant digits, booleans yes/no, None and NaN
+    blank."""
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return ""
+    if isinstance(value, bool):
+        return "yes" if value else "no"
     if isinstance(value, float):
         return f"{value:.4g}"
     return str(value)

@@ -1,15 +1,12 @@
-"""What every benchmark command shares: the machine line, the CSV and markdown table writers and
-the console table. A helper module, not a command (its name starts with ``_``, so the smoke
-tests that run every command in ``bgn.benchmarks`` skip it)."""
+"""What every benchmark command shares: the machine line and the console table (their files
+use the package's table writer, ``bgn.tables``). A helper module, not a command (its name
+starts with ``_``, so the smoke tests that run every command in ``bgn.benchmarks`` skip it)."""
 
 from __future__ import annotations
 
-import csv
 import os
 import platform
 from collections.abc import Sequence
-from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -23,21 +20,6 @@ def machine(**versions: str) -> str:
         f"{os.cpu_count()} logical CPUs, Python {platform.python_version()}, "
         + ", ".join(f"{name} {version}" for name, version in libs.items())
     )
-
-
-def write_csv(path: Path, header: Sequence[str], rows: Sequence[Sequence[Any]]) -> None:
-    """A CSV file with one header line and one line per row."""
-    with path.open("w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(header)
-        writer.writerows(rows)
-
-
-def markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]],
-                   align: str = "---:") -> list[str]:
-    """The lines of a markdown table (every column aligned by ``align``)."""
-    return ["| " + " | ".join(header) + " |", "|" + "|".join(align for _ in header) + "|",
-            *("| " + " | ".join(row) + " |" for row in rows)]
 
 
 def console():

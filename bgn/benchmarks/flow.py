@@ -33,13 +33,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bgn.benchmarks._report import console, machine, markdown_table, print_table, write_csv
+from bgn.benchmarks._report import console, machine, print_table
 from bgn.data.stats import summarize
 from bgn.evaluate import r2_score
 from bgn.graph import Graph, collate
 from bgn.model.registry import build_model
 from bgn.model.target import observed_targets
 from bgn.sim.scene import SceneMeta
+from bgn.tables import markdown_table, write_csv
 
 BOX = 10.0
 RADIUS = 0.3
@@ -191,8 +192,9 @@ def write_markdown(rows: dict[str, dict[str, float]], args: argparse.Namespace,
         "",
         f"Machine: {machine(torch=torch.__version__)}; {torch.get_num_threads()} torch threads.",
         "",
-        *markdown_table(["", *rows], [[label, *(fmt.format(r[key]) for r in rows.values())]
-                                       for key, label, fmt in FIGURES]),
+        markdown_table(["", *rows], [dict(zip(["", *rows], [label, *(fmt.format(r[key])
+                                                                 for r in rows.values())]))
+                                      for key, label, fmt in FIGURES]),
         "",
         "![training mass NLL and times](flow.png)",
     ]
@@ -277,7 +279,8 @@ def main(argv: list[str] | None = None) -> int:
 
     args.out.mkdir(parents=True, exist_ok=True)
     write_csv(args.out / "flow.csv", ["flow", *(key for key, _, _ in FIGURES)],
-              [[flow, *(f"{r[key]:.6g}" for key, _, _ in FIGURES)] for flow, r in rows.items()])
+              [{"flow": flow, **{key: f"{r[key]:.6g}" for key, _, _ in FIGURES}}
+               for flow, r in rows.items()])
     write_markdown(rows, args, args.out / "flow.md")
     write_plot(rows, curves, args.out / "flow.png")
     out.print(f"wrote {args.out / 'flow.md'}, .csv, .png")

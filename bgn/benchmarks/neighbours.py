@@ -24,8 +24,9 @@ from pathlib import Path
 import numpy as np
 import scipy
 
-from bgn.benchmarks._report import console, machine, markdown_table, print_table, write_csv
+from bgn.benchmarks._report import console, machine, print_table
 from bgn.data.graphs import radius_graph
+from bgn.tables import markdown_table, write_csv
 
 CUTOFF = 1.0
 # Single runs above this size: the largest case is slow enough that noise matters less.
@@ -172,7 +173,7 @@ def write_markdown(
             "`--retain-memory` measures without that)."
         ),
         "",
-        *markdown_table(HEADERS, [formatted(r) for r in rows]),
+        markdown_table(HEADERS, [dict(zip(HEADERS, formatted(r))) for r in rows]),
     ]
     lines.append("")
     if ratio is not None:
@@ -279,7 +280,8 @@ def main(argv: list[str] | None = None) -> int:
         )
 
     args.out.mkdir(parents=True, exist_ok=True)
-    write_csv(args.out / "neighbours.csv", CSV_HEADER, [csv_row(r) for r in rows])
+    write_csv(args.out / "neighbours.csv", CSV_HEADER,
+              [dict(zip(CSV_HEADER, csv_row(r))) for r in rows])
     write_markdown(rows, ratio, args.neighbours, retained, args.out / "neighbours.md")
     write_plot(rows, args.out / "neighbours.png")
     out.print(f"wrote {args.out / 'neighbours.md'}, .csv, .png")

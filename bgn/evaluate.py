@@ -8,6 +8,7 @@ metrics of the model and the no-learning references through the learned simulato
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -133,9 +134,8 @@ def evaluate_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 10
     frames of every test simulation (frame 100 first), keyed ``rollout/<metric>``, and of the
     no-learning references beside it (``rollout_last/...``, ``rollout_linear/...``) and the
     scene's predictability limit (``predictability/...``: the exact simulator from positions
-    1e-6 off, ``bgn.rollout.predictability``). Steps
-    are capped by the file's length. Momentum is scored where the scene conserves it (no
-    walls)."""
+    1e-6 off, ``bgn.rollout.predictability``). Steps are capped by the file's length.
+    Momentum is scored where the scene conserves it (no walls)."""
     n_steps = min(n_steps, dataset.file.n_frames - dataset.history - 2)
     starts = rollout_starts(dataset, n_steps, starts_per_sim)
     sims = evenly_spaced(dataset.file.n_sims, max_sims)
@@ -145,14 +145,13 @@ def evaluate_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 10
             if prior == "linear" and dataset.meta.target == "velocity":
                 continue  # across an impact a linear extrapolation of velocities doubles it
             predictors[f"rollout_{prior}"] = Extrapolation(dataset.meta, dataset.history, prior)
+    runs = {key: partial(rollout_many, predictor, dataset, sims, starts, n_steps)
+            for key, predictor in predictors.items()}
+    if references:  # the true simulator from positions 1e-6 off: the chaos floor
+        runs["predictability"] = partial(predictability, dataset, sims, starts, n_steps)
     metrics: dict[str, float] = {}
-    for key, predictor in [*predictors.items(), ("predictability", None)]:
-        if predictor is None:  # the true simulator from positions 1e-6 off: the chaos floor
-            if not references:
-                continue
-            t = predictability(dataset, sims, starts, n_steps)
-        else:
-            t = rollout_many(predictor, dataset, sims, starts, n_steps)
+    for key, run in runs.items():
+        t = run()
         values = rollout_metrics(t.predicted, t.true, t.masses, dataset.dt, dataset.scene.energy,
                                  t.first_non_finite, dataset.meta.box,
                                  momentum=dataset.meta.box is None,

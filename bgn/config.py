@@ -57,6 +57,7 @@ class DatasetNode:
     seed: int = 0
     # loading (bgn.data.spec.LOADER_KEYS: not part of the cache key)
     history: int = 5                  # k previous velocities in the input window (>= 0)
+    unroll: int = 0                   # training steps unrolled on the model's own frames
     batch_size: int = 64
     val_samples: int | None = None  # validation frames spread over all val sims (null: all)
     num_workers: int = 0

@@ -28,6 +28,9 @@ class Graph:
     sim: torch.Tensor            # (G,) simulation index of each graph
     frame: torch.Tensor          # (G,) frame index t of each graph
     dt: torch.Tensor | None = None  # (G,) frame spacing (turns velocity windows into accelerations)
+    # (N, S, D) true velocities v[t+2] .. v[t+S+1] after the target's: unrolled training
+    # (bgn.unroll); None unless the dataset was asked for them (dataset.unroll)
+    future_vel: torch.Tensor | None = None
 
     @property
     def num_graphs(self) -> int:

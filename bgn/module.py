@@ -34,6 +34,7 @@ from torchmetrics.classification import (
 from bgn.graph import Graph
 from bgn.model import build_model
 from bgn.sim import SceneMeta
+from bgn.unroll import unrolled_loss
 
 STAGES = ("train", "val", "test")
 
@@ -166,6 +167,8 @@ class PhysicsModule(L.LightningModule):
     def _step(self, stage: str, g: Graph) -> torch.Tensor:
         out = self.model(g)
         terms = self.model.loss_terms(g, out)
+        if stage == "train" and g.future_vel is not None:  # dataset.unroll > 0
+            terms["unroll"] = unrolled_loss(self.model, g, out)
         loss = self.model.total_loss(terms)
         if not torch.isfinite(loss):
             raise FloatingPointError(
@@ -184,7 +187,7 @@ class PhysicsModule(L.LightningModule):
         return loss
 
     def training_step(self, g: Graph, batch_idx: int) -> torch.Tensor:
-        return self._step("train", g)
+        return self._step("train", self.model.corrupt(g))  # rollout noise: training only
 
     def on_before_optimizer_step(self, optimizer: torch.optim.Optimizer) -> None:
         """A finite loss can still give a non-finite gradient (a 0/0 in a backward): stop

@@ -149,12 +149,16 @@ def validate_dataset(dataset: Any, fps: Any) -> DatasetSpec:
     n_sims = need_int(_get(dataset, "n_sims"), "dataset.n_sims", 1)
     history = need_int(_get(dataset, "history", 5), "dataset.history", 0)
     assert n_sims is not None and history is not None
+    unroll = need_int(_get(dataset, "unroll", 0), "dataset.unroll", 0,
+                      why=": training steps unrolled on the model's own frames")
+    assert unroll is not None
     n_frames = need_int(_get(dataset, "n_frames"), "dataset.n_frames", 3)
-    if n_frames is not None and n_frames < history + 3:
+    if n_frames is not None and n_frames < history + 3 + unroll:
         raise ConfigError("dataset.n_frames", n_frames, (
-            f"must be >= dataset.history + 3 = {history + 3} (a sample needs the "
-            f"{history + 2} frames of its velocity window and the next frame); raise "
-            f"dataset.n_frames or lower dataset.history"))
+            f"must be >= dataset.history + 3 + dataset.unroll = {history + 3 + unroll} (a "
+            f"sample needs the {history + 2} frames of its velocity window, the next frame "
+            f"and the {unroll} unrolled ones); raise dataset.n_frames or lower "
+            "dataset.history"))
     need_int(_get(dataset, "seed"), "dataset.seed", 0, MAX_SEED)
     for key in ("n_particles", "dim"):
         if _get(dataset, key) is not None:

@@ -91,6 +91,15 @@ def test_every_model_runs_fast_dev_run(tiny_train_cfg, tmp_path, model):
     assert record["model"] == model
 
 
+@pytest.mark.parametrize("scene", ["spring", "collisions"])
+def test_training_for_rollouts_logs_the_unrolled_loss(tiny_train_cfg, tmp_path, scene):
+    metrics = train(tiny_train_cfg(scene, "dataset.unroll=2", "model.rollout_noise=0.01",
+                                   "trainer.max_epochs=1", "+trainer.limit_train_batches=2",
+                                   "trainer.limit_val_batches=1", "test=false"))
+    assert torch.isfinite(torch.tensor(metrics["train/loss_unroll"]))
+    assert "val/loss_unroll" not in metrics  # validation scores the one-step loss only
+
+
 @pytest.mark.parametrize("ablation", [*ABLATIONS, "dense_contact"])
 def test_every_ablation_runs_fast_dev_run(tiny_train_cfg, tmp_path, ablation):
     metrics = train(tiny_train_cfg("spring", f"ablation={ablation}",

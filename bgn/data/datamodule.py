@@ -36,6 +36,7 @@ class ParticleDataModule(L.LightningDataModule):
         self.spec = DatasetSpec.from_config(dataset, fps, "train")
         get = dataset.get if hasattr(dataset, "get") else (lambda k, d=None: d)
         self.history = int(get("history", 5))
+        self.unroll = int(get("unroll", 0))  # future frames of training samples (bgn.unroll)
         self.batch_size = int(get("batch_size", 32))
         self.num_workers = int(get("num_workers", 0))
         self.in_memory = bool(get("in_memory", True))
@@ -70,7 +71,8 @@ class ParticleDataModule(L.LightningDataModule):
                 continue
             file = DatasetFile(path, self.spec.with_split(split))
             sims = list(range(self.train_sims)) if split == "train" and self.train_sims else None
-            self.datasets[split] = FrameDataset(file, self.history, sims, self.in_memory)
+            self.datasets[split] = FrameDataset(file, self.history, sims, self.in_memory,
+                                                unroll=self.unroll if split == "train" else 0)
 
     @property
     def meta(self) -> SceneMeta:

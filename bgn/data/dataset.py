@@ -10,7 +10,7 @@ from torch.utils.data import Dataset
 
 from bgn.data.files import DatasetFile
 from bgn.data.graphs import full_graph, pair_codes, scene_edges
-from bgn.data.targets import targets
+from bgn.data.targets import backward_velocities, targets
 from bgn.graph import Graph, window_graph
 from bgn.sim import Scene, SceneMeta, make_scene
 
@@ -26,24 +26,30 @@ class FrameDataset(Dataset):
     target needs ``x[t+1]``.
 
     ``sims`` restricts the simulations used (e.g. the first 3 for a sample-efficiency run).
+    ``unroll`` S > 0 adds the true velocities of the S frames after the target's to every
+    graph (``Graph.future_vel``, for unrolled training: ``bgn.unroll``); the last S
+    frames of each simulation then start no sample.
     """
 
     def __init__(self, file: DatasetFile, history: int = 5, sims: list[int] | None = None,
-                 in_memory: bool = True) -> None:
+                 in_memory: bool = True, unroll: int = 0) -> None:
         if history < 0:
             raise ValueError(f"dataset.history={history} must be >= 0")
-        if file.n_frames < history + 3:
+        if isinstance(unroll, bool) or not isinstance(unroll, int) or unroll < 0:
+            raise ValueError(f"dataset.unroll={unroll!r} must be an integer >= 0")
+        if file.n_frames < history + 3 + unroll:
             raise ValueError(f"{file.path}: {file.n_frames} frames are too few for history "
-                             f"{history}; need at least {history + 3}")
+                             f"{history} and unroll {unroll}; need at least "
+                             f"{history + 3 + unroll}")
         self.file = file
         self.meta = file.meta
         self.scene = scene_from_file(file)
-        self.history = history
+        self.history, self.unroll = history, unroll
         self.sims = list(range(file.n_sims)) if sims is None else list(sims)
         if not self.sims or max(self.sims) >= file.n_sims or min(self.sims) < 0:
             raise ValueError(f"simulations {sims} not in the file's 0..{file.n_sims - 1}")
         self.in_memory = in_memory
-        self.frames_per_sim = file.n_frames - history - 2
+        self.frames_per_sim = file.n_frames - history - 2 - unroll
         self.dt = file.dt
         self.margin = file.margin
         self._full_edges = (full_graph(self.meta.n_particles)
@@ -76,9 +82,14 @@ class FrameDataset(Dataset):
         if self.in_memory and not self.file.loaded:
             self.file.load_all()
         sim, t = self.locate(index)
-        x = self.file.read("positions", (sim, slice(t - self.history - 1, t + 2)))
+        k = self.history
+        x = self.file.read("positions", (sim, slice(t - k - 1, t + 2 + self.unroll)))
         contacts = self._contact_codes(sim, t) if self.meta.interaction == "contact" else None
-        return self.graph(x[:-1], sim, t, next_position=x[-1], contact_codes=contacts)
+        g = self.graph(x[:k + 2], sim, t, next_position=x[k + 2], contact_codes=contacts)
+        if self.unroll:  # v[t+2] .. v[t+S+1], differences in the file's float64
+            future = backward_velocities(x[k + 2:], self.dt).transpose(1, 0, 2)
+            g.future_vel = torch.as_tensor(future, dtype=g.vel.dtype)
+        return g
 
     def graph(self, window: np.ndarray, sim: int, frame: int,
               next_position: np.ndarray | None = None,

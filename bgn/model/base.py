@@ -25,11 +25,13 @@ import torch
 from torch import nn
 
 from bgn.graph import Graph
+from bgn.model.noise import add_random_walk_noise
 from bgn.model.normalizer import Normalizer
 from bgn.model.target import LOSSES, PRIORS, TargetCoder
 from bgn.sim.scene import SceneMeta
 
-LOSS_KEYS = ("dynamics", "contact", "type", "mass_nll", "relmass")
+# "unroll": the dynamics loss of steps unrolled on the model's own frames (bgn.unroll)
+LOSS_KEYS = ("dynamics", "contact", "type", "mass_nll", "relmass", "unroll")
 
 
 @dataclass
@@ -65,8 +67,14 @@ class DynamicsConfig:
     # auto (huber for accelerations with a prior, else mse) | huber | mse (paper)
     dynamics_loss: str = "auto"
     huber_delta: float = 1.0
+    # Training for rollouts (bgn.model.noise): std of the random-walk noise on the input
+    # window, in multiples of the velocity scale, with the target corrected back onto the
+    # true trajectory; 0 trains on clean windows (the paper).
+    rollout_noise: float = 0.0
 
     def __post_init__(self) -> None:
+        if not self.rollout_noise >= 0.0:
+            raise ValueError(f"rollout_noise={self.rollout_noise} must be >= 0")
         if self.target_prior not in PRIORS:
             raise ValueError(f"target_prior={self.target_prior!r}; choose one of {PRIORS}")
         if self.dynamics_loss not in LOSSES:
@@ -132,6 +140,14 @@ class PhysicsModel(nn.Module, ABC):
     @abstractmethod
     def forward_target(self, g: Graph) -> torch.Tensor:
         """The dynamics head alone, (N, D) in its own units, never with training noise."""
+
+    def corrupt(self, g: Graph) -> Graph:
+        """A training graph with the rollout noise of ``cfg.rollout_noise`` (``bgn.model.noise``),
+        or ``g`` itself when it is 0. Training only: the module calls it before ``forward``."""
+        if self.cfg.rollout_noise <= 0.0:
+            return g
+        std = self.cfg.rollout_noise * self.normalizer.velocity_scale
+        return add_random_walk_noise(g, std, self.meta.target)
 
     # ------------------------------------------------------------------ losses
     def loss_terms(self, g: Graph, out: ModelOutput) -> dict[str, torch.Tensor]:

@@ -31,6 +31,7 @@ from torch.nn import functional as F
 from bgn.graph import Graph
 from bgn.model.base import DynamicsConfig, ModelOutput, PhysicsModel, check_positive_ints
 from bgn.model.encoder import DIRECTION_EPS, node_features, node_input_dim
+from bgn.model.noise import random_walk
 from bgn.model.normalizer import Normalizer
 from bgn.model.ops import EdgeMLP, activation, mlp, scatter_sum
 
@@ -235,10 +236,7 @@ class GNS(Baseline):
         """(N, k+1, D) random-walk noise, newest first, in normalised units (None if std 0)."""
         if self.cfg.noise_std <= 0.0:
             return None
-        steps = g.vel.shape[1]
-        increments = torch.randn_like(g.vel) * (self.cfg.noise_std / steps**0.5)
-        # the window is newest first: accumulate from the oldest (last) entry
-        return increments.flip(1).cumsum(1).flip(1)
+        return random_walk(tuple(g.vel.shape), self.cfg.noise_std, g.vel)
 
     def _target(self, x: torch.Tensor, e: torch.Tensor,
                 edge_index: torch.Tensor) -> torch.Tensor:

@@ -14,9 +14,10 @@ from typing import Any
 from bgn.model.base import PhysicsModel, config_from_params
 from bgn.model.baselines import GNS, CranmerGN
 from bgn.model.bgn import BGN
+from bgn.model.newton import Newton
 from bgn.sim.scene import SceneMeta
 
-MODELS: dict[str, type[PhysicsModel]] = {cls.name: cls for cls in (BGN, CranmerGN, GNS)}
+MODELS: dict[str, type[PhysicsModel]] = {cls.name: cls for cls in (BGN, CranmerGN, GNS, Newton)}
 
 
 def build_model(config: Mapping[str, Any], meta: SceneMeta, stats: Mapping[str, Any],

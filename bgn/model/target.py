@@ -132,9 +132,13 @@ class TargetCoder(nn.Module):
 
     def encode(self, g: Graph) -> torch.Tensor:
         """The graph's target in the head's units, (N, D)."""
+        return self.code(g, g.target)
+
+    def code(self, g: Graph, target: torch.Tensor) -> torch.Tensor:
+        """A physical target of graph ``g`` in the head's units (the inverse of ``decode``)."""
         if self.residual_scale is None:
-            return self.normalizer.target(g.target)
-        return (g.target - self.prior(g)) / self.residual_scale
+            return self.normalizer.target(target)
+        return (target - self.prior(g)) / self.residual_scale
 
     def loss(self, output: torch.Tensor, g: Graph) -> torch.Tensor:
         """The dynamics loss ``L_Dec`` of the head's output against the graph's target."""

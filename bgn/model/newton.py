@@ -1,0 +1,157 @@
+"""A physically structured forward model: learned central pair forces, Newton's third law by
+construction, masses fitted to the window.
+
+The n-body scenes are pair forces along the line between two particles (SIMS.md): spring
+``F_ij = -2 (s_ij - 1) u_ij`` whatever the masses, gravity ``F_ij ~ m_i m_j g(s_ij) u_ij``. A
+network that sees only a velocity window must re-infer every particle's mass from that window
+at every step of a rollout, and a small error in its own frames changes the masses it reads:
+the one-step error is small, the rollout drifts. This model writes the structure down and
+learns only the force law:
+
+- ``f(s)``: a scalar MLP of the pair's distance (and its particle types), ``F_ij = f(s_ij)
+  u_ij`` with ``u_ij`` the unit vector from j to i. ``F_ij = -F_ji``: equal and opposite.
+- ``mass_law="inertial"`` (spring-like, the force does not depend on the masses):
+  ``a_i = w_i sum_j F_ij`` with ``w_i = 1 / m_i`` the least-squares fit of the window's own
+  accelerations to the same forces at the window's frames, ``w_i = sum_tau F_i.a_i /
+  sum_tau |F_i|^2``; ``mass_law="source"`` (gravity-like, a particle's own mass cancels):
+  ``a_i = sum_j m_j F_ij`` with the masses fitted jointly per simulation.
+
+A window made by the model itself is consistent with the masses that made it, so the fit
+returns them: masses stay put in a rollout. The scale of ``f`` is free (the fitted masses
+absorb it); only the shape of the force law is learned. The model has the dynamics head only
+and needs a complete graph of pairwise forces, an acceleration target and history >= 3.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch.nn import functional as F
+
+from bgn.graph import Graph
+from bgn.model.base import DynamicsConfig, ModelOutput, PhysicsModel, check_positive_ints
+from bgn.model.encoder import DIRECTION_EPS
+from bgn.model.ops import activation, mlp, scatter_sum
+
+MASS_LAWS = ("inertial", "source")
+FIT_EPS = 1e-12  # keeps a mass fit finite when a particle feels no force over the window
+
+
+@dataclass
+class NewtonConfig(DynamicsConfig):
+    """Options of the structured force model (the schema of ``conf/model/newton.yaml``)."""
+
+    hidden: int = 64                   # width of the force-law MLP f(s)
+    layers: int = 2                    # its hidden layers
+    activation: str = "silu"
+    mass_law: str = "inertial"         # inertial: a = F / m (spring) | source: a = sum m_j F_ij
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_positive_ints(self, ("hidden", "layers"))
+        activation(self.activation)
+        if self.mass_law not in MASS_LAWS:
+            raise ValueError(f"mass_law={self.mass_law!r}; choose one of {MASS_LAWS}")
+
+
+def past_positions(g: Graph) -> torch.Tensor:
+    """(N, k+1, D) positions x[t], x[t-1], .., x[t-k] (newest first) from the graph's current
+    position and its backward-difference velocity window."""
+    dt = g.dt.to(g.vel.dtype)[g.batch][:, None, None]
+    back = torch.cumsum(g.vel[:, :-1] * dt, dim=1)               # x[t] - x[t-j], j = 1..k
+    return torch.cat([g.pos[:, None], g.pos[:, None] - back], dim=1)
+
+
+def window_accelerations(g: Graph) -> torch.Tensor:
+    """(N, k, D) finite-difference accelerations a[t-1] .. a[t-k] of the window (the same
+    definition as the training target, ``bgn.data.targets``)."""
+    dt = g.dt.to(g.vel.dtype)[g.batch][:, None, None]
+    return (g.vel[:, :-1] - g.vel[:, 1:]) / dt
+
+
+def numerov(f: torch.Tensor) -> torch.Tensor:
+    """What a finite-difference acceleration ``(x[t+1] - 2 x[t] + x[t-1]) / dt^2`` (the
+    training target) sees of an instantaneous acceleration ``f`` (., F, D) given at frames t,
+    t-1, .., t-F+1 (newest first): Numerov's weights ``(f[t+1] + 10 f[t] + f[t-1]) / 12``,
+    exact to O(dt^4), at frames t-1 .. t-F+2; at frame t, whose f[t+1] is not known yet, with
+    f[t+1] extrapolated quadratically, ``(13 f[t] - 2 f[t-1] + f[t-2]) / 12``. Returns
+    (., F-1, D), frames t .. t-F+2. On 4-body spring data with the true force law and masses,
+    this lowers the median relative error of the target from 5e-4 to 9e-5 (docs/results.md)."""
+    now = (13 * f[:, 0] - 2 * f[:, 1] + f[:, 2]) / 12
+    centred = (f[:, :-2] + 10 * f[:, 1:-1] + f[:, 2:]) / 12
+    return torch.cat([now[:, None], centred], dim=1)
+
+
+class Newton(PhysicsModel):
+    """Learned central pair forces and window-fitted masses (see the module doc)."""
+
+    name = "newton"
+    config_class = NewtonConfig
+
+    def build(self, cfg: NewtonConfig, stats: Mapping[str, Any]) -> None:
+        meta = self.meta
+        if meta.interaction != "pairwise" or meta.target != "acceleration" \
+                or meta.graph != "full":
+            raise ValueError(f"model=newton needs pairwise forces on a complete graph with an "
+                             f"acceleration target; {meta.name} is {meta.interaction}, "
+                             f"{meta.graph} graph, {meta.target} target: use model=bgn")
+        if self.history < 3:
+            raise ValueError(f"model=newton fits masses to the window's accelerations: "
+                             f"dataset.history={self.history} must be >= 3")
+        self.types = meta.n_types
+        self.force_law = mlp([1 + (meta.n_types if meta.n_types > 1 else 0),
+                              *[cfg.hidden] * cfg.layers, 1], cfg.activation)
+
+    def pair_terms(self, g: Graph, positions: torch.Tensor) -> torch.Tensor:
+        """(E, F, D) ``f(s_ij) u_ij`` on every edge j -> i at each of the F frames of
+        ``positions`` (N, F, D); relative positions in normalised units (the scale is free)."""
+        snd, rcv = g.edge_index
+        rel = self.normalizer.rel_position(positions[rcv] - positions[snd])   # (E, F, D)
+        dist = torch.sqrt((rel * rel).sum(-1, keepdim=True) + DIRECTION_EPS**2)
+        feats = [dist]
+        if self.types > 1:  # symmetric in the pair: the law may differ per pair of types
+            pair = F.one_hot(g.types[snd], self.types) + F.one_hot(g.types[rcv], self.types)
+            feats.append(pair[:, None].expand(-1, dist.shape[1], -1).to(dist.dtype))
+        return self.force_law(torch.cat(feats, dim=-1)) * rel / dist
+
+    def acceleration(self, g: Graph) -> torch.Tensor:
+        """(N, D) predicted acceleration at frame t, physical units."""
+        self.check(g)
+        terms = numerov(self.pair_terms(g, past_positions(g)))     # frames t, t-1, .., t-k+1
+        seen = window_accelerations(g)[:, :terms.shape[1] - 1]     # a[t-1] .. a[t-k+1]
+        if self.cfg.mass_law == "inertial":
+            forces = scatter_sum(terms, g.edge_index[1], g.pos.shape[0])
+            now, past = forces[:, 0], forces[:, 1:]
+            w = (past * seen).sum((1, 2)) / ((past * past).sum((1, 2)) + FIT_EPS)  # 1 / m_i
+            return w[:, None] * now
+        return self.source_acceleration(g, terms, seen)
+
+    def source_acceleration(self, g: Graph, terms: torch.Tensor,
+                            seen: torch.Tensor) -> torch.Tensor:
+        """``a_i = sum_j m_j f(s_ij) u_ij`` with one mass per particle fitted to the window's
+        accelerations by least squares, jointly per simulation (ridge-regularised normal
+        equations, differentiable). Every graph of a batch has the same N (the n-body
+        scenes)."""
+        n_graphs, n_frames, dim = g.num_graphs, terms.shape[1], terms.shape[2]
+        n = g.pos.shape[0] // n_graphs
+        snd, rcv = g.edge_index
+        local_rcv, local_snd = rcv - g.batch[rcv] * n, snd - g.batch[snd] * n
+        # design[b, i, frame, d, j]: the term of particle j in particle i's acceleration
+        design = terms.new_zeros(n_graphs, n, n_frames, dim, n)
+        design[g.batch[rcv], local_rcv, :, :, local_snd] = terms
+        now = design[:, :, 0].reshape(n_graphs, n * dim, n)
+        past = design[:, :, 1:].reshape(n_graphs, -1, n)
+        target = seen.reshape(n_graphs, -1, 1)
+        gram = past.transpose(1, 2) @ past
+        ridge = FIT_EPS * torch.eye(n, dtype=gram.dtype, device=gram.device)
+        masses = torch.linalg.solve(gram + ridge, past.transpose(1, 2) @ target)  # (G, N, 1)
+        return (now @ masses).reshape(-1, dim)
+
+    def forward(self, g: Graph) -> ModelOutput:
+        return ModelOutput(self.forward_target(g))
+
+    def forward_target(self, g: Graph) -> torch.Tensor:
+        return self.target_coder.code(g, self.acceleration(g))

@@ -1,0 +1,85 @@
+"""The structured force model (bgn.model.newton): with the scene's true force law it recovers
+the masses and the targets of real frames, and its forces are equal and opposite."""
+
+from dataclasses import fields, replace
+
+import pytest
+import torch
+from torch import nn
+
+from bgn.data.datamodule import ParticleDataModule
+from bgn.graph import collate
+from bgn.model import build_model
+from bgn.model.newton import numerov, past_positions
+from bgn.model.ops import scatter_sum
+
+# the scenes' pair laws f(s) u_ij (SIMS.md; s = r + 0.01), the masses left to the fit
+LAWS = {"spring": ("inertial", lambda s: -2 * (s - 1)),
+        "gravity_r1": ("source", lambda s: -1 / s),
+        "gravity_r2": ("source", lambda s: -1 / s**2)}
+
+
+class TrueLaw(nn.Module):
+    def __init__(self, law, scale: float) -> None:
+        super().__init__()
+        self.law, self.scale = law, scale
+
+    def forward(self, dist: torch.Tensor) -> torch.Tensor:  # normalised distance in
+        return self.law(dist * self.scale + 0.01)
+
+
+def frames(small_cfg, scene: str):
+    dm = ParticleDataModule(small_cfg(scene, "dataset.history=4").dataset, 50.0,
+                            small_cfg(scene).paths.data_dir, generate_workers=1,
+                            show_progress=False)
+    dm.prepare_data()
+    dm.setup()
+    ds = dm.datasets["train"]
+    g = collate([ds[i] for i in range(0, len(ds), 3)])
+    g = replace(g, **{f.name: getattr(g, f.name).double() for f in fields(g)
+                      if torch.is_tensor(getattr(g, f.name))
+                      and getattr(g, f.name).is_floating_point()})
+    return ds, g
+
+
+@pytest.mark.parametrize("scene", sorted(LAWS))
+def test_the_true_law_recovers_the_targets_of_recorded_frames(small_cfg, scene):
+    ds, g = frames(small_cfg, scene)
+    mass_law, law = LAWS[scene]
+    model = build_model({"name": "newton", "mass_law": mass_law}, ds.meta, ds.file.stats(),
+                        ds.history).double()
+    model.force_law = TrueLaw(law, float(model.normalizer.rel_position_scale))
+    predicted = model.predict(g)
+    relative = (predicted - g.target).norm(dim=1) / g.target.norm(dim=1)
+    assert float(relative.median()) < 1e-3
+
+
+def test_inertial_fit_returns_the_true_masses(small_cfg):
+    ds, g = frames(small_cfg, "spring")
+    model = build_model({"name": "newton"}, ds.meta, ds.file.stats(), ds.history).double()
+    model.force_law = TrueLaw(LAWS["spring"][1], float(model.normalizer.rel_position_scale))
+    forces = numerov(scatter_sum(model.pair_terms(g, past_positions(g)), g.edge_index[1],
+                                 g.pos.shape[0]))
+    seen = (g.vel[:, :-1] - g.vel[:, 1:]) / g.dt[g.batch][:, None, None]
+    past, seen = forces[:, 1:], seen[:, :forces.shape[1] - 1]
+    fitted = (past * past).sum((1, 2)) / (past * seen).sum((1, 2))
+    assert float((fitted / g.mass - 1).abs().median()) < 1e-4
+
+
+def test_pair_forces_are_equal_and_opposite(small_cfg):
+    ds, g = frames(small_cfg, "spring")
+    torch.manual_seed(0)
+    model = build_model({"name": "newton"}, ds.meta, ds.file.stats(), ds.history).double()
+    with torch.no_grad():
+        terms = model.pair_terms(g, past_positions(g))        # an untrained law
+    net = scatter_sum(terms, g.batch[g.edge_index[1]], g.num_graphs)  # sum over each graph
+    assert float(net.abs().max()) < 1e-10 * float(terms.abs().max())
+
+
+def test_scenes_without_pairwise_forces_and_short_windows_are_refused(small_cfg):
+    ds, _ = frames(small_cfg, "spring")
+    contact = replace(ds.meta, interaction="contact", target="velocity", graph="radius")
+    with pytest.raises(ValueError, match="model=bgn"):
+        build_model({"name": "newton"}, contact, ds.file.stats(), ds.history)
+    with pytest.raises(ValueError, match="history"):
+        build_model({"name": "newton"}, ds.meta, ds.file.stats(), 2)

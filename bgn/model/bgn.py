@@ -36,7 +36,10 @@ from bgn.model.encoder import (
     node_input_dim,
 )
 from bgn.model.inverse import FLOWS, InverseModel
+from bgn.model.newton import MASS_LAWS, PairForceHead, check_scene
 from bgn.model.processor import CONTACT_MODES, MESSAGES, Processor, ProcessorOutput
+
+DYNAMICS = ("decoder", "newton")
 
 
 @dataclass
@@ -74,6 +77,12 @@ class ModelConfig(DynamicsConfig):
     # (conf/dataset_model/collisions_bgn.yaml).
     contact_message: str = "linear"
     shared_decoder: bool = False
+    # Not in the paper: "newton" replaces the decoder of Eq. 5 by the structured head of
+    # bgn.model.newton (learned central pair forces, equal and opposite, masses fitted to the
+    # window) on pairwise-force scenes; "decoder" is the paper's. mass_law: how masses enter
+    # the forces there (inertial: spring; source: gravity, conf/dataset_model/).
+    dynamics: str = "decoder"
+    mass_law: str = "inertial"
     # D^-1/2 Â D^-1/2 in every GCN layer. The paper's plain sums grow like (degree+1)^layers,
     # so contact logits explode at initialisation on large radius graphs and the flows do not
     # train (docs/results.md, "Measurements behind the defaults").
@@ -109,6 +118,10 @@ class ModelConfig(DynamicsConfig):
         super().__post_init__()
         check_positive_ints(self, ("hidden", "node_layers", "edge_layers", "decoder_hidden",
                                    "flow_transforms", "flow_hidden"))
+        if self.dynamics not in DYNAMICS:
+            raise ValueError(f"dynamics={self.dynamics!r}; choose one of {DYNAMICS}")
+        if self.mass_law not in MASS_LAWS:
+            raise ValueError(f"mass_law={self.mass_law!r}; choose one of {MASS_LAWS}")
         if self.flow not in FLOWS:
             raise ValueError(f"flow={self.flow!r}; choose one of {FLOWS}")
         if self.contact_mode not in CONTACT_MODES:
@@ -174,9 +187,16 @@ class BGN(PhysicsModel):
                                                       else None),
                                    message=cfg.contact_message, act=cfg.activation, dim=d,
                                    contact_gap=cfg.contact_gap and self.contact_scene)
-        self.decoder = Decoder(self.processor.out_features + (node_in if cfg.decoder_skip else 0),
-                               cfg.decoder_hidden, d,
-                               cfg.activation, cfg.shared_decoder)
+        if cfg.dynamics == "newton":  # the structured head replaces Eq. 5's decoder
+            check_scene(meta, history, "model.dynamics=newton")
+            self.force_head: PairForceHead | None = PairForceHead(
+                meta, self.normalizer, cfg.decoder_hidden, 2, cfg.activation, cfg.mass_law)
+            self.decoder = None
+        else:
+            self.force_head = None
+            self.decoder = Decoder(
+                self.processor.out_features + (node_in if cfg.decoder_skip else 0),
+                cfg.decoder_hidden, d, cfg.activation, cfg.shared_decoder)
         self.inverse = (InverseModel(self.processor.tilde_v_features, cfg.flow,
                                      cfg.flow_transforms, cfg.flow_hidden, cfg.activation)
                         if cfg.inverse else None)
@@ -204,6 +224,7 @@ class BGN(PhysicsModel):
     def _decode(self, p: ProcessorOutput, x: torch.Tensor) -> torch.Tensor:
         """Eq. 5 on H̃_CV (and the node inputs with ``decoder_skip``), plus the contact
         impulse of a vector message."""
+        assert self.decoder is not None
         y = self.decoder(torch.cat([p.h_cv, x], -1) if self.cfg.decoder_skip else p.h_cv)
         return y if p.impulse is None else y + p.impulse
 
@@ -211,7 +232,8 @@ class BGN(PhysicsModel):
         """All heads on a graph (one frame or a batch). ``noise`` (N,): base draws of the
         flow sample behind ``relmass`` (drawn here when None)."""
         p, w, x = self._process(g)
-        target = self._decode(p, x)                            # Eq. 5
+        target = (self._decode(p, x) if self.force_head is None    # Eq. 5
+                  else self.target_coder.code(g, self.force_head(g)))
         mass_nll = relmass = z = None
         if self.inverse is not None:
             log_m = self.normalizer.log_mass(torch.log(g.mass))
@@ -221,6 +243,9 @@ class BGN(PhysicsModel):
 
     def forward_target(self, g: Graph) -> torch.Tensor:
         """The dynamics head alone (no flow): what ``predict`` and rollouts run."""
+        if self.force_head is not None:  # needs no encoder: positions and window only
+            self.check(g)
+            return self.target_coder.code(g, self.force_head(g))
         p, _, x = self._process(g)
         return self._decode(p, x)
 

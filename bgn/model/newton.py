@@ -29,12 +29,15 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
+from torch import nn
 from torch.nn import functional as F
 
 from bgn.graph import Graph
 from bgn.model.base import DynamicsConfig, ModelOutput, PhysicsModel, check_positive_ints
 from bgn.model.encoder import DIRECTION_EPS
+from bgn.model.normalizer import Normalizer
 from bgn.model.ops import activation, mlp, scatter_sum
+from bgn.sim.scene import SceneMeta
 
 MASS_LAWS = ("inertial", "source")
 FIT_EPS = 1e-12  # keeps a mass fit finite when a particle feels no force over the window
@@ -85,31 +88,39 @@ def numerov(f: torch.Tensor) -> torch.Tensor:
     return torch.cat([now[:, None], centred], dim=1)
 
 
-class Newton(PhysicsModel):
-    """Learned central pair forces and window-fitted masses (see the module doc)."""
+def check_scene(meta: SceneMeta, history: int, option: str) -> None:
+    """One clear error when a scene or window cannot carry the structured force head."""
+    if meta.interaction != "pairwise" or meta.target != "acceleration" or meta.graph != "full":
+        raise ValueError(f"{option} needs pairwise forces on a complete graph with an "
+                         f"acceleration target; {meta.name} is {meta.interaction}, "
+                         f"{meta.graph} graph, {meta.target} target: use model=bgn with "
+                         "model.dynamics=decoder")
+    if history < 3:
+        raise ValueError(f"{option} fits masses to the window's accelerations: "
+                         f"dataset.history={history} must be >= 3")
 
-    name = "newton"
-    config_class = NewtonConfig
 
-    def build(self, cfg: NewtonConfig, stats: Mapping[str, Any]) -> None:
-        meta = self.meta
-        if meta.interaction != "pairwise" or meta.target != "acceleration" \
-                or meta.graph != "full":
-            raise ValueError(f"model=newton needs pairwise forces on a complete graph with an "
-                             f"acceleration target; {meta.name} is {meta.interaction}, "
-                             f"{meta.graph} graph, {meta.target} target: use model=bgn")
-        if self.history < 3:
-            raise ValueError(f"model=newton fits masses to the window's accelerations: "
-                             f"dataset.history={self.history} must be >= 3")
-        self.types = meta.n_types
+class PairForceHead(nn.Module):
+    """The structured dynamics head (see the module doc): positions and the velocity window
+    of a graph -> its acceleration at frame t in physical units, (N, D)."""
+
+    def __init__(self, meta: SceneMeta, normalizer: Normalizer, hidden: int, layers: int,
+                 act: str, mass_law: str) -> None:
+        super().__init__()
+        if mass_law not in MASS_LAWS:
+            raise ValueError(f"mass_law={mass_law!r}; choose one of {MASS_LAWS}")
+        self.mass_law, self.types = mass_law, meta.n_types
+        # lengths in the units the model normalises relative positions by (a copy: the
+        # normaliser belongs to the model)
+        self.register_buffer("length_scale", normalizer.rel_position_scale.detach().clone())
         self.force_law = mlp([1 + (meta.n_types if meta.n_types > 1 else 0),
-                              *[cfg.hidden] * cfg.layers, 1], cfg.activation)
+                              *[hidden] * layers, 1], act)
 
     def pair_terms(self, g: Graph, positions: torch.Tensor) -> torch.Tensor:
         """(E, F, D) ``f(s_ij) u_ij`` on every edge j -> i at each of the F frames of
         ``positions`` (N, F, D); relative positions in normalised units (the scale is free)."""
         snd, rcv = g.edge_index
-        rel = self.normalizer.rel_position(positions[rcv] - positions[snd])   # (E, F, D)
+        rel = (positions[rcv] - positions[snd]) / self.length_scale           # (E, F, D)
         dist = torch.sqrt((rel * rel).sum(-1, keepdim=True) + DIRECTION_EPS**2)
         feats = [dist]
         if self.types > 1:  # symmetric in the pair: the law may differ per pair of types
@@ -117,12 +128,11 @@ class Newton(PhysicsModel):
             feats.append(pair[:, None].expand(-1, dist.shape[1], -1).to(dist.dtype))
         return self.force_law(torch.cat(feats, dim=-1)) * rel / dist
 
-    def acceleration(self, g: Graph) -> torch.Tensor:
+    def forward(self, g: Graph) -> torch.Tensor:
         """(N, D) predicted acceleration at frame t, physical units."""
-        self.check(g)
         terms = numerov(self.pair_terms(g, past_positions(g)))     # frames t, t-1, .., t-k+1
         seen = window_accelerations(g)[:, :terms.shape[1] - 1]     # a[t-1] .. a[t-k+1]
-        if self.cfg.mass_law == "inertial":
+        if self.mass_law == "inertial":
             forces = scatter_sum(terms, g.edge_index[1], g.pos.shape[0])
             now, past = forces[:, 0], forces[:, 1:]
             w = (past * seen).sum((1, 2)) / ((past * past).sum((1, 2)) + FIT_EPS)  # 1 / m_i
@@ -150,8 +160,22 @@ class Newton(PhysicsModel):
         masses = torch.linalg.solve(gram + ridge, past.transpose(1, 2) @ target)  # (G, N, 1)
         return (now @ masses).reshape(-1, dim)
 
+
+class Newton(PhysicsModel):
+    """The structured head alone as a model (see the module doc); BGN carries the same head
+    with ``model.dynamics=newton``."""
+
+    name = "newton"
+    config_class = NewtonConfig
+
+    def build(self, cfg: NewtonConfig, stats: Mapping[str, Any]) -> None:
+        check_scene(self.meta, self.history, "model=newton")
+        self.head = PairForceHead(self.meta, self.normalizer, cfg.hidden, cfg.layers,
+                                  cfg.activation, cfg.mass_law)
+
     def forward(self, g: Graph) -> ModelOutput:
         return ModelOutput(self.forward_target(g))
 
     def forward_target(self, g: Graph) -> torch.Tensor:
-        return self.target_coder.code(g, self.acceleration(g))
+        self.check(g)
+        return self.target_coder.code(g, self.head(g))

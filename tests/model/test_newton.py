@@ -43,13 +43,16 @@ def frames(small_cfg, scene: str):
 
 
 @pytest.mark.parametrize("scene", sorted(LAWS))
-def test_the_true_law_recovers_the_targets_of_recorded_frames(small_cfg, scene):
+@pytest.mark.parametrize("config", [{"name": "newton"}, {"name": "bgn", "dynamics": "newton"}])
+def test_the_true_law_recovers_the_targets_of_recorded_frames(small_cfg, scene, config):
     ds, g = frames(small_cfg, scene)
     mass_law, law = LAWS[scene]
-    model = build_model({"name": "newton", "mass_law": mass_law}, ds.meta, ds.file.stats(),
+    model = build_model({**config, "mass_law": mass_law}, ds.meta, ds.file.stats(),
                         ds.history).double()
-    model.force_law = TrueLaw(law, float(model.normalizer.rel_position_scale))
+    head = model.head if config["name"] == "newton" else model.force_head
+    head.force_law = TrueLaw(law, float(model.normalizer.rel_position_scale))
     predicted = model.predict(g)
+    assert torch.equal(model.denormalize_target(model(g).target, g), predicted)
     relative = (predicted - g.target).norm(dim=1) / g.target.norm(dim=1)
     assert float(relative.median()) < 1e-3
 
@@ -57,8 +60,8 @@ def test_the_true_law_recovers_the_targets_of_recorded_frames(small_cfg, scene):
 def test_inertial_fit_returns_the_true_masses(small_cfg):
     ds, g = frames(small_cfg, "spring")
     model = build_model({"name": "newton"}, ds.meta, ds.file.stats(), ds.history).double()
-    model.force_law = TrueLaw(LAWS["spring"][1], float(model.normalizer.rel_position_scale))
-    forces = numerov(scatter_sum(model.pair_terms(g, past_positions(g)), g.edge_index[1],
+    model.head.force_law = TrueLaw(LAWS["spring"][1], float(model.normalizer.rel_position_scale))
+    forces = numerov(scatter_sum(model.head.pair_terms(g, past_positions(g)), g.edge_index[1],
                                  g.pos.shape[0]))
     seen = (g.vel[:, :-1] - g.vel[:, 1:]) / g.dt[g.batch][:, None, None]
     past, seen = forces[:, 1:], seen[:, :forces.shape[1] - 1]
@@ -71,7 +74,7 @@ def test_pair_forces_are_equal_and_opposite(small_cfg):
     torch.manual_seed(0)
     model = build_model({"name": "newton"}, ds.meta, ds.file.stats(), ds.history).double()
     with torch.no_grad():
-        terms = model.pair_terms(g, past_positions(g))        # an untrained law
+        terms = model.head.pair_terms(g, past_positions(g))        # an untrained law
     net = scatter_sum(terms, g.batch[g.edge_index[1]], g.num_graphs)  # sum over each graph
     assert float(net.abs().max()) < 1e-10 * float(terms.abs().max())
 
@@ -83,3 +86,8 @@ def test_scenes_without_pairwise_forces_and_short_windows_are_refused(small_cfg)
         build_model({"name": "newton"}, contact, ds.file.stats(), ds.history)
     with pytest.raises(ValueError, match="history"):
         build_model({"name": "newton"}, ds.meta, ds.file.stats(), 2)
+    with pytest.raises(ValueError, match="model.dynamics=newton needs pairwise"):
+        build_model({"name": "bgn", "dynamics": "newton"}, contact, ds.file.stats(),
+                    ds.history)
+    with pytest.raises(ValueError, match="mass_law"):
+        build_model({"name": "bgn", "mass_law": "magic"}, ds.meta, ds.file.stats(), ds.history)

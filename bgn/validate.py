@@ -154,11 +154,11 @@ def validate_dataset(dataset: Any, fps: Any) -> DatasetSpec:
     assert unroll is not None
     n_frames = need_int(_get(dataset, "n_frames"), "dataset.n_frames", 3)
     if n_frames is not None and n_frames < history + 3 + unroll:
+        unrolled = (" + dataset.unroll", f" and the {unroll} unrolled ones") if unroll else ("", "")
         raise ConfigError("dataset.n_frames", n_frames, (
-            f"must be >= dataset.history + 3 + dataset.unroll = {history + 3 + unroll} (a "
-            f"sample needs the {history + 2} frames of its velocity window, the next frame "
-            f"and the {unroll} unrolled ones); raise dataset.n_frames or lower "
-            "dataset.history"))
+            f"must be >= dataset.history + 3{unrolled[0]} = {history + 3 + unroll} (a "
+            f"sample needs the {history + 2} frames of its velocity window, the next "
+            f"frame{unrolled[1]}); raise dataset.n_frames or lower dataset.history"))
     need_int(_get(dataset, "seed"), "dataset.seed", 0, MAX_SEED)
     for key in ("n_particles", "dim"):
         if _get(dataset, key) is not None:

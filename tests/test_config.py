@@ -37,8 +37,15 @@ def test_collisions_gives_bgn_its_measured_defaults():
     model = OmegaConf.to_container(cfg.model, resolve=True)
     assert model["contact_message"] == "vector"
     assert cfg.optimizer.lr == 3e-3
-    assert model["loss_weights"] == {"dynamics": 1.0, **dict.fromkeys(AUX, 0.1)}
+    assert model["loss_weights"] == {"dynamics": 1.0, "unroll": 1.0, **dict.fromkeys(AUX, 0.1)}
     assert model["target_prior"] == "auto"
+
+
+def test_spring_gives_bgn_the_structured_force_head_and_the_command_line_wins():
+    assert model_of("dataset=spring", "model=bgn")["dynamics"] == "newton"
+    assert model_of("dataset=spring", "model=bgn", "model.dynamics=decoder")["dynamics"] == \
+        "decoder"
+    assert model_of("dataset=collisions", "model=bgn")["dynamics"] == "decoder"
 
 
 @pytest.mark.parametrize("name", ["gns", "cranmer_gn"])

@@ -83,7 +83,7 @@ def test_every_dataset_runs_fast_dev_run(tiny_train_cfg, tmp_path, scene):
     assert record["dataset"] == scene
 
 
-@pytest.mark.parametrize("model", ["cranmer_gn", "gns"])  # bgn: every dataset, above
+@pytest.mark.parametrize("model", ["cranmer_gn", "gns", "newton"])  # bgn: every dataset
 def test_every_model_runs_fast_dev_run(tiny_train_cfg, tmp_path, model):
     metrics = train(tiny_train_cfg("spring", "+trainer.fast_dev_run=true", model=model))
     assert torch.isfinite(torch.tensor(metrics["train/loss"]))

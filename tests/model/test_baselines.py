@@ -43,7 +43,7 @@ def sample(graph, n=7, n_types=1, kind="full", box=None, seed=0):
 
 
 def test_registry_has_every_model():
-    assert set(MODELS) == {"bgn", "cranmer_gn", "gns"}
+    assert set(MODELS) == {"bgn", "cranmer_gn", "gns", "newton"}
     for name, cls in MODELS.items():
         assert issubclass(cls, PhysicsModel) and cls.name == name
 

@@ -21,6 +21,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any, ClassVar
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -91,6 +92,17 @@ def config_from_params(cls: type, params: Mapping[str, Any], model: str) -> Any:
     if unknown:
         raise ValueError(f"unknown {model} model options {unknown}; known: {sorted(known)}")
     return cls(**values)
+
+
+def contact_pos_weight(stats: Mapping[str, Any], setting: str | float) -> float:
+    """Positive-class weight of the contact BCE: ``(1 - p) / p`` for "balanced", where ``p``
+    is the contact fraction of the training split's candidate edges, else the number given."""
+    if setting != "balanced":
+        return float(setting)
+    p = float(np.mean(stats["contact"]["mean"]))
+    if not 0.0 < p < 1.0:  # no contacts (or only contacts) in training: nothing to balance
+        return 1.0
+    return (1.0 - p) / p
 
 
 class PhysicsModel(nn.Module, ABC):

@@ -14,7 +14,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-import numpy as np
 import torch
 from torch.nn import functional as F
 
@@ -25,6 +24,7 @@ from bgn.model.base import (
     ModelOutput,
     PhysicsModel,
     check_positive_ints,
+    contact_pos_weight,
 )
 from bgn.model.decoder import Decoder
 from bgn.model.encoder import (
@@ -139,17 +139,6 @@ class ModelConfig(DynamicsConfig):
         if unknown:
             raise ValueError(f"unknown loss weights {sorted(unknown)}; keys are {LOSS_KEYS}")
         self.loss_weights = {str(k): float(v) for k, v in dict(self.loss_weights).items()}
-
-
-def contact_pos_weight(stats: Mapping[str, Any], setting: str | float) -> float:
-    """Positive-class weight of the contact BCE: ``(1 - p) / p`` for "balanced", where ``p``
-    is the contact fraction of the training split's candidate edges, else the number given."""
-    if setting != "balanced":
-        return float(setting)
-    p = float(np.mean(stats["contact"]["mean"]))
-    if not 0.0 < p < 1.0:  # no contacts (or only contacts) in training: nothing to balance
-        return 1.0
-    return (1.0 - p) / p
 
 
 class BGN(PhysicsModel):

@@ -33,14 +33,23 @@ from torch import nn
 from torch.nn import functional as F
 
 from bgn.graph import Graph
-from bgn.model.base import DynamicsConfig, ModelOutput, PhysicsModel, check_positive_ints
+from bgn.model.base import (
+    DynamicsConfig,
+    ModelOutput,
+    PhysicsModel,
+    check_positive_ints,
+    contact_pos_weight,
+)
 from bgn.model.encoder import DIRECTION_EPS
+from bgn.model.impulse import ContactImpulseHead
 from bgn.model.normalizer import Normalizer
 from bgn.model.ops import activation, mlp, scatter_sum
 from bgn.sim.scene import SceneMeta
 
 MASS_LAWS = ("inertial", "source")
 FIT_EPS = 1e-12  # keeps a mass fit finite when a particle feels no force over the window
+ROBUST_STEPS, ROBUST_SCALE = 2, 0.01  # reweighting of the gravity mass fit (source law)
+IMPLICIT_STEPS = 1  # fixed-point steps of the implicit Numerov prediction (more: no gain)
 
 
 @dataclass
@@ -130,52 +139,97 @@ class PairForceHead(nn.Module):
 
     def forward(self, g: Graph) -> torch.Tensor:
         """(N, D) predicted acceleration at frame t, physical units."""
-        terms = numerov(self.pair_terms(g, past_positions(g)))     # frames t, t-1, .., t-k+1
+        raw = self.pair_terms(g, past_positions(g))                 # frames t, t-1, .., t-k
+        terms = numerov(raw)                                       # frames t, .., t-k+1
         seen = window_accelerations(g)[:, :terms.shape[1] - 1]     # a[t-1] .. a[t-k+1]
         if self.mass_law == "inertial":
-            forces = scatter_sum(terms, g.edge_index[1], g.pos.shape[0])
-            now, past = forces[:, 0], forces[:, 1:]
-            w = (past * seen).sum((1, 2)) / ((past * past).sum((1, 2)) + FIT_EPS)  # 1 / m_i
-            return w[:, None] * now
-        return self.source_acceleration(g, terms, seen)
+            past = scatter_sum(terms[:, 1:], g.edge_index[1], g.pos.shape[0])
+            inverse_mass = (past * seen).sum((1, 2)) / ((past * past).sum((1, 2)) + FIT_EPS)
 
-    def source_acceleration(self, g: Graph, terms: torch.Tensor,
-                            seen: torch.Tensor) -> torch.Tensor:
-        """``a_i = sum_j m_j f(s_ij) u_ij`` with one mass per particle fitted to the window's
-        accelerations by least squares, jointly per simulation (ridge-regularised normal
-        equations, differentiable). Every graph of a batch has the same N (the n-body
-        scenes)."""
-        n_graphs, n_frames, dim = g.num_graphs, terms.shape[1], terms.shape[2]
+            def combine(t: torch.Tensor) -> torch.Tensor:          # a_i = sum_j F_ij / m_i
+                return inverse_mass[:, None] * scatter_sum(t, g.edge_index[1], g.pos.shape[0])
+        else:
+            masses = self.source_masses(g, terms[:, 1:], seen)
+
+            def combine(t: torch.Tensor) -> torch.Tensor:          # a_i = sum_j m_j F_ij
+                snd, rcv = g.edge_index
+                return scatter_sum(masses[snd, None] * t, rcv, g.pos.shape[0])
+        # Numerov at frame t needs the forces at x[t+1], which the acceleration sets: a few
+        # fixed-point steps of the implicit scheme, the next position by the step rule
+        a = combine(terms[:, 0])
+        dt = g.dt.to(g.vel.dtype)[g.batch][:, None]
+        for _ in range(IMPLICIT_STEPS):
+            x_next = g.pos + dt * (g.vel[:, 0] + dt * a)
+            ahead = self.pair_terms(g, x_next[:, None])[:, 0]
+            a = combine((ahead + 10 * raw[:, 0] + raw[:, 1]) / 12)
+        return a
+
+    def source_masses(self, g: Graph, past: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
+        """(N,) one mass per particle such that ``a_i = sum_j m_j f(s_ij) u_ij`` fits the
+        window's accelerations best, by least squares jointly per simulation (ridge-regularised
+        normal equations, differentiable; every graph of a batch has the same N, the n-body
+        scenes). ``past``: (E, F, D) pair terms at the F frames of ``seen`` (N, F, D)."""
+        n_graphs, n_frames, dim = g.num_graphs, past.shape[1], past.shape[2]
         n = g.pos.shape[0] // n_graphs
         snd, rcv = g.edge_index
         local_rcv, local_snd = rcv - g.batch[rcv] * n, snd - g.batch[snd] * n
         # design[b, i, frame, d, j]: the term of particle j in particle i's acceleration
-        design = terms.new_zeros(n_graphs, n, n_frames, dim, n)
-        design[g.batch[rcv], local_rcv, :, :, local_snd] = terms
-        now = design[:, :, 0].reshape(n_graphs, n * dim, n)
-        past = design[:, :, 1:].reshape(n_graphs, -1, n)
+        design = past.new_zeros(n_graphs, n, n_frames, dim, n)
+        design[g.batch[rcv], local_rcv, :, :, local_snd] = past
+        design = design.reshape(n_graphs, -1, n)
         target = seen.reshape(n_graphs, -1, 1)
-        gram = past.transpose(1, 2) @ past
-        ridge = FIT_EPS * torch.eye(n, dtype=gram.dtype, device=gram.device)
-        masses = torch.linalg.solve(gram + ridge, past.transpose(1, 2) @ target)  # (G, N, 1)
-        return (now @ masses).reshape(-1, dim)
+        # Relative errors, then a robust reweighting (Cauchy, scale ROBUST_SCALE): the frames
+        # of a close encounter are the least resolved by the frame rate, and one of them would
+        # otherwise set every mass of its simulation.
+        weight = 1 / (target.abs() + target.abs().mean(1, keepdim=True) * 1e-3 + FIT_EPS)
+        eye = FIT_EPS * torch.eye(n, dtype=design.dtype, device=design.device)
+        for _ in range(ROBUST_STEPS + 1):
+            wd = design * weight
+            masses = torch.linalg.solve(wd.transpose(1, 2) @ wd + eye,
+                                        wd.transpose(1, 2) @ (target * weight))
+            residual = (design @ masses - target) * weight
+            weight = weight / (1 + (residual / ROBUST_SCALE) ** 2).sqrt()
+        return masses.reshape(-1)
 
 
 class Newton(PhysicsModel):
-    """The structured head alone as a model (see the module doc); BGN carries the same head
-    with ``model.dynamics=newton``."""
+    """Newton's laws with a learned interaction: the structured force head on pairwise-force
+    scenes (see the module doc; BGN carries it with ``model.dynamics=newton``), pair impulses
+    at the time of impact on contact scenes (``bgn.model.impulse``)."""
 
     name = "newton"
     config_class = NewtonConfig
 
     def build(self, cfg: NewtonConfig, stats: Mapping[str, Any]) -> None:
+        if self.meta.interaction == "contact":
+            self.head: nn.Module = ContactImpulseHead(
+                self.meta, self.normalizer.rel_position_scale,
+                self.normalizer.rel_velocity_scale, cfg.hidden, cfg.activation)
+            self.heads = frozenset({"dynamics", "contact"})
+            self.contact_pos_weight = contact_pos_weight(stats, "balanced")
+            return
         check_scene(self.meta, self.history, "model=newton")
         self.head = PairForceHead(self.meta, self.normalizer, cfg.hidden, cfg.layers,
                                   cfg.activation, cfg.mass_law)
 
     def forward(self, g: Graph) -> ModelOutput:
-        return ModelOutput(self.forward_target(g))
+        self.check(g)
+        if "contact" not in self.heads:
+            return ModelOutput(self.target_coder.code(g, self.head(g)))
+        velocity, logits = self.head(g)
+        return ModelOutput(self.target_coder.code(g, velocity), contact=logits)
 
     def forward_target(self, g: Graph) -> torch.Tensor:
-        self.check(g)
-        return self.target_coder.code(g, self.head(g))
+        return self.forward(g).target
+
+    def contact_target(self, g: Graph) -> torch.Tensor:
+        return g.edge_contact
+
+    def loss_terms(self, g: Graph, out: ModelOutput) -> dict[str, torch.Tensor]:
+        terms = super().loss_terms(g, out)
+        if out.contact is not None and out.contact.numel():
+            weight = torch.tensor(self.contact_pos_weight, dtype=out.contact.dtype,
+                                  device=out.contact.device)
+            terms["contact"] = F.binary_cross_entropy_with_logits(
+                out.contact, g.edge_contact.to(out.contact.dtype), pos_weight=weight)
+        return terms

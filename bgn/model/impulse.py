@@ -1,0 +1,139 @@
+"""Newton's laws for hard discs: pair impulses along the normal at the time of impact, equal
+and opposite by construction, divided by learned masses.
+
+The collisions scene is free flight between elastic impacts (SIMS.md). What a frame of a disc
+gas shows is mostly free flight, and an impact changes two velocities by
+``dv_i = -(1 + e) m_j / (m_i + m_j) ((v_i - v_j) . n) n`` at the instant the discs touch (``n``
+the unit normal from j to i then, ``e`` the restitution, 1 for elastic). A generic network
+must learn that map from frames; an error of a light disc's impulse that leaks into a heavy
+disc's velocity (400 times the mass here) multiplies the gas's energy within a hundred steps.
+This head writes the structure down and learns only what the frames do not say:
+
+- when the window's free flight brings two discs (or a disc and a wall) into contact within
+  the next frame (the time of impact, solved from positions and velocities), a learned gate
+  says whether they really touch (trained on the recorded contacts, ``ModelOutput.contact``);
+- the masses, as a function of a disc's radius (``log m(r)``: types differ in size), and the
+  restitution ``e``;
+- the next finite-difference velocity is the exact one of a single impact at time ``s`` into
+  a frame of length ``dt``: ``v + dv (1 - s / dt)``.
+
+A backward-difference velocity that straddles an impact is not the disc's velocity: the head
+first replays the last frame from ``(x[t-1], v[t-1])`` and adds the part of each impact's
+change that the average over that frame missed (``dv s' / dt``), then predicts the next frame.
+Several impacts of one disc within one frame are treated one pair at a time.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from bgn.graph import Graph
+from bgn.model.ops import mlp, scatter_sum
+from bgn.sim.scene import SceneMeta
+
+TINY = 1e-20         # keeps roots, divisions and norms (and their gradients) finite
+RULE_LOGIT = 4.0      # the gates start at the time-of-impact rule: +-4 (probability 0.98)
+
+
+def time_of_impact(dx: torch.Tensor, dv: torch.Tensor, reach: torch.Tensor,
+                   dt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """First time ``s`` in ``[0, dt)`` at which ``|dx + dv s| = reach`` while approaching, for
+    pairs (E, D) -> ``(s / dt, hit)``; ``s / dt`` is 1 where there is no impact."""
+    a = (dv * dv).sum(-1)
+    b = (dx * dv).sum(-1)
+    c = (dx * dx).sum(-1) - reach * reach
+    disc = b * b - a * c
+    # every branch finite, so that torch.where's unused branch cannot turn a gradient to NaN
+    root = (-b - torch.sqrt(disc.clamp_min(TINY))) / (a + TINY)
+    s = torch.where(c <= 0, torch.zeros_like(root), root.clamp_min(0.0))  # overlapping: now
+    hit = (b < 0) & (disc >= 0) & (s < dt)
+    return torch.where(hit, s / dt, torch.ones_like(s)), hit
+
+
+def wall_impact(x: torch.Tensor, v: torch.Tensor, radius: torch.Tensor, box: float,
+                dt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per disc and axis (N, D): the fraction of the frame at which free flight reaches a wall
+    (1 if it does not) and whether it does."""
+    r = radius[:, None]
+    gap = torch.where(v < 0, x - r, box - r - x)                      # to the wall ahead
+    s = (gap / (v.abs() + TINY)).clamp_min(0.0)
+    hit = (v != 0) & (s < dt[:, None])
+    return torch.where(hit, s / dt[:, None], torch.ones_like(s)), hit
+
+
+class ContactImpulseHead(nn.Module):
+    """Positions and velocity window of a contact scene's graph -> the next finite-difference
+    velocity (N, D, physical units) and the contact gate's logits on the edges (E,)."""
+
+    def __init__(self, meta: SceneMeta, length_scale: torch.Tensor, speed_scale: torch.Tensor,
+                 hidden: int, act: str) -> None:
+        super().__init__()
+        if meta.box is None:
+            raise ValueError("the impulse head needs the scene's box (its walls)")
+        self.box = float(meta.box)
+        self.register_buffer("length_scale", length_scale.detach().clone())
+        self.register_buffer("speed_scale", speed_scale.detach().clone())
+        self.log_mass = mlp([1, hidden, 1], act)             # log m(radius), up to a constant
+        self.gate = mlp([4, hidden, hidden, 1], act)         # pair: touch within the frame?
+        self.wall_gate = mlp([3, hidden, 1], act)
+        # restitution = exp(-softplus(p)): 0.993 at p = -5, approaching 1 (elastic) from below
+        self.restitution = nn.Parameter(torch.full((), -5.0))
+        self.wall_restitution = nn.Parameter(torch.full((), -5.0))
+        with torch.no_grad():  # start as the time-of-impact rule: a hit is a contact
+            for gate in (self.gate, self.wall_gate):
+                gate[-1].weight.zero_()
+                gate[-1].bias.zero_()
+
+    def restitutions(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Pair and wall restitution in [0, 1]: an impact may lose energy, never create it."""
+        return (torch.exp(-F.softplus(self.restitution)),
+                torch.exp(-F.softplus(self.wall_restitution)))
+
+    def impacts(self, g: Graph, x: torch.Tensor, v: torch.Tensor,
+                dt: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The impacts free flight from ``(x, v)`` meets within a frame: per edge the velocity
+        change of its receiver (E, D) and the fraction of the frame before it (E,), the gate's
+        logits (E,); per disc and axis the wall's velocity change and fraction (N, D)."""
+        snd, rcv = g.edge_index
+        dx, dv = x[rcv] - x[snd], v[rcv] - v[snd]
+        reach = g.radius[rcv] + g.radius[snd]
+        frac, hit = time_of_impact(dx, dv, reach, dt[rcv])
+        at_impact = dx + dv * (frac * dt[rcv])[:, None]
+        normal = at_impact / torch.sqrt((at_impact * at_impact).sum(-1, keepdim=True) + TINY)
+        approach = (dv * normal).sum(-1)                                  # < 0 when closing
+        feats = torch.stack([frac, hit.to(frac.dtype), approach / self.speed_scale,
+                             (torch.sqrt((dx * dx).sum(-1) + TINY) - reach) / self.length_scale],
+                            dim=-1)
+        logits = self.gate(feats).squeeze(-1) + RULE_LOGIT * (2 * hit.to(frac.dtype) - 1)
+        log_m = self.log_mass(g.radius[:, None] / self.length_scale).squeeze(-1)
+        share = torch.sigmoid(log_m[snd] - log_m[rcv])                   # m_j / (m_i + m_j)
+        e_pair, e_wall = self.restitutions()
+        # the gate may veto an impact of the rule, not create one without a time of impact
+        kick = -(1 + e_pair) * share * approach * torch.sigmoid(logits) * hit
+
+        wall_frac, wall_hit = wall_impact(x, v, g.radius, self.box, dt)
+        wall_feats = torch.stack([wall_frac, wall_hit.to(v.dtype), v.abs() / self.speed_scale],
+                                 dim=-1)
+        wall_logits = (self.wall_gate(wall_feats).squeeze(-1)
+                       + RULE_LOGIT * (2 * wall_hit.to(v.dtype) - 1))
+        wall_dv = -(1 + e_wall) * v * torch.sigmoid(wall_logits) * wall_hit
+        return kick[:, None] * normal, frac, logits, wall_dv, wall_frac
+
+    def forward(self, g: Graph) -> tuple[torch.Tensor, torch.Tensor]:
+        if g.dt is None:
+            raise ValueError("the impulse head needs the frame spacing: the graph has no dt")
+        dt = g.dt.to(g.pos.dtype)[g.batch]
+        rcv, n = g.edge_index[1], g.pos.shape[0]
+        # the velocity at frame t: the backward difference plus what the last frame's impacts
+        # changed after their instant (the backward difference averages over the frame)
+        v, v_prev = g.vel[:, 0], g.vel[:, 1]
+        pair_dv, frac, _, wall_dv, wall_frac = self.impacts(g, g.pos - v * dt[:, None], v_prev,
+                                                            dt)
+        v = v + scatter_sum(pair_dv * frac[:, None], rcv, n) + wall_dv * wall_frac
+        # the next frame: free flight, then each impact's change for the rest of the frame
+        pair_dv, frac, logits, wall_dv, wall_frac = self.impacts(g, g.pos, v, dt)
+        v_next = (v + scatter_sum(pair_dv * (1 - frac)[:, None], rcv, n)
+                  + wall_dv * (1 - wall_frac))
+        return v_next, logits

@@ -1,0 +1,86 @@
+"""The impulse head (bgn.model.impulse): times of impact, equal and opposite impulses, and the
+exact next frame of a single elastic impact."""
+
+from dataclasses import replace
+
+import torch
+
+from bgn.graph import window_graph
+from bgn.model.impulse import ContactImpulseHead, time_of_impact, wall_impact
+from bgn.model.ops import scatter_sum
+from tests.model.conftest import make_meta
+
+DT = 0.1
+
+
+def head(box: float = 10.0) -> ContactImpulseHead:
+    meta = replace(make_meta(n=2, n_types=2, interaction="contact", graph="radius", box=box))
+    torch.manual_seed(0)
+    h = ContactImpulseHead(meta, torch.tensor(1.0), torch.tensor(1.0), 16, "silu").double()
+    with torch.no_grad():  # elastic, and gates that pass every impact of the rule
+        h.restitution.fill_(-40.0)
+        h.wall_restitution.fill_(-40.0)
+        h.gate[-1].bias.fill_(40.0)
+        h.wall_gate[-1].bias.fill_(40.0)
+    return h
+
+
+def disc_graph(window: torch.Tensor, radii: list[float], box: float = 10.0):
+    """A graph of one frame from positions (k+2, N, D), every pair an edge."""
+    n = window.shape[1]
+    i, j = torch.meshgrid(torch.arange(n), torch.arange(n), indexing="ij")
+    edges = torch.stack([j[i != j], i[i != j]])
+    return window_graph(window[None].double(), DT, edges, torch.ones(1, n),
+                        torch.tensor([radii]), torch.zeros(1, n, dtype=torch.long), box,
+                        torch.tensor([0]), torch.tensor([0]), dtype=torch.float64)
+
+
+def test_time_of_impact_of_a_head_on_approach_and_of_pairs_that_miss():
+    dx = torch.tensor([[1.0, 0.0], [1.0, 0.0], [1.0, 0.0]], dtype=torch.float64)
+    dv = torch.tensor([[-4.0, 0.0], [4.0, 0.0], [0.0, 1.0]], dtype=torch.float64)
+    frac, hit = time_of_impact(dx, dv, torch.full((3,), 0.7, dtype=torch.float64),
+                               torch.full((3,), DT, dtype=torch.float64))
+    assert hit.tolist() == [True, False, False]
+    torch.testing.assert_close(frac[0], torch.tensor(0.075 / DT, dtype=torch.float64))
+    assert frac[1:].tolist() == [1.0, 1.0]
+    x = torch.tensor([[0.25, 5.0]], dtype=torch.float64)
+    wall_frac, wall_hit = wall_impact(x, torch.tensor([[-1.0, 0.0]], dtype=torch.float64),
+                                      torch.tensor([0.2], dtype=torch.float64), 10.0,
+                                      torch.tensor([DT], dtype=torch.float64))
+    assert wall_hit.tolist() == [[True, False]]
+    torch.testing.assert_close(wall_frac[0, 0], torch.tensor(0.05 / DT, dtype=torch.float64))
+
+
+def test_a_head_on_elastic_impact_gives_the_exact_next_frame():
+    # two equal discs (radius 0.5) approach at speed 2 each; they touch 0.025 into the next
+    # frame of 0.1 and swap velocities: in free flight before, nothing happened in the window
+    h = head()
+    with torch.no_grad():
+        h.log_mass[-1].weight.zero_()  # equal masses whatever the radius
+    t = torch.arange(-4, 1, dtype=torch.float64)[:, None] * DT      # frames t-3 .. t
+    left = torch.stack([4.35 + 2 * t[:, 0], torch.full((5,), 5.0, dtype=torch.float64)], -1)
+    right = torch.stack([5.45 - 2 * t[:, 0], torch.full((5,), 5.0, dtype=torch.float64)], -1)
+    g = disc_graph(torch.stack([left, right], 1), [0.5, 0.5])
+    v_next, logits = h(g)
+    # left reaches x = 4.5 at 0.025 (gap 0.05 closed at speed 4), then moves back at -2
+    expected_left = (4.35 + 2 * 0.025 - 2 * 0.075 - 4.35) / DT
+    torch.testing.assert_close(v_next[:, 0], torch.tensor([expected_left, -expected_left],
+                                                          dtype=torch.float64))
+    assert (logits > 0).all()
+
+
+def test_pair_impulses_are_equal_and_opposite_for_any_masses():
+    h = head()
+    torch.manual_seed(1)
+    n = 12
+    x = torch.rand(n, 2, dtype=torch.float64) * 3 + 3.5
+    v = torch.randn(n, 2, dtype=torch.float64) * 5
+    radii = [0.2 if k % 2 else 0.4 for k in range(n)]
+    window = torch.stack([x + v * DT * s for s in range(-3, 1)])
+    g = disc_graph(window, radii)
+    pair_dv, _, _, _, _ = h.impacts(g, g.pos, g.vel[:, 0], g.dt[g.batch])
+    assert pair_dv.abs().sum() > 0  # some pairs do meet
+    masses = torch.exp(h.log_mass(g.radius[:, None]).squeeze(-1))
+    momentum = (masses[:, None] * scatter_sum(pair_dv, g.edge_index[1], n)).sum(0)
+    torch.testing.assert_close(momentum, torch.zeros(2, dtype=torch.float64), atol=1e-10,
+                               rtol=0)

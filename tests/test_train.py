@@ -29,6 +29,7 @@ SMALL_MODELS = {  # test-sized versions of every model
     "cranmer_gn": ["model.hidden=16", "model.message_dim=8", "model.hidden_layers=1"],
     "gns": ["model.latent=16", "model.mlp_hidden=16", "model.mlp_layers=1",
             "model.message_passing_steps=2"],
+    "newton": ["model.hidden=16"],
 }
 
 
@@ -89,6 +90,12 @@ def test_every_model_runs_fast_dev_run(tiny_train_cfg, tmp_path, model):
     assert torch.isfinite(torch.tensor(metrics["train/loss"]))
     record = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert record["model"] == model
+
+
+@pytest.mark.parametrize("scene", ["gravity_r2", "collisions"])  # spring: its default
+def test_bgn_with_the_structured_dynamics_head_trains(tiny_train_cfg, tmp_path, scene):
+    metrics = train(tiny_train_cfg(scene, "model.dynamics=newton", "+trainer.fast_dev_run=true"))
+    assert torch.isfinite(torch.tensor(metrics["train/loss"]))
 
 
 @pytest.mark.parametrize("scene", ["spring", "collisions"])

@@ -31,8 +31,9 @@ from bgn.model.normalizer import Normalizer
 from bgn.model.target import LOSSES, PRIORS, TargetCoder
 from bgn.sim.scene import SceneMeta
 
-# "unroll": the dynamics loss of steps unrolled on the model's own frames (bgn.unroll)
-LOSS_KEYS = ("dynamics", "contact", "type", "mass_nll", "relmass", "unroll")
+# "unroll": the dynamics loss of steps unrolled on the model's own frames (bgn.unroll);
+# "impulse_mass": the learned masses of the impulse head (bgn.model.impulse)
+LOSS_KEYS = ("dynamics", "contact", "type", "mass_nll", "relmass", "unroll", "impulse_mass")
 
 
 @dataclass

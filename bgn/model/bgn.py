@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import torch
+from torch import nn
 from torch.nn import functional as F
 
 from bgn.graph import Graph
@@ -36,7 +37,7 @@ from bgn.model.encoder import (
     node_input_dim,
 )
 from bgn.model.inverse import FLOWS, InverseModel
-from bgn.model.newton import MASS_LAWS, PairForceHead, check_scene
+from bgn.model.newton import MASS_LAWS, build_head, impulse_mass_loss
 from bgn.model.processor import CONTACT_MODES, MESSAGES, Processor, ProcessorOutput
 
 DYNAMICS = ("decoder", "newton")
@@ -177,9 +178,9 @@ class BGN(PhysicsModel):
                                    message=cfg.contact_message, act=cfg.activation, dim=d,
                                    contact_gap=cfg.contact_gap and self.contact_scene)
         if cfg.dynamics == "newton":  # the structured head replaces Eq. 5's decoder
-            check_scene(meta, history, "model.dynamics=newton")
-            self.force_head: PairForceHead | None = PairForceHead(
-                meta, self.normalizer, cfg.decoder_hidden, 2, cfg.activation, cfg.mass_law)
+            self.force_head: nn.Module | None = build_head(
+                meta, self.normalizer, history, cfg.decoder_hidden, 2, cfg.activation,
+                cfg.mass_law, "model.dynamics=newton")
             self.decoder = None
         else:
             self.force_head = None
@@ -196,6 +197,8 @@ class BGN(PhysicsModel):
             heads.add("contact")
         if self.inverse is not None:
             heads |= {"mass_nll", "relmass"}
+        if self.force_head is not None and self.contact_scene:
+            heads.add("impulse_mass")
         self.heads = frozenset(heads)  # the loss keys this model produces
 
     # ------------------------------------------------------------------ forward
@@ -222,7 +225,7 @@ class BGN(PhysicsModel):
         flow sample behind ``relmass`` (drawn here when None)."""
         p, w, x = self._process(g)
         target = (self._decode(p, x) if self.force_head is None    # Eq. 5
-                  else self.target_coder.code(g, self.force_head(g)))
+                  else self.target_coder.code(g, self.force_head(g)[0]))
         mass_nll = relmass = z = None
         if self.inverse is not None:
             log_m = self.normalizer.log_mass(torch.log(g.mass))
@@ -234,7 +237,7 @@ class BGN(PhysicsModel):
         """The dynamics head alone (no flow): what ``predict`` and rollouts run."""
         if self.force_head is not None:  # needs no encoder: positions and window only
             self.check(g)
-            return self.target_coder.code(g, self.force_head(g))
+            return self.target_coder.code(g, self.force_head(g)[0])
         p, _, x = self._process(g)
         return self._decode(p, x)
 
@@ -264,6 +267,9 @@ class BGN(PhysicsModel):
             terms["type"] = F.cross_entropy(out.type_logits, g.types)
         if out.mass_nll is not None:                            # Eq. 8
             terms["mass_nll"] = out.mass_nll.mean()
+        if self.force_head is not None and (mass := impulse_mass_loss(
+                self.force_head, g, self.normalizer)) is not None:
+            terms["impulse_mass"] = mass                        # the impulse head's masses
         if out.relmass is not None:                             # L_Inv-Dec
             r = self.normalizer.rel_log_mass(g.edge_rel_log_mass)
             terms["relmass"] = (F.mse_loss(out.relmass, r) if r.numel()

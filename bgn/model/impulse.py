@@ -12,8 +12,9 @@ This head writes the structure down and learns only what the frames do not say:
 - when the window's free flight brings two discs (or a disc and a wall) into contact within
   the next frame (the time of impact, solved from positions and velocities), a learned gate
   says whether they really touch (trained on the recorded contacts, ``ModelOutput.contact``);
-- the masses, as a function of a disc's radius (``log m(r)``: types differ in size), and the
-  restitution ``e``;
+- the masses, as a function of a disc's radius (``log m(r)``: types differ in size), trained
+  on the training split's relative log-masses like BGN's Eq. 9-10 (the model's ``relmass``
+  loss), and the restitution ``e``;
 - the next finite-difference velocity is the exact one of a single impact at time ``s`` into
   a frame of length ``dt``: ``v + dv (1 - s / dt)``.
 
@@ -91,6 +92,11 @@ class ContactImpulseHead(nn.Module):
         return (torch.exp(-F.softplus(self.restitution)),
                 torch.exp(-F.softplus(self.wall_restitution)))
 
+    def log_masses(self, g: Graph) -> torch.Tensor:
+        """(N,) the learned log-masses (a function of the radius: the scene's types differ in
+        size)."""
+        return self.log_mass(g.radius[:, None] / self.length_scale).squeeze(-1)
+
     def impacts(self, g: Graph, x: torch.Tensor, v: torch.Tensor,
                 dt: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """The impacts free flight from ``(x, v)`` meets within a frame: per edge the velocity
@@ -107,7 +113,7 @@ class ContactImpulseHead(nn.Module):
                              (torch.sqrt((dx * dx).sum(-1) + TINY) - reach) / self.length_scale],
                             dim=-1)
         logits = self.gate(feats).squeeze(-1) + RULE_LOGIT * (2 * hit.to(frac.dtype) - 1)
-        log_m = self.log_mass(g.radius[:, None] / self.length_scale).squeeze(-1)
+        log_m = self.log_masses(g)
         share = torch.sigmoid(log_m[snd] - log_m[rcv])                   # m_j / (m_i + m_j)
         e_pair, e_wall = self.restitutions()
         # the gate may veto an impact of the rule, not create one without a time of impact

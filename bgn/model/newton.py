@@ -137,8 +137,9 @@ class PairForceHead(nn.Module):
             feats.append(pair[:, None].expand(-1, dist.shape[1], -1).to(dist.dtype))
         return self.force_law(torch.cat(feats, dim=-1)) * rel / dist
 
-    def forward(self, g: Graph) -> torch.Tensor:
-        """(N, D) predicted acceleration at frame t, physical units."""
+    def forward(self, g: Graph) -> tuple[torch.Tensor, None]:
+        """(N, D) predicted acceleration at frame t, physical units (and no contact logits:
+        the interface of ``build_head``'s heads)."""
         raw = self.pair_terms(g, past_positions(g))                 # frames t, t-1, .., t-k
         terms = numerov(raw)                                       # frames t, .., t-k+1
         seen = window_accelerations(g)[:, :terms.shape[1] - 1]     # a[t-1] .. a[t-k+1]
@@ -162,7 +163,7 @@ class PairForceHead(nn.Module):
             x_next = g.pos + dt * (g.vel[:, 0] + dt * a)
             ahead = self.pair_terms(g, x_next[:, None])[:, 0]
             a = combine((ahead + 10 * raw[:, 0] + raw[:, 1]) / 12)
-        return a
+        return a, None
 
     def source_masses(self, g: Graph, past: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
         """(N,) one mass per particle such that ``a_i = sum_j m_j f(s_ij) u_ij`` fits the
@@ -176,20 +177,50 @@ class PairForceHead(nn.Module):
         # design[b, i, frame, d, j]: the term of particle j in particle i's acceleration
         design = past.new_zeros(n_graphs, n, n_frames, dim, n)
         design[g.batch[rcv], local_rcv, :, :, local_snd] = past
-        design = design.reshape(n_graphs, -1, n)
-        target = seen.reshape(n_graphs, -1, 1)
+        # in float64: the normal equations square the condition number
+        design = design.reshape(n_graphs, -1, n).double()
+        target = seen.reshape(n_graphs, -1, 1).double()
         # Relative errors, then a robust reweighting (Cauchy, scale ROBUST_SCALE): the frames
         # of a close encounter are the least resolved by the frame rate, and one of them would
         # otherwise set every mass of its simulation.
         weight = 1 / (target.abs() + target.abs().mean(1, keepdim=True) * 1e-3 + FIT_EPS)
-        eye = FIT_EPS * torch.eye(n, dtype=design.dtype, device=design.device)
+        eye = torch.eye(n, dtype=design.dtype, device=design.device)
         for _ in range(ROBUST_STEPS + 1):
             wd = design * weight
-            masses = torch.linalg.solve(wd.transpose(1, 2) @ wd + eye,
-                                        wd.transpose(1, 2) @ (target * weight))
+            gram = wd.transpose(1, 2) @ wd
+            # a ridge relative to the system's own scale: a particle that pulls on no one
+            # within the window gets a finite mass, not a singular system
+            ridge = 1e-6 * gram.diagonal(dim1=1, dim2=2).mean(-1)[:, None, None] + FIT_EPS
+            masses = torch.linalg.solve(gram + ridge * eye, wd.transpose(1, 2) @ (target * weight))
             residual = (design @ masses - target) * weight
             weight = weight / (1 + (residual / ROBUST_SCALE) ** 2).sqrt()
-        return masses.reshape(-1)
+        return masses.reshape(-1).to(past.dtype)
+
+
+def build_head(meta: SceneMeta, normalizer: Normalizer, history: int, hidden: int, layers: int,
+               act: str, mass_law: str, option: str) -> PairForceHead | ContactImpulseHead:
+    """The structured dynamics head of a scene: pair forces (``PairForceHead``) or pair
+    impulses at the time of impact (``bgn.model.impulse``); ``head(g)`` gives the physical
+    target and the contact gate's logits (None for forces). ``option`` names the setting in
+    errors."""
+    if meta.interaction == "contact":
+        if meta.target != "velocity":
+            raise ValueError(f"{option} on a contact scene needs a next-velocity target")
+        return ContactImpulseHead(meta, normalizer.rel_position_scale,
+                                  normalizer.rel_velocity_scale, hidden, act)
+    check_scene(meta, history, option)
+    return PairForceHead(meta, normalizer, hidden, layers, act, mass_law)
+
+
+def impulse_mass_loss(head: nn.Module, g: Graph, normalizer: Normalizer) -> torch.Tensor | None:
+    """The impulse head's relative log-masses against the training masses (normalised MSE, as
+    BGN's Eq. 9-10 loss), or None for a head without learned masses. The velocities alone
+    barely constrain a heavy disc's mass: its velocity changes are small in absolute terms."""
+    if not isinstance(head, ContactImpulseHead) or g.edge_index.shape[1] == 0:
+        return None
+    log_m = head.log_masses(g)
+    predicted = normalizer.rel_log_mass(log_m[g.edge_index[1]] - log_m[g.edge_index[0]])
+    return F.mse_loss(predicted, normalizer.rel_log_mass(g.edge_rel_log_mass).to(predicted.dtype))
 
 
 class Newton(PhysicsModel):
@@ -201,23 +232,16 @@ class Newton(PhysicsModel):
     config_class = NewtonConfig
 
     def build(self, cfg: NewtonConfig, stats: Mapping[str, Any]) -> None:
+        self.head = build_head(self.meta, self.normalizer, self.history, cfg.hidden, cfg.layers,
+                               cfg.activation, cfg.mass_law, "model=newton")
         if self.meta.interaction == "contact":
-            self.head: nn.Module = ContactImpulseHead(
-                self.meta, self.normalizer.rel_position_scale,
-                self.normalizer.rel_velocity_scale, cfg.hidden, cfg.activation)
-            self.heads = frozenset({"dynamics", "contact"})
+            self.heads = frozenset({"dynamics", "contact", "impulse_mass"})
             self.contact_pos_weight = contact_pos_weight(stats, "balanced")
-            return
-        check_scene(self.meta, self.history, "model=newton")
-        self.head = PairForceHead(self.meta, self.normalizer, cfg.hidden, cfg.layers,
-                                  cfg.activation, cfg.mass_law)
 
     def forward(self, g: Graph) -> ModelOutput:
         self.check(g)
-        if "contact" not in self.heads:
-            return ModelOutput(self.target_coder.code(g, self.head(g)))
-        velocity, logits = self.head(g)
-        return ModelOutput(self.target_coder.code(g, velocity), contact=logits)
+        target, logits = self.head(g)
+        return ModelOutput(self.target_coder.code(g, target), contact=logits)
 
     def forward_target(self, g: Graph) -> torch.Tensor:
         return self.forward(g).target
@@ -232,4 +256,7 @@ class Newton(PhysicsModel):
                                   device=out.contact.device)
             terms["contact"] = F.binary_cross_entropy_with_logits(
                 out.contact, g.edge_contact.to(out.contact.dtype), pos_weight=weight)
+        mass = impulse_mass_loss(self.head, g, self.normalizer)
+        if mass is not None:
+            terms["impulse_mass"] = mass
         return terms

@@ -19,8 +19,8 @@ This head writes the structure down and learns only what the frames do not say:
   a frame of length ``dt``: ``v + dv (1 - s / dt)``.
 
 A backward-difference velocity that straddles an impact is not the disc's velocity: the head
-first replays the last frame from ``(x[t-1], v[t-1])`` and adds the part of each impact's
-change that the average over that frame missed (``dv s' / dt``), then predicts the next frame.
+first replays the window's last frames and adds the part of each impact's change that the
+average over its frame missed (``dv s' / dt``), then predicts the next frame.
 Several impacts of one disc within one frame are treated one pair at a time.
 """
 
@@ -35,6 +35,7 @@ from bgn.model.ops import mlp, scatter_sum
 from bgn.sim.scene import SceneMeta
 
 TINY = 1e-20         # keeps roots, divisions and norms (and their gradients) finite
+REPLAY_FRAMES = 3    # frames of the window replayed to recover the velocity at frame t
 RULE_LOGIT = 4.0      # the gates start at the time-of-impact rule: +-4 (probability 0.98)
 
 
@@ -132,12 +133,19 @@ class ContactImpulseHead(nn.Module):
             raise ValueError("the impulse head needs the frame spacing: the graph has no dt")
         dt = g.dt.to(g.pos.dtype)[g.batch]
         rcv, n = g.edge_index[1], g.pos.shape[0]
-        # the velocity at frame t: the backward difference plus what the last frame's impacts
-        # changed after their instant (the backward difference averages over the frame)
-        v, v_prev = g.vel[:, 0], g.vel[:, 1]
-        pair_dv, frac, _, wall_dv, wall_frac = self.impacts(g, g.pos - v * dt[:, None], v_prev,
-                                                            dt)
-        v = v + scatter_sum(pair_dv * frac[:, None], rcv, n) + wall_dv * wall_frac
+        # The velocity at frame t: the backward difference plus what each frame's impacts
+        # changed after their instant (a backward difference averages over its frame). Replayed
+        # from REPLAY_FRAMES back, so that a disc that bounced in consecutive frames starts
+        # each replay with its velocity after the last bounce, not the average that still
+        # approaches its partner (which would bounce it again).
+        depth = min(REPLAY_FRAMES, g.vel.shape[1] - 1)
+        x = g.pos - (g.vel[:, :depth] * dt[:, None, None]).sum(1)     # x[t - depth]
+        v = g.vel[:, depth]
+        for j in range(depth, 0, -1):
+            pair_dv, frac, _, wall_dv, wall_frac = self.impacts(g, x, v, dt)
+            x = x + g.vel[:, j - 1] * dt[:, None]                         # x[t - j + 1]
+            v = (g.vel[:, j - 1] + scatter_sum(pair_dv * frac[:, None], rcv, n)
+                 + wall_dv * wall_frac)
         # the next frame: free flight, then each impact's change for the rest of the frame
         pair_dv, frac, logits, wall_dv, wall_frac = self.impacts(g, g.pos, v, dt)
         v_next = (v + scatter_sum(pair_dv * (1 - frac)[:, None], rcv, n)

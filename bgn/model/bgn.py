@@ -172,7 +172,11 @@ class BGN(PhysicsModel):
                                         cfg.degree_normalize, cfg.self_weight)
         self.processor = Processor(h, edge_in, meta.n_types, meta.n_particles,
                                    contact_scene=self.contact_scene, classifier=cfg.classifier,
-                                   contact=cfg.contact, contact_mode=cfg.contact_mode,
+                                   # on contact scenes the impulse head's gate is the
+                                   # contact head when dynamics=newton
+                                   contact=cfg.contact and not (
+                                       self.contact_scene and cfg.dynamics == "newton"),
+                                   contact_mode=cfg.contact_mode,
                                    contact_edge_term=(history if cfg.contact_edge_term
                                                       else None),
                                    message=cfg.contact_message, act=cfg.activation, dim=d,
@@ -199,6 +203,8 @@ class BGN(PhysicsModel):
             heads |= {"mass_nll", "relmass"}
         if self.force_head is not None and self.contact_scene:
             heads.add("impulse_mass")
+            if cfg.contact:
+                heads.add("contact")            # the impulse head's gate
         self.heads = frozenset(heads)  # the loss keys this model produces
 
     # ------------------------------------------------------------------ forward
@@ -224,14 +230,19 @@ class BGN(PhysicsModel):
         """All heads on a graph (one frame or a batch). ``noise`` (N,): base draws of the
         flow sample behind ``relmass`` (drawn here when None)."""
         p, w, x = self._process(g)
-        target = (self._decode(p, x) if self.force_head is None    # Eq. 5
-                  else self.target_coder.code(g, self.force_head(g)[0]))
+        contact = p.contact
+        if self.force_head is None:
+            target = self._decode(p, x)                        # Eq. 5
+        else:  # the structured head (and, on contact scenes, its gate as the contact head)
+            physical, gate = self.force_head(g)
+            target = self.target_coder.code(g, physical)
+            contact = gate if gate is not None and self.cfg.contact else contact
         mass_nll = relmass = z = None
         if self.inverse is not None:
             log_m = self.normalizer.log_mass(torch.log(g.mass))
             mass_nll, z = self.inverse(p.h_tilde_v, log_m, noise)   # Eq. 7-8
             relmass = self.inverse.relative(z, g.edge_index)        # Eq. 9-10
-        return ModelOutput(target, p.type_logits, p.contact, mass_nll, relmass, z, w)
+        return ModelOutput(target, p.type_logits, contact, mass_nll, relmass, z, w)
 
     def forward_target(self, g: Graph) -> torch.Tensor:
         """The dynamics head alone (no flow): what ``predict`` and rollouts run."""

@@ -41,11 +41,12 @@ def test_collisions_gives_bgn_its_measured_defaults():
     assert model["target_prior"] == "auto"
 
 
-def test_spring_gives_bgn_the_structured_force_head_and_the_command_line_wins():
+def test_spring_and_collisions_give_bgn_the_structured_head_and_the_command_line_wins():
     assert model_of("dataset=spring", "model=bgn")["dynamics"] == "newton"
     assert model_of("dataset=spring", "model=bgn", "model.dynamics=decoder")["dynamics"] == \
         "decoder"
-    assert model_of("dataset=collisions", "model=bgn")["dynamics"] == "decoder"
+    assert model_of("dataset=collisions", "model=bgn")["dynamics"] == "newton"
+    assert model_of("dataset=gravity_r1", "model=bgn")["dynamics"] == "decoder"
 
 
 @pytest.mark.parametrize("name", ["gns", "cranmer_gn"])

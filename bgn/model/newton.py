@@ -122,7 +122,7 @@ class PairForceHead(nn.Module):
         # lengths in the units the model normalises relative positions by (a copy: the
         # normaliser belongs to the model)
         self.register_buffer("length_scale", normalizer.rel_position_scale.detach().clone())
-        self.force_law = mlp([1 + (meta.n_types if meta.n_types > 1 else 0),
+        self.force_law = mlp([3 + (meta.n_types if meta.n_types > 1 else 0),
                               *[hidden] * layers, 1], act)
 
     def pair_terms(self, g: Graph, positions: torch.Tensor) -> torch.Tensor:
@@ -131,7 +131,9 @@ class PairForceHead(nn.Module):
         snd, rcv = g.edge_index
         rel = (positions[rcv] - positions[snd]) / self.length_scale           # (E, F, D)
         dist = torch.sqrt((rel * rel).sum(-1, keepdim=True) + DIRECTION_EPS**2)
-        feats = [dist]
+        # distance, its inverse and its log: a spring's linear law and gravity's 1/s^2 near
+        # an encounter are then a few units of the MLP each, not a curve it must bend to
+        feats = [dist, 1 / dist, torch.log(dist)]
         if self.types > 1:  # symmetric in the pair: the law may differ per pair of types
             pair = F.one_hot(g.types[snd], self.types) + F.one_hot(g.types[rcv], self.types)
             feats.append(pair[:, None].expand(-1, dist.shape[1], -1).to(dist.dtype))

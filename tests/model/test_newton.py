@@ -24,8 +24,8 @@ class TrueLaw(nn.Module):
         super().__init__()
         self.law, self.scale = law, scale
 
-    def forward(self, dist: torch.Tensor) -> torch.Tensor:  # normalised distance in
-        return self.law(dist * self.scale + 0.01)
+    def forward(self, feats: torch.Tensor) -> torch.Tensor:  # normalised distance first
+        return self.law(feats[..., :1] * self.scale + 0.01)
 
 
 def frames(small_cfg, scene: str):

@@ -37,7 +37,8 @@ def test_collisions_gives_bgn_its_measured_defaults():
     model = OmegaConf.to_container(cfg.model, resolve=True)
     assert model["contact_message"] == "vector"
     assert cfg.optimizer.lr == 3e-3
-    assert model["loss_weights"] == {"dynamics": 1.0, "unroll": 1.0, **dict.fromkeys(AUX, 0.1)}
+    assert model["loss_weights"] == {"dynamics": 1.0, "unroll": 1.0, "impulse_mass": 1.0,
+                                     **dict.fromkeys(AUX, 0.1)}
     assert model["target_prior"] == "auto"
 
 

@@ -34,11 +34,17 @@ def binary_f1(pred: np.ndarray, true: np.ndarray) -> float:
     return float(2 * tp / denominator) if denominator else float("nan")
 
 
+KDE_MAX_VALUES = 20_000
+
+
 def kde_modes(values: np.ndarray, grid: np.ndarray, min_prominence: float = 0.05) -> np.ndarray:
     """Locations of the peaks of a Gaussian KDE of ``values`` on ``grid``; a peak counts when
     its prominence is at least ``min_prominence`` x the highest density (ignores wiggles)."""
     values = np.asarray(values, dtype=np.float64)
     values = values[np.isfinite(values)]
+    # a KDE costs len(values) x len(grid): every 1/k-th of millions of samples finds the
+    # same peaks (seconds instead of a minute for 3 M samples)
+    values = values[::max(1, len(values) // KDE_MAX_VALUES)]
     if len(values) < 2 or np.ptp(values) == 0:
         return values[:1].copy()
     density = gaussian_kde(values)(grid)
@@ -85,8 +91,10 @@ def coverage_curve(true_log: np.ndarray, sampled_log: np.ndarray,
     below it the posterior is overconfident (too narrow or biased), above it too wide."""
     true_log, sampled_log = _check_samples(true_log, sampled_log)
     tails = (1.0 - np.asarray(levels)) / 2
-    lo = np.nanquantile(sampled_log, tails, axis=0)        # (L, N)
-    hi = np.nanquantile(sampled_log, 1.0 - tails, axis=0)
+    # one sort for every level; nanquantile (a NaN sample: a flow that diverged) is 10x slower
+    quantile = np.quantile if np.isfinite(sampled_log).all() else np.nanquantile
+    bounds = quantile(sampled_log, np.concatenate([tails, 1.0 - tails]), axis=0)
+    lo, hi = bounds[:len(tails)], bounds[len(tails):]      # (L, N) each
     return np.mean((true_log >= lo) & (true_log <= hi), axis=1)
 
 

@@ -36,6 +36,7 @@ from bgn.sim.collisions import CollisionScene
 # Stored float64 frames: a window whose accelerations are all below this (in the scene's
 # units) carries no information about mass.
 _TINY = 1e-12
+SMOOTH = 0.2
 
 
 @dataclass(frozen=True)
@@ -76,19 +77,29 @@ class MassPrior:
         return float(np.sum(self.weights * self.means) / self.weights.sum())
 
 
-def _second_differences(windows: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """Positions (W, F, N, D) -> (the interior frames (W, F-2, N, D), their accelerations)."""
+def _second_differences(windows: np.ndarray, dt: float,
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions (W, F, N, D) -> the interior frames (W, F-2, N, D), their accelerations and
+    which of those are resolved (W, F-2, N): a finite difference is off by about
+    ``(omega dt)^2`` and a close encounter (omega ~ 1/dt) makes it useless, which shows as an
+    acceleration that changes by more than ``SMOOTH`` of itself to a neighbouring frame."""
     acc = (windows[:, 2:] - 2 * windows[:, 1:-1] + windows[:, :-2]) / dt ** 2
-    return windows[:, 1:-1], acc
+    size = np.linalg.norm(acc, axis=-1)
+    if acc.shape[1] == 1:                       # one acceleration: nothing to compare with
+        return windows[:, 1:-1], acc, np.ones(size.shape, dtype=bool)
+    jump = np.linalg.norm(np.diff(acc, axis=1), axis=-1)               # (W, F-3, N)
+    zero = np.zeros_like(jump[:, :1])           # the larger jump to either neighbour
+    worst = np.maximum(np.concatenate([zero, jump], 1), np.concatenate([jump, zero], 1))
+    return windows[:, 1:-1], acc, worst <= SMOOTH * size
 
 
 def spring_log_mass(scene: Scene, windows: np.ndarray, dt: float) -> np.ndarray:
     """Spring: ``F_i = m_i a_i`` with the mass-free spring force (``accelerations`` at unit
     mass), least squares over every interior frame of the windows (W, F, N, D)."""
-    x, acc = _second_differences(windows, dt)
+    x, acc, ok = _second_differences(windows, dt)
     force = scene.accelerations(x, np.ones(x.shape[-2]))
-    num = np.einsum("wtnd,wtnd->n", force, acc)
-    den = np.einsum("wtnd,wtnd->n", acc, acc)
+    num = np.einsum("wtnd,wtnd,wtn->n", force, acc, ok)
+    den = np.einsum("wtnd,wtnd,wtn->n", acc, acc, ok)
     with np.errstate(divide="ignore", invalid="ignore"):
         m = num / den
     return np.where((den > _TINY) & (m > 0), np.log(np.abs(m)), np.nan)
@@ -99,7 +110,7 @@ def gravity_log_mass(scene: Scene, windows: np.ndarray, dt: float) -> np.ndarray
     masses (``pair_force_magnitude``), linear in the masses: least squares over all particles,
     dimensions and interior frames of the windows (W, F, N, D). A particle's own mass is absent
     from its own acceleration; it is read from its neighbours'."""
-    x, acc = _second_differences(windows, dt)
+    x, acc, ok = _second_differences(windows, dt)
     n = x.shape[-2]
     rcv, snd = np.nonzero(~np.eye(n, dtype=bool))              # edge j -> i: i = rcv
     f = scene.pair_force_magnitude(x, np.ones(n), snd, rcv)      # (W, T, E)
@@ -108,10 +119,11 @@ def gravity_log_mass(scene: Scene, windows: np.ndarray, dt: float) -> np.ndarray
     unit = np.divide(diff, r, out=np.zeros_like(diff), where=r > 0)
     design = np.zeros(x.shape[:2] + (n, x.shape[-1], n))         # (W, T, N_i, D, N_j)
     design[:, :, rcv, :, snd] = np.moveaxis(f[..., None] * unit, 2, 0)
-    rows = design.reshape(-1, n)
-    if not np.any(np.abs(acc) > _TINY):
+    keep = np.repeat(ok[..., None], x.shape[-1], -1).reshape(-1)     # resolved rows only
+    rows, rhs = design.reshape(-1, n)[keep], acc.reshape(-1)[keep]
+    if not np.any(np.abs(rhs) > _TINY) or np.linalg.matrix_rank(rows) < n:
         return np.full(n, np.nan)
-    m = np.linalg.lstsq(rows, acc.reshape(-1), rcond=None)[0]
+    m = np.linalg.lstsq(rows, rhs, rcond=None)[0]
     return np.where(m > 0, np.log(np.abs(m)), np.nan)
 
 

@@ -133,14 +133,14 @@ def _posterior_metrics(true_log: np.ndarray, sampled_log: np.ndarray,
             **calibration_metrics(true_log, sampled_log, log_posterior, log_prior, particles)}
 
 
-def _point_metrics(estimate: np.ndarray, true_log: np.ndarray, sims: np.ndarray,
+def _point_metrics(estimate: np.ndarray, true_log: np.ndarray, particles: np.ndarray,
                    edges: np.ndarray, edge_rel: np.ndarray) -> dict[str, float]:
     """Metrics of per-particle point estimates of log-mass (one per particle and frame):
     ``mass_rel_err`` (median ``|m_hat/m - 1|``), ``relmass_r2_estimate`` (R^2 of the relative
     log-mass ``estimate_i - estimate_j`` on the frames' edges) and ``sim_mass_rel_err``: the
     estimates of one particle averaged (in log) over the evaluated frames of its simulation,
     as masses do not change over time (DESIGN section 10)."""
-    _, index = np.unique(sims, return_inverse=True)
+    _, index = np.unique(particles, return_inverse=True)
     pooled = np.bincount(index, estimate) / np.bincount(index)
     truth = np.bincount(index, true_log) / np.bincount(index)
     return {"mass_rel_err": relative_mass_error(estimate, true_log),
@@ -189,7 +189,7 @@ def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: 
     prior = MassPrior.of_scene(dataset.scene)
     rng = np.random.default_rng(seed)
     indices = evenly_spaced(len(dataset), mass_frames)
-    true_log, sampled, log_post, physical, sims, edges, edge_rel = [], [], [], [], [], [], []
+    true_log, sampled, log_post, physical, particles, edges, edge_rel = ([] for _ in range(7))
     per_sim: dict[int, list[tuple[np.ndarray, np.ndarray | None]]] = {}
     offset = 0
     for s in range(0, len(indices), batch_size):
@@ -199,11 +199,10 @@ def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: 
         sampled.append(samples.double().numpy())
         log_post.append(density.double().numpy())
         true_log.append(torch.log(g.mass.double()).numpy())
-        # a particle of a simulation has one key across frames: sim * 1e6 + particle
-        node_sim = g.sim[g.batch].numpy()
-        node_index = (torch.arange(len(g.mass)) - torch.cumsum(g.num_nodes, 0)[g.batch]
-                      + g.num_nodes[g.batch]).numpy()
-        sims.append(node_sim * 1_000_000 + node_index)
+        # one key per particle of a simulation, the same in every frame: sim * 1e6 + index
+        first_node = torch.cumsum(g.num_nodes, 0) - g.num_nodes
+        node_index = torch.arange(len(g.mass)) - first_node[g.batch]
+        particles.append((g.sim[g.batch] * 1_000_000 + node_index).numpy())
         edges.append(g.edge_index.numpy() + offset)
         edge_rel.append(g.edge_rel_log_mass.double().numpy())
         offset += len(g.mass)
@@ -212,24 +211,27 @@ def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: 
             per_sim.setdefault(dataset.locate(i)[0], []).append((window, contacts))
             physical.append(_physical(dataset, prior, [(window, contacts)]))
     true_log_a, sampled_a = np.concatenate(true_log), np.concatenate(sampled, axis=1)
-    sims_a, edges_a = np.concatenate(sims), np.concatenate(edges, axis=1)
+    particles_a, edges_a = np.concatenate(particles), np.concatenate(edges, axis=1)
     rel_a = np.concatenate(edge_rel)
     log_prior = prior.log_pdf(true_log_a)
     metrics: dict[str, Any] = _posterior_metrics(true_log_a, sampled_a,
-                                                 np.concatenate(log_post), log_prior, sims_a)
-    metrics.update(_point_metrics(sampled_a.mean(axis=0), true_log_a, sims_a, edges_a, rel_a))
+                                                 np.concatenate(log_post), log_prior,
+                                                 particles_a)
+    metrics.update(_point_metrics(sampled_a.mean(axis=0), true_log_a, particles_a, edges_a,
+                                  rel_a))
     metrics["mass_particles"] = int(len(true_log_a))
     prior_samples = prior.sample(sampled_a.shape, rng)
     references = {"prior": _posterior_metrics(true_log_a, prior_samples, log_prior, log_prior,
-                                              sims_a)}
+                                              particles_a)}
     estimate = np.concatenate(physical)
     pooled = {sim: _physical(dataset, prior, views) for sim, views in per_sim.items()}
     sim_estimate = np.concatenate(list(pooled.values()))
     sim_true = np.log(np.concatenate([dataset.file.read("masses", sim) for sim in pooled]))
     references["physical"] = {
         **_point_metrics(np.where(np.isfinite(estimate), estimate, prior.mean), true_log_a,
-                         sims_a, edges_a, rel_a),
+                         particles_a, edges_a, rel_a),
         "identified": float(np.mean(np.isfinite(estimate))),
+        # per simulation: one least-squares fit of all its windows, not a mean of estimates
         "sim_mass_rel_err": relative_mass_error(
             np.where(np.isfinite(sim_estimate), sim_estimate, prior.mean), sim_true),
         "sim_identified": float(np.mean(np.isfinite(sim_estimate)))}

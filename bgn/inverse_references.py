@@ -36,7 +36,7 @@ from bgn.sim.collisions import CollisionScene
 # Stored float64 frames: a window whose accelerations are all below this (in the scene's
 # units) carries no information about mass.
 _TINY = 1e-12
-SMOOTH = 0.2
+SMOOTH = 0.5
 
 
 @dataclass(frozen=True)
@@ -77,29 +77,33 @@ class MassPrior:
         return float(np.sum(self.weights * self.means) / self.weights.sum())
 
 
-def _second_differences(windows: np.ndarray, dt: float,
-                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Positions (W, F, N, D) -> the interior frames (W, F-2, N, D), their accelerations and
-    which of those are resolved (W, F-2, N): a finite difference is off by about
-    ``(omega dt)^2`` and a close encounter (omega ~ 1/dt) makes it useless, which shows as an
-    acceleration that changes by more than ``SMOOTH`` of itself to a neighbouring frame."""
+def _second_differences(windows: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (W, F, N, D) -> (the interior frames (W, F-2, N, D), their accelerations)."""
     acc = (windows[:, 2:] - 2 * windows[:, 1:-1] + windows[:, :-2]) / dt ** 2
-    size = np.linalg.norm(acc, axis=-1)
+    return windows[:, 1:-1], acc
+
+
+def _resolved(acc: np.ndarray) -> np.ndarray:
+    """(W, T, N) which finite-difference accelerations (W, T, N, D) to trust. One is off by
+    about ``(omega dt)^2``, and a close encounter (omega ~ 1/dt) makes it useless: it shows as
+    a jump to a neighbouring frame larger than ``SMOOTH`` x the particle's RMS acceleration
+    over the window (RMS, not the local size, which passes through zero harmlessly)."""
+    size = np.sqrt(np.mean(np.sum(acc ** 2, axis=-1), axis=1, keepdims=True))    # (W, 1, N)
     if acc.shape[1] == 1:                       # one acceleration: nothing to compare with
-        return windows[:, 1:-1], acc, np.ones(size.shape, dtype=bool)
-    jump = np.linalg.norm(np.diff(acc, axis=1), axis=-1)               # (W, F-3, N)
+        return np.ones(acc.shape[:-1], dtype=bool)
+    jump = np.linalg.norm(np.diff(acc, axis=1), axis=-1)               # (W, T-1, N)
     zero = np.zeros_like(jump[:, :1])           # the larger jump to either neighbour
     worst = np.maximum(np.concatenate([zero, jump], 1), np.concatenate([jump, zero], 1))
-    return windows[:, 1:-1], acc, worst <= SMOOTH * size
+    return worst <= SMOOTH * size
 
 
 def spring_log_mass(scene: Scene, windows: np.ndarray, dt: float) -> np.ndarray:
     """Spring: ``F_i = m_i a_i`` with the mass-free spring force (``accelerations`` at unit
     mass), least squares over every interior frame of the windows (W, F, N, D)."""
-    x, acc, ok = _second_differences(windows, dt)
+    x, acc = _second_differences(windows, dt)
     force = scene.accelerations(x, np.ones(x.shape[-2]))
-    num = np.einsum("wtnd,wtnd,wtn->n", force, acc, ok)
-    den = np.einsum("wtnd,wtnd,wtn->n", acc, acc, ok)
+    num = np.einsum("wtnd,wtnd->n", force, acc)
+    den = np.einsum("wtnd,wtnd->n", acc, acc)
     with np.errstate(divide="ignore", invalid="ignore"):
         m = num / den
     return np.where((den > _TINY) & (m > 0), np.log(np.abs(m)), np.nan)
@@ -110,7 +114,8 @@ def gravity_log_mass(scene: Scene, windows: np.ndarray, dt: float) -> np.ndarray
     masses (``pair_force_magnitude``), linear in the masses: least squares over all particles,
     dimensions and interior frames of the windows (W, F, N, D). A particle's own mass is absent
     from its own acceleration; it is read from its neighbours'."""
-    x, acc, ok = _second_differences(windows, dt)
+    x, acc = _second_differences(windows, dt)
+    ok = _resolved(acc)
     n = x.shape[-2]
     rcv, snd = np.nonzero(~np.eye(n, dtype=bool))              # edge j -> i: i = rcv
     f = scene.pair_force_magnitude(x, np.ones(n), snd, rcv)      # (W, T, E)

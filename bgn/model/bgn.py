@@ -190,7 +190,9 @@ class BGN(PhysicsModel):
                                cfg.activation, cfg.shared_decoder)
         self.inverse = (InverseModel(self.processor.tilde_v_features, cfg.flow,
                                      cfg.flow_transforms, cfg.flow_hidden, cfg.activation,
-                                     cfg.mass_context, cfg.mass_context_dropout)
+                                     # a one-velocity window holds no acceleration to pair
+                                     cfg.mass_context if history >= 1 else "node",
+                                     cfg.mass_context_dropout)
                         if cfg.inverse else None)
         heads = {"dynamics"}
         if self.processor.classifier is not None:

@@ -57,17 +57,22 @@ def make_flow(kind: str, context: int, transforms: int, hidden: int) -> zuko.flo
     raise ValueError(f"flow={kind!r}; choose one of {FLOWS}")
 
 
+def newest_acceleration(g: Graph) -> torch.Tensor:
+    """(N, D) the window's newest finite-difference acceleration ``(v[t] - v[t-1]) / dt``, in
+    physical units (the pair terms take its log-magnitude: no scale to learn)."""
+    if g.dt is None:
+        raise ValueError("pair terms need the frame spacing: the graph has no dt")
+    return (g.vel[:, 0] - g.vel[:, 1]) / g.dt[g.batch][:, None]
+
+
 def pair_features(g: Graph) -> torch.Tensor:
     """(E, 5) per edge j -> i at frame t-1, where the window's newest finite-difference
     acceleration ``a = (v[t] - v[t-1]) / dt`` is exact: ``log r_ij``, ``log |a_i|``,
     ``log |a_j|`` and both accelerations' cosines with the unit vector ``u_ij`` from j to i.
     Positions at t-1 are ``x[t] - dt v[t]`` (the backward difference, undone)."""
-    if g.dt is None:
-        raise ValueError("pair features need the frame spacing: the graph has no dt")
     snd, rcv = g.edge_index[0], g.edge_index[1]
-    dt = g.dt[g.batch][:, None]
-    acc = (g.vel[:, 0] - g.vel[:, 1]) / dt
-    prev = g.pos - dt * g.vel[:, 0]
+    acc = newest_acceleration(g)
+    prev = g.pos - g.dt[g.batch][:, None] * g.vel[:, 0]
     rel = prev[rcv] - prev[snd]
     r = torch.sqrt((rel * rel).sum(-1) + _EPS)
     a_norm = torch.sqrt((acc * acc).sum(-1) + _EPS)
@@ -96,7 +101,7 @@ class PairContext(nn.Module):
         n = len(g.vel)
         to_rcv = m.new_zeros(n, self.hidden).index_add_(0, rcv, m[:, :self.hidden])
         to_snd = m.new_zeros(n, self.hidden).index_add_(0, snd, m[:, self.hidden:])
-        acc = (g.vel[:, 0] - g.vel[:, 1]) / g.dt[g.batch][:, None]
+        acc = newest_acceleration(g)
         log_a = 0.5 * torch.log((acc * acc).sum(-1, keepdim=True) + _EPS)
         return self.node(torch.cat([to_rcv, to_snd, log_a], -1))
 

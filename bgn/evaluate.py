@@ -2,8 +2,9 @@
 
 Forward metrics (MSE in physical units, NMSE = MSE / training target variance as the
 LightningModule logs it, median relative error, the no-learning references), the inverse
-and type metrics of ``bgn.metrics`` on the model's mass samples and type logits, and rollout
-metrics of the model and the no-learning references through the learned simulator.
+metrics of ``bgn.metrics`` on the flow's posterior beside the prior-only sampler and the
+force-law estimator (``evaluate_inverse``, ``bgn.inverse_references``), type metrics, and
+rollout metrics of the model and the no-learning references through the learned simulator.
 """
 
 from __future__ import annotations
@@ -65,7 +66,7 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
                    mass_frames: int = 32, mass_samples: int = 32, batch_size: int = 16,
                    seed: int = 0) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Metrics of one model on a test dataset, and the arrays behind the mass figure
-    (``{"true_mass": (N,), "sampled_mass": (S, N)}``, empty without an inverse head)."""
+    (``evaluate_inverse``; empty without an inverse head)."""
     torch.manual_seed(seed)  # the flow's samples and relmass noise are random
     model = module.model
     heads = model.heads

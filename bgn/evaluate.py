@@ -2,8 +2,9 @@
 
 Forward metrics (MSE in physical units, NMSE = MSE / training target variance as the
 LightningModule logs it, median relative error, the no-learning references), the inverse
-and type metrics of ``bgn.metrics`` on the model's mass samples and type logits, and rollout
-metrics of the model and the no-learning references through the learned simulator.
+metrics of ``bgn.metrics`` on the flow's posterior beside the prior-only sampler and the
+force-law estimator (``evaluate_inverse``, ``bgn.inverse_references``), type metrics, and
+rollout metrics of the model and the no-learning references through the learned simulator.
 """
 
 from __future__ import annotations
@@ -19,12 +20,17 @@ from bgn.checkpoints import read
 from bgn.data.dataset import FrameDataset
 from bgn.data.frames import evenly_spaced
 from bgn.graph import Graph, collate
+from bgn.inverse_references import MassPrior, physical_log_mass
 from bgn.metrics import (
+    COVERAGE_LEVELS,
     binary_f1,
+    calibration_metrics,
+    coverage_curve,
     inverse_metrics,
     kde_modes,
     r2_score,
     recovered_modes,
+    relative_mass_error,
     rollout_metrics,
     type_metrics,
 )
@@ -60,7 +66,7 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
                    mass_frames: int = 32, mass_samples: int = 32, batch_size: int = 16,
                    seed: int = 0) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Metrics of one model on a test dataset, and the arrays behind the mass figure
-    (``{"true_mass": (N,), "sampled_mass": (S, N)}``, empty without an inverse head)."""
+    (``evaluate_inverse``; empty without an inverse head)."""
     torch.manual_seed(seed)  # the flow's samples and relmass noise are random
     model = module.model
     heads = model.heads
@@ -113,17 +119,129 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
         metrics["relmass_r2"] = r2_score(torch.cat(rel_pred).numpy(), torch.cat(rel_true).numpy())
     arrays: dict[str, np.ndarray] = {}
     if model.has_inverse:
-        # every particle of a subset of test frames, each sampled mass_samples times
-        true_mass, sampled = [], []
-        for g in batches(dataset, evenly_spaced(len(dataset), mass_frames), batch_size):
-            sampled.append(model.sample_mass(g, mass_samples))
-            true_mass.append(g.mass)
-        arrays = {"true_mass": torch.cat(true_mass).double().numpy(),
-                  "sampled_mass": torch.cat(sampled, dim=1).double().numpy()}
-        with np.errstate(divide="ignore", invalid="ignore"):
-            metrics.update(inverse_metrics(np.log(arrays["true_mass"]),
-                                           np.log(arrays["sampled_mass"])))
-        metrics["mass_particles"] = int(arrays["true_mass"].shape[0])
+        inverse, arrays = evaluate_inverse(module, dataset, mass_frames, mass_samples,
+                                           batch_size, seed)
+        metrics.update(inverse)
+    return metrics, arrays
+
+
+def _posterior_metrics(true_log: np.ndarray, sampled_log: np.ndarray,
+                       log_posterior: np.ndarray | None, log_prior: np.ndarray,
+                       particles: np.ndarray) -> dict[str, float]:
+    """Sample, calibration and information metrics of one posterior (``bgn.metrics``);
+    ``particles`` labels the distinct particles (one mass, several frames)."""
+    return {**inverse_metrics(true_log, sampled_log),
+            **calibration_metrics(true_log, sampled_log, log_posterior, log_prior, particles)}
+
+
+def _point_metrics(estimate: np.ndarray, true_log: np.ndarray, particles: np.ndarray,
+                   edges: np.ndarray, edge_rel: np.ndarray) -> dict[str, float]:
+    """Metrics of per-particle point estimates of log-mass (one per particle and frame):
+    ``mass_rel_err`` (median ``|m_hat/m - 1|``), ``relmass_r2_estimate`` (R^2 of the relative
+    log-mass ``estimate_i - estimate_j`` on the frames' edges) and ``sim_mass_rel_err``: the
+    estimates of one particle averaged (in log) over the evaluated frames of its simulation,
+    as masses do not change over time (DESIGN section 10)."""
+    _, index = np.unique(particles, return_inverse=True)
+    pooled = np.bincount(index, estimate) / np.bincount(index)
+    truth = np.bincount(index, true_log) / np.bincount(index)
+    return {"mass_rel_err": relative_mass_error(estimate, true_log),
+            "relmass_r2_estimate": r2_score(estimate[edges[1]] - estimate[edges[0]], edge_rel),
+            "sim_mass_rel_err": relative_mass_error(pooled, truth)}
+
+
+def window_and_contacts(dataset: FrameDataset, index: int) -> tuple[np.ndarray,
+                                                                    np.ndarray | None]:
+    """The position window the model sees at dataset ``index`` (k+2, N, D) and, for a contact
+    scene, its contacts as rows ``(frame within the window, i, j)``."""
+    sim, t = dataset.locate(index)
+    first = t - dataset.history - 1
+    window = dataset.file.read("positions", (sim, slice(first, t + 1)))
+    if dataset.meta.interaction != "contact":
+        return window, None
+    table = dataset.file.read("contacts", ...)
+    rows = table[(table[:, 0] == sim) & (table[:, 1] >= first) & (table[:, 1] < t)]
+    return window, np.column_stack([rows[:, 1] - first, rows[:, 2], rows[:, 3]])
+
+
+def _physical(dataset: FrameDataset, prior: MassPrior,
+              views: list[tuple[np.ndarray, np.ndarray | None]]) -> np.ndarray:
+    """The force-law estimate (N,) from the windows (and contacts) of one simulation."""
+    windows = np.stack([w for w, _ in views])
+    contacts = None if views[0][1] is None else [c for _, c in views]
+    return physical_log_mass(dataset.scene, prior, windows, dataset.dt, contacts)
+
+
+@torch.no_grad()
+def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: int = 32,
+                     mass_samples: int = 32, batch_size: int = 16, seed: int = 0,
+                     ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """The inverse model beside its two references (``bgn.inverse_references``) on every
+    particle of ``mass_frames`` evenly spaced test frames (they cover every simulation).
+
+    Keys: the model's metrics unprefixed; ``prior/...`` the prior-only sampler's (the same
+    number of draws from the scene's mass law, its exact density); ``physical/...`` the
+    force-law estimator on each frame's window (NaN where the window says nothing: the prior's
+    mean), with ``physical/identified`` the share it could estimate. Per-simulation
+    aggregates (``sim_mass_rel_err``): the model's posterior means averaged in log over the
+    evaluated frames of a simulation; the estimator's least squares over all those windows at
+    once (``physical/sim_identified``: the share of particles it could estimate). Arrays for the
+    figure: true and sampled masses and the coverage curves of the model and the prior."""
+    model = module.model
+    prior = MassPrior.of_scene(dataset.scene)
+    rng = np.random.default_rng(seed)
+    indices = evenly_spaced(len(dataset), mass_frames)
+    true_log, sampled, log_post, physical, particles, edges, edge_rel = ([] for _ in range(7))
+    per_sim: dict[int, list[tuple[np.ndarray, np.ndarray | None]]] = {}
+    offset = 0
+    for s in range(0, len(indices), batch_size):
+        chunk = indices[s:s + batch_size]
+        g = collate([dataset[i] for i in chunk])
+        samples, density = model.mass_posterior(g, mass_samples)
+        sampled.append(samples.double().numpy())
+        log_post.append(density.double().numpy())
+        true_log.append(torch.log(g.mass.double()).numpy())
+        # one key per particle of a simulation, the same in every frame: sim * 1e6 + index
+        first_node = torch.cumsum(g.num_nodes, 0) - g.num_nodes
+        node_index = torch.arange(len(g.mass)) - first_node[g.batch]
+        particles.append((g.sim[g.batch] * 1_000_000 + node_index).numpy())
+        edges.append(g.edge_index.numpy() + offset)
+        edge_rel.append(g.edge_rel_log_mass.double().numpy())
+        offset += len(g.mass)
+        for i in chunk:
+            window, contacts = window_and_contacts(dataset, i)
+            per_sim.setdefault(dataset.locate(i)[0], []).append((window, contacts))
+            physical.append(_physical(dataset, prior, [(window, contacts)]))
+    true_log_a, sampled_a = np.concatenate(true_log), np.concatenate(sampled, axis=1)
+    particles_a, edges_a = np.concatenate(particles), np.concatenate(edges, axis=1)
+    rel_a = np.concatenate(edge_rel)
+    log_prior = prior.log_pdf(true_log_a)
+    metrics: dict[str, Any] = _posterior_metrics(true_log_a, sampled_a,
+                                                 np.concatenate(log_post), log_prior,
+                                                 particles_a)
+    metrics.update(_point_metrics(sampled_a.mean(axis=0), true_log_a, particles_a, edges_a,
+                                  rel_a))
+    metrics["mass_particles"] = int(len(true_log_a))
+    prior_samples = prior.sample(sampled_a.shape, rng)
+    references = {"prior": _posterior_metrics(true_log_a, prior_samples, log_prior, log_prior,
+                                              particles_a)}
+    estimate = np.concatenate(physical)
+    pooled = {sim: _physical(dataset, prior, views) for sim, views in per_sim.items()}
+    sim_estimate = np.concatenate(list(pooled.values()))
+    sim_true = np.log(np.concatenate([dataset.file.read("masses", sim) for sim in pooled]))
+    references["physical"] = {
+        **_point_metrics(np.where(np.isfinite(estimate), estimate, prior.mean), true_log_a,
+                         particles_a, edges_a, rel_a),
+        "identified": float(np.mean(np.isfinite(estimate))),
+        # per simulation: one least-squares fit of all its windows, not a mean of estimates
+        "sim_mass_rel_err": relative_mass_error(
+            np.where(np.isfinite(sim_estimate), sim_estimate, prior.mean), sim_true),
+        "sim_identified": float(np.mean(np.isfinite(sim_estimate)))}
+    for name, values in references.items():
+        metrics.update({f"{name}/{k}": v for k, v in values.items()})
+    arrays = {"true_mass": np.exp(true_log_a), "sampled_mass": np.exp(sampled_a),
+              "coverage_levels": COVERAGE_LEVELS,
+              "coverage": coverage_curve(true_log_a, sampled_a),
+              "coverage_prior": coverage_curve(true_log_a, prior_samples)}
     return metrics, arrays
 
 
@@ -163,7 +281,11 @@ def evaluate_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 10
 
 
 def mass_figure(arrays: dict[str, np.ndarray], path: str | Path) -> Path:
-    """Write the KDE of true vs sampled masses (``figures.mass_density``) as a PNG."""
-    from bgn.figures import mass_density, save
+    """Write the KDE of true vs sampled masses beside the coverage curves of the model and
+    the prior-only sampler (``figures.mass_calibration``) as a PNG."""
+    from bgn.figures import mass_calibration, save
 
-    return save(mass_density(arrays["true_mass"], arrays["sampled_mass"].ravel()), path)
+    return save(mass_calibration(arrays["true_mass"], arrays["sampled_mass"].ravel(),
+                                 arrays["coverage_levels"],
+                                 {"model": arrays["coverage"],
+                                  "prior-only sampler": arrays["coverage_prior"]}), path)

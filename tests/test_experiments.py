@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from bgn.experiments import plan_cells, run
+from bgn.report import INVERSE_REFERENCES
 from tests.conftest import compose_config
 
 
@@ -66,11 +67,14 @@ def test_tiny_preset_end_to_end_and_resumes(tmp_path: Path, capsys) -> None:
         if not row["model"].startswith("predictability"):
             assert float(row["seconds_per_step"]) > 0
     inverse = csv_rows(out / "inverse.csv")
-    assert len(inverse) == len(preset.scenes) * len(preset.fps)
-    for row in inverse:
+    models = [r for r in inverse if r["model"] == "bgn"]  # each followed by its two references
+    assert len(models) == len(preset.scenes) * len(preset.fps) == len(inverse) // 3
+    for row in models:
         assert 0 <= float(row["coverage90"]) <= 1
+        assert float(row["info_gain"]) == float(row["info_gain"])  # a number, not blank
         assert (out / row["figure"]).exists()
         assert f"({row['figure']})" in (out / "inverse.md").read_text()
+    assert {r["model"] for r in inverse} == {"bgn", *INVERSE_REFERENCES.values()}
     types = (out / "types.md").read_text()
     assert types.count("| collisions |") == len(preset.fps)
     ablations = (out / "ablations.md").read_text()

@@ -7,15 +7,22 @@ import numpy as np
 import pytest
 
 from bgn.metrics import (
+    COVERAGE_LEVELS,
     binary_f1,
+    calibration_metrics,
     collisions_per_frame,
     contact_rollout_metrics,
+    coverage_curve,
+    information_gain,
     inverse_metrics,
     kde_modes,
     r2_score,
     recovered_modes,
+    relative_mass_error,
     rollout_failures,
     rollout_metrics,
+    sbc_ranks,
+    tarp,
     type_metrics,
 )
 
@@ -159,3 +166,73 @@ def test_contact_rollout_metrics_of_the_truth():
     slower[:, -1] = slower[:, -2] + 0.5 * (true[:, -1] - true[:, -2])
     assert contact_rollout_metrics(slower, true, radii, types, 0.1,
                                    np.full(2, -1))["speed_w1_type0"] == pytest.approx(0.5)
+
+
+# ----------------------------------------------------------------------------- calibration
+def gaussian_posteriors(rng: np.random.Generator, n: int, s: int, width: float,
+                        sigma: float = 0.3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Truths from the prior N(0, 1), observations y = truth + N(0, sigma^2) and posterior
+    samples N(mu, width^2 * var) about the exact posterior N(mu, var): width 1 is calibrated,
+    < 1 overconfident. Returns (truth, samples (s, n), exact log posterior at the truth)."""
+    truth = rng.standard_normal(n)
+    y = truth + sigma * rng.standard_normal(n)
+    var = 1 / (1 + 1 / sigma ** 2)
+    mu = var * y / sigma ** 2
+    samples = mu + width * np.sqrt(var) * rng.standard_normal((s, n))
+    log_post = -0.5 * (truth - mu) ** 2 / (width ** 2 * var) \
+        - 0.5 * np.log(2 * np.pi * width ** 2 * var)
+    return truth, samples, log_post
+
+
+def log_normal_pdf(x: np.ndarray) -> np.ndarray:
+    return -0.5 * x ** 2 - 0.5 * np.log(2 * np.pi)
+
+
+def test_a_calibrated_gaussian_passes_every_check() -> None:
+    truth, samples, log_post = gaussian_posteriors(np.random.default_rng(0), 2000, 64, 1.0)
+    curve = coverage_curve(truth, samples)
+    assert np.max(np.abs(curve - COVERAGE_LEVELS)) < 0.04
+    m = calibration_metrics(truth, samples, log_post, log_normal_pdf(truth))
+    assert m["coverage_max_dev"] < 0.04
+    assert m["sbc_p"] > 0.01 and m["tarp_ks_p"] > 0.01
+    assert abs(m["tarp_atc"]) < 0.02
+    # KL from N(0, 1) to the posterior N(mu, 0.083): about 1.2 nats on average
+    assert m["info_gain"] == pytest.approx(0.5 * np.log(1 + 1 / 0.3 ** 2), abs=0.1)
+
+
+def test_an_overconfident_gaussian_fails() -> None:
+    truth, samples, log_post = gaussian_posteriors(np.random.default_rng(1), 2000, 64, 0.4)
+    m = calibration_metrics(truth, samples, log_post, log_normal_pdf(truth))
+    assert m["coverage_max_dev"] > 0.2
+    assert m["sbc_p"] < 1e-6 and m["tarp_ks_p"] < 1e-6
+    assert m["tarp_atc"] < -0.02                      # the TARP curve falls below the diagonal
+    assert coverage_curve(truth, samples, np.array([0.9]))[0] < 0.6
+
+
+def test_the_prior_only_sampler_is_calibrated_and_adds_no_information() -> None:
+    rng = np.random.default_rng(2)
+    truth, samples = rng.standard_normal(2000), rng.standard_normal((256, 2000))
+    log_prior = log_normal_pdf(truth)
+    m = calibration_metrics(truth, samples, log_prior, log_prior)
+    assert m["info_gain"] == 0.0 and m["coverage_max_dev"] < 0.05 and m["sbc_p"] > 0.01
+    # from its samples alone (a KDE per particle) the gain is about zero too
+    kde = calibration_metrics(truth[:400], samples[:, :400], None, log_prior[:400])
+    assert kde["info_gain"] == pytest.approx(0.0, abs=0.05)
+
+
+def test_sbc_ranks_and_groups() -> None:
+    truth = np.array([0.0, 10.0, -10.0])
+    samples = np.tile(np.array([-1.0, 1.0])[:, None], (1, 3))
+    assert sbc_ranks(truth, samples).tolist() == [1, 2, 0]
+    # one particle seen in many frames counts once in the tests, every row in the curve
+    rng = np.random.default_rng(3)
+    truth = np.repeat(rng.standard_normal(300), 10)
+    samples = rng.standard_normal((64, 3000))
+    grouped = calibration_metrics(truth, samples, groups=np.repeat(np.arange(300), 10))
+    assert grouped["sbc_p"] > 0.01 and grouped["tarp_ks_p"] > 0.01
+
+
+def test_information_gain_and_relative_mass_error() -> None:
+    assert information_gain(np.array([1.0, 3.0]), np.array([0.0, 0.0])) == 2.0
+    assert relative_mass_error(np.log([1.1, 0.9, 1.0]), np.zeros(3)) == pytest.approx(0.1)
+    assert tarp(np.zeros(4), np.ones((8, 4)))["ecp"][-1] == 1.0

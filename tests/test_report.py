@@ -9,6 +9,7 @@ from typing import Any
 
 from bgn.experiments import Cell
 from bgn.report import (
+    INVERSE_REFERENCES,
     PAPER_LABEL,
     ablations_table,
     inverse_table,
@@ -36,7 +37,9 @@ def record(cell: Cell) -> dict[str, Any]:
     if cell.scene == "collisions":
         metrics.update(type_accuracy=0.9, type_auroc=0.95)
     if cell.model == "bgn":
-        metrics.update(welch_p=0.5, wasserstein1=0.1, coverage50=0.5, coverage90=0.9)
+        metrics.update({"welch_p": 0.5, "wasserstein1": 0.1, "coverage50": 0.5,
+                        "coverage90": 0.9, "info_gain": 1.5, "prior/coverage50": 0.5,
+                        "prior/info_gain": 0.0, "physical/sim_mass_rel_err": 0.001})
         figure = f"/elsewhere/figures/mass_{cell.name}.png"
     if cell.train_sims is not None:
         metrics["nmse"] = 1.0 / cell.train_sims
@@ -91,8 +94,13 @@ def test_table1(tmp_path: Path) -> None:
 def test_inverse_table_lists_full_cells_with_a_figure(tmp_path: Path) -> None:
     text = inverse_table(tmp_path, CELLS, RESULTS)
     rows = csv_rows(tmp_path / "inverse.csv")
-    assert [(r["scene"], r["fps"]) for r in rows] == [("collisions", "10"), ("spring", "25")]
+    # each model row, then its two references on the same particles
+    assert [(r["scene"], r["fps"], r["model"]) for r in rows] == [
+        (scene, fps, label) for scene, fps in (("collisions", "10"), ("spring", "25"))
+        for label in ("bgn", *INVERSE_REFERENCES.values())]
     assert rows[0]["figure"] == f"figures/mass_{MAIN[0].name}.png"
+    assert (rows[0]["info_gain"], rows[1]["info_gain"]) == ("1.5", "0.0")
+    assert rows[2]["sim_mass_rel_err"] == "0.001" and rows[2]["figure"] == ""
     assert f"![mass_{MAIN[0].name}](figures/mass_{MAIN[0].name}.png)" in text
 
 

@@ -45,7 +45,7 @@ def refused(config: str, *overrides: str) -> str:
     (["dataset.n_sims=0"], ["dataset.n_sims=0", ">= 1"]),
     (["dataset.batch_size=0"], ["dataset.batch_size=0", ">= 1"]),
     (["dataset.val_samples=0"], ["dataset.val_samples=0", ">= 1"]),
-    (["+dataset.train_sims=11"], ["dataset.train_sims=11", "1..10"]),
+    (["+dataset.train_sims=201"], ["dataset.train_sims=201", "1..200"]),
     (["dataset.seed=-1"], ["dataset.seed=-1"]),
     (["seed=-3"], ["seed=-3"]),
     (["rollout_steps=-1"], ["rollout_steps=-1", ">= 0"]),

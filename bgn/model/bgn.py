@@ -36,7 +36,7 @@ from bgn.model.encoder import (
     node_features,
     node_input_dim,
 )
-from bgn.model.inverse import FLOWS, InverseModel
+from bgn.model.inverse import CONTEXTS, FLOWS, InverseModel
 from bgn.model.newton import MASS_LAWS, build_head, impulse_mass_loss
 from bgn.model.processor import CONTACT_MODES, MESSAGES, Processor, ProcessorOutput
 
@@ -57,6 +57,12 @@ class ModelConfig(DynamicsConfig):
     flow: str = "nsf"                  # conditional flow of the inverse model: nsf | naf (README)
     flow_transforms: int = 3
     flow_hidden: int = 64
+    # What the flow is conditioned on (inverse.InverseModel.context): "node", H̃_V alone (the
+    # paper), or "pairs", also pair terms of the observed accelerations (not in the paper; it
+    # raised the relative-mass R^2 and the information gain on spring and collisions:
+    # docs/results.md). mass_context_dropout: dropout on that context while training.
+    mass_context: str = "pairs"
+    mass_context_dropout: float = 0.0
     classifier: bool = True            # particle-type head (Eq. 2), only with n_types > 1
     contact: bool = True               # contact decoder (Eq. 3-4)
     inverse: bool = True               # mass flow + relative-mass decoder (Eq. 6-10)
@@ -125,6 +131,11 @@ class ModelConfig(DynamicsConfig):
             raise ValueError(f"mass_law={self.mass_law!r}; choose one of {MASS_LAWS}")
         if self.flow not in FLOWS:
             raise ValueError(f"flow={self.flow!r}; choose one of {FLOWS}")
+        if self.mass_context not in CONTEXTS:
+            raise ValueError(f"mass_context={self.mass_context!r}; choose one of {CONTEXTS}")
+        if not 0.0 <= self.mass_context_dropout < 1.0:
+            raise ValueError(f"mass_context_dropout={self.mass_context_dropout} must be in "
+                             "[0, 1)")
         if self.contact_mode not in CONTACT_MODES:
             raise ValueError(f"contact_mode={self.contact_mode!r}; choose one of "
                              f"{CONTACT_MODES}")
@@ -192,7 +203,10 @@ class BGN(PhysicsModel):
                 self.processor.out_features + (node_in if cfg.decoder_skip else 0),
                 cfg.decoder_hidden, d, cfg.activation, cfg.shared_decoder)
         self.inverse = (InverseModel(self.processor.tilde_v_features, cfg.flow,
-                                     cfg.flow_transforms, cfg.flow_hidden, cfg.activation)
+                                     cfg.flow_transforms, cfg.flow_hidden, cfg.activation,
+                                     # a one-velocity window holds no acceleration to pair
+                                     cfg.mass_context if history >= 1 else "node",
+                                     cfg.mass_context_dropout)
                         if cfg.inverse else None)
         heads = {"dynamics"}
         if self.processor.classifier is not None:
@@ -240,7 +254,8 @@ class BGN(PhysicsModel):
         mass_nll = relmass = z = None
         if self.inverse is not None:
             log_m = self.normalizer.log_mass(torch.log(g.mass))
-            mass_nll, z = self.inverse(p.h_tilde_v, log_m, noise)   # Eq. 7-8
+            context = self.inverse.context(p.h_tilde_v, g)           # Eq. 6
+            mass_nll, z = self.inverse(context, log_m, noise)       # Eq. 7-8
             relmass = self.inverse.relative(z, g.edge_index)        # Eq. 9-10
         return ModelOutput(target, p.type_logits, contact, mass_nll, relmass, z, w)
 
@@ -294,7 +309,22 @@ class BGN(PhysicsModel):
         if self.inverse is None:
             raise RuntimeError("this model has no inverse head (cfg.inverse=False)")
         p, _, _ = self._process(g)
-        return self.inverse.sample_log_mass(p.h_tilde_v, n_samples)
+        return self.inverse.sample_log_mass(self.inverse.context(p.h_tilde_v, g), n_samples)
+
+    @torch.no_grad()
+    def mass_posterior(self, g: Graph, n_samples: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The flow's posterior over every particle's natural log-mass: ``n_samples`` samples
+        (n_samples, N) and the exact log-density of the true log-mass (N,) (Eq. 7, with the
+        Jacobian of the normalisation), from one pass of the encoders."""
+        if self.inverse is None:
+            raise RuntimeError("this model has no inverse head (cfg.inverse=False)")
+        p, _, _ = self._process(g)
+        dist = self.inverse.flow(self.inverse.context(p.h_tilde_v, g))
+        z_true = self.normalizer.log_mass(torch.log(g.mass))
+        log_density = (dist.log_prob(z_true[:, None])
+                       - torch.log(self.normalizer.log_mass_scale))
+        samples = self.normalizer.denormalize_log_mass(dist.sample((n_samples,)).squeeze(-1))
+        return samples, log_density
 
     @torch.no_grad()
     def sample_mass(self, g: Graph, n_samples: int) -> torch.Tensor:

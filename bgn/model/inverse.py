@@ -13,6 +13,17 @@ Both flows support ``rsample``: NSF inverts its splines in closed form; NAF inve
 network by bisection (about 25 network evaluations) and zuko differentiates that inverse
 implicitly, which is why NAF is much slower to sample (DESIGN section 9).
 
+What the flow is conditioned on (``context``): the paper's ``H̃_V`` alone, or with
+``pairs`` (not in the paper) also pair terms of the observed accelerations, the quantities
+that carry mass (DESIGN section 10). On spring ``m_i a_i`` is the mass-free spring force, so
+``log m_i`` is a function of the pair geometry seen from ``a_i`` minus ``log |a_i|``; under
+gravity ``a_i = sum_j m_j f(s_ij) u_ji`` holds ``m_j`` in the *neighbour's* acceleration, so a
+particle needs messages from the edges where it is the sender. GCN layers that average
+normalised features do not form such log-ratios of magnitudes from a few hundred training
+masses; per edge, the log-distance, the log-magnitudes of both accelerations and their
+cosines with the pair direction make them a smooth function an MLP learns.
+Optional dropout on the context during training regularises a flow that sees few masses.
+
 The bilinear map acts on ``[z, 1]``: with 1-D ``z`` alone, ``z_i W z_j`` is symmetric in (i, j)
 and cannot represent the antisymmetric ``z_i - z_j``; the constant channel adds the linear terms
 ``z_i`` and ``z_j`` (homogeneous coordinates) at no other cost.
@@ -25,9 +36,13 @@ import zuko
 from torch import nn
 from torch.nn import functional as F
 
+from bgn.graph import Graph
 from bgn.model.ops import activation
 
 FLOWS = ("nsf", "naf")
+CONTEXTS = ("node", "pairs")
+PAIR_FEATURES = 5   # log r, log |a_i|, log |a_j|, cos(a_i, u_ij), cos(a_j, u_ij)
+_EPS = 1e-12
 
 
 def make_flow(kind: str, context: int, transforms: int, hidden: int) -> zuko.flows.Flow:
@@ -42,6 +57,55 @@ def make_flow(kind: str, context: int, transforms: int, hidden: int) -> zuko.flo
     raise ValueError(f"flow={kind!r}; choose one of {FLOWS}")
 
 
+def newest_acceleration(g: Graph) -> torch.Tensor:
+    """(N, D) the window's newest finite-difference acceleration ``(v[t] - v[t-1]) / dt``, in
+    physical units (the pair terms take its log-magnitude: no scale to learn)."""
+    if g.dt is None:
+        raise ValueError("pair terms need the frame spacing: the graph has no dt")
+    return (g.vel[:, 0] - g.vel[:, 1]) / g.dt[g.batch][:, None]
+
+
+def pair_features(g: Graph) -> torch.Tensor:
+    """(E, 5) per edge j -> i at frame t-1, where the window's newest finite-difference
+    acceleration ``a = (v[t] - v[t-1]) / dt`` is exact: ``log r_ij``, ``log |a_i|``,
+    ``log |a_j|`` and both accelerations' cosines with the unit vector ``u_ij`` from j to i.
+    Positions at t-1 are ``x[t] - dt v[t]`` (the backward difference, undone)."""
+    snd, rcv = g.edge_index[0], g.edge_index[1]
+    acc = newest_acceleration(g)
+    prev = g.pos - g.dt[g.batch][:, None] * g.vel[:, 0]
+    rel = prev[rcv] - prev[snd]
+    r = torch.sqrt((rel * rel).sum(-1) + _EPS)
+    a_norm = torch.sqrt((acc * acc).sum(-1) + _EPS)
+    unit, a_unit = rel / r[:, None], acc / a_norm[:, None]
+    return torch.stack([torch.log(r), torch.log(a_norm[rcv]), torch.log(a_norm[snd]),
+                        (a_unit[rcv] * unit).sum(-1), (a_unit[snd] * unit).sum(-1)], -1)
+
+
+class PairContext(nn.Module):
+    """Pair terms for the flow's context: an edge MLP of ``pair_features``, summed at the
+    receiver and (a second half) at the sender, then a node MLP with the node's own
+    ``log |a|``; returns (N, hidden)."""
+
+    def __init__(self, hidden: int, act: str) -> None:
+        super().__init__()
+        self.hidden = hidden
+        self.edge = nn.Sequential(nn.Linear(PAIR_FEATURES, hidden), activation(act),
+                                  nn.Linear(hidden, 2 * hidden))
+        self.node = nn.Sequential(nn.Linear(2 * hidden + 1, hidden), activation(act),
+                                  nn.Linear(hidden, hidden))
+
+    def forward(self, g: Graph) -> torch.Tensor:
+        snd, rcv = g.edge_index[0], g.edge_index[1]
+        e = pair_features(g)
+        m = self.edge(e)
+        n = len(g.vel)
+        to_rcv = m.new_zeros(n, self.hidden).index_add_(0, rcv, m[:, :self.hidden])
+        to_snd = m.new_zeros(n, self.hidden).index_add_(0, snd, m[:, self.hidden:])
+        acc = newest_acceleration(g)
+        log_a = 0.5 * torch.log((acc * acc).sum(-1, keepdim=True) + _EPS)
+        return self.node(torch.cat([to_rcv, to_snd, log_a], -1))
+
+
 class InverseModel(nn.Module):
     """Flow over normalised log-mass given ``H̃_V`` plus the bilinear relative-mass decoder.
 
@@ -49,14 +113,24 @@ class InverseModel(nn.Module):
     """
 
     def __init__(self, context: int, flow: str = "nsf", transforms: int = 3, hidden: int = 64,
-                 act: str = "silu") -> None:
+                 act: str = "silu", conditioning: str = "node", dropout: float = 0.0) -> None:
         super().__init__()
+        if conditioning not in CONTEXTS:
+            raise ValueError(f"mass_context={conditioning!r}; choose one of {CONTEXTS}")
         self.kind = flow
-        self.flow = make_flow(flow, context, transforms, hidden)
+        self.pairs = PairContext(hidden, act) if conditioning == "pairs" else None
+        self.dropout = dropout
+        self.flow = make_flow(flow, context + (hidden if self.pairs else 0), transforms, hidden)
         self.bilinear = nn.Bilinear(2, 2, hidden)     # Eq. 9 on [z, 1]
         self.act = activation(act)
         self.linear2 = nn.Linear(hidden, hidden)      # Eq. 10: W_Inv-Dec2
         self.linear3 = nn.Linear(hidden, 1)           # Eq. 10: W_Inv-Dec3
+
+    def context(self, h_tilde_v: torch.Tensor, g: Graph) -> torch.Tensor:
+        """What the flow is conditioned on: ``H̃_V`` (Eq. 6), with the pair terms under
+        ``pairs``; dropout on it while training."""
+        c = h_tilde_v if self.pairs is None else torch.cat([h_tilde_v, self.pairs(g)], -1)
+        return F.dropout(c, self.dropout, self.training)
 
     def forward(self, context: torch.Tensor, log_mass: torch.Tensor,
                 noise: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:

@@ -126,10 +126,11 @@ CASES = [
 def test_sparse_equals_dense(meta, stats, graph, interaction, n_types, walls, overrides):
     torch.manual_seed(0)
     n, box = 6, (4.0 if walls else None)
-    # the paper's equations: the input additions (increments, decoder skip) are switched off
-    # here; invariance and batching tests cover them
+    # the paper's equations: the input additions (increments, decoder skip, the flow's pair
+    # terms) are switched off here; invariance and batching tests cover them
     cfg = ModelConfig(hidden=12, decoder_hidden=10, flow_hidden=8, flow_transforms=2,
-                      velocity_increments=False, decoder_skip=False, **overrides)
+                      velocity_increments=False, decoder_skip=False, mass_context="node",
+                      **overrides)
     model = BGN(meta(n, n_types, interaction, "full", box=box), stats(), 2, cfg).double()
     g = graph(n, n_types=n_types, contact=interaction == "contact", box=box, seed=3)
     noise = torch.randn(n, dtype=torch.float64)

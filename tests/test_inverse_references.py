@@ -1,0 +1,60 @@
+"""The inverse references: the scene's mass prior, and the force-law estimator recovering
+masses exactly from noise-free frames stepped by the rule its finite differences invert."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bgn.inverse_references import MassPrior, physical_log_mass
+from bgn.sim import make_scene
+
+
+def verlet_frames(scene, rng: np.random.Generator, dt: float, n: int) -> tuple[np.ndarray,
+                                                                             np.ndarray]:
+    """Frames of ``x[t+1] = 2 x[t] - x[t-1] + dt^2 a(x[t])`` (Stormer-Verlet): their second
+    differences are the force law's accelerations to round-off. Returns (frames, masses)."""
+    state = scene.draw_state(rng)
+    x = [state.positions, state.positions + dt * state.velocities]
+    for _ in range(n - 2):
+        x.append(2 * x[-1] - x[-2] + dt ** 2 * scene.accelerations(x[-1], state.masses))
+    return np.asarray(x), state.masses
+
+
+@pytest.mark.parametrize("name", ["spring", "gravity_r1", "gravity_r2"])
+def test_force_law_recovers_masses_from_one_window(name: str) -> None:
+    scene = make_scene(name, n_particles=5)
+    frames, masses = verlet_frames(scene, np.random.default_rng(0), 0.02, 7)
+    est = physical_log_mass(scene, MassPrior.of_scene(scene), frames[None], 0.02)
+    np.testing.assert_allclose(est, np.log(masses), atol=1e-9)
+
+
+def test_impacts_recover_mass_ratios_and_the_prior_fixes_the_scale() -> None:
+    scene = make_scene("collisions", n_particles=30)
+    traj = scene.simulate(np.random.default_rng(1), np.arange(300) * 0.1)
+    prior = MassPrior.of_scene(scene)
+    est = physical_log_mass(scene, prior, traj.positions[None], 0.1, [traj.contacts])
+    seen = np.isfinite(est)
+    assert seen.mean() > 0.8
+    err = est[seen] - np.log(traj.masses[seen])
+    # ratios exact (one shift per linked group; one group here), the shift within the
+    # prior's spread of a type (0.1 in log-mass)
+    assert np.ptp(err) < 1e-8
+    assert abs(err[0]) < 0.1
+    # a window without impacts says nothing
+    quiet = physical_log_mass(scene, prior, traj.positions[None, :3], 0.1,
+                              [np.empty((0, 3), dtype=int)])
+    assert np.isnan(quiet).all()
+
+
+def test_mass_prior_of_each_scene() -> None:
+    rng = np.random.default_rng(2)
+    spring = MassPrior.of_scene(make_scene("spring"))
+    draws = spring.sample((20000,), rng)
+    assert draws.mean() == pytest.approx(0.0, abs=0.03)
+    assert draws.std() == pytest.approx(1.0, abs=0.03)
+    assert spring.log_pdf(np.array([0.0]))[0] == pytest.approx(-0.5 * np.log(2 * np.pi))
+    gas = MassPrior.of_scene(make_scene("collisions"))
+    draws = gas.sample((20000,), rng)
+    assert np.mean(np.abs(draws - np.log(0.001)) < 0.5) == pytest.approx(0.5, abs=0.02)
+    assert gas.mean == pytest.approx(0.5 * (np.log(0.001) + np.log(0.4)))

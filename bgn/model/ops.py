@@ -12,6 +12,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from bgn.model.message_passing import spmm
+
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "silu": nn.SiLU,
     "relu": nn.ReLU,
@@ -43,20 +45,20 @@ def gcn_aggregate(h: torch.Tensor, edge_index: torch.Tensor,
 
     ``out_i = h_i + sum over edges j -> i of w_ji h_j`` (``w = 1`` when ``edge_weight`` is None).
     ``normalize=True`` uses the symmetric ``D^-1/2 Â D^-1/2`` with ``D`` the weighted in-degree
-    plus one (the self loop), as in Kipf & Welling's GCN.
+    plus one (the self loop), as in Kipf & Welling's GCN. The neighbour sum is a sparse product
+    (``message_passing.spmm``): no (E, F) tensor forward or backward.
     """
     senders, receivers = edge_index[0], edge_index[1]
     n = h.shape[0]
+    if not normalize:
+        return h + spmm(h, edge_index, edge_weight)
     if edge_weight is None:
         edge_weight = h.new_ones(senders.shape[0])
-    self_weight = None
-    if normalize:
-        deg = 1.0 + scatter_sum(edge_weight, receivers, n)
-        inv_sqrt = deg.rsqrt()
-        edge_weight = inv_sqrt[receivers] * edge_weight * inv_sqrt[senders]
-        self_weight = (inv_sqrt * inv_sqrt)[:, None]
-    neighbours = scatter_sum(h[senders] * edge_weight[:, None], receivers, n)
-    return (h if self_weight is None else self_weight * h) + neighbours
+    deg = 1.0 + scatter_sum(edge_weight, receivers, n)
+    inv_sqrt = deg.rsqrt()
+    edge_weight = inv_sqrt.index_select(0, receivers) * edge_weight \
+        * inv_sqrt.index_select(0, senders)
+    return (inv_sqrt * inv_sqrt)[:, None] * h + spmm(h, edge_index, edge_weight)
 
 
 def pad_features(x: torch.Tensor, width: int) -> torch.Tensor:

@@ -20,6 +20,8 @@ import time
 from pathlib import Path
 
 import bgn  # noqa: F401  (first: a checkout may set allocator variables before torch loads)
+
+# isort: split
 import torch
 from torch.utils.flop_counter import FlopCounterMode
 
@@ -33,10 +35,9 @@ def graph_class() -> type:
     return Graph
 
 
-def model_config(model: str) -> tuple[dict, float]:
-    """The checkout's own config for ``model`` on collisions: (model options, learning rate)."""
+def train_config(overrides: list[str]):
+    """The checkout's own training config (``conf/train.yaml``) with ``overrides``."""
     from hydra import compose, initialize_config_dir
-    from omegaconf import OmegaConf
 
     try:
         from bgn.config import register_configs
@@ -45,7 +46,14 @@ def model_config(model: str) -> tuple[dict, float]:
         pass
     conf = Path(bgn.__file__).resolve().parents[1] / "conf"
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        cfg = compose("train", overrides=["dataset=collisions", f"model={model}"])
+        return compose("train", overrides=overrides)
+
+
+def model_config(model: str) -> tuple[dict, float]:
+    """The checkout's own config for ``model`` on collisions: (model options, learning rate)."""
+    from omegaconf import OmegaConf
+
+    cfg = train_config(["dataset=collisions", f"model={model}"])
     params = OmegaConf.to_container(cfg.model, resolve=True)
     lr = OmegaConf.select(cfg, "optimizer.lr", default=None) or params.get("lr", 1e-3)
     return params, float(lr)
@@ -71,14 +79,72 @@ def reset_peak() -> None:
         pass
 
 
+def training_throughput(overrides: list[str], steps: int) -> dict:
+    """Samples/s of a real training run's parts (``bgn.train.build``): the data loader alone,
+    the model step alone (forward, backward, AdamW on batches already loaded), and Lightning's
+    fit loop for ``steps`` steps (loader, step, logging, metrics, clipping; no validation)."""
+    import lightning as L
+    from hydra.utils import instantiate
+
+    from bgn.train import build
+
+    cfg = train_config(["dataset=collisions", "figures=false", *overrides])
+    datamodule, module = build(cfg)
+    batch = int(cfg.dataset.batch_size)
+
+    def rate(seconds: float, n_steps: int) -> float:
+        return n_steps * batch / seconds
+
+    loader = iter(datamodule.train_dataloader())
+    batches = [next(loader) for _ in range(steps)]            # the first pays for file opening
+    start = time.perf_counter()
+    for _ in range(steps):
+        next(loader)
+    result = {"loader_samples_s": rate(time.perf_counter() - start, steps)}
+
+    model = module.model
+    opt = instantiate(cfg.optimizer, _convert_="all")(model.parameters()) \
+        if "optimizer" in cfg else torch.optim.AdamW(model.parameters(), lr=1e-3)
+    times = []
+    for g in batches:
+        start = time.perf_counter()
+        opt.zero_grad(set_to_none=True)
+        model.total_loss(model.loss_terms(g, model(g))).backward()
+        opt.step()
+        times.append(time.perf_counter() - start)
+    result["step_samples_s"] = rate(sum(times[1:]), steps - 1)
+
+    class Clock(L.Callback):
+        def on_train_batch_start(self, trainer, *_) -> None:
+            if trainer.global_step == 1:                       # after the first (warm-up) step
+                self.start = time.perf_counter()
+
+    clock = Clock()
+    trainer = L.Trainer(max_steps=steps + 1, logger=False, enable_checkpointing=False,
+                        enable_progress_bar=False, enable_model_summary=False,
+                        limit_val_batches=0, num_sanity_val_steps=0, callbacks=[clock],
+                        gradient_clip_val=cfg.trainer.get("gradient_clip_val"),
+                        accelerator="cpu", devices=1)
+    trainer.fit(module, datamodule=datamodule)
+    result["fit_samples_s"] = rate(time.perf_counter() - clock.start, steps)
+    return result
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser()
-    parser.add_argument("payload", type=Path)
+    parser.add_argument("payload", type=Path, help="the frame (or, with --training, unused)")
     parser.add_argument("model")
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--skip-train", action="store_true")
+    parser.add_argument("--training", nargs="*", default=None, metavar="OVERRIDE",
+                        help="measure the default collisions training instead (with overrides)")
     args = parser.parse_args(argv)
+    if args.training is not None:
+        json.dump(training_throughput([f"model={args.model}", *args.training], args.repeats),
+                  sys.stdout)
+        print()
+        return 0
 
     from bgn.model.registry import build_model
     from bgn.sim.scene import SceneMeta

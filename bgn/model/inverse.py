@@ -78,7 +78,8 @@ class InverseModel(nn.Module):
         zt = torch.stack([z, torch.ones_like(z)], -1)              # [z, 1]
         # s(Z_Kᵀ W1 Z_K): nn.Bilinear's own kernel is slow for 2 x 2 inputs on CPU; the same
         # map as a linear layer on the 4 products [z_i, 1] ⊗ [z_j, 1]
-        outer = (zt[rcv, :, None] * zt[snd, None, :]).flatten(1)
+        outer = (zt.index_select(0, rcv)[:, :, None] * zt.index_select(0, snd)[:, None, :]
+                 ).flatten(1)
         h = self.act(F.linear(outer, self.bilinear.weight.flatten(1), self.bilinear.bias))
         return self.linear3(self.act(self.linear2(h))).squeeze(-1)
 

@@ -28,9 +28,6 @@ from dataclasses import dataclass
 
 import torch
 
-# CSR tensors are "beta" in torch 2.x; the kernels used here (mm, sampled_addmm) are stable.
-warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
-warnings.filterwarnings("ignore", message="Sparse invariant checks are implicitly disabled")
 
 
 @dataclass(frozen=True)
@@ -53,10 +50,15 @@ class Adjacency:
     def matrix(self, values: torch.Tensor, transpose: bool = False) -> torch.Tensor:
         """``A`` (or ``Aᵀ``) as a CSR tensor with per-edge ``values`` in the caller's order."""
         if transpose:
-            return torch.sparse_csr_tensor(self.crow_t, self.col_t, values[self.order_t],
-                                           (self.n, self.n))
-        v = values if self.order is None else values[self.order]
-        return torch.sparse_csr_tensor(self.crow, self.col, v, (self.n, self.n))
+            crow, col, v = self.crow_t, self.col_t, values[self.order_t]
+        else:
+            crow, col = self.crow, self.col
+            v = values if self.order is None else values[self.order]
+        # CSR tensors are "beta" in torch 2.x (a warning); mm and sampled_addmm are stable. The
+        # layout is valid by construction, so torch's invariant checks are off.
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return torch.sparse_csr_tensor(crow, col, v, (self.n, self.n), check_invariants=False)
 
     def to_edges(self, csr_values: torch.Tensor) -> torch.Tensor:
         """Values in A's CSR order -> the caller's edge order."""
@@ -156,3 +158,10 @@ def spmm(h: torch.Tensor, edge_index: torch.Tensor,
 def edge_dot(a: torch.Tensor, b: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
     """``<a_i, b_j>`` for every edge j -> i, (E,). Differentiable in ``a`` and ``b``."""
     return _EdgeDot.apply(a.contiguous(), b.contiguous(), adjacency(edge_index, a.shape[0]))
+
+
+def edge_difference(x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
+    """``x_i - x_j`` for every edge j -> i (receiver minus sender), (E, ...). ``index_select``
+    rather than ``x[index]``: its backward is ``index_add_``, not the slower accumulating
+    ``index_put_``."""
+    return x.index_select(0, edge_index[1]) - x.index_select(0, edge_index[0])

@@ -11,6 +11,7 @@ from itertools import pairwise
 import torch
 from torch import nn
 from torch.nn import functional as F
+from torch.utils.checkpoint import checkpoint
 
 from bgn.model.message_passing import spmm
 
@@ -23,13 +24,22 @@ ACTIVATIONS: dict[str, type[nn.Module]] = {
 }
 
 
-def activation(name: str) -> nn.Module:
-    """A fresh activation module by name (``silu``, ``relu``, ``gelu``, ``tanh``, ``softplus``)."""
+# Activations that can overwrite their input (their backward reads the output only)
+IN_PLACE = frozenset({"silu", "relu"})
+
+
+def activation(name: str, inplace: bool = False) -> nn.Module:
+    """A fresh activation module by name (``silu``, ``relu``, ``gelu``, ``tanh``, ``softplus``).
+
+    ``inplace=True`` overwrites the input where the activation allows it (``IN_PLACE``): one
+    (E, F) buffer less per layer on a big graph. Only for inputs nothing else reads (the output
+    of a Linear layer inside an MLP)."""
     try:
-        return ACTIVATIONS[name]()
+        cls = ACTIVATIONS[name]
     except KeyError:
         raise ValueError(f"unknown activation {name!r}; choose one of {sorted(ACTIVATIONS)}")\
             from None
+    return cls(inplace=True) if inplace and name in IN_PLACE else cls()
 
 
 def scatter_sum(src: torch.Tensor, index: torch.Tensor, dim_size: int) -> torch.Tensor:
@@ -84,7 +94,7 @@ def mlp(sizes: list[int], act: str = "silu", layer_norm: bool = False,
     for i, (a, b) in enumerate(pairwise(sizes)):
         layers.append(nn.Linear(a, b))
         if i < len(sizes) - 2 or activate_last:
-            layers.append(activation(act))
+            layers.append(activation(act, inplace=True))  # on the Linear's own output
     if layer_norm:
         layers.append(nn.LayerNorm(sizes[-1]))
     return nn.Sequential(*layers)
@@ -94,9 +104,14 @@ class EdgeMLP(nn.Module):
     """``phi([e_ij, x_i, x_j])`` for every edge j -> i; ``sizes`` = hidden widths + output width.
 
     ``factored=True`` applies the first layer's node blocks per node and gathers the products,
-    ``W [e, x_i, x_j] = W_e e + (W_r x)[i] + (W_s x)[j]``: the same function as the plain
+    ``W [e, x_i, x_j] = W_e e + (W_r x + b)[i] + (W_s x)[j]``: the same function as the plain
     concatenation (``factored=False``), with fewer FLOPs and no (E, 2F) concatenated copy when
     the node features are wide (faster forward and backward: DESIGN section 9).
+
+    ``chunk`` (set by ``PhysicsModel`` from ``edge_chunk``): on graphs with more edges, the
+    edges run in chunks of this many and, when gradients are on, each chunk's hidden layers are
+    recomputed in the backward pass (activation checkpointing): memory O(chunk x width)
+    instead of O(E x width) for the hidden layers, for about one more forward of this MLP.
     """
 
     def __init__(self, edge_in: int, node_in: int, sizes: list[int], act: str = "relu",
@@ -104,18 +119,34 @@ class EdgeMLP(nn.Module):
         super().__init__()
         self.edge_in, self.node_in, self.factored = edge_in, node_in, factored
         self.first = nn.Linear(edge_in + 2 * node_in, sizes[0])
-        self.rest = nn.Sequential(activation(act), *mlp(sizes, act, layer_norm))
+        self.rest = nn.Sequential(activation(act, inplace=True), *mlp(sizes, act, layer_norm))
+        self.chunk: int | None = None
 
     def forward(self, e: torch.Tensor, x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
         """Edge (E, edge_in) and node (N, node_in) features -> (E, sizes[-1])."""
         snd, rcv = edge_index[0], edge_index[1]
-        if self.factored:
-            w_e, w_r, w_s = self.first.weight.split([self.edge_in, self.node_in, self.node_in],
-                                                    dim=1)
-            # index_select: its backward is index_add_, several times faster on CPU than the
-            # accumulating index_put_ behind x[idx]
-            z = (F.linear(e, w_e, self.first.bias)
-                 + F.linear(x, w_r).index_select(0, rcv) + F.linear(x, w_s).index_select(0, snd))
-        else:
-            z = self.first(torch.cat([e, x.index_select(0, rcv), x.index_select(0, snd)], dim=1))
+        if not self.factored:
+            return self.rest(self.first(torch.cat([e, x.index_select(0, rcv),
+                                                   x.index_select(0, snd)], dim=1)))
+        w_e, w_r, w_s = self.first.weight.split([self.edge_in, self.node_in, self.node_in],
+                                                dim=1)
+        p_r, p_s = F.linear(x, w_r, self.first.bias), F.linear(x, w_s)   # per node
+        n_edges, c = e.shape[0], self.chunk
+        if not c or n_edges <= c:
+            return self._edges(e, p_r, p_s, rcv, snd, w_e)
+        parts = []
+        for s in range(0, n_edges, c):
+            args = (e[s:s + c], p_r, p_s, rcv[s:s + c], snd[s:s + c], w_e)
+            parts.append(checkpoint(self._edges, *args, use_reentrant=False)
+                         if torch.is_grad_enabled() else self._edges(*args))
+        return torch.cat(parts)
+
+    def _edges(self, e: torch.Tensor, p_r: torch.Tensor, p_s: torch.Tensor, rcv: torch.Tensor,
+               snd: torch.Tensor, w_e: torch.Tensor) -> torch.Tensor:
+        # z = (W_r x + b)_i + (W_s x)_j + W_e e accumulated in one (E, F) buffer: no
+        # temporaries for the sums. index_select: its backward is index_add_, several times
+        # faster on CPU than the accumulating index_put_ behind x[idx].
+        z = p_r.index_select(0, rcv)
+        z += p_s.index_select(0, snd)
+        z.addmm_(e, w_e.t())
         return self.rest(z)

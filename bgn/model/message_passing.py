@@ -29,7 +29,6 @@ from dataclasses import dataclass
 import torch
 
 
-
 @dataclass(frozen=True)
 class Adjacency:
     """The CSR layout of one edge list: ``A`` (rows = receivers) and ``Aᵀ`` (rows = senders).

@@ -126,14 +126,14 @@ def export(ref: str, into: Path) -> Path:
     return into
 
 
-def runfmt(checkout: Path, payload: Path, model: str, args: argparse.Namespace,
-             skip_train: bool) -> dict:
+def run_cell(checkout: Path, payload: Path | str, model: str, args: argparse.Namespace,
+             extra: list[str]) -> dict:
     """One cell in a fresh process with ``checkout`` first on the path; {"error": ...} on a
-    failure or a timeout."""
-    env = {**os.environ, "PYTHONPATH": str(checkout),
-           "OMP_NUM_THREADS": str(args.threads), "MKL_NUM_THREADS": str(args.threads)}
-    cmd = [sys.executable, str(CELL), str(payload), model, "--repeats", str(args.repeats),
-           "--device", args.device] + (["--skip-train"] if skip_train else [])
+    failure or a timeout. ``THP_MEM_ALLOC_ENABLE`` is left to each checkout's own ``bgn``."""
+    env = {k: v for k, v in os.environ.items() if k != "THP_MEM_ALLOC_ENABLE"}
+    env.update(PYTHONPATH=str(checkout), OMP_NUM_THREADS=str(args.threads),
+               MKL_NUM_THREADS=str(args.threads))
+    cmd = [sys.executable, str(CELL), str(payload), model, "--device", args.device, *extra]
     try:
         done = subprocess.run(cmd, cwd=checkout, env=env, capture_output=True, text=True,
                               timeout=args.timeout)
@@ -221,7 +221,11 @@ def write_plot(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
-def write_report(rows: list[dict], header: list[str], against: str | None, out: Path) -> None:
+TRAINING = ["impl", "loader_samples_s", "step_samples_s", "fit_samples_s", "error"]
+
+
+def write_report(rows: list[dict], training: list[dict], header: list[str],
+                 against: str | None, out: Path) -> None:
     lo = sorted({r["n"] for r in rows})[1 if len({r["n"] for r in rows}) > 2 else 0]
     parts = ["# Scaling benchmark: every model against N", "", *header, "",
              markdown_table(COLUMNS, rows), "",
@@ -233,6 +237,12 @@ def write_report(rows: list[dict], header: list[str], against: str | None, out: 
                   "or smaller)", "",
                   markdown_table(["model", "n", "train_s_ratio", "infer_s_ratio",
                                   "train_peak_gb_ratio"], ratios(rows, "this", against))]
+    if training:
+        parts += ["", "## Default collisions training (BGN), samples per second", "",
+                  "The data loader alone, the model step alone (forward, backward, optimiser "
+                  "on loaded batches) and Lightning's fit loop (both, plus logging, metrics and "
+                  "clipping; no validation), each checkout with its own configs.", "",
+                  markdown_table(TRAINING, training)]
     parts += ["", "![time and memory against N](scaling.png)"]
     (out / "scaling.md").write_text("\n".join(parts) + "\n")
     write_csv(out / "scaling.csv", COLUMNS, rows)
@@ -256,6 +266,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--max-gb", type=float, default=12.0,
                         help="skip the training of a cell predicted to grow memory past this")
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds per cell")
+    parser.add_argument("--training-steps", type=int, default=0,
+                        help="also time the default collisions training over this many steps "
+                        "(0: not)")
+    parser.add_argument("--training-overrides", nargs="*", default=[],
+                        help="Hydra overrides of that training (e.g. paths.data_dir=...)")
     parser.add_argument("--out", type=Path, default=Path("outputs/benchmarks"))
     args = parser.parse_args(argv)
     if any(n < 2 for n in args.sizes):
@@ -293,7 +308,9 @@ def main(argv: list[str] | None = None) -> int:
                     if skip:
                         row["note"] = (f"training skipped: ~{guess:.0f} GB predicted "
                                        f"> --max-gb {args.max_gb:g}")
-                    cell = runfmt(checkout, payload, model, args, skip)
+                    cell = run_cell(checkout, payload, model, args,
+                                    ["--repeats", str(args.repeats)]
+                                    + (["--skip-train"] if skip else []))
                     if "error" in cell:
                         row["note"] = cell["error"]
                     else:
@@ -312,6 +329,14 @@ def main(argv: list[str] | None = None) -> int:
                         if row.get(k) is not None) + (f" ({row['note']})" if "note" in row
                                                       else ""))
             payload.unlink()
+    training = []
+    if args.training_steps:
+        for impl, checkout in checkouts.items():
+            cell = run_cell(checkout, "-", "bgn", args,
+                            ["--repeats", str(args.training_steps),
+                             "--training", *args.training_overrides])
+            training.append({"impl": impl, **cell})
+            out.log(f"{impl} default collisions training: {cell}")
     header = [
         f"Machine: {machine(torch=torch.__version__)}; {args.threads} threads, device "
         f"{args.device}" + (f" ({torch.cuda.get_device_name()})" if args.device == "cuda"
@@ -324,7 +349,7 @@ def main(argv: list[str] | None = None) -> int:
         f"times are medians of {args.repeats} after a warm-up; memory is the growth of the "
         "peak resident set over the cell's baseline (model and frame loaded)."]
     args.out.mkdir(parents=True, exist_ok=True)
-    write_report(rows, header, args.against, args.out)
+    write_report(rows, training, header, args.against, args.out)
     print_table(out, "scaling", COLUMNS, [[fmt(r.get(c)) for c in COLUMNS] for r in rows])
     if args.against:
         for r in ratios(rows, "this", args.against):

@@ -26,7 +26,6 @@ from torch import nn
 
 from bgn.graph import Graph
 from bgn.model.normalizer import Normalizer
-from bgn.model.ops import EdgeMLP
 from bgn.model.target import LOSSES, PRIORS, TargetCoder
 from bgn.sim.scene import SceneMeta
 
@@ -66,12 +65,12 @@ class DynamicsConfig:
     # auto (huber for accelerations with a prior, else mse) | huber | mse (paper)
     dynamics_loss: str = "auto"
     huber_delta: float = 1.0
-    # Activation checkpointing for very large graphs (bgn.model.ops.EdgeMLP): edge MLPs on
+    # Activation checkpointing for large graphs (message_passing.edge_chunks): edge MLPs on
     # graphs with more edges than this run in chunks of it and recompute their hidden layers
     # in the backward pass. The default never triggers in training on the paper's scenes
-    # (a few thousand edges per batch) and keeps BGN at 200 000 discs (about 3 M edges) within
-    # a few GB (docs/results.md, "Measurements behind the defaults"). null: never.
-    edge_chunk: int | None = 1_048_576
+    # (a few thousand edges per batch); at 20 000 discs (300 000 edges) it halved BGN's peak
+    # memory (docs/results.md, "Measurements behind the defaults"). null: never.
+    edge_chunk: int | None = 65_536
 
     def __post_init__(self) -> None:
         if self.edge_chunk is not None and not self.edge_chunk >= 1:
@@ -111,9 +110,9 @@ class PhysicsModel(nn.Module, ABC):
         self.heads: frozenset[str] = frozenset({"dynamics"})  # subclasses add theirs
         self.loss_weights: dict[str, float] = {}              # missing keys weigh 1
         self.build(cfg, stats)
-        for module in self.modules():
-            if isinstance(module, EdgeMLP):
-                module.chunk = cfg.edge_chunk
+        for module in self.modules():  # the edge MLPs (ops.EdgeMLP, the relative-mass decoder)
+            if hasattr(module, "edge_chunk"):
+                module.edge_chunk = cfg.edge_chunk
 
     @abstractmethod
     def build(self, cfg: Any, stats: Mapping[str, Any]) -> None:

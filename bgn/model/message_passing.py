@@ -24,9 +24,11 @@ from __future__ import annotations
 
 import warnings
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
+from torch.utils.checkpoint import checkpoint
 
 
 @dataclass(frozen=True)
@@ -164,3 +166,21 @@ def edge_difference(x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
     rather than ``x[index]``: its backward is ``index_add_``, not the slower accumulating
     ``index_put_``."""
     return x.index_select(0, edge_index[1]) - x.index_select(0, edge_index[0])
+
+
+def edge_chunks(fn: Callable[..., torch.Tensor], chunk: int | None,
+                per_edge: tuple[torch.Tensor, ...], shared: tuple[torch.Tensor, ...] = (),
+                ) -> torch.Tensor:
+    """``fn(*per_edge, *shared)`` with the per-edge arguments (first dimension E) split into
+    chunks of ``chunk`` edges when E is larger; with gradients on, each chunk's intermediates
+    are recomputed in the backward pass (activation checkpointing). Memory for ``fn``'s
+    intermediates is then O(chunk) instead of O(E), for one more forward of ``fn``."""
+    n_edges = per_edge[0].shape[0]
+    if not chunk or n_edges <= chunk:
+        return fn(*per_edge, *shared)
+    parts = []
+    for start in range(0, n_edges, chunk):
+        args = (*(a[start:start + chunk] for a in per_edge), *shared)
+        parts.append(checkpoint(fn, *args, use_reentrant=False) if torch.is_grad_enabled()
+                     else fn(*args))
+    return torch.cat(parts)

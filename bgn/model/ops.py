@@ -11,9 +11,8 @@ from itertools import pairwise
 import torch
 from torch import nn
 from torch.nn import functional as F
-from torch.utils.checkpoint import checkpoint
 
-from bgn.model.message_passing import spmm
+from bgn.model.message_passing import edge_chunks, spmm
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "silu": nn.SiLU,
@@ -108,10 +107,8 @@ class EdgeMLP(nn.Module):
     concatenation (``factored=False``), with fewer FLOPs and no (E, 2F) concatenated copy when
     the node features are wide (faster forward and backward: DESIGN section 9).
 
-    ``chunk`` (set by ``PhysicsModel`` from ``edge_chunk``): on graphs with more edges, the
-    edges run in chunks of this many and, when gradients are on, each chunk's hidden layers are
-    recomputed in the backward pass (activation checkpointing): memory O(chunk x width)
-    instead of O(E x width) for the hidden layers, for about one more forward of this MLP.
+    ``edge_chunk`` (set by ``PhysicsModel`` from its config): on graphs with more edges, the
+    edges run in chunks with activation checkpointing (``message_passing.edge_chunks``).
     """
 
     def __init__(self, edge_in: int, node_in: int, sizes: list[int], act: str = "relu",
@@ -120,7 +117,7 @@ class EdgeMLP(nn.Module):
         self.edge_in, self.node_in, self.factored = edge_in, node_in, factored
         self.first = nn.Linear(edge_in + 2 * node_in, sizes[0])
         self.rest = nn.Sequential(activation(act, inplace=True), *mlp(sizes, act, layer_norm))
-        self.chunk: int | None = None
+        self.edge_chunk: int | None = None
 
     def forward(self, e: torch.Tensor, x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
         """Edge (E, edge_in) and node (N, node_in) features -> (E, sizes[-1])."""
@@ -131,18 +128,10 @@ class EdgeMLP(nn.Module):
         w_e, w_r, w_s = self.first.weight.split([self.edge_in, self.node_in, self.node_in],
                                                 dim=1)
         p_r, p_s = F.linear(x, w_r, self.first.bias), F.linear(x, w_s)   # per node
-        n_edges, c = e.shape[0], self.chunk
-        if not c or n_edges <= c:
-            return self._edges(e, p_r, p_s, rcv, snd, w_e)
-        parts = []
-        for s in range(0, n_edges, c):
-            args = (e[s:s + c], p_r, p_s, rcv[s:s + c], snd[s:s + c], w_e)
-            parts.append(checkpoint(self._edges, *args, use_reentrant=False)
-                         if torch.is_grad_enabled() else self._edges(*args))
-        return torch.cat(parts)
+        return edge_chunks(self._edges, self.edge_chunk, (e, rcv, snd), (p_r, p_s, w_e))
 
-    def _edges(self, e: torch.Tensor, p_r: torch.Tensor, p_s: torch.Tensor, rcv: torch.Tensor,
-               snd: torch.Tensor, w_e: torch.Tensor) -> torch.Tensor:
+    def _edges(self, e: torch.Tensor, rcv: torch.Tensor, snd: torch.Tensor, p_r: torch.Tensor,
+               p_s: torch.Tensor, w_e: torch.Tensor) -> torch.Tensor:
         # z = (W_r x + b)_i + (W_s x)_j + W_e e accumulated in one (E, F) buffer: no
         # temporaries for the sums. index_select: its backward is index_add_, several times
         # faster on CPU than the accumulating index_put_ behind x[idx].

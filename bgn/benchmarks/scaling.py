@@ -36,8 +36,9 @@ import sys
 import tarfile
 import tempfile
 import time
+from contextlib import redirect_stdout
 from dataclasses import asdict
-from io import BytesIO
+from io import BytesIO, StringIO
 from pathlib import Path
 
 import numpy as np
@@ -130,6 +131,13 @@ def run_cell(checkout: Path, payload: Path | str, model: str, args: argparse.Nam
              extra: list[str]) -> dict:
     """One cell in a fresh process with ``checkout`` first on the path; {"error": ...} on a
     failure or a timeout. ``THP_MEM_ALLOC_ENABLE`` is left to each checkout's own ``bgn``."""
+    if args.in_process:  # this checkout only: the tests' tiny run
+        from bgn.benchmarks import _scaling_cell
+
+        text = StringIO()
+        with redirect_stdout(text):
+            _scaling_cell.main([str(payload), model, "--device", args.device, *extra])
+        return json.loads(text.getvalue().strip().splitlines()[-1])
     env = {k: v for k, v in os.environ.items() if k != "THP_MEM_ALLOC_ENABLE"}
     env.update(PYTHONPATH=str(checkout), OMP_NUM_THREADS=str(args.threads),
                MKL_NUM_THREADS=str(args.threads))
@@ -271,8 +279,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         "(0: not)")
     parser.add_argument("--training-overrides", nargs="*", default=[],
                         help="Hydra overrides of that training (e.g. paths.data_dir=...)")
+    parser.add_argument("--in-process", action="store_true",
+                        help="run the cells in this process (no --against; memory figures "
+                        "then include what earlier cells left; for tests)")
     parser.add_argument("--out", type=Path, default=Path("outputs/benchmarks"))
     args = parser.parse_args(argv)
+    if args.in_process and args.against:
+        parser.error("--against needs separate processes: drop --in-process")
     if any(n < 2 for n in args.sizes):
         parser.error("--sizes must all be >= 2")
     return args

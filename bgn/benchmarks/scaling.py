@@ -342,9 +342,8 @@ def main(argv: list[str] | None = None) -> int:
                         if row.get(k) is not None) + (f" ({row['note']})" if "note" in row
                                                       else ""))
             payload.unlink()
-    training = []
-    if args.training_steps:
-        for impl, checkout in checkouts.items():
+        training = []  # inside the with: the other checkout lives in tmp
+        for impl, checkout in checkouts.items() if args.training_steps else ():
             cell = run_cell(checkout, "-", "bgn", args,
                             ["--repeats", str(args.training_steps),
                              "--training", *args.training_overrides])

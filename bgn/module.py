@@ -183,7 +183,8 @@ class PhysicsModule(L.LightningModule):
         # torchmetrics (val/nmse, watched by checkpoints and early stopping) are reduced.
         for name, value in terms.items():
             self.log(f"{stage}/loss_{name}", value, batch_size=n, on_step=False, on_epoch=True)
-        self._update_metrics(stage, g, out)
+        with torch.no_grad():  # metrics only read the outputs: no autograd graph for them
+            self._update_metrics(stage, g, out)
         return loss
 
     def training_step(self, g: Graph, batch_idx: int) -> torch.Tensor:

@@ -30,9 +30,8 @@ from torch.nn import functional as F
 
 from bgn.graph import Graph
 from bgn.model.base import DynamicsConfig, ModelOutput, PhysicsModel, check_positive_ints
-from bgn.model.encoder import DIRECTION_EPS, node_features, node_input_dim
+from bgn.model.encoder import edge_geometry, node_features, node_input_dim
 from bgn.model.noise import random_walk
-from bgn.model.normalizer import Normalizer
 from bgn.model.ops import EdgeMLP, activation, mlp, scatter_sum
 
 
@@ -93,18 +92,6 @@ class GNSConfig(DynamicsConfig):
 
 
 # ----------------------------------------------------------------------------- building blocks
-def edge_geometry(g: Graph, norm: Normalizer) -> torch.Tensor:
-    """(E, D+1): ``[x_i - x_j, |x_i - x_j|]`` (receiver minus sender) in relative-position units.
-
-    GNS's edge features (their relative displacement and its norm); the same lengths BGN uses.
-    The distance is softened like BGN's so that coincident particles give no NaN gradient.
-    """
-    snd, rcv = g.edge_index[0], g.edge_index[1]
-    rel = norm.rel_position(g.pos[rcv] - g.pos[snd])
-    dist = torch.sqrt((rel * rel).sum(-1, keepdim=True) + DIRECTION_EPS**2)
-    return torch.cat([rel, dist], dim=1)
-
-
 class Baseline(PhysicsModel):
     """What both baselines share: BGN's node inputs (plus oracle columns), edge geometry, and
     one dynamics head. Subclasses implement ``_target(x, e, edge_index)``: normalised node

@@ -17,6 +17,7 @@ import torch
 from torch import nn
 
 from bgn.graph import Graph
+from bgn.model.message_passing import edge_difference
 from bgn.model.normalizer import Normalizer
 from bgn.model.ops import activation, gcn_aggregate, pad_features
 
@@ -53,6 +54,15 @@ def node_features(g: Graph, norm: Normalizer, walls: bool, absolute_position: bo
     return torch.cat(feats, dim=1)
 
 
+def edge_geometry(g: Graph, norm: Normalizer) -> torch.Tensor:
+    """(E, D+1): ``[x_i - x_j, |x_i - x_j|]`` (receiver minus sender) in relative-position
+    units; the distance is ``sqrt(r^2 + eps^2)``: no NaN (value or gradient) for coincident
+    particles. The first columns of ``edge_features``, and the baselines' edge features."""
+    rel = norm.rel_position(edge_difference(g.pos, g.edge_index))
+    return torch.cat([rel, torch.sqrt((rel * rel).sum(-1, keepdim=True) + DIRECTION_EPS**2)],
+                     dim=1)
+
+
 def edge_features(g: Graph, norm: Normalizer) -> torch.Tensor:
     """Per-edge relative features (E, Fe), receiver minus sender: the paper's ``P_i - P_j``.
 
@@ -61,12 +71,10 @@ def edge_features(g: Graph, norm: Normalizer) -> torch.Tensor:
     The unit direction is given explicitly so that a message linear in these features can carry
     a force direction (processor).
     """
-    snd, rcv = g.edge_index[0], g.edge_index[1]
-    rel = norm.rel_position(g.pos[rcv] - g.pos[snd])
-    # sqrt(r^2 + eps^2): no NaN (value or gradient) for coincident particles.
-    dist = torch.sqrt((rel * rel).sum(-1, keepdim=True) + DIRECTION_EPS**2)
-    rel_vel = norm.rel_velocity(g.vel[rcv] - g.vel[snd]).flatten(1)
-    return torch.cat([rel, dist, rel / dist, rel_vel], dim=1)
+    geometry = edge_geometry(g, norm)
+    d = g.pos.shape[1]
+    rel_vel = norm.rel_velocity(edge_difference(g.vel, g.edge_index)).flatten(1)
+    return torch.cat([geometry, geometry[:, :d] / geometry[:, d:], rel_vel], dim=1)
 
 
 def approach_gap(g: Graph) -> torch.Tensor:
@@ -78,8 +86,8 @@ def approach_gap(g: Graph) -> torch.Tensor:
     if g.dt is None:
         raise ValueError("the approach gap needs the frame spacing: the graph has no dt")
     snd, rcv = g.edge_index[0], g.edge_index[1]
-    dx = g.pos[rcv] - g.pos[snd]
-    dv = g.vel[rcv, 0] - g.vel[snd, 0]
+    dx = edge_difference(g.pos, g.edge_index)
+    dv = edge_difference(g.vel[:, 0], g.edge_index)
     dt = g.dt.to(dx.dtype)[g.batch[rcv]]
     speed2 = (dv * dv).sum(-1)
     tau = torch.minimum((-(dx * dv).sum(-1) / speed2.clamp_min(1e-30)).clamp_min(0.0), dt)

@@ -37,6 +37,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from bgn.graph import Graph
+from bgn.model.message_passing import edge_chunks
 from bgn.model.ops import activation
 
 FLOWS = ("nsf", "naf")
@@ -125,6 +126,7 @@ class InverseModel(nn.Module):
         self.act = activation(act)
         self.linear2 = nn.Linear(hidden, hidden)      # Eq. 10: W_Inv-Dec2
         self.linear3 = nn.Linear(hidden, 1)           # Eq. 10: W_Inv-Dec3
+        self.edge_chunk: int | None = None            # set by PhysicsModel (its config)
 
     def context(self, h_tilde_v: torch.Tensor, g: Graph) -> torch.Tensor:
         """What the flow is conditioned on: ``H̃_V`` (Eq. 6), with the pair terms under
@@ -147,12 +149,17 @@ class InverseModel(nn.Module):
         return nll, z
 
     def relative(self, z: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
-        """Eq. 9-10 on edges: ``R̂_ij`` (E,) for edge j -> i (receiver minus sender)."""
-        snd, rcv = edge_index[0], edge_index[1]
+        """Eq. 9-10 on edges: ``R̂_ij`` (E,) for edge j -> i (receiver minus sender); its
+        (E, hidden) layers in chunks on very large graphs (``edge_chunk``)."""
         zt = torch.stack([z, torch.ones_like(z)], -1)              # [z, 1]
+        return edge_chunks(self._relative, self.edge_chunk, (edge_index[1], edge_index[0]),
+                           (zt,))
+
+    def _relative(self, rcv: torch.Tensor, snd: torch.Tensor, zt: torch.Tensor) -> torch.Tensor:
         # s(Z_Kᵀ W1 Z_K): nn.Bilinear's own kernel is slow for 2 x 2 inputs on CPU; the same
         # map as a linear layer on the 4 products [z_i, 1] ⊗ [z_j, 1]
-        outer = (zt[rcv, :, None] * zt[snd, None, :]).flatten(1)
+        outer = (zt.index_select(0, rcv)[:, :, None] * zt.index_select(0, snd)[:, None, :]
+                 ).flatten(1)
         h = self.act(F.linear(outer, self.bilinear.weight.flatten(1), self.bilinear.bias))
         return self.linear3(self.act(self.linear2(h))).squeeze(-1)
 

@@ -12,6 +12,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from bgn.model.message_passing import edge_chunks, spmm
+
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "silu": nn.SiLU,
     "relu": nn.ReLU,
@@ -21,13 +23,22 @@ ACTIVATIONS: dict[str, type[nn.Module]] = {
 }
 
 
-def activation(name: str) -> nn.Module:
-    """A fresh activation module by name (``silu``, ``relu``, ``gelu``, ``tanh``, ``softplus``)."""
+# Activations that can overwrite their input (their backward reads the output only)
+IN_PLACE = frozenset({"silu", "relu"})
+
+
+def activation(name: str, inplace: bool = False) -> nn.Module:
+    """A fresh activation module by name (``silu``, ``relu``, ``gelu``, ``tanh``, ``softplus``).
+
+    ``inplace=True`` overwrites the input where the activation allows it (``IN_PLACE``): one
+    (E, F) buffer less per layer on a big graph. Only for inputs nothing else reads (the output
+    of a Linear layer inside an MLP)."""
     try:
-        return ACTIVATIONS[name]()
+        cls = ACTIVATIONS[name]
     except KeyError:
         raise ValueError(f"unknown activation {name!r}; choose one of {sorted(ACTIVATIONS)}")\
             from None
+    return cls(inplace=True) if inplace and name in IN_PLACE else cls()
 
 
 def scatter_sum(src: torch.Tensor, index: torch.Tensor, dim_size: int) -> torch.Tensor:
@@ -43,20 +54,20 @@ def gcn_aggregate(h: torch.Tensor, edge_index: torch.Tensor,
 
     ``out_i = h_i + sum over edges j -> i of w_ji h_j`` (``w = 1`` when ``edge_weight`` is None).
     ``normalize=True`` uses the symmetric ``D^-1/2 Â D^-1/2`` with ``D`` the weighted in-degree
-    plus one (the self loop), as in Kipf & Welling's GCN.
+    plus one (the self loop), as in Kipf & Welling's GCN. The neighbour sum is a sparse product
+    (``message_passing.spmm``): no (E, F) tensor forward or backward.
     """
     senders, receivers = edge_index[0], edge_index[1]
     n = h.shape[0]
+    if not normalize:
+        return h + spmm(h, edge_index, edge_weight)
     if edge_weight is None:
         edge_weight = h.new_ones(senders.shape[0])
-    self_weight = None
-    if normalize:
-        deg = 1.0 + scatter_sum(edge_weight, receivers, n)
-        inv_sqrt = deg.rsqrt()
-        edge_weight = inv_sqrt[receivers] * edge_weight * inv_sqrt[senders]
-        self_weight = (inv_sqrt * inv_sqrt)[:, None]
-    neighbours = scatter_sum(h[senders] * edge_weight[:, None], receivers, n)
-    return (h if self_weight is None else self_weight * h) + neighbours
+    deg = 1.0 + scatter_sum(edge_weight, receivers, n)
+    inv_sqrt = deg.rsqrt()
+    edge_weight = inv_sqrt.index_select(0, receivers) * edge_weight \
+        * inv_sqrt.index_select(0, senders)
+    return (inv_sqrt * inv_sqrt)[:, None] * h + spmm(h, edge_index, edge_weight)
 
 
 def pad_features(x: torch.Tensor, width: int) -> torch.Tensor:
@@ -82,7 +93,7 @@ def mlp(sizes: list[int], act: str = "silu", layer_norm: bool = False,
     for i, (a, b) in enumerate(pairwise(sizes)):
         layers.append(nn.Linear(a, b))
         if i < len(sizes) - 2 or activate_last:
-            layers.append(activation(act))
+            layers.append(activation(act, inplace=True))  # on the Linear's own output
     if layer_norm:
         layers.append(nn.LayerNorm(sizes[-1]))
     return nn.Sequential(*layers)
@@ -92,9 +103,12 @@ class EdgeMLP(nn.Module):
     """``phi([e_ij, x_i, x_j])`` for every edge j -> i; ``sizes`` = hidden widths + output width.
 
     ``factored=True`` applies the first layer's node blocks per node and gathers the products,
-    ``W [e, x_i, x_j] = W_e e + (W_r x)[i] + (W_s x)[j]``: the same function as the plain
+    ``W [e, x_i, x_j] = W_e e + (W_r x + b)[i] + (W_s x)[j]``: the same function as the plain
     concatenation (``factored=False``), with fewer FLOPs and no (E, 2F) concatenated copy when
     the node features are wide (faster forward and backward: DESIGN section 9).
+
+    ``edge_chunk`` (set by ``PhysicsModel`` from its config): on graphs with more edges, the
+    edges run in chunks with activation checkpointing (``message_passing.edge_chunks``).
     """
 
     def __init__(self, edge_in: int, node_in: int, sizes: list[int], act: str = "relu",
@@ -102,18 +116,26 @@ class EdgeMLP(nn.Module):
         super().__init__()
         self.edge_in, self.node_in, self.factored = edge_in, node_in, factored
         self.first = nn.Linear(edge_in + 2 * node_in, sizes[0])
-        self.rest = nn.Sequential(activation(act), *mlp(sizes, act, layer_norm))
+        self.rest = nn.Sequential(activation(act, inplace=True), *mlp(sizes, act, layer_norm))
+        self.edge_chunk: int | None = None
 
     def forward(self, e: torch.Tensor, x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
         """Edge (E, edge_in) and node (N, node_in) features -> (E, sizes[-1])."""
         snd, rcv = edge_index[0], edge_index[1]
-        if self.factored:
-            w_e, w_r, w_s = self.first.weight.split([self.edge_in, self.node_in, self.node_in],
-                                                    dim=1)
-            # index_select: its backward is index_add_, several times faster on CPU than the
-            # accumulating index_put_ behind x[idx]
-            z = (F.linear(e, w_e, self.first.bias)
-                 + F.linear(x, w_r).index_select(0, rcv) + F.linear(x, w_s).index_select(0, snd))
-        else:
-            z = self.first(torch.cat([e, x.index_select(0, rcv), x.index_select(0, snd)], dim=1))
+        if not self.factored:
+            return self.rest(self.first(torch.cat([e, x.index_select(0, rcv),
+                                                   x.index_select(0, snd)], dim=1)))
+        w_e, w_r, w_s = self.first.weight.split([self.edge_in, self.node_in, self.node_in],
+                                                dim=1)
+        p_r, p_s = F.linear(x, w_r, self.first.bias), F.linear(x, w_s)   # per node
+        return edge_chunks(self._edges, self.edge_chunk, (e, rcv, snd), (p_r, p_s, w_e))
+
+    def _edges(self, e: torch.Tensor, rcv: torch.Tensor, snd: torch.Tensor, p_r: torch.Tensor,
+               p_s: torch.Tensor, w_e: torch.Tensor) -> torch.Tensor:
+        # z = (W_r x + b)_i + (W_s x)_j + W_e e accumulated in one (E, F) buffer: no
+        # temporaries for the sums. index_select: its backward is index_add_, several times
+        # faster on CPU than the accumulating index_put_ behind x[idx].
+        z = p_r.index_select(0, rcv)
+        z += p_s.index_select(0, snd)
+        z.addmm_(e, w_e.t())
         return self.rest(z)

@@ -25,6 +25,7 @@ from bgn.model.encoder import (
     symmetric_edge_features,
     symmetric_edge_width,
 )
+from bgn.model.message_passing import edge_dot
 from bgn.model.ops import EdgeMLP, scatter_sum
 
 CONTACT_MODES = ("aggregate", "dense")
@@ -124,8 +125,8 @@ class ContactHead(nn.Module):
                e: torch.Tensor | None = None, gap: torch.Tensor | None = None) -> torch.Tensor:
         """Eq. 3 on edges: ``ĉ_ij = <h_E,i, h_E,j> / sqrt(F)`` (E,) [+ the edge term of the
         symmetric edge features and, with ``gap``, the approach-gap features]."""
-        snd, rcv = edge_index[0], edge_index[1]
-        c = (h_e[rcv] * h_e[snd]).sum(-1) * self.inv_sqrt_f
+        # a sampled product: no (E, F) gathers forward or backward (message_passing)
+        c = edge_dot(h_e, h_e, edge_index) * self.inv_sqrt_f
         if self.edge_term is not None:
             assert e is not None
             s = symmetric_edge_features(e, self.dim)

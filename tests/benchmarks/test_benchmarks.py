@@ -19,6 +19,9 @@ import bgn.benchmarks
 SMOKE = {
     "neighbours": (["--sizes", "300", "600", "--neighbours", "8"],
                    ["neighbours.md", "neighbours.csv", "neighbours.png"]),
+    "scaling": (["--sizes", "40", "80", "--margin", "0.5", "--threads", "1", "--repeats", "1",
+                 "--in-process"],
+                ["scaling.md", "scaling.csv", "scaling.png"]),
     "flow": (["--particles", "40", "--per-frame", "20", "--hidden", "8", "--steps", "3",
               "--pool", "2", "--repeat", "1", "--threads", "1"],
              ["flow.md", "flow.csv", "flow.png"]),
@@ -118,3 +121,18 @@ def test_flow_statistics_have_what_the_target_coder_needs() -> None:
     model = build_model({"name": "bgn", "hidden": 8}, meta, stats, HISTORY)
     assert model.target_coder.prior_name == "last"
     assert torch.isfinite(model.total_loss(model.loss_terms(g, model(g))))
+
+
+def test_scaling_exponents_and_ratios() -> None:
+    """The fitted exponent of a cost that grows like N^1.5 is 1.5; ratios are old / new."""
+    from bgn.benchmarks.scaling import exponents, ratios
+
+    rows = [{"impl": impl, "model": "bgn", "n": n, "train_s": k * n**1.5, "infer_s": k * n,
+             "train_peak_gb": k * n} for impl, k in (("this", 1.0), ("old", 3.0))
+            for n in (100, 1000, 10000)]
+    fits = {r["impl"]: r for r in exponents(rows, 1000)}
+    assert fits["this"]["train_s_exponent"] == pytest.approx(1.5)
+    assert fits["old"]["infer_s_exponent"] == pytest.approx(1.0)
+    for r in ratios(rows, "this", "old"):
+        assert r["train_s_ratio"] == pytest.approx(3.0)
+        assert r["train_peak_gb_ratio"] == pytest.approx(3.0)

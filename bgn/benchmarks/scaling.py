@@ -1,0 +1,376 @@
+"""Every model's cost against the number of particles: graph build, training and inference
+step, peak memory, fitted exponents, and the fraction of the machine's matmul rate achieved.
+
+Collisions-like frames at the scene's density (200 discs per 10 x 10 box, two types of radius
+0.1 and 0.2, equipartition speeds), edges from ``bgn.data.graphs.radius_graph`` with a contact
+margin of ``--margin`` (1.25 gives about 15 edges per disc, the density of the measurements in
+DESIGN section 9). Each model is its checkout's own config composed with ``dataset=collisions``
+(``conf/``), so BGN runs with the collisions defaults (vector contact message)::
+
+    python -m bgn.benchmarks.scaling [--models bgn gns cranmer_gn]
+        [--sizes 200 2000 20000 200000] [--threads 2] [--against 8abf3d9]
+        [--max-gb 12] [--out outputs/benchmarks]
+
+Each (model, N) cell runs in its own process (``_scaling_cell.py``), so its peak resident
+memory is its own. A training step is forward + backward + AdamW; an inference step is
+``predict`` under ``no_grad``; both are the median of ``--repeats`` after a warm-up. The FLOP
+count is that of the matrix products of one training step (``torch.utils.flop_counter``:
+``Linear`` layers and any other ``mm``), so "matmul fraction" is the achieved FLOP rate
+over the float32 matmul rate measured at the start of the same run.
+
+``--against REF`` exports ``git archive REF`` to a temporary folder and runs the same cells with
+that checkout in separate processes, interleaved with this one's, and reports the ratios (old
+time / new time, old memory / new memory) from this one run: absolute times on a shared
+machine drift; ratios taken minutes apart drift less. A cell whose predicted memory (the
+previous size's, scaled by N) exceeds ``--max-gb`` is skipped and the report says so.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import tarfile
+import tempfile
+import time
+from contextlib import redirect_stdout
+from dataclasses import asdict
+from io import BytesIO, StringIO
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import bgn
+from bgn.benchmarks._report import console, machine, print_table
+from bgn.benchmarks.flow import synthetic_stats
+from bgn.data.graphs import radius_graph
+from bgn.graph import Graph, window_graph
+from bgn.model.registry import MODELS
+from bgn.sim.scene import SceneMeta
+from bgn.tables import fmt, markdown_table, write_csv
+
+DENSITY = 200 / 10.0**2              # discs per unit area: the collisions scene's
+RADII = (0.1, 0.2)                   # the two types of conf/dataset/collisions.yaml
+LOG_MASS_MODES = (math.log(0.001), math.log(0.4))
+HISTORY = 5
+FPS = 50.0
+CELL = Path(__file__).with_name("_scaling_cell.py")
+GB = 1e9
+
+
+# ----------------------------------------------------------------------------- the frames
+def frame(n: int, margin: float, seed: int = 0) -> Graph:
+    """One collisions-like frame of n discs in a box of side ``sqrt(n / DENSITY)``."""
+    rng = np.random.default_rng(seed)
+    box = math.sqrt(n / DENSITY)
+    types = np.arange(n) % 2
+    radii = np.asarray(RADII)[types]
+    log_m = np.asarray(LOG_MASS_MODES)[types] + 0.1 * rng.standard_normal(n)
+    pos = rng.uniform(0.2, box - 0.2, (n, 2))
+    vel = 0.05 * np.exp(-0.5 * (log_m - LOG_MASS_MODES[1]))[:, None] * rng.standard_normal((n, 2))
+    # a window of k+2 positions in free flight, oldest first (the last one is x[t])
+    steps = np.arange(-HISTORY - 1, 1)[:, None, None] / FPS
+    window = torch.from_numpy(pos[None] + steps * vel[None])[None]        # (1, k+2, N, 2)
+    edges = torch.from_numpy(radius_graph(pos, radii=radii, margin=margin))
+    g = window_graph(window, 1.0 / FPS, edges, torch.from_numpy(np.exp(log_m))[None],
+                     torch.from_numpy(radii)[None], torch.from_numpy(types)[None], box,
+                     torch.zeros(1), torch.zeros(1))
+    snd, rcv = edges
+    g.target = g.vel[:, 0].clone()
+    touching = (g.pos[rcv] - g.pos[snd]).norm(dim=1) <= g.radius[rcv] + g.radius[snd]
+    g.edge_contact = touching.float()
+    return g
+
+
+def scene(n: int) -> SceneMeta:
+    return SceneMeta(name="collisions", dim=2, n_particles=n, n_types=2,
+                     interaction="contact", target="velocity", graph="radius",
+                     box=math.sqrt(n / DENSITY))
+
+
+# ----------------------------------------------------------------------------- the machine
+def matmul_rate(size: int = 2048) -> float:
+    """float32 FLOP/s of a ``size`` x ``size`` matrix product, best of 3."""
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    a @ b
+    best = min(_seconds(lambda: a @ b) for _ in range(3))
+    return 2 * size**3 / best
+
+
+def copy_bandwidth(nbytes: int = 512 * 2**20) -> float:
+    """Bytes/s moved (read + write) by copying a tensor of ``nbytes``, best of 3."""
+    src = torch.ones(nbytes // 4)
+    dst = torch.empty_like(src)
+    dst.copy_(src)
+    best = min(_seconds(lambda: dst.copy_(src)) for _ in range(3))
+    return 2 * nbytes / best
+
+
+def _seconds(fn) -> float:
+    start = time.perf_counter()
+    fn()
+    return time.perf_counter() - start
+
+
+# ----------------------------------------------------------------------------- the cells
+def export(ref: str, into: Path) -> Path:
+    """``git archive ref`` of this repository extracted under ``into``."""
+    repo = Path(bgn.__file__).resolve().parents[1]
+    tar = subprocess.run(["git", "-C", str(repo), "archive", ref], check=True,
+                         capture_output=True).stdout
+    with tarfile.open(fileobj=BytesIO(tar)) as archive:
+        archive.extractall(into, filter="data")
+    return into
+
+
+def run_cell(checkout: Path, payload: Path | str, model: str, args: argparse.Namespace,
+             extra: list[str]) -> dict:
+    """One cell in a fresh process with ``checkout`` first on the path; {"error": ...} on a
+    failure or a timeout. ``THP_MEM_ALLOC_ENABLE`` is left to each checkout's own ``bgn``."""
+    if args.in_process:  # this checkout only: the tests' tiny run
+        from bgn.benchmarks import _scaling_cell
+
+        text = StringIO()
+        with redirect_stdout(text):
+            _scaling_cell.main([str(payload), model, "--device", args.device, *extra])
+        return json.loads(text.getvalue().strip().splitlines()[-1])
+    env = {k: v for k, v in os.environ.items() if k != "THP_MEM_ALLOC_ENABLE"}
+    env.update(PYTHONPATH=str(checkout), OMP_NUM_THREADS=str(args.threads),
+               MKL_NUM_THREADS=str(args.threads))
+    cmd = [sys.executable, str(CELL), str(payload), model, "--device", args.device, *extra]
+    try:
+        done = subprocess.run(cmd, cwd=checkout, env=env, capture_output=True, text=True,
+                              timeout=args.timeout)
+    except subprocess.TimeoutExpired:
+        return {"error": f"over the {args.timeout:g} s limit"}
+    if done.returncode != 0:
+        tail = (done.stderr.strip().splitlines() or ["?"])[-1]
+        return {"error": f"exit {done.returncode}: {tail[:160]}"}
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def predicted_gb(rows: list[dict], impl: str, model: str, n: int) -> float:
+    """Training memory of a cell, extrapolated linearly in N from the largest smaller one."""
+    done = [r for r in rows if r["impl"] == impl and r["model"] == model
+            and r.get("train_peak_gb") is not None and r["n"] < n]
+    if not done:
+        return 0.0
+    last = max(done, key=lambda r: r["n"])
+    return last["train_peak_gb"] * n / last["n"]
+
+
+def slope(rows: list[dict], key: str, lo: int) -> float | None:
+    """Least-squares exponent of ``key`` against N over the sizes >= lo (None below two)."""
+    pts = [(r["n"], r[key]) for r in rows if r["n"] >= lo and (r.get(key) or 0) > 0]
+    if len(pts) < 2:
+        return None
+    n, y = np.log([p[0] for p in pts]), np.log([p[1] for p in pts])
+    return float(np.polyfit(n, y, 1)[0])
+
+
+# ----------------------------------------------------------------------------- the report
+COLUMNS = ["impl", "model", "n", "edges", "graph_s", "train_s", "infer_s", "train_peak_gb",
+           "infer_peak_gb", "train_gflop", "matmul_fraction", "edges_per_s", "note"]
+
+
+def exponents(rows: list[dict], lo: int) -> list[dict]:
+    out = []
+    for impl in dict.fromkeys(r["impl"] for r in rows):
+        for model in dict.fromkeys(r["model"] for r in rows):
+            mine = [r for r in rows if r["impl"] == impl and r["model"] == model]
+            out.append({"impl": impl, "model": model, "from_n": lo,
+                        **{f"{k}_exponent": slope(mine, k, lo)
+                           for k in ("train_s", "infer_s", "train_peak_gb")}})
+    return out
+
+
+def ratios(rows: list[dict], new: str, old: str) -> list[dict]:
+    """old / new of time and memory for every cell both ran."""
+    index = {(r["impl"], r["model"], r["n"]): r for r in rows}
+    out = []
+    for (impl, model, n), r in index.items():
+        o = index.get((old, model, n))
+        if impl != new or o is None:
+            continue
+        out.append({"model": model, "n": n, **{
+            f"{k}_ratio": (o[k] / r[k] if o.get(k) and r.get(k) else None)
+            for k in ("train_s", "infer_s", "train_peak_gb")}})
+    return out
+
+
+def write_plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), dpi=110)
+    for (impl, model) in dict.fromkeys((r["impl"], r["model"]) for r in rows):
+        mine = sorted((r for r in rows if r["impl"] == impl and r["model"] == model
+                       and r.get("train_s")), key=lambda r: r["n"])
+        if not mine:
+            continue
+        style = "o-" if impl == "this" else "s:"
+        n = [r["n"] for r in mine]
+        axes[0].loglog(n, [r["train_s"] for r in mine], style, label=f"{model} ({impl})")
+        axes[1].loglog(n, [max(r["train_peak_gb"], 1e-3) for r in mine], style,
+                       label=f"{model} ({impl})")
+    for ax, what in zip(axes, ("training step s", "peak memory growth GB")):
+        ax.set_xlabel("particles N")
+        ax.set_ylabel(what)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+TRAINING = ["impl", "loader_samples_s", "step_samples_s", "fit_samples_s", "error"]
+
+
+def write_report(rows: list[dict], training: list[dict], header: list[str],
+                 against: str | None, out: Path) -> None:
+    lo = sorted({r["n"] for r in rows})[1 if len({r["n"] for r in rows}) > 2 else 0]
+    parts = ["# Scaling benchmark: every model against N", "", *header, "",
+             markdown_table(COLUMNS, rows), "",
+             f"## Fitted exponents (log-log least squares over N >= {lo:,})", "",
+             markdown_table(["impl", "model", "from_n", "train_s_exponent", "infer_s_exponent",
+                             "train_peak_gb_exponent"], exponents(rows, lo))]
+    if against:
+        parts += ["", f"## Ratios: {against} / this checkout (above 1: this one is faster "
+                  "or smaller)", "",
+                  markdown_table(["model", "n", "train_s_ratio", "infer_s_ratio",
+                                  "train_peak_gb_ratio"], ratios(rows, "this", against))]
+    if training:
+        parts += ["", "## Default collisions training (BGN), samples per second", "",
+                  "The data loader alone, the model step alone (forward, backward, optimiser "
+                  "on loaded batches) and Lightning's fit loop (both, plus logging, metrics and "
+                  "clipping; no validation), each checkout with its own configs.", "",
+                  markdown_table(TRAINING, training)]
+    parts += ["", "![time and memory against N](scaling.png)"]
+    (out / "scaling.md").write_text("\n".join(parts) + "\n")
+    write_csv(out / "scaling.csv", COLUMNS, rows)
+    write_plot(rows, out / "scaling.png")
+
+
+# ----------------------------------------------------------------------------- the command
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="python -m bgn.benchmarks.scaling",
+                                     description=__doc__.split("\n\n")[0])
+    parser.add_argument("--models", nargs="+", default=sorted(MODELS), choices=sorted(MODELS))
+    parser.add_argument("--sizes", type=int, nargs="+", default=[200, 2000, 20000, 200000])
+    parser.add_argument("--margin", type=float, default=1.25,
+                        help="contact margin of the radius graph (1.25: ~15 edges per disc)")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--repeats", type=int, default=2, help="timed steps after a warm-up")
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--against", default=None, help="a git ref to run side by side")
+    parser.add_argument("--against-max-n", type=int, default=None,
+                        help="largest N for the other checkout (the old code may not fit)")
+    parser.add_argument("--max-gb", type=float, default=12.0,
+                        help="skip the training of a cell predicted to grow memory past this")
+    parser.add_argument("--timeout", type=float, default=900.0, help="seconds per cell")
+    parser.add_argument("--training-steps", type=int, default=0,
+                        help="also time the default collisions training over this many steps "
+                        "(0: not)")
+    parser.add_argument("--training-overrides", nargs="*", default=[],
+                        help="Hydra overrides of that training (e.g. paths.data_dir=...)")
+    parser.add_argument("--in-process", action="store_true",
+                        help="run the cells in this process (no --against; memory figures "
+                        "then include what earlier cells left; for tests)")
+    parser.add_argument("--out", type=Path, default=Path("outputs/benchmarks"))
+    args = parser.parse_args(argv)
+    if args.in_process and args.against:
+        parser.error("--against needs separate processes: drop --in-process")
+    if any(n < 2 for n in args.sizes):
+        parser.error("--sizes must all be >= 2")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    out = console()
+    torch.set_num_threads(args.threads)
+    rate, bandwidth = matmul_rate(), copy_bandwidth()
+    out.log(f"float32 matmul {rate / 1e9:.0f} GFLOP/s, copy {bandwidth / GB:.1f} GB/s "
+            f"({args.threads} threads)")
+    checkouts = {"this": Path(bgn.__file__).resolve().parents[1]}
+    rows: list[dict] = []
+    with tempfile.TemporaryDirectory(prefix="bgn-scaling-") as tmp:
+        if args.against:
+            checkouts[args.against] = export(args.against, Path(tmp) / "against")
+        stats = synthetic_stats(frame(2000, args.margin, seed=1))  # intensive: any N will do
+        for n in sorted(set(args.sizes)):
+            start = time.perf_counter()
+            g = frame(n, args.margin)
+            graph_s = time.perf_counter() - start
+            payload = Path(tmp) / f"frame_{n}.pt"
+            torch.save({"graph": asdict(g), "stats": stats, "meta": asdict(scene(n)),
+                        "history": HISTORY}, payload)
+            for model in args.models:
+                for impl, checkout in checkouts.items():
+                    if impl != "this" and args.against_max_n and n > args.against_max_n:
+                        continue
+                    row = {"impl": impl, "model": model, "n": n, "graph_s": graph_s}
+                    guess = predicted_gb(rows, impl, model, n)
+                    skip = guess > args.max_gb
+                    if skip:
+                        row["note"] = (f"training skipped: ~{guess:.0f} GB predicted "
+                                       f"> --max-gb {args.max_gb:g}")
+                    cell = run_cell(checkout, payload, model, args,
+                                    ["--repeats", str(args.repeats)]
+                                    + (["--skip-train"] if skip else []))
+                    if "error" in cell:
+                        row["note"] = cell["error"]
+                    else:
+                        row.update(edges=cell["edges"], train_s=cell.get("train_s"),
+                                   infer_s=cell["infer_s"],
+                                   infer_peak_gb=cell["infer_peak_bytes"] / GB)
+                        if "train_s" in cell:
+                            flop = cell["train_flop"]
+                            row.update(train_peak_gb=cell["train_peak_bytes"] / GB,
+                                       train_gflop=flop / 1e9,
+                                       matmul_fraction=flop / cell["train_s"] / rate,
+                                       edges_per_s=cell["edges"] / cell["train_s"])
+                    rows.append(row)
+                    out.log(f"{impl} {model} N={n:,}: " + ", ".join(
+                        f"{k} {row[k]:.4g}" for k in ("train_s", "infer_s", "train_peak_gb")
+                        if row.get(k) is not None) + (f" ({row['note']})" if "note" in row
+                                                      else ""))
+            payload.unlink()
+        training = []  # inside the with: the other checkout lives in tmp
+        for impl, checkout in checkouts.items() if args.training_steps else ():
+            cell = run_cell(checkout, "-", "bgn", args,
+                            ["--repeats", str(args.training_steps),
+                             "--training", *args.training_overrides])
+            training.append({"impl": impl, **cell})
+            out.log(f"{impl} default collisions training: {cell}")
+    header = [
+        f"Machine: {machine(torch=torch.__version__)}; {args.threads} threads, device "
+        f"{args.device}" + (f" ({torch.cuda.get_device_name()})" if args.device == "cuda"
+                            else "") + ".",
+        f"Measured in this run: float32 matmul {rate / 1e9:.1f} GFLOP/s (2048 x 2048), "
+        f"copy {bandwidth / GB:.1f} GB/s (read + write). THP_MEM_ALLOC_ENABLE="
+        f"{os.environ.get('THP_MEM_ALLOC_ENABLE', '(unset)')} in this process; each "
+        "checkout's own `bgn` decides for its cells.",
+        f"Frames: collisions-like, {DENSITY * 100:g} discs per 10 x 10, margin {args.margin:g}; "
+        f"times are medians of {args.repeats} after a warm-up; memory is the growth of the "
+        "peak resident set over the cell's baseline (model and frame loaded)."]
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_report(rows, training, header, args.against, args.out)
+    print_table(out, "scaling", COLUMNS, [[fmt(r.get(c)) for c in COLUMNS] for r in rows])
+    if args.against:
+        for r in ratios(rows, "this", args.against):
+            out.print(f"{r['model']} N={r['n']:,}: speed-up train "
+                      f"{fmt(r['train_s_ratio'])}x, infer {fmt(r['infer_s_ratio'])}x, "
+                      f"memory {fmt(r['train_peak_gb_ratio'])}x smaller")
+    out.print(f"wrote {args.out / 'scaling.md'}, .csv, .png")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,185 @@
+"""The fast kernels against the plain formulas they replace, in float64 (to 1e-5, in practice
+round-off): the sparse products of ``bgn.model.message_passing``, the edge MLP's accumulated
+first layer and its chunked checkpointing, and every model's loss and gradients with all of
+them swapped back to the gather / ``index_add_`` / concatenation forms."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch.nn import functional as F
+
+import bgn.model.encoder as encoder
+import bgn.model.ops as ops
+import bgn.model.processor as processor
+from bgn.model import build_model
+from bgn.model.message_passing import adjacency, edge_difference, edge_dot, spmm
+from bgn.model.ops import EdgeMLP
+from tests.model.conftest import fake_stats, make_meta, random_graph
+
+TOL = dict(rtol=1e-5, atol=1e-5)
+
+
+def naive_spmm(h, edge_index, w=None):
+    snd, rcv = edge_index
+    msg = h[snd] if w is None else h[snd] * w[:, None]
+    return torch.zeros_like(h).index_add(0, rcv, msg)
+
+
+def naive_edge_dot(a, b, edge_index):
+    snd, rcv = edge_index
+    return (a[rcv] * b[snd]).sum(-1)
+
+
+def naive_gcn_aggregate(h, edge_index, edge_weight=None, normalize=False):
+    """``gcn_aggregate`` as it was: gather, weight, scatter."""
+    snd, rcv = edge_index
+    n = h.shape[0]
+    if edge_weight is None:
+        edge_weight = h.new_ones(snd.shape[0])
+    self_weight = None
+    if normalize:
+        deg = 1.0 + torch.zeros(n, dtype=h.dtype).index_add(0, rcv, edge_weight)
+        inv_sqrt = deg.rsqrt()
+        edge_weight = inv_sqrt[rcv] * edge_weight * inv_sqrt[snd]
+        self_weight = (inv_sqrt * inv_sqrt)[:, None]
+    out = naive_spmm(h, edge_index, edge_weight)
+    return (h if self_weight is None else self_weight * h) + out
+
+
+def naive_edge_mlp(self, e, x, edge_index):
+    """``EdgeMLP.forward`` as the plain concatenation ``phi([e, x_i, x_j])``, one chunk."""
+    snd, rcv = edge_index
+    return self.rest(self.first(torch.cat([e, x[rcv], x[snd]], dim=1)))
+
+
+def radius_edges(n=40, seed=0, shuffle=False):
+    g = random_graph(n, kind="radius", seed=seed, cutoff=1.2)
+    e = g.edge_index
+    if shuffle:
+        e = e[:, torch.randperm(e.shape[1], generator=torch.Generator().manual_seed(seed))]
+    return e
+
+
+@pytest.mark.parametrize("shuffle", [False, True])
+def test_spmm_and_edge_dot_match_gathers_and_their_gradients(shuffle):
+    e = radius_edges(shuffle=shuffle)
+    assert e.shape[1] > 50
+    gen = torch.Generator().manual_seed(1)
+    h = torch.randn(40, 6, generator=gen, dtype=torch.float64, requires_grad=True)
+    b = torch.randn(40, 6, generator=gen, dtype=torch.float64, requires_grad=True)
+    w = torch.rand(e.shape[1], generator=gen, dtype=torch.float64, requires_grad=True)
+    torch.testing.assert_close(spmm(h, e, w), naive_spmm(h, e, w), **TOL)
+    torch.testing.assert_close(spmm(h, e), naive_spmm(h, e), **TOL)
+    torch.testing.assert_close(edge_dot(h, b, e), naive_edge_dot(h, b, e), **TOL)
+    assert torch.autograd.gradcheck(lambda h, w: spmm(h, e, w), (h, w))
+    assert torch.autograd.gradcheck(lambda a, b: edge_dot(a, b, e), (h, b))
+
+
+def test_kernels_on_an_empty_edge_list():
+    e = torch.zeros(2, 0, dtype=torch.long)
+    h = torch.randn(5, 3, dtype=torch.float64, requires_grad=True)
+    out = spmm(h, e, torch.zeros(0, dtype=torch.float64))
+    assert out.shape == (5, 3) and not out.any()
+    assert edge_dot(h, h, e).shape == (0,)
+    out.sum().backward()
+    assert h.grad is not None and not h.grad.any()
+
+
+def test_adjacency_is_built_once_per_edge_list():
+    e = radius_edges()
+    assert adjacency(e, 40) is adjacency(e, 40)
+    assert adjacency(e.clone(), 40) is not adjacency(e, 40)
+
+
+def test_edge_difference_is_receiver_minus_sender():
+    e = radius_edges()
+    x = torch.randn(40, 3, 2, dtype=torch.float64)
+    torch.testing.assert_close(edge_difference(x, e), x[e[1]] - x[e[0]])
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+@pytest.mark.parametrize("normalize", [False, True])
+def test_gcn_aggregate_matches_the_gather_scatter_form(weighted, normalize):
+    e = radius_edges(shuffle=True)
+    gen = torch.Generator().manual_seed(2)
+    h = torch.randn(40, 5, generator=gen, dtype=torch.float64)
+    w = torch.rand(e.shape[1], generator=gen, dtype=torch.float64) if weighted else None
+    torch.testing.assert_close(ops.gcn_aggregate(h, e, w, normalize),
+                               naive_gcn_aggregate(h, e, w, normalize), **TOL)
+
+
+@pytest.mark.parametrize("chunk", [None, 7])
+@pytest.mark.parametrize("layer_norm", [False, True])
+def test_edge_mlp_factored_and_chunked_equals_the_concatenation(chunk, layer_norm):
+    torch.manual_seed(0)
+    mlp = EdgeMLP(3, 4, [8, 8, 5], "silu", layer_norm).double()
+    mlp.edge_chunk = chunk
+    e = radius_edges()
+    gen = torch.Generator().manual_seed(3)
+    ef = torch.randn(e.shape[1], 3, generator=gen, dtype=torch.float64, requires_grad=True)
+    x = torch.randn(40, 4, generator=gen, dtype=torch.float64, requires_grad=True)
+    fast = mlp(ef, x, e)
+    grads = torch.autograd.grad(fast.square().sum(), [ef, x, *mlp.parameters()])
+    slow = naive_edge_mlp(mlp, ef, x, e)
+    expected = torch.autograd.grad(slow.square().sum(), [ef, x, *mlp.parameters()])
+    torch.testing.assert_close(fast, slow, **TOL)
+    for got, want in zip(grads, expected, strict=True):
+        torch.testing.assert_close(got, want, **TOL)
+
+
+def loss_and_grads(model, g):
+    torch.manual_seed(7)  # the same training noise and flow draws in both runs
+    loss = model.total_loss(model.loss_terms(g, model(g)))
+    return loss, torch.autograd.grad(loss, list(model.parameters()), allow_unused=True)
+
+
+@pytest.mark.parametrize("name", ["bgn", "gns", "cranmer_gn"])
+def test_every_model_equals_its_plain_form(monkeypatch, name):
+    """Loss and every gradient of each model with the fast kernels against the same model
+    with the kernels swapped back to gathers, index_add_ and concatenations (float64)."""
+    small = {"bgn": {"hidden": 16, "decoder_hidden": 16, "flow_hidden": 8,
+                     "contact_message": "vector", "edge_chunk": 50},
+             "gns": {"latent": 16, "mlp_hidden": 16, "message_passing_steps": 3,
+                     "edge_chunk": 50},
+             "cranmer_gn": {"hidden": 16, "message_dim": 8, "edge_chunk": 50}}[name]
+    meta = make_meta(30, 2, "contact", "radius", box=4.0)
+    torch.manual_seed(0)
+    model = build_model({"name": name, **small}, meta, fake_stats(), 2).double().train()
+    g = random_graph(30, history=2, kind="radius", contact=True, box=4.0, seed=4, cutoff=1.5)
+    assert g.edge_index.shape[1] > 50  # several chunks
+    loss, grads = loss_and_grads(model, g)
+
+    monkeypatch.setattr(ops, "spmm", naive_spmm)
+    monkeypatch.setattr(encoder, "gcn_aggregate", naive_gcn_aggregate)
+    monkeypatch.setattr(processor, "edge_dot", naive_edge_dot)
+    monkeypatch.setattr(EdgeMLP, "forward", naive_edge_mlp)
+    monkeypatch.setattr(encoder, "edge_difference", lambda x, e: x[e[1]] - x[e[0]])
+    for module in model.modules():  # and no chunks (the relative-mass decoder has them too)
+        if hasattr(module, "edge_chunk"):
+            module.edge_chunk = None
+    plain_loss, plain_grads = loss_and_grads(model, g)
+    torch.testing.assert_close(loss, plain_loss, **TOL)
+    for got, want in zip(grads, plain_grads, strict=True):
+        if want is None:
+            assert got is None
+        else:
+            torch.testing.assert_close(got, want, **TOL)
+
+
+def test_activation_in_place_only_where_allowed():
+    assert ops.activation("relu", inplace=True).inplace
+    assert ops.activation("silu", inplace=True).inplace
+    assert not ops.activation("relu").inplace
+    assert isinstance(ops.activation("tanh", inplace=True), torch.nn.Tanh)
+
+
+def test_mlp_in_place_activations_leave_the_input_alone():
+    net = ops.mlp([4, 8, 8, 3], "relu")
+    x = torch.randn(5, 4, requires_grad=True)
+    before = x.detach().clone()
+    net(x).sum().backward()
+    torch.testing.assert_close(x.detach(), before)
+    torch.testing.assert_close(net(x), F.linear(F.relu(F.linear(F.relu(
+        F.linear(x, net[0].weight, net[0].bias)), net[2].weight, net[2].bias)),
+        net[4].weight, net[4].bias))

@@ -60,6 +60,7 @@ class DatasetNode:
     unroll: int = 0                   # training steps unrolled on the model's own frames
     batch_size: int = 64
     val_samples: int | None = None  # validation frames spread over all val sims (null: all)
+    test_samples: int | None = None  # test frames spread over all test sims (null: all)
     num_workers: int = 0
     train_sims: int | None = None  # train on the first n simulations only (null: all)
     in_memory: bool = True

@@ -167,6 +167,8 @@ def validate_dataset(dataset: Any, fps: Any) -> DatasetSpec:
     need_int(_get(dataset, "num_workers", 0), "dataset.num_workers", 0)
     need_int(_get(dataset, "val_samples"), "dataset.val_samples", 1, optional=True,
              why=": validation frames (null: the whole validation split)")
+    need_int(_get(dataset, "test_samples"), "dataset.test_samples", 1, optional=True,
+             why=": test frames (null: the whole test split)")
     need_int(_get(dataset, "train_sims"), "dataset.train_sims", 1, n_sims, optional=True,
              why=f" (at most dataset.n_sims={n_sims})")
     need_int(_get(dataset, "generate_workers"), "dataset.generate_workers", 1, optional=True)

@@ -27,7 +27,7 @@ class ParticleDataModule(L.LightningDataModule):
     ``val_samples`` caps validation at that many frames spread evenly over all validation
     simulations (every epoch the same ones): a prefix of the split, which ``limit_val_batches``
     would take, is one or two simulations, and with heavy-tailed targets its error says little
-    about the others. The test split is always used whole.
+    about the others. ``test_samples`` does the same for the test split (null: whole).
     """
 
     def __init__(self, dataset: Any, fps: float, data_dir: str | Path = "data",
@@ -40,11 +40,13 @@ class ParticleDataModule(L.LightningDataModule):
         self.batch_size = int(get("batch_size", 32))
         self.num_workers = int(get("num_workers", 0))
         self.in_memory = bool(get("in_memory", True))
-        val_samples = get("val_samples", None)
-        self.val_samples = None if val_samples is None else int(val_samples)
-        if self.val_samples is not None and self.val_samples < 1:
-            raise ValueError(f"dataset.val_samples={self.val_samples} must be >= 1 (or null: "
-                             "the whole validation split)")
+        self.samples: dict[str, int | None] = {}
+        for split, what in (("val", "validation"), ("test", "test")):
+            value = get(f"{split}_samples", None)
+            self.samples[split] = None if value is None else int(value)
+            if value is not None and int(value) < 1:
+                raise ValueError(f"dataset.{split}_samples={value} must be >= 1 (or null: "
+                                 f"the whole {what} split)")
         train_sims = get("train_sims", None)
         self.train_sims = None if train_sims is None else int(train_sims)
         if self.train_sims is not None and not 1 <= self.train_sims <= self.spec.n_sims:
@@ -90,8 +92,9 @@ class ParticleDataModule(L.LightningDataModule):
     def _loader(self, split: str, shuffle: bool) -> DataLoader:
         self.setup()
         data = self.datasets[split]
-        if split == "val" and self.val_samples is not None and self.val_samples < len(data):
-            data = Subset(data, evenly_spaced(len(data), self.val_samples))
+        cap = self.samples.get(split)
+        if cap is not None and cap < len(data):
+            data = Subset(data, evenly_spaced(len(data), cap))
         return DataLoader(data, batch_size=self.batch_size, shuffle=shuffle,
                           num_workers=self.num_workers, collate_fn=collate,
                           persistent_workers=self.num_workers > 0)

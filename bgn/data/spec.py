@@ -18,6 +18,7 @@ from bgn.sim import SCENES, Scene, make_scene
 SPLITS = ("train", "val", "test")
 # Dataset config keys that do not change the generated numbers (they configure loading).
 LOADER_KEYS = frozenset({"history", "batch_size", "num_workers", "train_sims", "val_samples",
+                         "test_samples",
                          "in_memory", "generate_workers", "unroll"})
 SIZE_KEYS = ("n_sims", "n_frames", "seed")
 

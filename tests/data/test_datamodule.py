@@ -130,7 +130,11 @@ def test_validation_subset_spreads_over_all_simulations(small_cfg):
     (g,) = list(loader)
     assert g.num_graphs == 7
     assert set(g.sim.tolist()) == {0, 1, 2}  # not a prefix of the split
-    assert len(dm.test_dataloader().dataset) == len(dm.datasets["test"])  # test: whole split
+    assert len(dm.test_dataloader().dataset) == len(dm.datasets["test"])  # fewer: whole split
+    capped = _datamodule(small_cfg("spring", "dataset.n_sims=3", "dataset.test_samples=5",
+                                   "dataset.batch_size=100"))
+    (g,) = list(capped.test_dataloader())
+    assert g.num_graphs == 5 and set(g.sim.tolist()) == {0, 1, 2}
 
 
 def test_datamodule_rejects_bad_values(small_cfg):
@@ -138,5 +142,7 @@ def test_datamodule_rejects_bad_values(small_cfg):
         ParticleDataModule(small_cfg("spring", "+dataset.train_sims=5").dataset, 50)
     with pytest.raises(ValueError, match="val_samples"):
         ParticleDataModule(small_cfg("spring", "dataset.val_samples=0").dataset, 50)
+    with pytest.raises(ValueError, match="test_samples"):
+        ParticleDataModule(small_cfg("spring", "dataset.test_samples=0").dataset, 50)
     with pytest.raises(ValueError, match="batch_size"):
         ParticleDataModule(small_cfg("spring", "dataset.batch_size=0").dataset, 50)

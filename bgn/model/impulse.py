@@ -36,6 +36,7 @@ from bgn.sim.scene import SceneMeta
 
 TINY = 1e-20         # keeps roots, divisions and norms (and their gradients) finite
 REPLAY_FRAMES = 3    # frames of the window replayed to recover the velocity at frame t
+LOG_MASS_RANGE = 5.0  # e-folds of mass per unit of the mass MLP's output
 RULE_LOGIT = 4.0      # the gates start at the time-of-impact rule: +-4 (probability 0.98)
 
 
@@ -54,15 +55,26 @@ def time_of_impact(dx: torch.Tensor, dv: torch.Tensor, reach: torch.Tensor,
     return torch.where(hit, s / dt, torch.ones_like(s)), hit
 
 
-def wall_impact(x: torch.Tensor, v: torch.Tensor, radius: torch.Tensor, box: float,
+def wall_impact(x: torch.Tensor, v: torch.Tensor, radius: torch.Tensor,
+                walls: tuple[torch.Tensor, torch.Tensor],
                 dt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Per disc and axis (N, D): the fraction of the frame at which free flight reaches a wall
     (1 if it does not) and whether it does."""
     r = radius[:, None]
-    gap = torch.where(v < 0, x - r, box - r - x)                      # to the wall ahead
+    low, high = walls                                                 # (N, D) coordinates
+    gap = torch.where(v < 0, x - r - low, high - r - x)               # to the wall ahead
     s = (gap / (v.abs() + TINY)).clamp_min(0.0)
     hit = (v != 0) & (s < dt[:, None])
     return torch.where(hit, s / dt[:, None], torch.ones_like(s)), hit
+
+
+def walls(g: Graph) -> tuple[torch.Tensor, torch.Tensor]:
+    """The lower and upper wall coordinates (N, D) each disc of a graph sees: from the graph's
+    wall distances, so a box of another size or position than training's is handled."""
+    if g.wall is None:
+        raise ValueError("the impulse head needs graphs with wall distances (a scene in a box)")
+    dim = g.pos.shape[1]
+    return g.pos - g.wall[:, :dim], g.pos + g.wall[:, dim:]
 
 
 class ContactImpulseHead(nn.Module):
@@ -73,8 +85,7 @@ class ContactImpulseHead(nn.Module):
                  hidden: int, act: str) -> None:
         super().__init__()
         if meta.box is None:
-            raise ValueError("the impulse head needs the scene's box (its walls)")
-        self.box = float(meta.box)
+            raise ValueError("the impulse head needs a scene in a box (its walls)")
         self.register_buffer("length_scale", length_scale.detach().clone())
         self.register_buffer("speed_scale", speed_scale.detach().clone())
         self.log_mass = mlp([1, hidden, 1], act)             # log m(radius), up to a constant
@@ -96,7 +107,11 @@ class ContactImpulseHead(nn.Module):
     def log_masses(self, g: Graph) -> torch.Tensor:
         """(N,) the learned log-masses (a function of the radius: the scene's types differ in
         size)."""
-        return self.log_mass(g.radius[:, None] / self.length_scale).squeeze(-1)
+        # log-radius in, log-mass out at LOG_MASS_RANGE e-folds per unit: the masses of a
+        # scene's types differ by several e-folds (collisions: 6 for radii 0.1 and 0.2), which
+        # a unit-scale MLP of the radius reached only after thousands of steps
+        log_r = torch.log(g.radius.clamp_min(TINY))[:, None]
+        return LOG_MASS_RANGE * self.log_mass(log_r).squeeze(-1)
 
     def impacts(self, g: Graph, x: torch.Tensor, v: torch.Tensor,
                 dt: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -120,7 +135,7 @@ class ContactImpulseHead(nn.Module):
         # the gate may veto an impact of the rule, not create one without a time of impact
         kick = -(1 + e_pair) * share * approach * torch.sigmoid(logits) * hit
 
-        wall_frac, wall_hit = wall_impact(x, v, g.radius, self.box, dt)
+        wall_frac, wall_hit = wall_impact(x, v, g.radius, walls(g), dt)
         wall_feats = torch.stack([wall_frac, wall_hit.to(v.dtype), v.abs() / self.speed_scale],
                                  dim=-1)
         wall_logits = (self.wall_gate(wall_feats).squeeze(-1)

@@ -44,8 +44,9 @@ def test_time_of_impact_of_a_head_on_approach_and_of_pairs_that_miss():
     torch.testing.assert_close(frac[0], torch.tensor(0.075 / DT, dtype=torch.float64))
     assert frac[1:].tolist() == [1.0, 1.0]
     x = torch.tensor([[0.25, 5.0]], dtype=torch.float64)
+    box = (torch.zeros(1, 2, dtype=torch.float64), torch.full((1, 2), 10.0, dtype=torch.float64))
     wall_frac, wall_hit = wall_impact(x, torch.tensor([[-1.0, 0.0]], dtype=torch.float64),
-                                      torch.tensor([0.2], dtype=torch.float64), 10.0,
+                                      torch.tensor([0.2], dtype=torch.float64), box,
                                       torch.tensor([DT], dtype=torch.float64))
     assert wall_hit.tolist() == [[True, False]]
     torch.testing.assert_close(wall_frac[0, 0], torch.tensor(0.05 / DT, dtype=torch.float64))
@@ -80,7 +81,20 @@ def test_pair_impulses_are_equal_and_opposite_for_any_masses():
     g = disc_graph(window, radii)
     pair_dv, _, _, _, _ = h.impacts(g, g.pos, g.vel[:, 0], g.dt[g.batch])
     assert pair_dv.abs().sum() > 0  # some pairs do meet
-    masses = torch.exp(h.log_mass(g.radius[:, None]).squeeze(-1))
+    masses = torch.exp(h.log_masses(g))
     momentum = (masses[:, None] * scatter_sum(pair_dv, g.edge_index[1], n)).sum(0)
     torch.testing.assert_close(momentum, torch.zeros(2, dtype=torch.float64), atol=1e-10,
                                rtol=0)
+
+
+def test_walls_come_from_the_graph_not_the_training_box():
+    # a model of the box of side 10 rolling out a box of side 30: no phantom wall at 10
+    h = head(box=10.0)
+    t = torch.arange(-4, 1, dtype=torch.float64) * DT
+    x = torch.stack([9.85 + 1.0 * t, torch.full((5,), 5.0, dtype=torch.float64)], -1)
+    far = torch.stack([torch.full((5,), 20.0, dtype=torch.float64),
+                       torch.full((5,), 20.0, dtype=torch.float64)], -1)
+    v_next, _ = h(disc_graph(torch.stack([x, far], 1), [0.1, 0.1], box=30.0))
+    torch.testing.assert_close(v_next[0], torch.tensor([1.0, 0.0], dtype=torch.float64))
+    v_next, _ = h(disc_graph(torch.stack([x, far], 1), [0.1, 0.1], box=10.0))
+    assert v_next[0, 0] < 0  # in the box of side 10 it bounces off the wall at 10

@@ -57,6 +57,19 @@ def reduce_on_plateau(optimizer: torch.optim.Optimizer, mode: str = "min", facto
                                                       **kwargs)
 
 
+# Options whose default changed after checkpoints were written without them: a checkpoint
+# that lacks one was trained with the value given here (a config composed by Hydra always
+# carries every option, so only such checkpoints and hand-made partial configs take these).
+CHANGED_DEFAULTS: dict[str, dict[str, Any]] = {"bgn": {"mass_context": "node"}}
+
+
+def with_changed_defaults(model_config: Mapping[str, Any]) -> dict[str, Any]:
+    """``model_config`` with the values older checkpoints were trained with where it lacks
+    an option whose default has changed since (``CHANGED_DEFAULTS``)."""
+    config = dict(model_config)
+    return {**CHANGED_DEFAULTS.get(str(config.get("name", "bgn")), {}), **config}
+
+
 class PhysicsModule(L.LightningModule):
     """Training, validation and test of one model on one scene.
 
@@ -93,7 +106,8 @@ class PhysicsModule(L.LightningModule):
         self.meta = SceneMeta(**meta)
         stats_arrays = {g: {k: np.asarray(v, dtype=np.float64) for k, v in entries.items()}
                         for g, entries in stats.items()}
-        self.model = build_model(dict(model_config), self.meta, stats_arrays, history)
+        self.model = build_model(with_changed_defaults(model_config), self.meta, stats_arrays,
+                                 history)
         target_variance = stats_arrays["target"]["std"] ** 2
         self.optimizer_factory = optimizer or DEFAULT_OPTIMIZER
         self.scheduler_factory = scheduler or reduce_on_plateau

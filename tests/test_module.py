@@ -57,3 +57,11 @@ def test_mass_density_draws_equal_laws_alike():
     true_line, sampled_line = fig.axes[0].get_lines()[:2]
     np.testing.assert_allclose(true_line.get_ydata(), sampled_line.get_ydata(), rtol=0.02,
                                atol=0.01 * sampled_line.get_ydata().max())
+
+
+def test_a_checkpoint_written_before_a_default_changed_keeps_its_old_value():
+    from bgn.module import with_changed_defaults
+    assert with_changed_defaults({"name": "bgn"})["mass_context"] == "node"
+    assert with_changed_defaults({"name": "bgn", "mass_context": "pairs"})["mass_context"] == \
+        "pairs"
+    assert "mass_context" not in with_changed_defaults({"name": "gns"})

@@ -18,8 +18,13 @@ learns only the force law:
 
 A window made by the model itself is consistent with the masses that made it, so the fit
 returns them: masses stay put in a rollout. The scale of ``f`` is free (the fitted masses
-absorb it); only the shape of the force law is learned. The model has the dynamics head only
-and needs a complete graph of pairwise forces, an acceleration target and history >= 3.
+absorb it); only the shape of the force law is learned. The finite-difference target is
+written with Numerov's weights (``numerov``; implicit at frame t, one fixed-point step). The
+head needs a complete graph of pairwise forces, an acceleration target and history >= 3.
+
+``build_head`` gives a scene its structured head: this one for force scenes, pair impulses at
+the time of impact (``bgn.model.impulse``) for contact scenes. BGN uses it with
+``model.dynamics=newton``; ``Newton`` is the head alone as a model (``model=newton``).
 """
 
 from __future__ import annotations

@@ -179,8 +179,9 @@ class BGN(PhysicsModel):
         edge_in = edge_input_dim(d, history)
         self.node_encoder = NodeEncoder(node_in, h, cfg.node_layers, cfg.activation,
                                         cfg.degree_normalize, cfg.self_weight)
-        self.edge_encoder = EdgeEncoder(node_in, edge_in, h, cfg.edge_layers, cfg.activation,
-                                        cfg.degree_normalize, cfg.self_weight)
+        self.edge_encoder: EdgeEncoder | None = EdgeEncoder(
+            node_in, edge_in, h, cfg.edge_layers, cfg.activation, cfg.degree_normalize,
+            cfg.self_weight)
         self.processor = Processor(h, edge_in, meta.n_types, meta.n_particles,
                                    contact_scene=self.contact_scene, classifier=cfg.classifier,
                                    # on contact scenes the impulse head's gate is the
@@ -191,7 +192,8 @@ class BGN(PhysicsModel):
                                    contact_edge_term=(history if cfg.contact_edge_term
                                                       else None),
                                    message=cfg.contact_message, act=cfg.activation, dim=d,
-                                   contact_gap=cfg.contact_gap and self.contact_scene)
+                                   contact_gap=cfg.contact_gap and self.contact_scene,
+                                   decode=cfg.dynamics == "decoder")
         if cfg.dynamics == "newton":  # the structured head replaces Eq. 5's decoder
             self.force_head: nn.Module | None = build_head(
                 meta, self.normalizer, history, cfg.decoder_hidden, 2, cfg.activation,
@@ -208,6 +210,8 @@ class BGN(PhysicsModel):
                                      cfg.mass_context if history >= 1 else "node",
                                      cfg.mass_context_dropout)
                         if cfg.inverse else None)
+        if self.processor.contact is None and self.decoder is None:
+            self.edge_encoder = None  # H_E would feed neither a contact head nor a decoder
         heads = {"dynamics"}
         if self.processor.classifier is not None:
             heads.add("type")
@@ -230,7 +234,8 @@ class BGN(PhysicsModel):
                           self.cfg.velocity_increments)
         e = edge_features(g, self.normalizer)
         h_v = self.node_encoder(x, g.edge_index)               # Eq. 1
-        h_e, w = self.edge_encoder(x, e, g.edge_index)         # Eq. 1 with learned A
+        h_e, w = (self.edge_encoder(x, e, g.edge_index)        # Eq. 1 with learned A
+                  if self.edge_encoder is not None else (None, None))
         return self.processor(h_v, h_e, e, g), w, x            # Eq. 2-3
 
     def _decode(self, p: ProcessorOutput, x: torch.Tensor) -> torch.Tensor:

@@ -202,7 +202,7 @@ class Processor(nn.Module):
                  contact_scene: bool, classifier: bool = True, contact: bool = True,
                  contact_mode: str = "aggregate", contact_edge_term: int | None = None,
                  message: str = "linear", act: str = "silu", dim: int = 0,
-                 contact_gap: bool = False) -> None:
+                 contact_gap: bool = False, decode: bool = True) -> None:
         super().__init__()
         if contact_mode not in CONTACT_MODES:
             raise ValueError(f"contact_mode={contact_mode!r}; choose one of {CONTACT_MODES}")
@@ -210,9 +210,12 @@ class Processor(nn.Module):
         self.n_particles = n_particles
         self.classifier = TypeClassifier(hidden, n_types) if classifier and n_types > 1 else None
         self.tilde_v_features = hidden + (n_types if self.classifier is not None else 0)
+        # decode=False: no forward decoder reads H̃_CV (BGN's structured dynamics head), so
+        # the contact-weighted messages are not built (unused weights would also stop DDP)
+        self.decode = decode
         self.contact = None
         if contact:
-            width = hidden if contact_mode == "aggregate" else None
+            width = hidden if contact_mode == "aggregate" and decode else None
             self.contact = ContactHead(hidden, edge_features, width, contact_scene,
                                        contact_edge_term, message, self.tilde_v_features, act,
                                        dim, contact_gap)
@@ -226,7 +229,7 @@ class Processor(nn.Module):
             extra = hidden                                     # sum_j ĉ_ij m_ij
         self.out_features = self.tilde_v_features + extra
 
-    def forward(self, h_v: torch.Tensor, h_e: torch.Tensor, e: torch.Tensor,
+    def forward(self, h_v: torch.Tensor, h_e: torch.Tensor | None, e: torch.Tensor,
                 g: Graph) -> ProcessorOutput:
         type_logits = None
         h_tilde_v = h_v
@@ -234,17 +237,23 @@ class Processor(nn.Module):
             type_logits = self.classifier(h_v)
             h_tilde_v = torch.cat([h_v, torch.softmax(type_logits, -1)], -1)  # H_V ‖ Ŷ
         contact = impulse = None
-        if self.contact is None:
-            h_cv = torch.cat([h_tilde_v, h_e], -1)
-        else:
+        if self.contact is not None:
+            assert h_e is not None
             gap = approach_gap(g) if self.contact.gap else None
             contact = self.contact.logits(h_e, g.edge_index, e, gap)
-            if self.contact_mode == "dense":  # literal Ĉ_i ‖ H̃_V
-                rows = self.contact.dense_rows(contact, h_e, g, self.n_particles)
-                h_cv = torch.cat([rows, h_tilde_v], -1)
-            else:
-                agg = self.contact.aggregate(contact, e, g.edge_index, h_tilde_v)
-                h_cv = torch.cat([h_tilde_v, agg], -1)
-                if self.contact.kind == "vector":
-                    impulse = agg
+        if not self.decode:
+            h_cv = h_tilde_v
+        elif self.contact is None:
+            assert h_e is not None
+            h_cv = torch.cat([h_tilde_v, h_e], -1)
+        elif self.contact_mode == "dense":  # literal Ĉ_i ‖ H̃_V
+            assert h_e is not None and contact is not None
+            rows = self.contact.dense_rows(contact, h_e, g, self.n_particles)
+            h_cv = torch.cat([rows, h_tilde_v], -1)
+        else:
+            assert contact is not None
+            agg = self.contact.aggregate(contact, e, g.edge_index, h_tilde_v)
+            h_cv = torch.cat([h_tilde_v, agg], -1)
+            if self.contact.kind == "vector":
+                impulse = agg
         return ProcessorOutput(h_tilde_v, h_cv, type_logits, contact, impulse)

@@ -88,3 +88,25 @@ def test_scenes_without_pairwise_forces_and_short_windows_are_refused(small_cfg)
         build_model({"name": "bgn", "dynamics": "newton"}, radius, ds.file.stats(), ds.history)
     with pytest.raises(ValueError, match="mass_law"):
         build_model({"name": "bgn", "mass_law": "magic"}, ds.meta, ds.file.stats(), ds.history)
+
+
+@pytest.mark.parametrize(("scene", "overrides"), [
+    ("spring", {}), ("gravity_r2", {"mass_law": "source"}),
+    ("collisions", {}), ("collisions", {"contact": False})])
+def test_every_parameter_of_bgn_with_the_structured_head_gets_a_gradient(small_cfg, scene,
+                                                                         overrides):
+    """DDP stops on weights that no loss reaches: the structured head builds none."""
+    dm = ParticleDataModule(small_cfg(scene).dataset, 50.0, small_cfg(scene).paths.data_dir,
+                            generate_workers=1, show_progress=False)
+    dm.prepare_data()
+    dm.setup()
+    ds = dm.datasets["train"]
+    torch.manual_seed(0)
+    model = build_model({"name": "bgn", "dynamics": "newton", "hidden": 16,
+                         "decoder_hidden": 16, "flow_hidden": 8, **overrides},
+                        ds.meta, ds.file.stats(), ds.history)
+    g = collate([ds[i] for i in range(0, len(ds), 7)])
+    out = model(g)
+    model.total_loss(model.loss_terms(g, out)).backward()
+    missing = [n for n, p in model.named_parameters() if p.grad is None]
+    assert not missing, missing

@@ -36,6 +36,7 @@ def test_collisions_gives_bgn_its_measured_defaults():
     cfg = composed("dataset=collisions", "model=bgn")
     model = OmegaConf.to_container(cfg.model, resolve=True)
     assert model["contact_message"] == "vector"
+    assert model["contact_pos_weight"] == 1
     assert cfg.optimizer.lr == 3e-3
     assert model["loss_weights"] == {"dynamics": 1.0, "unroll": 1.0, "impulse_mass": 1.0,
                                      **dict.fromkeys(AUX, 0.1)}

@@ -13,8 +13,8 @@ This head writes the structure down and learns only what the frames do not say:
   the next frame (the time of impact, solved from positions and velocities), a learned gate
   says whether they really touch (trained on the recorded contacts, ``ModelOutput.contact``);
 - the masses, as a function of a disc's radius (``log m(r)``: types differ in size), trained
-  on the training split's relative log-masses like BGN's Eq. 9-10 (the model's ``relmass``
-  loss), and the restitution ``e``;
+  on the training split's relative log-masses like BGN's Eq. 9-10 (the loss
+  ``impulse_mass``), and the restitution ``e``;
 - the next finite-difference velocity is the exact one of a single impact at time ``s`` into
   a frame of length ``dt``: ``v + dv (1 - s / dt)``.
 

@@ -49,6 +49,7 @@ from bgn.model.encoder import DIRECTION_EPS
 from bgn.model.impulse import ContactImpulseHead
 from bgn.model.normalizer import Normalizer
 from bgn.model.ops import activation, mlp, scatter_sum
+from bgn.model.target import observed_targets
 from bgn.sim.scene import SceneMeta
 
 MASS_LAWS = ("inertial", "source")
@@ -80,13 +81,6 @@ def past_positions(g: Graph) -> torch.Tensor:
     dt = g.dt.to(g.vel.dtype)[g.batch][:, None, None]
     back = torch.cumsum(g.vel[:, :-1] * dt, dim=1)               # x[t] - x[t-j], j = 1..k
     return torch.cat([g.pos[:, None], g.pos[:, None] - back], dim=1)
-
-
-def window_accelerations(g: Graph) -> torch.Tensor:
-    """(N, k, D) finite-difference accelerations a[t-1] .. a[t-k] of the window (the same
-    definition as the training target, ``bgn.data.targets``)."""
-    dt = g.dt.to(g.vel.dtype)[g.batch][:, None, None]
-    return (g.vel[:, :-1] - g.vel[:, 1:]) / dt
 
 
 def numerov(f: torch.Tensor) -> torch.Tensor:
@@ -149,7 +143,7 @@ class PairForceHead(nn.Module):
         the interface of ``build_head``'s heads)."""
         raw = self.pair_terms(g, past_positions(g))                 # frames t, t-1, .., t-k
         terms = numerov(raw)                                       # frames t, .., t-k+1
-        seen = window_accelerations(g)[:, :terms.shape[1] - 1]     # a[t-1] .. a[t-k+1]
+        seen = observed_targets(g, "acceleration")[:, :terms.shape[1] - 1]     # a[t-1] .. a[t-k+1]
         if self.mass_law == "inertial":
             past = scatter_sum(terms[:, 1:], g.edge_index[1], g.pos.shape[0])
             inverse_mass = (past * seen).sum((1, 2)) / ((past * past).sum((1, 2)) + FIT_EPS)

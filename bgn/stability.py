@@ -14,7 +14,11 @@ a symmetry transform) and presets (``preset/<preset>.yaml``) that list the cases
   through ``bgn.simulator.LearnedSimulator`` from the first full window of the true
   trajectory: finite or not, one-step error of the target (relative, over several starts),
   mean position error after 1, 100 and 1000 steps (those the case has frames for), energy
-  error at the end of the rollout, wall time per step; float32 or float64 model arithmetic.
+  error at the end of the rollout, wall time per step; float32 or float64 model arithmetic;
+- beside a model of a force scene, two references on the same protocol: the frame oracle
+  (``bgn.model.references.FrameOracle``: the true law and masses fed the same frames, what
+  frames allow at this frame rate) and the predictability limit (the exact simulator with
+  every position moved by 1e-6: what chaos alone does).
 
 The report (``report.md``, ``simulator.csv``, ``model.csv``, ``stability.png``) goes to
 ``report_dir`` (default ``outputs/stability/<preset>/``).
@@ -325,9 +329,40 @@ def run_case(case: Case, cfg: DictConfig) -> tuple[dict[str, Any], list[dict[str
     model_rows: list[dict[str, Any]] = []
     picked = model_for(case, scene, traj, cfg)
     if picked is not None:
-        model_rows = model_checks(case, scene, traj, *picked, list(preset.horizons),
-                                  int(preset.one_step_starts))
+        horizons, starts = list(preset.horizons), int(preset.one_step_starts)
+        model_rows = model_checks(case, scene, traj, *picked, horizons, starts)
+        if not isinstance(scene, CollisionScene):  # the references of a force scene
+            from bgn.model.references import FrameOracle
+
+            oracle = FrameOracle(scene, picked[0].history)
+            model_rows += model_checks(dataclasses.replace(case, model_dtypes=["float64"]),
+                                       scene, traj, oracle, oracle.label, horizons, starts)
+            model_rows.append(predictability_row(case, scene, traj, picked[0].history,
+                                                 horizons))
     return row, model_rows
+
+
+def predictability_row(case: Case, scene: Scene, traj: Trajectory, history: int,
+                       horizons: list[int], eps: float = 1e-6) -> dict[str, Any]:
+    """The exact simulator from the rollouts' start state with every position moved by
+    ``eps``: the error chaos alone makes of ``eps`` (the scene's predictability limit), on the
+    model rows' protocol (start at frame history + 1)."""
+    start = history + 1
+    n_steps = min(max(horizons), len(traj.positions) - start - 1)
+    state = State(traj.positions[start], traj.velocities[start], traj.masses, traj.radii,
+                  traj.types)
+    kick = np.random.default_rng(case.seed).standard_normal(state.positions.shape)
+    kick *= eps / np.linalg.norm(kick, axis=-1, keepdims=True)
+    moved = dataclasses.replace(state, positions=state.positions + kick)
+    pred, _ = simulate(scene, moved, np.arange(n_steps + 1) / case.fps)
+    err_t = np.linalg.norm(pred.positions - traj.positions[start:start + n_steps + 1],
+                           axis=-1).mean(axis=-1)
+    row = {"case": case.name, "scene": case.scene, "model": f"predictability ({eps:g} off)",
+           "dtype": "float64", "steps": n_steps, "finite": bool(np.isfinite(err_t).all()),
+           "first_non_finite": -1, "left_scale": False,
+           "position_scale": float(traj.positions.std())}
+    row.update({f"error_{h}": float(err_t[h]) for h in horizons if h <= n_steps})
+    return row
 
 
 def figure(path: Path, sim_rows: list[dict[str, Any]], model_rows: list[dict[str, Any]]) -> None:
@@ -408,7 +443,10 @@ def write_report(out: Path, preset: str, cases: list[Case], sim_rows: list[dict[
                  "several starts; error_h: mean position error per particle after h steps; "
                  "energy_error: |E_end - E_start| / |E_start| (finite-difference velocities); "
                  "left_scale: a particle more than 10 scene scales astray (the box, or the true "
-                 "trajectory's extent; the evaluation's failure rule).", "",
+                 "trajectory's extent; the evaluation's failure rule). Force scenes also "
+                 "have two references: the frame oracle (the true law and masses fed the "
+                 "same frames, integrated in substeps: what frames allow) and the "
+                 "predictability limit (the exact simulator with positions 1e-6 off).", "",
                  markdown_table(MODEL_COLUMNS, model_rows), ""]
     text += ["![stability](stability.png)", ""]
     path = out / "report.md"

@@ -28,10 +28,19 @@ def test_tiny_preset_runs_end_to_end(tmp_path):
     assert all(r["passed"] == "True" for r in sim_rows), sim_rows
     with (tmp_path / "model.csv").open() as f:
         model_rows = list(csv.DictReader(f))
+    refs = [r for r in model_rows if r["model"].startswith(("frame oracle", "predictability"))]
+    learned = [r for r in model_rows if r not in refs]
     # one row per case and dtype (the float32-vs-float64 case has two)
-    assert len(model_rows) == len(sim_rows) + 1
-    assert {r["dtype"] for r in model_rows} == {"float32", "float64"}
-    assert all(r["one_step_rel_error"] not in ("", "nan") for r in model_rows)
+    assert len(learned) == len(sim_rows) + 1
+    assert {r["dtype"] for r in learned} == {"float32", "float64"}
+    assert all(r["one_step_rel_error"] not in ("", "nan") for r in learned)
+    # force scenes: the true physics fed frames, and chaos alone from 1e-6
+    force_cases = {r["case"] for r in learned if r["scene"] != "collisions"}
+    oracle = {r["case"]: r for r in refs if r["model"].startswith("frame oracle")}
+    chaos = {r["case"]: r for r in refs if r["model"].startswith("predictability")}
+    assert set(oracle) == set(chaos) == force_cases
+    assert float(oracle["spring_6_bodies"]["one_step_rel_error"]) < 1e-4
+    assert all(float(r["error_1"]) < 1e-5 for r in chaos.values())
     text = report.read_text()
     assert "untrained" in text and "| spring_6_bodies |" in text
 

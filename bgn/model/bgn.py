@@ -90,6 +90,7 @@ class ModelConfig(DynamicsConfig):
     # the forces there (inertial: spring; source: gravity, conf/dataset_model/).
     dynamics: str = "decoder"
     mass_law: str = "inertial"
+    substeps: int = 1  # > 1: the newton head integrates each frame in substeps (newton.shoot)
     # D^-1/2 Â D^-1/2 in every GCN layer. The paper's plain sums grow like (degree+1)^layers,
     # so contact logits explode at initialisation on large radius graphs and the flows do not
     # train (docs/results.md, "Measurements behind the defaults").
@@ -124,7 +125,7 @@ class ModelConfig(DynamicsConfig):
     def __post_init__(self) -> None:
         super().__post_init__()
         check_positive_ints(self, ("hidden", "node_layers", "edge_layers", "decoder_hidden",
-                                   "flow_transforms", "flow_hidden"))
+                                   "flow_transforms", "flow_hidden", "substeps"))
         if self.dynamics not in DYNAMICS:
             raise ValueError(f"dynamics={self.dynamics!r}; choose one of {DYNAMICS}")
         if self.mass_law not in MASS_LAWS:
@@ -197,7 +198,7 @@ class BGN(PhysicsModel):
         if cfg.dynamics == "newton":  # the structured head replaces Eq. 5's decoder
             self.force_head: nn.Module | None = build_head(
                 meta, self.normalizer, history, cfg.decoder_hidden, 2, cfg.activation,
-                cfg.mass_law, "model.dynamics=newton")
+                cfg.mass_law, "model.dynamics=newton", cfg.substeps)
             self.decoder = None
         else:
             self.force_head = None

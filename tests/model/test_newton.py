@@ -10,7 +10,7 @@ from torch import nn
 from bgn.data.datamodule import ParticleDataModule
 from bgn.graph import collate
 from bgn.model import build_model
-from bgn.model.newton import numerov, past_positions
+from bgn.model.newton import numerov, past_positions, shoot
 from bgn.model.ops import scatter_sum
 
 # the scenes' pair laws f(s) u_ij (SIMS.md; s = r + 0.01), the masses left to the fit
@@ -110,3 +110,38 @@ def test_every_parameter_of_bgn_with_the_structured_head_gets_a_gradient(small_c
     model.total_loss(model.loss_terms(g, out)).backward()
     missing = [n for n, p in model.named_parameters() if p.grad is None]
     assert not missing, missing
+
+
+def test_shooting_follows_a_frame_that_one_force_evaluation_cannot():
+    """An oscillator with omega dt = 1 (six frames per period): the substep integrator gives
+    the finite-difference target of the exact trajectory through the last two frames."""
+    omega, dt = 3.0, torch.full((5, 1), 1 / 3.0, dtype=torch.float64)
+    t = torch.linspace(0, 2, 5, dtype=torch.float64)[:, None]
+    x_at = lambda s: torch.cat([torch.cos(omega * s), 2 * torch.sin(omega * s)], 1)  # noqa: E731
+    x_now, x_prev, x_next = x_at(t), x_at(t - dt), x_at(t + dt)
+    exact = (x_next - 2 * x_now + x_prev) / dt**2
+
+    def accel(x):
+        return -omega**2 * x
+
+    coarse = shoot(accel, x_now, (x_now - x_prev) / dt, dt, 1)
+    fine = shoot(accel, x_now, (x_now - x_prev) / dt, dt, 64)
+    assert torch.allclose(coarse, accel(x_now))              # one substep: Stoermer-Verlet
+    assert float((fine - exact).norm() / exact.norm()) < 1e-3      # Verlet: O((omega h)^2)
+    assert float((coarse - exact).norm() / exact.norm()) > 0.05
+
+
+def test_substeps_recover_gravity_targets_that_numerov_misses(small_cfg):
+    ds, g = frames(small_cfg, "gravity_r2")
+    errors = {}
+    for substeps in (1, 16):
+        model = build_model({"name": "newton", "mass_law": "source", "substeps": substeps},
+                            ds.meta, ds.file.stats(), ds.history).double()
+        model.head.force_law = TrueLaw(LAWS["gravity_r2"][1],
+                                       float(model.normalizer.rel_position_scale))
+        model.head.source_masses = lambda g, past, seen: g.mass  # noqa: B023 (the true masses)
+        errors[substeps] = (model.predict(g) - g.target).norm(dim=1) / g.target.norm(dim=1)
+    # smooth frames are Numerov's (O(dt^4)); the close passes are the substeps': measured on
+    # this data, 90th percentile 1.8e-4 -> 3.7e-5, 99th 1e-2 -> 2.4e-4
+    assert float(errors[16].quantile(0.9)) < 0.5 * float(errors[1].quantile(0.9))
+    assert float(errors[16].quantile(0.99)) < 0.1 * float(errors[1].quantile(0.99))

@@ -145,15 +145,18 @@ def steps_per_unit(fps: float) -> int:
     return max(1, round(fps))
 
 
-def median_seconds(fn: Callable[[], Any], repeats: int) -> float:
-    """Median wall time of ``repeats`` calls after one warm-up call."""
-    fn()
-    times = []
-    for _ in range(repeats):
+def timed(fn: Callable[[], Any], repeats: int, warm_up: bool = True) -> tuple[Any, float]:
+    """The first call's result and the median wall time of ``repeats`` calls; with
+    ``warm_up`` the first call is not timed (torch's first call pays for its set-up)."""
+    times, result = [], None
+    for i in range(repeats + warm_up):
         start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+        out = fn()
+        if i == 0:
+            result = out
+        if i >= warm_up:
+            times.append(time.perf_counter() - start)
+    return result, statistics.median(times)
 
 
 def learned_rollout(model: Any, window: np.ndarray, masses: np.ndarray, radii: np.ndarray,
@@ -198,7 +201,7 @@ def evaluate_checkpoint(ckpt: Path, test: Any, fps: float, e: DictConfig) -> dic
     run = learned_rollout(module.model, window, test.file.read("masses", sim),
                           test.file.read("radii", sim), test.file.read("types", sim), test.dt,
                           test.margin, n)
-    seconds = median_seconds(run, e.timing_repeats) / (n * test.dt)
+    seconds = timed(run, e.timing_repeats)[1] / (n * test.dt)
     return {"nmse": forward["nmse"], "rollout_error": rollout[f"pos_err@{n}"],
             "failed_share": rollout["failed_share"], "seconds_per_time_unit": seconds,
             "parameters": sum(p.numel() for p in module.model.parameters())}
@@ -259,7 +262,9 @@ def simulator_seconds(test: Any, fps: float, repeats: int) -> float:
                   test.file.read("masses", 0), test.file.read("radii", 0),
                   test.file.read("types", 0))
     times = np.arange(n + 1) * test.dt
-    return median_seconds(lambda: test.scene.simulate_from(state, times), repeats) / (n * test.dt)
+    # a numpy simulator has no first-call set-up: every run timed
+    return timed(lambda: test.scene.simulate_from(state, times), repeats,
+                 warm_up=False)[1] / (n * test.dt)
 
 
 def scaled_collisions(cells: list[Cell], cfg: DictConfig, n_particles: int,
@@ -279,21 +284,21 @@ def scaled_collisions(cells: list[Cell], cfg: DictConfig, n_particles: int,
     state = scene.draw_state(np.random.default_rng(0))
     n, k = steps_per_unit(cell.fps), test.history
     repeats = sc.repeats if n_particles <= sc.repeat_below else 1   # big N: one run
-    exact = median_seconds(
-        lambda: scene.simulate_from(state, np.arange(n + 1) * test.dt), repeats)
-    truth = scene.simulate_from(state, np.arange(k + 2 + n) * test.dt).positions
+    # the true window and the unit after it in one run, which is also the timed one
+    times = np.arange(k + 2 + n) * test.dt
+    truth, exact = timed(lambda: scene.simulate_from(state, times).positions, repeats,
+                         warm_up=False)
     rows = [{"N": n_particles, "box": scene.box, "model": "exact simulator",
-             "seconds_per_time_unit": exact / (n * test.dt), "rollout_error": 0.0}]
+             "seconds_per_time_unit": exact / (times[-1] - times[0]), "rollout_error": 0.0}]
     for model_cell in cells:
         ckpt = checkpoints(Path(cfg.cells_dir) / model_cell.name)[-1][0]
         model = load_model(ckpt).model
         run = learned_rollout(model, truth[:k + 2], state.masses, state.radii, state.types,
                               test.dt, test.margin, n)
-        seconds = median_seconds(run, repeats) / (n * test.dt)
-        last = run()
+        last, seconds = timed(run, repeats)   # the warm-up run gives the error
         error = float(np.linalg.norm(last - truth[-1], axis=-1).mean())
         rows.append({"N": n_particles, "box": scene.box, "model": model_cell.model,
-                     "seconds_per_time_unit": seconds,
+                     "seconds_per_time_unit": seconds / (n * test.dt),
                      "rollout_error": error if np.isfinite(error) else math.inf})
     return rows
 

@@ -154,7 +154,7 @@ def pareto(points: Sequence[dict[str, Any]], fronts: dict[str, Sequence[dict[str
         ax.set_yscale("log")
         ax.set_xlabel(name)
         ax.set_ylabel("rollout position error after 1 time unit")
-        ax.legend(fontsize=7, loc="lower left")
+        ax.legend(fontsize=7, loc="best")
     fig.suptitle(title, fontsize=7, wrap=True)
     fig.tight_layout()
     return fig

@@ -45,6 +45,7 @@ from bgn.tables import fmt, write_table
 
 SCHEDULE = "schedule"    # the group of the cells with checkpoints on the time schedule
 SIZES = "sizes"          # the group of the cells at other model sizes
+REFERENCE = "last extrapolation (no learning)"   # beside the models at larger N
 
 
 # ----------------------------------------------------------------------------- training
@@ -274,6 +275,7 @@ def scaled_collisions(cells: list[Cell], cfg: DictConfig, n_particles: int,
     and fps) rolled out of the same true window: its time and its error after one time unit
     against the exact simulator."""
     from bgn.evaluate import load_model
+    from bgn.model.references import Extrapolation
 
     sc = cfg.preset.simulator
     cell = cells[0]
@@ -290,14 +292,16 @@ def scaled_collisions(cells: list[Cell], cfg: DictConfig, n_particles: int,
                          warm_up=False)
     rows = [{"N": n_particles, "box": scene.box, "model": "exact simulator",
              "seconds_per_time_unit": exact / (times[-1] - times[0]), "rollout_error": 0.0}]
-    for model_cell in cells:
-        ckpt = checkpoints(Path(cfg.cells_dir) / model_cell.name)[-1][0]
-        model = load_model(ckpt).model
+    predictors = {c.model: load_model(checkpoints(Path(cfg.cells_dir) / c.name)[-1][0]).model
+                  for c in cells}
+    # the scale of the errors: every disc on its last velocity, no collision at all
+    predictors[REFERENCE] = Extrapolation(scene.meta, k, "last")
+    for name, model in predictors.items():
         run = learned_rollout(model, truth[:k + 2], state.masses, state.radii, state.types,
                               test.dt, test.margin, n)
         last, seconds = timed(run, repeats)   # the warm-up run gives the error
         error = float(np.linalg.norm(last - truth[-1], axis=-1).mean())
-        rows.append({"N": n_particles, "box": scene.box, "model": model_cell.model,
+        rows.append({"N": n_particles, "box": scene.box, "model": name,
                      "seconds_per_time_unit": seconds / (n * test.dt),
                      "rollout_error": error if np.isfinite(error) else math.inf})
     return rows
@@ -371,7 +375,7 @@ def write_report(cfg: DictConfig, points: list[dict[str, Any]],
                 "The exact simulator", "Its error is zero.")
     if scaling:
         lines.append("- [collisions at larger N](scaling.md) ([csv](scaling.csv))")
-        lines += ["", scaling_text(out, scaling, cfg)]
+        lines += ["", "#" + scaling_text(out, scaling, cfg)]
     for scene in dict.fromkeys(p["scene"] for p in points):
         pts = [p for p in points if p["scene"] == scene]
         sim = {r["fps"]: r["seconds_per_time_unit"] for r in simulator if r["scene"] == scene}
@@ -396,9 +400,11 @@ def scaling_text(out: Path, rows: list[dict[str, Any]], cfg: DictConfig) -> str:
                         f"Collisions at larger N (fps {fmt(cfg.preset.simulator.collisions_fps)})",
                         "Constant density (the box grows with sqrt N); every learned model "
                         "rolled out of the same true window as the exact simulator, error "
-                        "after one time unit against it.")
+                        "after one time unit against it; the last-velocity extrapolation "
+                        "(no learning, no collision) gives the errors their scale.")
     verdicts = []
-    for model in dict.fromkeys(r["model"] for r in rows if r["model"] != "exact simulator"):
+    for model in dict.fromkeys(r["model"] for r in rows
+                               if r["model"] not in ("exact simulator", REFERENCE)):
         cheaper = [r for r in rows if r["model"] == model and r["seconds_per_time_unit"]
                    < next(e["seconds_per_time_unit"] for e in rows
                           if e["N"] == r["N"] and e["model"] == "exact simulator")]

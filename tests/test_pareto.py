@@ -184,7 +184,8 @@ def test_pareto_tiny_end_to_end_and_resumes(tmp_path: Path) -> None:
         (s, float(f)) for s in cfg.preset.scenes for f in cfg.preset.fps}
     scaling = csv_rows(out / "scaling.csv")
     assert {int(r["N"]) for r in scaling} == set(cfg.preset.simulator.collisions_n)
-    assert [r["model"] for r in scaling] == ["exact simulator", *cfg.preset.models]
+    assert [r["model"] for r in scaling] == ["exact simulator", *cfg.preset.models,
+                                             pareto.REFERENCE]
     text = report.read_text()
     assert "torch threads" in text and text.count("BGN on the front:") == 2 * len(
         cfg.preset.scenes)

@@ -360,8 +360,11 @@ def write_report(cfg: DictConfig, points: list[dict[str, Any]],
 
     out = Path(cfg.report_dir)
     out.mkdir(parents=True, exist_ok=True)
+    sc = cfg.preset.simulator
     where = (f"{machine(torch=torch.__version__)}; {torch.get_num_threads()} torch threads; "
-             f"times are medians of {cfg.preset.eval.timing_repeats} after a warm-up")
+             f"rollout times: medians of {cfg.preset.eval.timing_repeats} after a warm-up; "
+             f"the exact simulator's: of {sc.repeats} (one run above {sc.repeat_below} "
+             "particles)")
     lines = [f"# Pareto study: preset `{cfg.preset.name}`", "",
              f"Machine: {where}. Study wall time {wall_s / 60:.1f} min (training, evaluation "
              "and timing of what was not on disk yet).", "",

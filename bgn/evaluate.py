@@ -64,9 +64,11 @@ def batches(dataset: FrameDataset, indices: list[int], batch_size: int) -> list[
 @torch.no_grad()
 def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int | None = 256,
                    mass_frames: int = 32, mass_samples: int = 32, batch_size: int = 16,
-                   seed: int = 0) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+                   seed: int = 0, inverse: bool = True,
+                   ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Metrics of one model on a test dataset, and the arrays behind the mass figure
-    (``evaluate_inverse``; empty without an inverse head)."""
+    (``evaluate_inverse``; empty without an inverse head, or with ``inverse=False``: the
+    forward error alone, as ``bgn.pareto`` needs it per checkpoint)."""
     torch.manual_seed(seed)  # the flow's samples and relmass noise are random
     model = module.model
     heads = model.heads
@@ -118,10 +120,10 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
     if rel_pred:
         metrics["relmass_r2"] = r2_score(torch.cat(rel_pred).numpy(), torch.cat(rel_true).numpy())
     arrays: dict[str, np.ndarray] = {}
-    if model.has_inverse:
-        inverse, arrays = evaluate_inverse(module, dataset, mass_frames, mass_samples,
-                                           batch_size, seed)
-        metrics.update(inverse)
+    if model.has_inverse and inverse:
+        inverse_values, arrays = evaluate_inverse(module, dataset, mass_frames, mass_samples,
+                                                  batch_size, seed)
+        metrics.update(inverse_values)
     return metrics, arrays
 
 

@@ -1,4 +1,5 @@
-"""The study: ``python -m bgn.experiments preset=quick`` (presets: tiny | quick | full).
+"""The study: ``python -m bgn.experiments preset=quick`` (presets: tiny | quick | standard |
+full; the Pareto study's pareto_tiny | pareto_quick | pareto_full run through ``bgn.pareto``).
 
 Trains every cell of a preset (scene x fps x model, BGN ablations, sample efficiency) by
 composing the real ``train`` config and calling ``bgn.train.train``, evaluates each cell's
@@ -39,12 +40,15 @@ class Cell:
     ablation: str = "full"
     train_sims: int | None = None          # sample-efficiency cells only
     groups: tuple[str, ...] = field(default=("main",), compare=False)
+    tag: str = ""                          # names the ``extra`` overrides (bgn.pareto's sizes)
+    extra: tuple[str, ...] = ()            # train overrides of this cell alone, applied last
 
     @property
     def name(self) -> str:
         fps = f"{self.fps:g}".replace(".", "p")
         sims = f"_sims{self.train_sims}" if self.train_sims is not None else ""
-        return f"{self.scene}_fps{fps}_{self.model}_{self.ablation}{sims}"
+        tag = f"_{self.tag}" if self.tag else ""
+        return f"{self.scene}_fps{fps}_{self.model}_{self.ablation}{sims}{tag}"
 
 
 def plan_cells(preset: DictConfig) -> list[Cell]:
@@ -88,7 +92,8 @@ def cell_overrides(cell: Cell, cfg: DictConfig) -> list[str]:
         # n_sims is per split and must hold the largest train_sims; val/test use them all
         out += [f"dataset.n_sims={max(int(n) for n in se.train_sims)}",
                 f"++dataset.train_sims={cell.train_sims}", *se.get("overrides", [])]
-    out += [f"paths.data_dir={cfg.data_dir}",
+    out += [*cell.extra,
+            f"paths.data_dir={cfg.data_dir}",
             f"paths.output_dir={Path(cfg.cells_dir) / cell.name}"]
     return out
 
@@ -190,12 +195,19 @@ def run(cfg: DictConfig) -> Path:
     return report
 
 
+def is_pareto(cfg: DictConfig) -> bool:
+    """A Pareto-study preset (``conf/preset/pareto_*.yaml``: checkpoints on a time schedule)
+    is run by ``bgn.pareto``."""
+    return "schedule_s" in cfg.preset
+
+
 def validate_cells(cfg: DictConfig) -> None:
     """The train config of every cell, checked before the first cell trains
     (``bgn.validate.validate_train``): a bad preset fails at once, naming the cell."""
+    from bgn.pareto import plan_cells as pareto_cells
     from bgn.validate import ConfigError, validate_train
 
-    for cell in plan_cells(cfg.preset):
+    for cell in pareto_cells(cfg) if is_pareto(cfg) else plan_cells(cfg.preset):
         try:
             validate_train(compose_train(cell_overrides(cell, cfg)))
         except ConfigError as err:
@@ -205,7 +217,12 @@ def validate_cells(cfg: DictConfig) -> None:
 @cli("experiments", validate_cells)  # Hydra app; bad input: one line, exit 2
 def main(cfg: DictConfig) -> None:
     """``python -m bgn.experiments preset=...``: see the module docstring."""
-    run(cfg)
+    if is_pareto(cfg):
+        from bgn import pareto
+
+        pareto.run(cfg)
+    else:
+        run(cfg)
 
 
 if __name__ == "__main__":

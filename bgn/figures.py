@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -119,6 +119,43 @@ def sample_efficiency(rows: Sequence[dict[str, Any]]) -> Figure:
     ax.set_ylabel("test NMSE")
     if rows:
         ax.legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def pareto(points: Sequence[dict[str, Any]], fronts: dict[str, Sequence[dict[str, Any]]],
+           costs: dict[str, str], label: Callable[[dict[str, Any]], str],
+           simulator: dict[float, float], title: str) -> Figure:
+    """Error against each cost of ``costs`` (key in the points -> axis label), log-log, one
+    panel per cost: every point labelled (``label``), its Pareto front (``fronts[cost]``)
+    drawn as a step line, and the exact simulator's time per fps (``simulator``) as vertical
+    lines on the panel of ``seconds_per_time_unit`` (its error is zero: off a log axis)."""
+    fig, axes = plt.subplots(1, len(costs), figsize=(6.5 * len(costs), 5.2))
+    markers = {"bgn": "o", "gns": "s", "cranmer_gn": "^"}
+    for ax, (cost, name) in zip(np.atleast_1d(axes), costs.items()):
+        shown = [p for p in points if np.isfinite(p["rollout_error"]) and p[cost] > 0]
+        for model in dict.fromkeys(p["model"] for p in shown):
+            pts = [p for p in shown if p["model"] == model]
+            ax.scatter([p[cost] for p in pts], [p["rollout_error"] for p in pts],
+                       marker=markers.get(model, "x"), label=model, alpha=0.8)
+        for p in shown:
+            ax.annotate(label(p), (p[cost], p["rollout_error"]), fontsize=5,
+                        xytext=(2, 2), textcoords="offset points")
+        front = [p for p in fronts[cost] if p[cost] > 0]
+        if front:
+            ax.step([p[cost] for p in front], [p["rollout_error"] for p in front], "k--",
+                    where="post", lw=1, label="Pareto front")
+        if cost == "seconds_per_time_unit":
+            for fps, seconds in simulator.items():
+                ax.axvline(seconds, color="grey", lw=1, ls=":")
+                ax.annotate(f"exact simulator fps{fps:g}", (seconds, 1), fontsize=6,
+                            xycoords=("data", "axes fraction"), rotation=90, va="top")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel(name)
+        ax.set_ylabel("rollout position error after 1 time unit")
+        ax.legend(fontsize=7, loc="best")
+    fig.suptitle(title, fontsize=7, wrap=True)
     fig.tight_layout()
     return fig
 

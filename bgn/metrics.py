@@ -14,7 +14,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 from scipy.signal import find_peaks
-from scipy.stats import chisquare, gaussian_kde, kstest, ttest_ind, wasserstein_distance
+from scipy.stats import chisquare, gaussian_kde, kstest, norm, ttest_ind, wasserstein_distance
 
 
 def r2_score(pred: np.ndarray, true: np.ndarray) -> float:
@@ -212,6 +212,38 @@ def inverse_metrics(true_log: np.ndarray, sampled_log: np.ndarray,
     n_true, n_matched = recovered_modes(true_log, pooled, mode_tolerance)
     out["modes_true"], out["modes_recovered"] = float(n_true), float(n_matched)
     return out
+
+
+TEMPERATURES = np.exp(np.linspace(-2.0, 2.0, 801))  # candidate base scales, e^-2 .. e^2
+
+
+def fit_temperature(base_values: np.ndarray, levels: np.ndarray = COVERAGE_LEVELS,
+                    grid: np.ndarray = TEMPERATURES) -> float:
+    """The scale ``tau`` of a 1-D flow's base distribution that makes its central intervals
+    hold their level, fitted to ``base_values`` (the true values mapped to the base space of
+    their own posteriors; N(0, 1) across cases when calibrated). With base ``N(0, tau^2)`` and
+    a monotone flow, the central ``level`` interval of a case holds its truth exactly when
+    ``|u| <= tau * z_level``; ``tau`` is the value on ``grid`` with the smallest largest
+    deviation of that coverage from the level over ``levels`` (what ``coverage_max_dev``
+    scores). Non-finite values count as never covered."""
+    u = np.sort(np.abs(np.asarray(base_values, dtype=np.float64)))
+    u = np.where(np.isfinite(u), u, np.inf)
+    z = norm.ppf((1.0 + np.asarray(levels)) / 2)                      # (L,)
+    covered = np.searchsorted(u, grid[:, None] * z[None, :], side="right") / len(u)
+    return float(grid[np.argmin(np.max(np.abs(covered - levels), axis=1))])
+
+
+def aggregate_gaussian(mean: np.ndarray, var: np.ndarray, groups: np.ndarray,
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pool per-frame Gaussian posteriors ``N(mean, var)`` of one constant quantity (a
+    particle's log-mass seen in several frames, labelled by ``groups``) into their product:
+    precision ``sum 1/var``, mean the precision-weighted mean. Frames whose window says more
+    (a sharp posterior: an impact, a close pass) weigh more than a plain average lets them.
+    Returns ``(labels, mean, var)`` per group, labels sorted (``np.unique``)."""
+    labels, index = np.unique(groups, return_inverse=True)
+    precision = 1.0 / np.maximum(np.asarray(var, dtype=np.float64), 1e-12)
+    total = np.bincount(index, precision)
+    return labels, np.bincount(index, precision * mean) / total, 1.0 / total
 
 
 def relative_mass_error(estimate_log: np.ndarray, true_log: np.ndarray) -> float:

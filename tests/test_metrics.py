@@ -8,11 +8,13 @@ import pytest
 
 from bgn.metrics import (
     COVERAGE_LEVELS,
+    aggregate_gaussian,
     binary_f1,
     calibration_metrics,
     collisions_per_frame,
     contact_rollout_metrics,
     coverage_curve,
+    fit_temperature,
     information_gain,
     inverse_metrics,
     kde_modes,
@@ -236,3 +238,41 @@ def test_information_gain_and_relative_mass_error() -> None:
     assert information_gain(np.array([1.0, 3.0]), np.array([0.0, 0.0])) == 2.0
     assert relative_mass_error(np.log([1.1, 0.9, 1.0]), np.zeros(3)) == pytest.approx(0.1)
     assert tarp(np.zeros(4), np.ones((8, 4)))["ecp"][-1] == 1.0
+
+
+# ----------------------------------------------------------------------------- post-hoc fixes
+@pytest.mark.parametrize("width", [0.4, 1.0, 2.0])
+def test_a_fitted_temperature_restores_coverage(width: float) -> None:
+    """Posteriors N(mu, width^2 var) about the exact N(mu, var): the truth in the base space of
+    the reported posterior is (truth - mu) / (width sd), N(0, 1/width^2); the fitted temperature
+    is 1/width, and samples drawn with it are calibrated on fresh cases."""
+    rng = np.random.default_rng(4)
+    sd = np.sqrt(1 / (1 + 1 / 0.3 ** 2))
+    truth, samples, _ = gaussian_posteriors(rng, 4000, 64, width)
+    mu = samples.mean(0)
+    tau = fit_temperature((truth - mu) / (width * sd))
+    assert tau == pytest.approx(1 / width, rel=0.05)
+    truth, samples, _ = gaussian_posteriors(rng, 4000, 64, width)  # the test split
+    mu = samples.mean(0)
+    tempered = mu + tau * (samples - mu)
+    assert np.max(np.abs(coverage_curve(truth, tempered) - COVERAGE_LEVELS)) < 0.03
+
+
+def test_fit_temperature_counts_a_non_finite_value_as_uncovered() -> None:
+    u = np.random.default_rng(5).standard_normal(2000)
+    assert fit_temperature(u) == pytest.approx(1.0, abs=0.06)
+    assert fit_temperature(np.concatenate([u, np.full(200, np.nan)])) > fit_temperature(u)
+
+
+def test_aggregating_gaussians_gives_their_product() -> None:
+    labels, mean, var = aggregate_gaussian(np.array([0.0, 3.0, 5.0]), np.array([1.0, 2.0, 4.0]),
+                                           np.array([7, 7, 2]))
+    assert labels.tolist() == [2, 7]
+    # N(0, 1) x N(3, 2): precision 1.5, mean (0 + 3/2) / 1.5 = 1
+    assert mean.tolist() == pytest.approx([5.0, 1.0]) and var.tolist() == pytest.approx([4, 2 / 3])
+    # many noisy frames of one value: the product's mean converges to it at the 1/sqrt(T) rate
+    rng = np.random.default_rng(6)
+    frames_var = rng.uniform(0.1, 2.0, 400)
+    _, pooled, pooled_var = aggregate_gaussian(
+        1.5 + np.sqrt(frames_var) * rng.standard_normal(400), frames_var, np.zeros(400))
+    assert abs(pooled[0] - 1.5) < 4 * np.sqrt(pooled_var[0]) and pooled_var[0] < 0.01

@@ -60,7 +60,8 @@ class ModelConfig(DynamicsConfig):
     # What the flow is conditioned on (inverse.InverseModel.context): "node", H̃_V alone (the
     # paper), or "pairs", also pair terms of the observed accelerations (not in the paper; it
     # raised the relative-mass R^2 and the information gain on spring and collisions:
-    # docs/results.md). mass_context_dropout: dropout on that context while training.
+    # docs/results.md), or "fit", pairs and the log-masses the structured head (dynamics=newton,
+    # force scenes) fits to the window. mass_context_dropout: dropout on that context.
     mass_context: str = "pairs"
     mass_context_dropout: float = 0.0
     classifier: bool = True            # particle-type head (Eq. 2), only with n_types > 1
@@ -133,6 +134,9 @@ class ModelConfig(DynamicsConfig):
             raise ValueError(f"flow={self.flow!r}; choose one of {FLOWS}")
         if self.mass_context not in CONTEXTS:
             raise ValueError(f"mass_context={self.mass_context!r}; choose one of {CONTEXTS}")
+        if self.mass_context == "fit" and self.dynamics != "newton":
+            raise ValueError("mass_context=fit conditions the flow on the structured head's "
+                             "mass fit: it needs model.dynamics=newton")
         if not 0.0 <= self.mass_context_dropout < 1.0:
             raise ValueError(f"mass_context_dropout={self.mass_context_dropout} must be in "
                              "[0, 1)")
@@ -210,6 +214,10 @@ class BGN(PhysicsModel):
                                      cfg.mass_context if history >= 1 else "node",
                                      cfg.mass_context_dropout)
                         if cfg.inverse else None)
+        if self.inverse is not None and self.inverse.uses_fit and not hasattr(
+                self.force_head, "fitted_log_mass"):
+            raise ValueError("mass_context=fit needs the pair-force head's mass fit (force "
+                             f"scenes with model.dynamics=newton); {meta.name} has none")
         if self.processor.contact is None and self.decoder is None:
             self.edge_encoder = None  # H_E would feed neither a contact head nor a decoder
         heads = {"dynamics"}
@@ -259,10 +267,18 @@ class BGN(PhysicsModel):
         mass_nll = relmass = z = None
         if self.inverse is not None:
             log_m = self.normalizer.log_mass(torch.log(g.mass))
-            context = self.inverse.context(p.h_tilde_v, g)           # Eq. 6
+            context = self._mass_context(p, g)           # Eq. 6
             mass_nll, z = self.inverse(context, log_m, noise)       # Eq. 7-8
             relmass = self.inverse.relative(z, g.edge_index)        # Eq. 9-10
         return ModelOutput(target, p.type_logits, contact, mass_nll, relmass, z, w)
+
+    def _mass_context(self, p: ProcessorOutput, g: Graph) -> torch.Tensor:
+        """The flow's context (``InverseModel.context``), with the structured head's fitted
+        log-masses under ``mass_context=fit``."""
+        assert self.inverse is not None
+        fitted = (self.force_head.fitted_log_mass(g)
+                  if self.inverse.uses_fit and self.force_head is not None else None)
+        return self.inverse.context(p.h_tilde_v, g, fitted)
 
     def forward_target(self, g: Graph) -> torch.Tensor:
         """The dynamics head alone (no flow): what ``predict`` and rollouts run."""
@@ -314,7 +330,7 @@ class BGN(PhysicsModel):
         if self.inverse is None:
             raise RuntimeError("this model has no inverse head (cfg.inverse=False)")
         p, _, _ = self._process(g)
-        return self.inverse.sample_log_mass(self.inverse.context(p.h_tilde_v, g), n_samples)
+        return self.inverse.sample_log_mass(self._mass_context(p, g), n_samples)
 
     @torch.no_grad()
     def mass_posterior(self, g: Graph, n_samples: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -324,12 +340,22 @@ class BGN(PhysicsModel):
         if self.inverse is None:
             raise RuntimeError("this model has no inverse head (cfg.inverse=False)")
         p, _, _ = self._process(g)
-        dist = self.inverse.flow(self.inverse.context(p.h_tilde_v, g))
+        dist = self.inverse.posterior(self._mass_context(p, g))
         z_true = self.normalizer.log_mass(torch.log(g.mass))
         log_density = (dist.log_prob(z_true[:, None])
                        - torch.log(self.normalizer.log_mass_scale))
         samples = self.normalizer.denormalize_log_mass(dist.sample((n_samples,)).squeeze(-1))
         return samples, log_density
+
+    @torch.no_grad()
+    def mass_base_value(self, g: Graph) -> torch.Tensor:
+        """(N,) every particle's true normalised log-mass in the flow's base space (untempered;
+        ``InverseModel.base_value``): what the temperature is fitted to."""
+        if self.inverse is None:
+            raise RuntimeError("this model has no inverse head (cfg.inverse=False)")
+        p, _, _ = self._process(g)
+        context = self._mass_context(p, g)
+        return self.inverse.base_value(context, self.normalizer.log_mass(torch.log(g.mass)))
 
     @torch.no_grad()
     def sample_mass(self, g: Graph, n_samples: int) -> torch.Tensor:

@@ -22,7 +22,20 @@ particle needs messages from the edges where it is the sender. GCN layers that a
 normalised features do not form such log-ratios of magnitudes from a few hundred training
 masses; per edge, the log-distance, the log-magnitudes of both accelerations and their
 cosines with the pair direction make them a smooth function an MLP learns.
+``fit`` adds to ``pairs`` the log-mass that the structured force head (``model.dynamics=newton``,
+``bgn.model.newton``) fits to the window's accelerations with its learned force law: under
+gravity a joint least-squares fit of every particle's mass from its neighbours' accelerations,
+which a few hundred training masses do not teach an MLP of pair terms. The fit's scale is free
+(a constant the flow learns); it enters detached, so the flow does not bend the force law.
 Optional dropout on the context during training regularises a flow that sees few masses.
+
+Calibration (``temperature``): a flow trained by maximum likelihood on a few thousand masses
+is overconfident (its intervals too narrow). At inference the base distribution is
+``N(0, temperature^2)`` instead of ``N(0, 1)``: for a 1-D flow the transform is monotone, so
+this widens (> 1) or narrows (< 1) every credible interval around the same median, in the
+flow's own warped coordinates. The temperature is fitted on the validation split after
+training (``bgn.evaluate.calibrate_mass_temperature``, ``bgn.metrics.fit_temperature``); it
+is 1 while training and is not part of the checkpoint's weights.
 
 The bilinear map acts on ``[z, 1]``: with 1-D ``z`` alone, ``z_i W z_j`` is symmetric in (i, j)
 and cannot represent the antisymmetric ``z_i - z_j``; the constant channel adds the linear terms
@@ -41,7 +54,7 @@ from bgn.model.message_passing import edge_chunks
 from bgn.model.ops import activation
 
 FLOWS = ("nsf", "naf")
-CONTEXTS = ("node", "pairs")
+CONTEXTS = ("node", "pairs", "fit")
 PAIR_FEATURES = 5   # log r, log |a_i|, log |a_j|, cos(a_i, u_ij), cos(a_j, u_ij)
 _EPS = 1e-12
 
@@ -119,20 +132,30 @@ class InverseModel(nn.Module):
         if conditioning not in CONTEXTS:
             raise ValueError(f"mass_context={conditioning!r}; choose one of {CONTEXTS}")
         self.kind = flow
-        self.pairs = PairContext(hidden, act) if conditioning == "pairs" else None
+        self.pairs = PairContext(hidden, act) if conditioning in ("pairs", "fit") else None
+        self.uses_fit = conditioning == "fit"
         self.dropout = dropout
-        self.flow = make_flow(flow, context + (hidden if self.pairs else 0), transforms, hidden)
+        self.flow = make_flow(flow, context + (hidden if self.pairs else 0) + self.uses_fit,
+                              transforms, hidden)
         self.bilinear = nn.Bilinear(2, 2, hidden)     # Eq. 9 on [z, 1]
         self.act = activation(act)
         self.linear2 = nn.Linear(hidden, hidden)      # Eq. 10: W_Inv-Dec2
         self.linear3 = nn.Linear(hidden, 1)           # Eq. 10: W_Inv-Dec3
         self.edge_chunk: int | None = None            # set by PhysicsModel (its config)
+        # not persistent: fitted after training on the validation split, not learned
+        self.register_buffer("temperature", torch.ones(()), persistent=False)
 
-    def context(self, h_tilde_v: torch.Tensor, g: Graph) -> torch.Tensor:
+    def context(self, h_tilde_v: torch.Tensor, g: Graph,
+                fitted_log_mass: torch.Tensor | None = None) -> torch.Tensor:
         """What the flow is conditioned on: ``H̃_V`` (Eq. 6), with the pair terms under
-        ``pairs``; dropout on it while training."""
-        c = h_tilde_v if self.pairs is None else torch.cat([h_tilde_v, self.pairs(g)], -1)
-        return F.dropout(c, self.dropout, self.training)
+        ``pairs`` and ``fit``, and the force head's ``fitted_log_mass`` (N,) under ``fit``;
+        dropout on it while training."""
+        parts = [h_tilde_v] if self.pairs is None else [h_tilde_v, self.pairs(g)]
+        if self.uses_fit:
+            if fitted_log_mass is None:
+                raise ValueError("mass_context=fit needs the structured head's fitted masses")
+            parts.append(fitted_log_mass.detach()[:, None])
+        return F.dropout(torch.cat(parts, -1), self.dropout, self.training)
 
     def forward(self, context: torch.Tensor, log_mass: torch.Tensor,
                 noise: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -163,6 +186,21 @@ class InverseModel(nn.Module):
         h = self.act(F.linear(outer, self.bilinear.weight.flatten(1), self.bilinear.bias))
         return self.linear3(self.act(self.linear2(h))).squeeze(-1)
 
+    def posterior(self, context: torch.Tensor) -> zuko.distributions.NormalizingFlow:
+        """The flow's posterior over the normalised log-mass, its base scaled by
+        ``temperature`` (the identity at 1; see the module docstring)."""
+        dist = self.flow(context)
+        if float(self.temperature) == 1.0:
+            return dist
+        base = dist.base.base_dist
+        return zuko.distributions.NormalizingFlow(
+            dist.transform, zuko.distributions.DiagNormal(base.loc, base.scale * self.temperature))
+
+    def base_value(self, context: torch.Tensor, log_mass: torch.Tensor) -> torch.Tensor:
+        """(N,) the normalised log-mass mapped to the flow's base space (untempered): standard
+        normal across particles when the flow is calibrated (``bgn.metrics.fit_temperature``)."""
+        return self.flow(context).transform(log_mass[:, None]).squeeze(-1)
+
     def sample_log_mass(self, context: torch.Tensor, n: int) -> torch.Tensor:
         """``n`` samples of every particle's normalised log-mass, shape (n, N)."""
-        return self.flow(context).sample((n,)).squeeze(-1)
+        return self.posterior(context).sample((n,)).squeeze(-1)

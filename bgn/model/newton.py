@@ -143,15 +143,14 @@ class PairForceHead(nn.Module):
         the interface of ``build_head``'s heads)."""
         raw = self.pair_terms(g, past_positions(g))                 # frames t, t-1, .., t-k
         terms = numerov(raw)                                       # frames t, .., t-k+1
-        seen = observed_targets(g, "acceleration")[:, :terms.shape[1] - 1]     # a[t-1] .. a[t-k+1]
+        fit = self.fit(g, terms)
         if self.mass_law == "inertial":
-            past = scatter_sum(terms[:, 1:], g.edge_index[1], g.pos.shape[0])
-            inverse_mass = (past * seen).sum((1, 2)) / ((past * past).sum((1, 2)) + FIT_EPS)
+            inverse_mass = fit
 
             def combine(t: torch.Tensor) -> torch.Tensor:          # a_i = sum_j F_ij / m_i
                 return inverse_mass[:, None] * scatter_sum(t, g.edge_index[1], g.pos.shape[0])
         else:
-            masses = self.source_masses(g, terms[:, 1:], seen)
+            masses = fit
 
             def combine(t: torch.Tensor) -> torch.Tensor:          # a_i = sum_j m_j F_ij
                 snd, rcv = g.edge_index
@@ -165,6 +164,23 @@ class PairForceHead(nn.Module):
             ahead = self.pair_terms(g, x_next[:, None])[:, 0]
             a = combine((ahead + 10 * raw[:, 0] + raw[:, 1]) / 12)
         return a, None
+
+    def fit(self, g: Graph, terms: torch.Tensor) -> torch.Tensor:
+        """(N,) the window's least-squares fit: ``1 / m_i`` under the inertial law, ``m_i``
+        under the source law, to the pair terms ``terms`` (E, F, D) of frames t .. t-k+1."""
+        seen = observed_targets(g, "acceleration")[:, :terms.shape[1] - 1]  # a[t-1] .. a[t-k+1]
+        if self.mass_law == "inertial":
+            past = scatter_sum(terms[:, 1:], g.edge_index[1], g.pos.shape[0])
+            return (past * seen).sum((1, 2)) / ((past * past).sum((1, 2)) + FIT_EPS)
+        return self.source_masses(g, terms[:, 1:], seen)
+
+    def fitted_log_mass(self, g: Graph) -> torch.Tensor:
+        """(N,) log of the masses the window's fit gives (up to the free scale of the learned
+        force law, a constant per model): a feature that carries each particle's mass, for
+        the inverse model's context (``mass_context=fit``)."""
+        fit = self.fit(g, numerov(self.pair_terms(g, past_positions(g))))
+        log_fit = torch.log(fit.abs() + FIT_EPS)
+        return -log_fit if self.mass_law == "inertial" else log_fit
 
     def source_masses(self, g: Graph, past: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
         """(N,) one mass per particle such that ``a_i = sum_j m_j f(s_ij) u_ij`` fits the

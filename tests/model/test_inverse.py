@@ -120,3 +120,26 @@ def test_pair_context_trains_and_the_posterior_density_matches_the_loss(meta, st
     # the density of the natural log-mass: the loss's, with the normalisation's Jacobian
     nll = model(g).mass_nll
     torch.testing.assert_close(log_density, -nll - model.normalizer.log_mass_scale.log())
+
+
+def test_the_temperature_scales_the_base_and_keeps_the_median(meta, stats, graph):
+    """Post-hoc calibration (InverseModel.temperature): the true log-mass maps to the same base
+    value; samples drawn at temperature 2 sit twice as far from the base's centre, and their
+    median (the flow's transform of the base's centre) does not move."""
+    torch.manual_seed(0)
+    model = BGN(meta(6, 2), stats(), 2, small("nsf", "pairs")).double().eval()
+    g = graph(6)
+    u = model.mass_base_value(g)
+    _, density = model.mass_posterior(g, 4)
+    model.inverse.temperature.fill_(2.0)
+    torch.testing.assert_close(model.mass_base_value(g), u)
+    _, tempered = model.mass_posterior(g, 4)
+    # log N(u; 0, 4) - log N(u; 0, 1) = -log 2 + 3 u^2 / 8
+    torch.testing.assert_close(tempered - density, -torch.log(torch.tensor(2.0)) + 0.375 * u**2)
+    torch.manual_seed(1)
+    z = model.sample_log_mass(g, 4000)
+    p, _, _ = model._process(g)
+    with torch.no_grad():
+        base = model.inverse.flow(model._mass_context(p, g)).transform(z[..., None]).squeeze(-1)
+    assert float(base.std()) == pytest.approx(2.0, rel=0.05)
+    assert "temperature" not in model.state_dict()           # fitted after training, not saved

@@ -64,6 +64,9 @@ class ModelConfig(DynamicsConfig):
     # force scenes) fits to the window. mass_context_dropout: dropout on that context.
     mass_context: str = "pairs"
     mass_context_dropout: float = 0.0
+    # frames of the window whose accelerations the pair terms read (1: the newest; at most
+    # the history): an impact anywhere in the window carries the pair's mass ratio
+    mass_context_frames: int = 1
     classifier: bool = True            # particle-type head (Eq. 2), only with n_types > 1
     contact: bool = True               # contact decoder (Eq. 3-4)
     inverse: bool = True               # mass flow + relative-mass decoder (Eq. 6-10)
@@ -137,6 +140,8 @@ class ModelConfig(DynamicsConfig):
         if self.mass_context == "fit" and self.dynamics != "newton":
             raise ValueError("mass_context=fit conditions the flow on the structured head's "
                              "mass fit: it needs model.dynamics=newton")
+        if self.mass_context_frames < 1:
+            raise ValueError(f"mass_context_frames={self.mass_context_frames} must be >= 1")
         if not 0.0 <= self.mass_context_dropout < 1.0:
             raise ValueError(f"mass_context_dropout={self.mass_context_dropout} must be in "
                              "[0, 1)")
@@ -212,7 +217,8 @@ class BGN(PhysicsModel):
                                      cfg.flow_transforms, cfg.flow_hidden, cfg.activation,
                                      # a one-velocity window holds no acceleration to pair
                                      cfg.mass_context if history >= 1 else "node",
-                                     cfg.mass_context_dropout)
+                                     cfg.mass_context_dropout,
+                                     max(1, min(cfg.mass_context_frames, history)))
                         if cfg.inverse else None)
         if self.inverse is not None and self.inverse.uses_fit and not hasattr(
                 self.force_head, "fitted_log_mass"):

@@ -74,49 +74,57 @@ def make_flow(kind: str, context: int, transforms: int, hidden: int) -> zuko.flo
 def newest_acceleration(g: Graph) -> torch.Tensor:
     """(N, D) the window's newest finite-difference acceleration ``(v[t] - v[t-1]) / dt``, in
     physical units (the pair terms take its log-magnitude: no scale to learn)."""
+    return window_accelerations(g, 1)[:, 0]
+
+
+def window_accelerations(g: Graph, frames: int) -> torch.Tensor:
+    """(N, F, D) the window's ``frames`` newest finite-difference accelerations
+    ``(v[t-f] - v[t-f-1]) / dt``, f = 0 .. F-1, in physical units."""
     if g.dt is None:
         raise ValueError("pair terms need the frame spacing: the graph has no dt")
-    return (g.vel[:, 0] - g.vel[:, 1]) / g.dt[g.batch][:, None]
+    return (g.vel[:, :frames] - g.vel[:, 1:frames + 1]) / g.dt[g.batch][:, None, None]
 
 
-def pair_features(g: Graph) -> torch.Tensor:
-    """(E, 5) per edge j -> i at frame t-1, where the window's newest finite-difference
-    acceleration ``a = (v[t] - v[t-1]) / dt`` is exact: ``log r_ij``, ``log |a_i|``,
-    ``log |a_j|`` and both accelerations' cosines with the unit vector ``u_ij`` from j to i.
-    Positions at t-1 are ``x[t] - dt v[t]`` (the backward difference, undone)."""
+def pair_features(g: Graph, frames: int = 1) -> torch.Tensor:
+    """(E, F, 5) per edge j -> i at frames t-1, .., t-F, where the window's finite-difference
+    accelerations ``a[t-f-1] = (v[t-f] - v[t-f-1]) / dt`` are exact: ``log r_ij``,
+    ``log |a_i|``, ``log |a_j|`` and both accelerations' cosines with the unit vector ``u_ij``
+    from j to i. Positions at t-f-1 are ``x[t] - dt (v[t] + .. + v[t-f])`` (the backward
+    differences, undone)."""
     snd, rcv = g.edge_index[0], g.edge_index[1]
-    acc = newest_acceleration(g)
-    prev = g.pos - g.dt[g.batch][:, None] * g.vel[:, 0]
+    acc = window_accelerations(g, frames)
+    prev = g.pos[:, None] - g.dt[g.batch][:, None, None] * torch.cumsum(g.vel[:, :frames], 1)
     rel = prev[rcv] - prev[snd]
     r = torch.sqrt((rel * rel).sum(-1) + _EPS)
     a_norm = torch.sqrt((acc * acc).sum(-1) + _EPS)
-    unit, a_unit = rel / r[:, None], acc / a_norm[:, None]
+    unit, a_unit = rel / r[..., None], acc / a_norm[..., None]
     return torch.stack([torch.log(r), torch.log(a_norm[rcv]), torch.log(a_norm[snd]),
                         (a_unit[rcv] * unit).sum(-1), (a_unit[snd] * unit).sum(-1)], -1)
 
 
 class PairContext(nn.Module):
-    """Pair terms for the flow's context: an edge MLP of ``pair_features``, summed at the
-    receiver and (a second half) at the sender, then a node MLP with the node's own
-    ``log |a|``; returns (N, hidden)."""
+    """Pair terms for the flow's context: an edge MLP of ``pair_features`` at each of
+    ``frames`` frames, summed over them and at the receiver and (a second half) at the
+    sender, then a node MLP with the node's own ``log |a|`` at those frames; returns
+    (N, hidden). More than the newest frame (``mass_context_frames``): an impact, whose
+    momentum exchange gives the pair's mass ratio, shows wherever it falls in the window."""
 
-    def __init__(self, hidden: int, act: str) -> None:
+    def __init__(self, hidden: int, act: str, frames: int = 1) -> None:
         super().__init__()
-        self.hidden = hidden
+        self.hidden, self.frames = hidden, frames
         self.edge = nn.Sequential(nn.Linear(PAIR_FEATURES, hidden), activation(act),
                                   nn.Linear(hidden, 2 * hidden))
-        self.node = nn.Sequential(nn.Linear(2 * hidden + 1, hidden), activation(act),
+        self.node = nn.Sequential(nn.Linear(2 * hidden + frames, hidden), activation(act),
                                   nn.Linear(hidden, hidden))
 
     def forward(self, g: Graph) -> torch.Tensor:
         snd, rcv = g.edge_index[0], g.edge_index[1]
-        e = pair_features(g)
-        m = self.edge(e)
+        m = self.edge(pair_features(g, self.frames)).sum(1)
         n = len(g.vel)
         to_rcv = m.new_zeros(n, self.hidden).index_add_(0, rcv, m[:, :self.hidden])
         to_snd = m.new_zeros(n, self.hidden).index_add_(0, snd, m[:, self.hidden:])
-        acc = newest_acceleration(g)
-        log_a = 0.5 * torch.log((acc * acc).sum(-1, keepdim=True) + _EPS)
+        acc = window_accelerations(g, self.frames)
+        log_a = 0.5 * torch.log((acc * acc).sum(-1) + _EPS)
         return self.node(torch.cat([to_rcv, to_snd, log_a], -1))
 
 
@@ -127,12 +135,13 @@ class InverseModel(nn.Module):
     """
 
     def __init__(self, context: int, flow: str = "nsf", transforms: int = 3, hidden: int = 64,
-                 act: str = "silu", conditioning: str = "node", dropout: float = 0.0) -> None:
+                 act: str = "silu", conditioning: str = "node", dropout: float = 0.0,
+                 frames: int = 1) -> None:
         super().__init__()
         if conditioning not in CONTEXTS:
             raise ValueError(f"mass_context={conditioning!r}; choose one of {CONTEXTS}")
         self.kind = flow
-        self.pairs = PairContext(hidden, act) if conditioning in ("pairs", "fit") else None
+        self.pairs = PairContext(hidden, act, frames) if conditioning in ("pairs", "fit") else None
         self.uses_fit = conditioning == "fit"
         self.dropout = dropout
         self.flow = make_flow(flow, context + (hidden if self.pairs else 0) + self.uses_fit,

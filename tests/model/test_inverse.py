@@ -11,9 +11,9 @@ from bgn.model import BGN, ModelConfig
 from bgn.model.inverse import InverseModel, pair_features
 
 
-def small(flow: str, context: str = "node") -> ModelConfig:
+def small(flow: str, context: str = "node", frames: int = 1) -> ModelConfig:
     return ModelConfig(hidden=16, decoder_hidden=16, flow=flow, flow_hidden=8,
-                       flow_transforms=2, mass_context=context)
+                       flow_transforms=2, mass_context=context, mass_context_frames=frames)
 
 
 @pytest.mark.parametrize("flow", ["nsf", "naf"])
@@ -35,11 +35,11 @@ def test_flow_forward_backward_and_sampling(meta, stats, graph, flow):
     assert samples.shape == (5, 6) and (samples > 0).all() and torch.isfinite(samples).all()
 
 
-@pytest.mark.parametrize(("flow", "context"), [("nsf", "node"), ("naf", "node"),
-                                               ("nsf", "pairs")])
-def test_coincident_particles_have_finite_gradients(meta, stats, graph, flow, context):
+@pytest.mark.parametrize(("flow", "context", "frames"), [
+    ("nsf", "node", 1), ("naf", "node", 1), ("nsf", "pairs", 1), ("nsf", "pairs", 2)])
+def test_coincident_particles_have_finite_gradients(meta, stats, graph, flow, context, frames):
     torch.manual_seed(0)
-    model = BGN(meta(6, 2), stats(), 2, small(flow, context)).double()
+    model = BGN(meta(6, 2), stats(), 2, small(flow, context, frames)).double()
     g = graph(6)
     pos, vel = g.pos.clone(), g.vel.clone()
     pos[1], vel[1] = pos[0], vel[0]             # particles 0 and 1 coincide
@@ -94,17 +94,21 @@ def test_log_probabilities_stay_finite_from_1e_4_to_1e2(meta, stats, graph, flow
 def test_pair_features_at_the_frame_of_the_newest_acceleration(graph):
     """Positions one frame back (x[t] - dt v[t]) and accelerations (v[t] - v[t-1]) / dt."""
     g = graph(3)
-    feats = pair_features(g)
     dt = float(g.dt[0])
-    acc = (g.vel[:, 0] - g.vel[:, 1]) / dt
-    prev = g.pos - dt * g.vel[:, 0]
     snd, rcv = g.edge_index
     e = 0
-    rel = prev[rcv[e]] - prev[snd[e]]
-    unit = rel / rel.norm()
-    expected = [rel.norm().log(), acc[rcv[e]].norm().log(), acc[snd[e]].norm().log(),
-                acc[rcv[e]] @ unit / acc[rcv[e]].norm(), acc[snd[e]] @ unit / acc[snd[e]].norm()]
-    torch.testing.assert_close(feats[e], torch.stack(expected))
+    # the newest frame alone, and the second frame of a two-frame window (t-2: one more step)
+    for frames, f, prev in ((1, 0, g.pos - dt * g.vel[:, 0]),
+                            (2, 1, g.pos - dt * g.vel[:, 0] - dt * g.vel[:, 1])):
+        feats = pair_features(g, frames)
+        assert feats.shape == (g.edge_index.shape[1], frames, 5)
+        acc = (g.vel[:, f] - g.vel[:, f + 1]) / dt
+        rel = prev[rcv[e]] - prev[snd[e]]
+        unit = rel / rel.norm()
+        expected = [rel.norm().log(), acc[rcv[e]].norm().log(), acc[snd[e]].norm().log(),
+                    acc[rcv[e]] @ unit / acc[rcv[e]].norm(),
+                    acc[snd[e]] @ unit / acc[snd[e]].norm()]
+        torch.testing.assert_close(feats[e, f], torch.stack(expected))
 
 
 def test_pair_context_trains_and_the_posterior_density_matches_the_loss(meta, stats, graph):

@@ -27,7 +27,7 @@ from bgn.metrics import (
     binary_f1,
     calibration_metrics,
     coverage_curve,
-    fit_temperature,
+    fit_radius_map,
     inverse_metrics,
     kde_modes,
     r2_score,
@@ -44,7 +44,7 @@ from bgn.rollout import predictability, rollout_many, rollout_starts
 from bgn.simulator import Predictor
 
 # the metric functions live in bgn.metrics; imports of them from here keep working
-__all__ = ["batches", "calibrate_mass_temperature", "evaluate_model", "evaluate_rollouts",
+__all__ = ["batches", "calibrate_mass_posterior", "evaluate_model", "evaluate_rollouts",
            "inverse_metrics", "kde_modes", "load_model", "mass_figure", "r2_score",
            "recovered_modes", "type_metrics"]
 
@@ -65,18 +65,24 @@ def batches(dataset: FrameDataset, indices: list[int], batch_size: int) -> list[
 
 # ----------------------------------------------------------------------------- evaluation
 @torch.no_grad()
-def calibrate_mass_temperature(module: PhysicsModule, dataset: FrameDataset,
-                               frames: int | None = 256, batch_size: int = 16) -> float:
-    """Fit the temperature of the mass flow's base distribution on ``frames`` evenly spaced
-    frames of ``dataset`` (the validation split: never the split it is scored on), set it on
-    the model (``InverseModel.temperature``) and return it. The fit makes the central
-    intervals of the flow hold their levels on those frames (``bgn.metrics.fit_temperature``):
-    post-hoc calibration of a posterior that maximum likelihood left overconfident."""
+def calibrate_mass_posterior(module: PhysicsModule, dataset: FrameDataset,
+                             frames: int | None = 256, batch_size: int = 16,
+                             ) -> dict[str, float]:
+    """Fit the mass flow's radius map on ``frames`` evenly spaced frames of ``dataset`` (the
+    validation split: never the split it is scored on), set it on the model
+    (``InverseModel.calibration``) and return its scale at the levels 0.5 and 0.9
+    (``m(z) / z``: 1 where the flow was calibrated, > 1 where overconfident). The map makes
+    the central intervals of the flow hold their levels on those frames
+    (``bgn.metrics.fit_radius_map``): post-hoc recalibration of a posterior that maximum
+    likelihood left miscalibrated."""
     inverse = module.model.inverse
+    inverse.calibration = torch.empty(2, 0)            # fit the raw flow's base values
     values = [module.model.mass_base_value(g).double().numpy()
               for g in batches(dataset, evenly_spaced(len(dataset), frames), batch_size)]
-    inverse.temperature.fill_(fit_temperature(np.concatenate(values)))
-    return float(inverse.temperature)
+    z, r = fit_radius_map(np.concatenate(values))
+    inverse.calibration = torch.tensor(np.stack([z, r]), dtype=torch.float32)
+    return {f"mass_calibration_scale{int(level * 100)}": float(np.interp(q, z, r) / q)
+            for level, q in ((0.5, 0.6744897501960817), (0.9, 1.6448536269514722))}
 
 
 @torch.no_grad()
@@ -86,9 +92,9 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
                    ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Metrics of one model on a test dataset, and the arrays behind the mass figure
     (``evaluate_inverse``; empty without an inverse head). ``calibration``: the split the
-    mass flow's temperature is fitted on first (``calibrate_mass_temperature``, on
-    ``mass_frames`` of its frames; ``mass_temperature`` in the metrics); None keeps the
-    model's own (1 after training)."""
+    mass flow's calibration is fitted on first (``calibrate_mass_posterior``, on
+    ``mass_frames`` of its frames; ``mass_calibration_scale50/90`` in the metrics); None keeps
+    the model's own (none after training)."""
     torch.manual_seed(seed)  # the flow's samples and relmass noise are random
     model = module.model
     heads = model.heads
@@ -142,8 +148,8 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
     arrays: dict[str, np.ndarray] = {}
     if model.has_inverse:
         if calibration is not None:
-            metrics["mass_temperature"] = calibrate_mass_temperature(module, calibration,
-                                                                     mass_frames, batch_size)
+            metrics.update(calibrate_mass_posterior(module, calibration, mass_frames,
+                                                    batch_size))
         inverse, arrays = evaluate_inverse(module, dataset, mass_frames, mass_samples,
                                            batch_size, seed)
         metrics.update(inverse)

@@ -214,23 +214,28 @@ def inverse_metrics(true_log: np.ndarray, sampled_log: np.ndarray,
     return out
 
 
-TEMPERATURES = np.exp(np.linspace(-2.0, 2.0, 801))  # candidate base scales, e^-2 .. e^2
+RECALIBRATION_LEVELS = np.linspace(0.0, 0.99, 100)  # knots of the monotone radius map
 
 
-def fit_temperature(base_values: np.ndarray, levels: np.ndarray = COVERAGE_LEVELS,
-                    grid: np.ndarray = TEMPERATURES) -> float:
-    """The scale ``tau`` of a 1-D flow's base distribution that makes its central intervals
-    hold their level, fitted to ``base_values`` (the true values mapped to the base space of
-    their own posteriors; N(0, 1) across cases when calibrated). With base ``N(0, tau^2)`` and
-    a monotone flow, the central ``level`` interval of a case holds its truth exactly when
-    ``|u| <= tau * z_level``; ``tau`` is the value on ``grid`` with the smallest largest
-    deviation of that coverage from the level over ``levels`` (what ``coverage_max_dev``
-    scores). Non-finite values count as never covered."""
-    u = np.sort(np.abs(np.asarray(base_values, dtype=np.float64)))
-    u = np.where(np.isfinite(u), u, np.inf)
-    z = norm.ppf((1.0 + np.asarray(levels)) / 2)                      # (L,)
-    covered = np.searchsorted(u, grid[:, None] * z[None, :], side="right") / len(u)
-    return float(grid[np.argmin(np.max(np.abs(covered - levels), axis=1))])
+def fit_radius_map(base_values: np.ndarray, levels: np.ndarray = RECALIBRATION_LEVELS,
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Knots ``(z, r)`` of the monotone map ``r = m(z)`` that recalibrates a 1-D flow
+    (Kuleshov et al. 2018, "Accurate uncertainties for deep learning using calibrated
+    regression", in the flow's base space). ``base_values``: true values mapped to the base
+    space of their own posteriors, N(0, 1) across cases when calibrated. A base draw ``e``
+    becomes ``sign(e) m(|e|)``: the central ``level`` interval then reaches ``|u| <= r_level``,
+    the ``level`` quantile of ``|base_values|``, and holds the truth at its level on these
+    cases whatever the shape of the miscalibration (a scale alone, ``m(z) = tau z``, fixes
+    only a too-narrow or too-wide Gaussian). ``z_k = Phi^-1((1 + level_k) / 2)``, ``r_k``
+    strictly increasing from ``m(0) = 0``; non-finite values are dropped."""
+    u = np.abs(np.asarray(base_values, dtype=np.float64))
+    u = u[np.isfinite(u)]
+    z = norm.ppf((1.0 + np.asarray(levels)) / 2)
+    r = np.quantile(u, levels)
+    r[0] = 0.0 if levels[0] == 0 else r[0]
+    # strictly increasing (ties in |u| would make the inverse map undefined)
+    r = np.maximum.accumulate(r) + 1e-9 * np.arange(len(r))
+    return z, r
 
 
 def aggregate_gaussian(mean: np.ndarray, var: np.ndarray, groups: np.ndarray,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.stats import norm
 
 from bgn.metrics import (
     COVERAGE_LEVELS,
@@ -14,7 +15,7 @@ from bgn.metrics import (
     collisions_per_frame,
     contact_rollout_metrics,
     coverage_curve,
-    fit_temperature,
+    fit_radius_map,
     information_gain,
     inverse_metrics,
     kde_modes,
@@ -242,26 +243,35 @@ def test_information_gain_and_relative_mass_error() -> None:
 
 # ----------------------------------------------------------------------------- post-hoc fixes
 @pytest.mark.parametrize("width", [0.4, 1.0, 2.0])
-def test_a_fitted_temperature_restores_coverage(width: float) -> None:
+def test_a_fitted_radius_map_restores_coverage(width: float) -> None:
     """Posteriors N(mu, width^2 var) about the exact N(mu, var): the truth in the base space of
-    the reported posterior is (truth - mu) / (width sd), N(0, 1/width^2); the fitted temperature
-    is 1/width, and samples drawn with it are calibrated on fresh cases."""
+    the reported posterior is (truth - mu) / (width sd), N(0, 1/width^2). The map fitted on
+    one set of cases is about the scale 1/width, and samples drawn through it are calibrated
+    on fresh cases."""
     rng = np.random.default_rng(4)
     sd = np.sqrt(1 / (1 + 1 / 0.3 ** 2))
-    truth, samples, _ = gaussian_posteriors(rng, 4000, 64, width)
-    mu = samples.mean(0)
-    tau = fit_temperature((truth - mu) / (width * sd))
-    assert tau == pytest.approx(1 / width, rel=0.05)
-    truth, samples, _ = gaussian_posteriors(rng, 4000, 64, width)  # the test split
-    mu = samples.mean(0)
-    tempered = mu + tau * (samples - mu)
-    assert np.max(np.abs(coverage_curve(truth, tempered) - COVERAGE_LEVELS)) < 0.03
+    truth, samples, _ = gaussian_posteriors(rng, 4000, 64, width)    # the validation split
+    z, r = fit_radius_map((truth - samples.mean(0)) / (width * sd))
+    middle = (z > 0.3) & (z < 2.0)
+    assert r[middle] / z[middle] == pytest.approx(np.full(middle.sum(), 1 / width), rel=0.1)
+    truth, samples, _ = gaussian_posteriors(rng, 4000, 64, width)    # the test split
+    e = rng.standard_normal(samples.shape)
+    base = np.sign(e) * np.interp(np.abs(e), z, r)
+    recalibrated = samples.mean(0) + width * sd * base
+    assert np.max(np.abs(coverage_curve(truth, recalibrated) - COVERAGE_LEVELS)) < 0.03
 
 
-def test_fit_temperature_counts_a_non_finite_value_as_uncovered() -> None:
-    u = np.random.default_rng(5).standard_normal(2000)
-    assert fit_temperature(u) == pytest.approx(1.0, abs=0.06)
-    assert fit_temperature(np.concatenate([u, np.full(200, np.nan)])) > fit_temperature(u)
+def test_a_radius_map_fixes_heavy_tails_that_a_scale_cannot() -> None:
+    """Base values from a Student t (3 dof): no single scale makes both the 50 % and the 90 %
+    intervals right; the fitted map does, and it is strictly increasing from 0."""
+    u = np.random.default_rng(5).standard_t(3, 20000)
+    z, r = fit_radius_map(u)
+    assert r[0] == 0 and np.all(np.diff(r) > 0)
+    for level in (0.5, 0.9):
+        radius = np.interp(norm.ppf((1 + level) / 2), z, r)
+        assert np.mean(np.abs(u) <= radius) == pytest.approx(level, abs=0.01)
+    scale50, scale90 = (np.interp(q, z, r) / q for q in norm.ppf([0.75, 0.95]))
+    assert scale90 > 1.2 * scale50                # the tails need a wider map than the centre
 
 
 def test_aggregating_gaussians_gives_their_product() -> None:

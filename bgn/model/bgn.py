@@ -346,17 +346,18 @@ class BGN(PhysicsModel):
         if self.inverse is None:
             raise RuntimeError("this model has no inverse head (cfg.inverse=False)")
         p, _, _ = self._process(g)
-        dist = self.inverse.posterior(self._mass_context(p, g))
+        context = self._mass_context(p, g)
         z_true = self.normalizer.log_mass(torch.log(g.mass))
-        log_density = (dist.log_prob(z_true[:, None])
+        log_density = (self.inverse.log_density(context, z_true)
                        - torch.log(self.normalizer.log_mass_scale))
-        samples = self.normalizer.denormalize_log_mass(dist.sample((n_samples,)).squeeze(-1))
+        samples = self.normalizer.denormalize_log_mass(
+            self.inverse.sample_log_mass(context, n_samples))
         return samples, log_density
 
     @torch.no_grad()
     def mass_base_value(self, g: Graph) -> torch.Tensor:
         """(N,) every particle's true normalised log-mass in the flow's base space (untempered;
-        ``InverseModel.base_value``): what the temperature is fitted to."""
+        ``InverseModel.base_value``): what the calibration is fitted to."""
         if self.inverse is None:
             raise RuntimeError("this model has no inverse head (cfg.inverse=False)")
         p, _, _ = self._process(g)

@@ -29,17 +29,15 @@ which a few hundred training masses do not teach an MLP of pair terms. The fit's
 (a constant the flow learns); it enters detached, so the flow does not bend the force law.
 Optional dropout on the context during training regularises a flow that sees few masses.
 
-Calibration (``temperature``): a flow trained by maximum likelihood on a few thousand masses
-is overconfident (its intervals too narrow). At inference the base distribution is
-``N(0, temperature^2)`` instead of ``N(0, 1)``: for a 1-D flow the transform is monotone, so
-this widens (> 1) or narrows (< 1) every credible interval around the same median, in the
-flow's own warped coordinates. The temperature is fitted on the validation split after
-training (``bgn.evaluate.calibrate_mass_temperature``, ``bgn.metrics.fit_temperature``); it
-is 1 while training and is not part of the checkpoint's weights.
-
-The bilinear map acts on ``[z, 1]``: with 1-D ``z`` alone, ``z_i W z_j`` is symmetric in (i, j)
-and cannot represent the antisymmetric ``z_i - z_j``; the constant channel adds the linear terms
-``z_i`` and ``z_j`` (homogeneous coordinates) at no other cost.
+Calibration (``calibration``): a flow trained by maximum likelihood on a few thousand masses
+is miscalibrated (its intervals too narrow, or too wide with too heavy tails). At inference a
+base draw ``e ~ N(0, 1)`` becomes ``sign(e) m(|e|)`` with ``m`` a monotone piecewise-linear
+map of the radius (knots ``(z, r)``, linear past the last): for a 1-D flow the transform is
+monotone, so this moves every credible interval's bounds around the same median, in the
+flow's own warped coordinates, and the density follows by the change of variables. The map is
+fitted on the validation split after training (``bgn.evaluate.calibrate_mass_posterior``,
+``bgn.metrics.fit_radius_map``); it is the identity while training and not part of the
+checkpoint's weights.
 """
 
 from __future__ import annotations
@@ -151,8 +149,9 @@ class InverseModel(nn.Module):
         self.linear2 = nn.Linear(hidden, hidden)      # Eq. 10: W_Inv-Dec2
         self.linear3 = nn.Linear(hidden, 1)           # Eq. 10: W_Inv-Dec3
         self.edge_chunk: int | None = None            # set by PhysicsModel (its config)
-        # not persistent: fitted after training on the validation split, not learned
-        self.register_buffer("temperature", torch.ones(()), persistent=False)
+        # knots (z, r) of the radius map, (2, K); none: the identity. Not persistent: fitted
+        # after training on the validation split, not learned
+        self.register_buffer("calibration", torch.empty(2, 0), persistent=False)
 
     def context(self, h_tilde_v: torch.Tensor, g: Graph,
                 fitted_log_mass: torch.Tensor | None = None) -> torch.Tensor:
@@ -195,21 +194,38 @@ class InverseModel(nn.Module):
         h = self.act(F.linear(outer, self.bilinear.weight.flatten(1), self.bilinear.bias))
         return self.linear3(self.act(self.linear2(h))).squeeze(-1)
 
-    def posterior(self, context: torch.Tensor) -> zuko.distributions.NormalizingFlow:
-        """The flow's posterior over the normalised log-mass, its base scaled by
-        ``temperature`` (the identity at 1; see the module docstring)."""
+    def _radius(self, x: torch.Tensor, inverse: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        """The radius map ``m`` (or its inverse) at ``|x|`` with the sign of ``x``, and the
+        map's slope there (piecewise linear between the knots, linear past the last)."""
+        z, r = self.calibration.to(x.dtype)
+        xp, fp = (r, z) if inverse else (z, r)
+        a = x.abs()
+        i = torch.searchsorted(xp, a.detach().contiguous()).clamp(1, len(xp) - 1)
+        slope = (fp[i] - fp[i - 1]) / (xp[i] - xp[i - 1])
+        return torch.sign(x) * (fp[i - 1] + slope * (a - xp[i - 1])), slope
+
+    def log_density(self, context: torch.Tensor, log_mass: torch.Tensor) -> torch.Tensor:
+        """(N,) log-density of the normalised ``log_mass`` (N,) under the calibrated posterior:
+        the flow's, with the base density ``N(0, 1)`` at ``u`` replaced by that of ``u`` under
+        the radius map, ``phi(m^-1(u)) / m'``."""
         dist = self.flow(context)
-        if float(self.temperature) == 1.0:
-            return dist
-        base = dist.base.base_dist
-        return zuko.distributions.NormalizingFlow(
-            dist.transform, zuko.distributions.DiagNormal(base.loc, base.scale * self.temperature))
+        log_p = dist.log_prob(log_mass[:, None])
+        if not self.calibration.numel():
+            return log_p
+        u = dist.transform(log_mass[:, None]).squeeze(-1)
+        e, slope = self._radius(u, inverse=True)
+        return log_p + 0.5 * (u * u - e * e) + torch.log(slope)
 
     def base_value(self, context: torch.Tensor, log_mass: torch.Tensor) -> torch.Tensor:
-        """(N,) the normalised log-mass mapped to the flow's base space (untempered): standard
-        normal across particles when the flow is calibrated (``bgn.metrics.fit_temperature``)."""
+        """(N,) the normalised log-mass mapped to the flow's base space (uncalibrated): standard
+        normal across particles when the flow is calibrated (``bgn.metrics.fit_radius_map``)."""
         return self.flow(context).transform(log_mass[:, None]).squeeze(-1)
 
     def sample_log_mass(self, context: torch.Tensor, n: int) -> torch.Tensor:
-        """``n`` samples of every particle's normalised log-mass, shape (n, N)."""
-        return self.posterior(context).sample((n,)).squeeze(-1)
+        """``n`` samples of every particle's normalised log-mass under the calibrated
+        posterior, shape (n, N)."""
+        dist = self.flow(context)
+        if not self.calibration.numel():
+            return dist.sample((n,)).squeeze(-1)
+        e = torch.randn((n, len(context), 1), dtype=context.dtype, device=context.device)
+        return dist.transform.inv(self._radius(e, inverse=False)[0]).squeeze(-1)

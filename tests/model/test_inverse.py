@@ -126,24 +126,42 @@ def test_pair_context_trains_and_the_posterior_density_matches_the_loss(meta, st
     torch.testing.assert_close(log_density, -nll - model.normalizer.log_mass_scale.log())
 
 
-def test_the_temperature_scales_the_base_and_keeps_the_median(meta, stats, graph):
-    """Post-hoc calibration (InverseModel.temperature): the true log-mass maps to the same base
-    value; samples drawn at temperature 2 sit twice as far from the base's centre, and their
-    median (the flow's transform of the base's centre) does not move."""
+def test_a_linear_radius_map_scales_the_base_and_keeps_the_median(meta, stats, graph):
+    """Post-hoc calibration (InverseModel.calibration) with the map m(z) = 2 z: the true
+    log-mass maps to the same base value; the density is that of the base N(0, 4); samples sit
+    twice as far from the base's centre (their median, the flow's transform of 0, stays)."""
     torch.manual_seed(0)
     model = BGN(meta(6, 2), stats(), 2, small("nsf", "pairs")).double().eval()
     g = graph(6)
     u = model.mass_base_value(g)
     _, density = model.mass_posterior(g, 4)
-    model.inverse.temperature.fill_(2.0)
+    knots = torch.linspace(0, 3, 7)
+    model.inverse.calibration = torch.stack([knots, 2 * knots])
     torch.testing.assert_close(model.mass_base_value(g), u)
-    _, tempered = model.mass_posterior(g, 4)
+    _, scaled = model.mass_posterior(g, 4)
     # log N(u; 0, 4) - log N(u; 0, 1) = -log 2 + 3 u^2 / 8
-    torch.testing.assert_close(tempered - density, -torch.log(torch.tensor(2.0)) + 0.375 * u**2)
+    torch.testing.assert_close(scaled - density, -torch.log(torch.tensor(2.0)) + 0.375 * u**2)
     torch.manual_seed(1)
     z = model.sample_log_mass(g, 4000)
     p, _, _ = model._process(g)
     with torch.no_grad():
         base = model.inverse.flow(model._mass_context(p, g)).transform(z[..., None]).squeeze(-1)
     assert float(base.std()) == pytest.approx(2.0, rel=0.05)
-    assert "temperature" not in model.state_dict()           # fitted after training, not saved
+    assert "calibration" not in model.state_dict()           # fitted after training, not saved
+
+
+def test_a_calibrated_density_integrates_to_one(meta, stats, graph):
+    """A curved radius map (wider tails than centre): the change of variables keeps the
+    posterior a density (trapezoid over the normalised log-mass)."""
+    torch.manual_seed(0)
+    model = BGN(meta(6, 2), stats(), 2, small("nsf", "pairs")).double().eval()
+    g = graph(6)
+    knots = torch.linspace(0, 3, 13, dtype=torch.float64)
+    model.inverse.calibration = torch.stack([knots, 0.6 * knots + 0.3 * knots**2])
+    with torch.no_grad():
+        p, _, _ = model._process(g)
+        context = model._mass_context(p, g)
+        grid = torch.linspace(-30, 30, 60001, dtype=torch.float64)
+        dens = torch.stack([model.inverse.log_density(context, x.expand(6)) for x in grid[::10]])
+    mass = torch.trapezoid(dens.exp(), grid[::10], dim=0)
+    torch.testing.assert_close(mass, torch.ones(6, dtype=torch.float64), atol=2e-3, rtol=0)

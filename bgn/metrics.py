@@ -84,18 +84,24 @@ COVERAGE_LEVELS = np.round(np.linspace(0.05, 0.95, 19), 2)  # 0.05, 0.10, ..., 0
 
 
 def coverage_curve(true_log: np.ndarray, sampled_log: np.ndarray,
-                   levels: np.ndarray = COVERAGE_LEVELS) -> np.ndarray:
+                   levels: np.ndarray = COVERAGE_LEVELS, seed: int = 0) -> np.ndarray:
     """Expected coverage at each credibility level: the fraction of particles whose true value
-    lies inside the central ``level`` interval of its own samples (``true_log`` (N,),
-    ``sampled_log`` (S, N)). A calibrated posterior gives the diagonal, coverage = level;
-    below it the posterior is overconfident (too narrow or biased), above it too wide."""
+    lies inside the central ``level`` interval of its own posterior (``true_log`` (N,),
+    ``sampled_log`` (S, N) samples of it). A calibrated posterior gives the diagonal,
+    coverage = level; below it the posterior is overconfident (too narrow or biased), above it
+    too wide.
+
+    The posterior's CDF at the truth is read from the samples as a randomised rank,
+    ``(rank + U) / (S + 1)`` with ``U`` uniform (``sbc_ranks``): exactly uniform on [0, 1] for
+    a calibrated posterior whatever S, and the truth is inside the central ``level`` interval
+    when it lies within ``level / 2`` of 0.5. The interval between the samples' own
+    quantiles is narrower than the posterior's by about (S - 1) / (S + 1): with 32 samples it
+    held a calibrated posterior's truth 84 % of the time at the 90 % level."""
     true_log, sampled_log = _check_samples(true_log, sampled_log)
-    tails = (1.0 - np.asarray(levels)) / 2
-    # one sort for every level; nanquantile (a NaN sample: a flow that diverged) is 10x slower
-    quantile = np.quantile if np.isfinite(sampled_log).all() else np.nanquantile
-    bounds = quantile(sampled_log, np.concatenate([tails, 1.0 - tails]), axis=0)
-    lo, hi = bounds[:len(tails)], bounds[len(tails):]      # (L, N) each
-    return np.mean((true_log >= lo) & (true_log <= hi), axis=1)
+    rng = np.random.default_rng(seed)
+    pit = (sbc_ranks(true_log, sampled_log, rng) + rng.random(len(true_log))) \
+        / (len(sampled_log) + 1)
+    return np.mean(np.abs(pit[None, :] - 0.5) <= np.asarray(levels)[:, None] / 2, axis=1)
 
 
 def sbc_ranks(true_log: np.ndarray, sampled_log: np.ndarray,

@@ -235,6 +235,17 @@ def test_sbc_ranks_and_groups() -> None:
     assert grouped["sbc_p"] > 0.01 and grouped["tarp_ks_p"] > 0.01
 
 
+def test_coverage_is_unbiased_with_few_samples() -> None:
+    """32 samples of the exact posterior: the central interval between the samples' own
+    quantiles holds the truth about (S - 1) / (S + 1) of the time at every level (0.84 at
+    0.9); the randomised rank does not shrink it."""
+    truth, samples, _ = gaussian_posteriors(np.random.default_rng(7), 20000, 32, 1.0)
+    curve = coverage_curve(truth, samples, np.array([0.5, 0.9]))
+    assert curve == pytest.approx([0.5, 0.9], abs=0.01)
+    lo, hi = np.quantile(samples, [0.05, 0.95], axis=0)
+    assert np.mean((truth >= lo) & (truth <= hi)) == pytest.approx(0.9 * 31 / 33, abs=0.01)
+
+
 def test_information_gain_and_relative_mass_error() -> None:
     assert information_gain(np.array([1.0, 3.0]), np.array([0.0, 0.0])) == 2.0
     assert relative_mass_error(np.log([1.1, 0.9, 1.0]), np.zeros(3)) == pytest.approx(0.1)

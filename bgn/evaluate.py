@@ -171,18 +171,17 @@ def _point_metrics(estimate: np.ndarray, true_log: np.ndarray, particles: np.nda
     """Metrics of per-particle point estimates of log-mass (one per particle and frame):
     ``mass_rel_err`` (median ``|m_hat/m - 1|``), ``relmass_r2_estimate`` (R^2 of the relative
     log-mass ``estimate_i - estimate_j`` on the frames' edges) and ``sim_mass_rel_err``: the
-    estimates of one particle averaged (in log) over the evaluated frames of its simulation,
-    as masses do not change over time (DESIGN section 10)."""
+    estimates of one particle pooled over the evaluated frames of its simulation, as masses
+    do not change over time (DESIGN section 10): the product of per-frame Gaussians of the
+    posterior's mean and ``variance`` (``bgn.metrics.aggregate_gaussian``; sharp frames weigh
+    more: spring 1.5 % against 2.7 % for the plain mean in log), a plain mean without it."""
     _, index = np.unique(particles, return_inverse=True)
-    pooled = np.bincount(index, estimate) / np.bincount(index)
+    _, pooled, _ = aggregate_gaussian(estimate, np.ones_like(estimate) if variance is None
+                                      else variance, particles)
     truth = np.bincount(index, true_log) / np.bincount(index)
-    out = {"mass_rel_err": relative_mass_error(estimate, true_log),
-           "relmass_r2_estimate": r2_score(estimate[edges[1]] - estimate[edges[0]], edge_rel),
-           "sim_mass_rel_err": relative_mass_error(pooled, truth)}
-    if variance is not None:
-        _, product, _ = aggregate_gaussian(estimate, variance, particles)
-        out["sim_mass_rel_err_product"] = relative_mass_error(product, truth)
-    return out
+    return {"mass_rel_err": relative_mass_error(estimate, true_log),
+            "relmass_r2_estimate": r2_score(estimate[edges[1]] - estimate[edges[0]], edge_rel),
+            "sim_mass_rel_err": relative_mass_error(pooled, truth)}
 
 
 def window_and_contacts(dataset: FrameDataset, index: int) -> tuple[np.ndarray,
@@ -218,8 +217,8 @@ def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: 
     number of draws from the scene's mass law, its exact density); ``physical/...`` the
     force-law estimator on each frame's window (NaN where the window says nothing: the prior's
     mean), with ``physical/identified`` the share it could estimate. Per-simulation
-    aggregates (``sim_mass_rel_err``): the model's posterior means averaged in log over the
-    evaluated frames of a simulation; the estimator's least squares over all those windows at
+    aggregates (``sim_mass_rel_err``): the product of the model's per-frame posteriors (as
+    Gaussians) over the evaluated frames of a simulation; the estimator's least squares over all those windows at
     once (``physical/sim_identified``: the share of particles it could estimate). Arrays for the
     figure: true and sampled masses and the coverage curves of the model and the prior."""
     model = module.model

@@ -218,9 +218,10 @@ def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: 
     force-law estimator on each frame's window (NaN where the window says nothing: the prior's
     mean), with ``physical/identified`` the share it could estimate. Per-simulation
     aggregates (``sim_mass_rel_err``): the product of the model's per-frame posteriors (as
-    Gaussians) over the evaluated frames of a simulation; the estimator's least squares over all those windows at
-    once (``physical/sim_identified``: the share of particles it could estimate). Arrays for the
-    figure: true and sampled masses and the coverage curves of the model and the prior."""
+    Gaussians) over the evaluated frames of a simulation; the estimator's least squares over
+    all those windows at once (``physical/sim_identified``: the share of particles it could
+    estimate). Arrays for the figure: true and sampled masses and the coverage curves of the
+    model and the prior."""
     model = module.model
     prior = MassPrior.of_scene(dataset.scene)
     rng = np.random.default_rng(seed)

@@ -61,7 +61,8 @@ class ModelConfig(DynamicsConfig):
     # paper), or "pairs", also pair terms of the observed accelerations (not in the paper; it
     # raised the relative-mass R^2 and the information gain on spring and collisions:
     # docs/results.md), or "fit", pairs and the log-masses the structured head (dynamics=newton,
-    # force scenes) fits to the window. mass_context_dropout: dropout on that context.
+    # force scenes; elsewhere fit = pairs) fits to the window. mass_context_dropout: dropout
+    # on that context.
     mass_context: str = "pairs"
     mass_context_dropout: float = 0.0
     # frames of the window whose accelerations the pair terms read (1: the newest; at most
@@ -137,9 +138,6 @@ class ModelConfig(DynamicsConfig):
             raise ValueError(f"flow={self.flow!r}; choose one of {FLOWS}")
         if self.mass_context not in CONTEXTS:
             raise ValueError(f"mass_context={self.mass_context!r}; choose one of {CONTEXTS}")
-        if self.mass_context == "fit" and self.dynamics != "newton":
-            raise ValueError("mass_context=fit conditions the flow on the structured head's "
-                             "mass fit: it needs model.dynamics=newton")
         if self.mass_context_frames < 1:
             raise ValueError(f"mass_context_frames={self.mass_context_frames} must be >= 1")
         if not 0.0 <= self.mass_context_dropout < 1.0:
@@ -215,15 +213,10 @@ class BGN(PhysicsModel):
                 cfg.decoder_hidden, d, cfg.activation, cfg.shared_decoder)
         self.inverse = (InverseModel(self.processor.tilde_v_features, cfg.flow,
                                      cfg.flow_transforms, cfg.flow_hidden, cfg.activation,
-                                     # a one-velocity window holds no acceleration to pair
-                                     cfg.mass_context if history >= 1 else "node",
+                                     self._conditioning(cfg, history),
                                      cfg.mass_context_dropout,
                                      max(1, min(cfg.mass_context_frames, history)))
                         if cfg.inverse else None)
-        if self.inverse is not None and self.inverse.uses_fit and not hasattr(
-                self.force_head, "fitted_log_mass"):
-            raise ValueError("mass_context=fit needs the pair-force head's mass fit (force "
-                             f"scenes with model.dynamics=newton); {meta.name} has none")
         if self.processor.contact is None and self.decoder is None:
             self.edge_encoder = None  # H_E would feed neither a contact head nor a decoder
         heads = {"dynamics"}
@@ -238,6 +231,16 @@ class BGN(PhysicsModel):
             if cfg.contact:
                 heads.add("contact")            # the impulse head's gate
         self.heads = frozenset(heads)  # the loss keys this model produces
+
+    def _conditioning(self, cfg: ModelConfig, history: int) -> str:
+        """The flow's context as built: a one-velocity window holds no acceleration to pair
+        (``node``); ``fit`` is ``pairs`` where no pair-force head fits masses (the decoder,
+        contact scenes), so one setting serves every dynamics."""
+        if history < 1:
+            return "node"
+        if cfg.mass_context == "fit" and not hasattr(self.force_head, "fitted_log_mass"):
+            return "pairs"
+        return cfg.mass_context
 
     # ------------------------------------------------------------------ forward
     def _process(self, g: Graph):

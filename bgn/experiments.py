@@ -167,7 +167,8 @@ def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
     module, test = load_model(ckpt), datamodule.datasets["test"]
     metrics, arrays = evaluate_model(module, test, max_frames=e.max_frames,
                                      mass_frames=e.mass_frames, mass_samples=e.mass_samples,
-                                     batch_size=e.batch_size)
+                                     batch_size=e.batch_size,
+                                     calibration=datamodule.datasets["val"])
     metrics.update(evaluate_rollouts(module.model, test, n_steps=e.rollout_steps,
                                      starts_per_sim=e.rollout_starts, max_sims=e.rollout_sims))
     result = {"checkpoint": str(ckpt), "metrics": metrics, "figure": None}

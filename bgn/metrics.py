@@ -14,7 +14,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 from scipy.signal import find_peaks
-from scipy.stats import chisquare, gaussian_kde, kstest, ttest_ind, wasserstein_distance
+from scipy.stats import chisquare, gaussian_kde, kstest, norm, ttest_ind, wasserstein_distance
 
 
 def r2_score(pred: np.ndarray, true: np.ndarray) -> float:
@@ -84,18 +84,24 @@ COVERAGE_LEVELS = np.round(np.linspace(0.05, 0.95, 19), 2)  # 0.05, 0.10, ..., 0
 
 
 def coverage_curve(true_log: np.ndarray, sampled_log: np.ndarray,
-                   levels: np.ndarray = COVERAGE_LEVELS) -> np.ndarray:
+                   levels: np.ndarray = COVERAGE_LEVELS, seed: int = 0) -> np.ndarray:
     """Expected coverage at each credibility level: the fraction of particles whose true value
-    lies inside the central ``level`` interval of its own samples (``true_log`` (N,),
-    ``sampled_log`` (S, N)). A calibrated posterior gives the diagonal, coverage = level;
-    below it the posterior is overconfident (too narrow or biased), above it too wide."""
+    lies inside the central ``level`` interval of its own posterior (``true_log`` (N,),
+    ``sampled_log`` (S, N) samples of it). A calibrated posterior gives the diagonal,
+    coverage = level; below it the posterior is overconfident (too narrow or biased), above it
+    too wide.
+
+    The posterior's CDF at the truth is read from the samples as a randomised rank,
+    ``(rank + U) / (S + 1)`` with ``U`` uniform (``sbc_ranks``): exactly uniform on [0, 1] for
+    a calibrated posterior whatever S, and the truth is inside the central ``level`` interval
+    when it lies within ``level / 2`` of 0.5. The interval between the samples' own
+    quantiles is narrower than the posterior's by about (S - 1) / (S + 1): with 32 samples it
+    held a calibrated posterior's truth 84 % of the time at the 90 % level."""
     true_log, sampled_log = _check_samples(true_log, sampled_log)
-    tails = (1.0 - np.asarray(levels)) / 2
-    # one sort for every level; nanquantile (a NaN sample: a flow that diverged) is 10x slower
-    quantile = np.quantile if np.isfinite(sampled_log).all() else np.nanquantile
-    bounds = quantile(sampled_log, np.concatenate([tails, 1.0 - tails]), axis=0)
-    lo, hi = bounds[:len(tails)], bounds[len(tails):]      # (L, N) each
-    return np.mean((true_log >= lo) & (true_log <= hi), axis=1)
+    rng = np.random.default_rng(seed)
+    pit = (sbc_ranks(true_log, sampled_log, rng) + rng.random(len(true_log))) \
+        / (len(sampled_log) + 1)
+    return np.mean(np.abs(pit[None, :] - 0.5) <= np.asarray(levels)[:, None] / 2, axis=1)
 
 
 def sbc_ranks(true_log: np.ndarray, sampled_log: np.ndarray,
@@ -212,6 +218,43 @@ def inverse_metrics(true_log: np.ndarray, sampled_log: np.ndarray,
     n_true, n_matched = recovered_modes(true_log, pooled, mode_tolerance)
     out["modes_true"], out["modes_recovered"] = float(n_true), float(n_matched)
     return out
+
+
+RECALIBRATION_LEVELS = np.linspace(0.0, 0.99, 100)  # knots of the monotone radius map
+
+
+def fit_radius_map(base_values: np.ndarray, levels: np.ndarray = RECALIBRATION_LEVELS,
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Knots ``(z, r)`` of the monotone map ``r = m(z)`` that recalibrates a 1-D flow
+    (Kuleshov et al. 2018, "Accurate uncertainties for deep learning using calibrated
+    regression", in the flow's base space). ``base_values``: true values mapped to the base
+    space of their own posteriors, N(0, 1) across cases when calibrated. A base draw ``e``
+    becomes ``sign(e) m(|e|)``: the central ``level`` interval then reaches ``|u| <= r_level``,
+    the ``level`` quantile of ``|base_values|``, and holds the truth at its level on these
+    cases whatever the shape of the miscalibration (a scale alone, ``m(z) = tau z``, fixes
+    only a too-narrow or too-wide Gaussian). ``z_k = Phi^-1((1 + level_k) / 2)``, ``r_k``
+    strictly increasing from ``m(0) = 0``; non-finite values are dropped."""
+    u = np.abs(np.asarray(base_values, dtype=np.float64))
+    u = u[np.isfinite(u)]
+    z = norm.ppf((1.0 + np.asarray(levels)) / 2)
+    r = np.quantile(u, levels)
+    r[0] = 0.0 if levels[0] == 0 else r[0]
+    # strictly increasing (ties in |u| would make the inverse map undefined)
+    r = np.maximum.accumulate(r) + 1e-9 * np.arange(len(r))
+    return z, r
+
+
+def aggregate_gaussian(mean: np.ndarray, var: np.ndarray, groups: np.ndarray,
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pool per-frame Gaussian posteriors ``N(mean, var)`` of one constant quantity (a
+    particle's log-mass seen in several frames, labelled by ``groups``) into their product:
+    precision ``sum 1/var``, mean the precision-weighted mean. Frames whose window says more
+    (a sharp posterior: an impact, a close pass) weigh more than a plain average lets them.
+    Returns ``(labels, mean, var)`` per group, labels sorted (``np.unique``)."""
+    labels, index = np.unique(groups, return_inverse=True)
+    precision = 1.0 / np.maximum(np.asarray(var, dtype=np.float64), 1e-12)
+    total = np.bincount(index, precision)
+    return labels, np.bincount(index, precision * mean) / total, 1.0 / total
 
 
 def relative_mass_error(estimate_log: np.ndarray, true_log: np.ndarray) -> float:

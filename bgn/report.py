@@ -103,7 +103,8 @@ def inverse_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
     """Inverse model: every full-model cell with a mass head (main grid first), its sample,
     calibration and information metrics and figure, with the prior-only sampler and the
     force-law estimator on the same test particles below it."""
-    columns = ["scene", "fps", "model", *INVERSE_COLUMNS, "mass_particles", "figure"]
+    columns = ["scene", "fps", "model", *INVERSE_COLUMNS, "mass_calibration_scale50",
+               "mass_calibration_scale90", "mass_particles", "figure"]
     main = _main(cells)
     rows = []
     for c in main + [c for c in cells if "main" not in c.groups]:
@@ -119,9 +120,12 @@ def inverse_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
                                  **values})
     return write_table(
         report_dir, "inverse", columns, rows, "Inverse model: sampled vs true masses",
-        "Log-masses (natural log) of every particle of a subset of test frames. "
-        "Calibration (DESIGN section 8): coverage50/90, the fraction of particles whose true "
-        "log-mass lies in the central 50% / 90% interval of its samples (calibrated: "
+        "Log-masses (natural log) of every particle of a subset of test frames, the flow "
+        "recalibrated first on as many validation frames (a monotone map of its base radius; "
+        "mass_calibration_scale50/90: the map's scale at those levels, > 1 where the trained "
+        "flow was overconfident). Calibration (DESIGN section 8): coverage50/90, the fraction "
+        "of particles whose true log-mass lies in the central 50% / 90% interval of its "
+        "posterior (read from the truth's randomised rank among the samples; calibrated: "
         "0.5 / 0.9), and coverage_max_dev, the largest |coverage - level| over the levels "
         "0.05 ... 0.95 (the curve is in the figure); sbc_p, chi-square p of the uniformity "
         "of simulation-based-calibration ranks; tarp_atc, TARP's area between its coverage "
@@ -130,11 +134,12 @@ def inverse_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
         "minus the prior's (nats; 0 = learned nothing). relmass_r2: the relative-mass head "
         "(Eq. 9-10); relmass_r2_estimate: of the posterior means' differences on the same "
         "edges; mass_rel_err: median |m_hat / m - 1| of one frame's posterior mean; "
-        "sim_mass_rel_err: of each particle's estimates averaged (in log) over the "
-        "evaluated frames of its simulation. Welch p, W1 (log-masses) and modes (KDE peaks "
-        "of the true log-masses, how many have a sampled peak within 0.5) compare pooled "
-        "samples, which a sampler of the prior also passes. References on the same "
-        "particles: the prior-only sampler (draws from the scene's mass law: calibrated, "
+        "sim_mass_rel_err: of each particle's per-frame posteriors pooled (their Gaussian "
+        "product) over the evaluated frames of its simulation. Welch p, W1 (log-masses) "
+        "and modes (KDE peaks of the true log-masses, how many have a sampled peak within "
+        "0.5) compare pooled samples, which a sampler of the prior also passes. References "
+        "on the same particles: the prior-only sampler (draws from the scene's mass law: "
+        "calibrated, "
         "zero information) and the physical estimator (the known force law on the "
         "window's finite differences; collisions: momentum exchange at impacts, which one "
         "window rarely holds; its per-simulation value pools the windows of a simulation).",

@@ -33,7 +33,9 @@ from bgn.sim.scene import SceneMeta
 
 # "unroll": the dynamics loss of steps unrolled on the model's own frames (bgn.unroll);
 # "impulse_mass": the learned masses of the impulse head (bgn.model.impulse)
-LOSS_KEYS = ("dynamics", "contact", "type", "mass_nll", "relmass", "unroll", "impulse_mass")
+# "law": the structured force head's prediction with the recorded masses (bgn.model.newton)
+LOSS_KEYS = ("dynamics", "contact", "type", "mass_nll", "relmass", "unroll", "impulse_mass",
+             "law")
 
 
 @dataclass

@@ -37,7 +37,7 @@ from bgn.model.encoder import (
     node_input_dim,
 )
 from bgn.model.inverse import CONTEXTS, FLOWS, InverseModel
-from bgn.model.newton import MASS_LAWS, build_head, impulse_mass_loss
+from bgn.model.newton import MASS_LAWS, build_head, impulse_mass_loss, law_loss
 from bgn.model.processor import CONTACT_MODES, MESSAGES, Processor, ProcessorOutput
 
 DYNAMICS = ("decoder", "newton")
@@ -60,9 +60,14 @@ class ModelConfig(DynamicsConfig):
     # What the flow is conditioned on (inverse.InverseModel.context): "node", H̃_V alone (the
     # paper), or "pairs", also pair terms of the observed accelerations (not in the paper; it
     # raised the relative-mass R^2 and the information gain on spring and collisions:
-    # docs/results.md). mass_context_dropout: dropout on that context while training.
+    # docs/results.md), or "fit", pairs and the log-masses the structured head (dynamics=newton,
+    # force scenes; elsewhere fit = pairs) fits to the window. mass_context_dropout: dropout
+    # on that context.
     mass_context: str = "pairs"
     mass_context_dropout: float = 0.0
+    # frames of the window whose accelerations the pair terms read (1: the newest; at most
+    # the history): an impact anywhere in the window carries the pair's mass ratio
+    mass_context_frames: int = 1
     classifier: bool = True            # particle-type head (Eq. 2), only with n_types > 1
     contact: bool = True               # contact decoder (Eq. 3-4)
     inverse: bool = True               # mass flow + relative-mass decoder (Eq. 6-10)
@@ -134,6 +139,8 @@ class ModelConfig(DynamicsConfig):
             raise ValueError(f"flow={self.flow!r}; choose one of {FLOWS}")
         if self.mass_context not in CONTEXTS:
             raise ValueError(f"mass_context={self.mass_context!r}; choose one of {CONTEXTS}")
+        if self.mass_context_frames < 1:
+            raise ValueError(f"mass_context_frames={self.mass_context_frames} must be >= 1")
         if not 0.0 <= self.mass_context_dropout < 1.0:
             raise ValueError(f"mass_context_dropout={self.mass_context_dropout} must be in "
                              "[0, 1)")
@@ -207,9 +214,9 @@ class BGN(PhysicsModel):
                 cfg.decoder_hidden, d, cfg.activation, cfg.shared_decoder)
         self.inverse = (InverseModel(self.processor.tilde_v_features, cfg.flow,
                                      cfg.flow_transforms, cfg.flow_hidden, cfg.activation,
-                                     # a one-velocity window holds no acceleration to pair
-                                     cfg.mass_context if history >= 1 else "node",
-                                     cfg.mass_context_dropout)
+                                     self._conditioning(cfg, history),
+                                     cfg.mass_context_dropout,
+                                     max(1, min(cfg.mass_context_frames, history)))
                         if cfg.inverse else None)
         if self.processor.contact is None and self.decoder is None:
             self.edge_encoder = None  # H_E would feed neither a contact head nor a decoder
@@ -220,11 +227,23 @@ class BGN(PhysicsModel):
             heads.add("contact")
         if self.inverse is not None:
             heads |= {"mass_nll", "relmass"}
+        if self.force_head is not None and not self.contact_scene:
+            heads.add("law")                    # the force law with the recorded masses
         if self.force_head is not None and self.contact_scene:
             heads.add("impulse_mass")
             if cfg.contact:
                 heads.add("contact")            # the impulse head's gate
         self.heads = frozenset(heads)  # the loss keys this model produces
+
+    def _conditioning(self, cfg: ModelConfig, history: int) -> str:
+        """The flow's context as built: a one-velocity window holds no acceleration to pair
+        (``node``); ``fit`` is ``pairs`` where no pair-force head fits masses (the decoder,
+        contact scenes), so one setting serves every dynamics."""
+        if history < 1:
+            return "node"
+        if cfg.mass_context == "fit" and not hasattr(self.force_head, "fitted_log_mass"):
+            return "pairs"
+        return cfg.mass_context
 
     # ------------------------------------------------------------------ forward
     def _process(self, g: Graph):
@@ -260,10 +279,18 @@ class BGN(PhysicsModel):
         mass_nll = relmass = z = None
         if self.inverse is not None:
             log_m = self.normalizer.log_mass(torch.log(g.mass))
-            context = self.inverse.context(p.h_tilde_v, g)           # Eq. 6
+            context = self._mass_context(p, g)           # Eq. 6
             mass_nll, z = self.inverse(context, log_m, noise)       # Eq. 7-8
             relmass = self.inverse.relative(z, g.edge_index)        # Eq. 9-10
         return ModelOutput(target, p.type_logits, contact, mass_nll, relmass, z, w)
+
+    def _mass_context(self, p: ProcessorOutput, g: Graph) -> torch.Tensor:
+        """The flow's context (``InverseModel.context``), with the structured head's fitted
+        log-masses under ``mass_context=fit``."""
+        assert self.inverse is not None
+        fitted = (self.force_head.fitted_log_mass(g)
+                  if self.inverse.uses_fit and self.force_head is not None else None)
+        return self.inverse.context(p.h_tilde_v, g, fitted)
 
     def forward_target(self, g: Graph) -> torch.Tensor:
         """The dynamics head alone (no flow): what ``predict`` and rollouts run."""
@@ -302,6 +329,8 @@ class BGN(PhysicsModel):
         if self.force_head is not None and (mass := impulse_mass_loss(
                 self.force_head, g, self.normalizer)) is not None:
             terms["impulse_mass"] = mass                        # the impulse head's masses
+        if self.force_head is not None and (law := law_loss(self.force_head, g)) is not None:
+            terms["law"] = law                                  # the law, masses known
         if out.relmass is not None:                             # L_Inv-Dec
             r = self.normalizer.rel_log_mass(g.edge_rel_log_mass)
             terms["relmass"] = (F.mse_loss(out.relmass, r) if r.numel()
@@ -315,7 +344,7 @@ class BGN(PhysicsModel):
         if self.inverse is None:
             raise RuntimeError("this model has no inverse head (cfg.inverse=False)")
         p, _, _ = self._process(g)
-        return self.inverse.sample_log_mass(self.inverse.context(p.h_tilde_v, g), n_samples)
+        return self.inverse.sample_log_mass(self._mass_context(p, g), n_samples)
 
     @torch.no_grad()
     def mass_posterior(self, g: Graph, n_samples: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -325,12 +354,23 @@ class BGN(PhysicsModel):
         if self.inverse is None:
             raise RuntimeError("this model has no inverse head (cfg.inverse=False)")
         p, _, _ = self._process(g)
-        dist = self.inverse.flow(self.inverse.context(p.h_tilde_v, g))
+        context = self._mass_context(p, g)
         z_true = self.normalizer.log_mass(torch.log(g.mass))
-        log_density = (dist.log_prob(z_true[:, None])
+        log_density = (self.inverse.log_density(context, z_true)
                        - torch.log(self.normalizer.log_mass_scale))
-        samples = self.normalizer.denormalize_log_mass(dist.sample((n_samples,)).squeeze(-1))
+        samples = self.normalizer.denormalize_log_mass(
+            self.inverse.sample_log_mass(context, n_samples))
         return samples, log_density
+
+    @torch.no_grad()
+    def mass_base_value(self, g: Graph) -> torch.Tensor:
+        """(N,) every particle's true normalised log-mass in the flow's base space (untempered;
+        ``InverseModel.base_value``): what the calibration is fitted to."""
+        if self.inverse is None:
+            raise RuntimeError("this model has no inverse head (cfg.inverse=False)")
+        p, _, _ = self._process(g)
+        context = self._mass_context(p, g)
+        return self.inverse.base_value(context, self.normalizer.log_mass(torch.log(g.mass)))
 
     @torch.no_grad()
     def sample_mass(self, g: Graph, n_samples: int) -> torch.Tensor:

@@ -22,11 +22,22 @@ particle needs messages from the edges where it is the sender. GCN layers that a
 normalised features do not form such log-ratios of magnitudes from a few hundred training
 masses; per edge, the log-distance, the log-magnitudes of both accelerations and their
 cosines with the pair direction make them a smooth function an MLP learns.
+``fit`` adds to ``pairs`` the log-mass that the structured force head (``model.dynamics=newton``,
+``bgn.model.newton``) fits to the window's accelerations with its learned force law: under
+gravity a joint least-squares fit of every particle's mass from its neighbours' accelerations,
+which a few hundred training masses do not teach an MLP of pair terms. The fit's scale is free
+(a constant the flow learns); it enters detached, so the flow does not bend the force law.
 Optional dropout on the context during training regularises a flow that sees few masses.
 
-The bilinear map acts on ``[z, 1]``: with 1-D ``z`` alone, ``z_i W z_j`` is symmetric in (i, j)
-and cannot represent the antisymmetric ``z_i - z_j``; the constant channel adds the linear terms
-``z_i`` and ``z_j`` (homogeneous coordinates) at no other cost.
+Calibration (``calibration``): a flow trained by maximum likelihood on a few thousand masses
+is miscalibrated (its intervals too narrow, or too wide with too heavy tails). At inference a
+base draw ``e ~ N(0, 1)`` becomes ``sign(e) m(|e|)`` with ``m`` a monotone piecewise-linear
+map of the radius (knots ``(z, r)``, linear past the last): for a 1-D flow the transform is
+monotone, so this moves every credible interval's bounds around the same median, in the
+flow's own warped coordinates, and the density follows by the change of variables. The map is
+fitted on the validation split after training (``bgn.evaluate.calibrate_mass_posterior``,
+``bgn.metrics.fit_radius_map``); it is the identity while training and not part of the
+checkpoint's weights.
 """
 
 from __future__ import annotations
@@ -41,7 +52,7 @@ from bgn.model.message_passing import edge_chunks
 from bgn.model.ops import activation
 
 FLOWS = ("nsf", "naf")
-CONTEXTS = ("node", "pairs")
+CONTEXTS = ("node", "pairs", "fit")
 PAIR_FEATURES = 5   # log r, log |a_i|, log |a_j|, cos(a_i, u_ij), cos(a_j, u_ij)
 _EPS = 1e-12
 
@@ -61,49 +72,57 @@ def make_flow(kind: str, context: int, transforms: int, hidden: int) -> zuko.flo
 def newest_acceleration(g: Graph) -> torch.Tensor:
     """(N, D) the window's newest finite-difference acceleration ``(v[t] - v[t-1]) / dt``, in
     physical units (the pair terms take its log-magnitude: no scale to learn)."""
+    return window_accelerations(g, 1)[:, 0]
+
+
+def window_accelerations(g: Graph, frames: int) -> torch.Tensor:
+    """(N, F, D) the window's ``frames`` newest finite-difference accelerations
+    ``(v[t-f] - v[t-f-1]) / dt``, f = 0 .. F-1, in physical units."""
     if g.dt is None:
         raise ValueError("pair terms need the frame spacing: the graph has no dt")
-    return (g.vel[:, 0] - g.vel[:, 1]) / g.dt[g.batch][:, None]
+    return (g.vel[:, :frames] - g.vel[:, 1:frames + 1]) / g.dt[g.batch][:, None, None]
 
 
-def pair_features(g: Graph) -> torch.Tensor:
-    """(E, 5) per edge j -> i at frame t-1, where the window's newest finite-difference
-    acceleration ``a = (v[t] - v[t-1]) / dt`` is exact: ``log r_ij``, ``log |a_i|``,
-    ``log |a_j|`` and both accelerations' cosines with the unit vector ``u_ij`` from j to i.
-    Positions at t-1 are ``x[t] - dt v[t]`` (the backward difference, undone)."""
+def pair_features(g: Graph, frames: int = 1) -> torch.Tensor:
+    """(E, F, 5) per edge j -> i at frames t-1, .., t-F, where the window's finite-difference
+    accelerations ``a[t-f-1] = (v[t-f] - v[t-f-1]) / dt`` are exact: ``log r_ij``,
+    ``log |a_i|``, ``log |a_j|`` and both accelerations' cosines with the unit vector ``u_ij``
+    from j to i. Positions at t-f-1 are ``x[t] - dt (v[t] + .. + v[t-f])`` (the backward
+    differences, undone)."""
     snd, rcv = g.edge_index[0], g.edge_index[1]
-    acc = newest_acceleration(g)
-    prev = g.pos - g.dt[g.batch][:, None] * g.vel[:, 0]
+    acc = window_accelerations(g, frames)
+    prev = g.pos[:, None] - g.dt[g.batch][:, None, None] * torch.cumsum(g.vel[:, :frames], 1)
     rel = prev[rcv] - prev[snd]
     r = torch.sqrt((rel * rel).sum(-1) + _EPS)
     a_norm = torch.sqrt((acc * acc).sum(-1) + _EPS)
-    unit, a_unit = rel / r[:, None], acc / a_norm[:, None]
+    unit, a_unit = rel / r[..., None], acc / a_norm[..., None]
     return torch.stack([torch.log(r), torch.log(a_norm[rcv]), torch.log(a_norm[snd]),
                         (a_unit[rcv] * unit).sum(-1), (a_unit[snd] * unit).sum(-1)], -1)
 
 
 class PairContext(nn.Module):
-    """Pair terms for the flow's context: an edge MLP of ``pair_features``, summed at the
-    receiver and (a second half) at the sender, then a node MLP with the node's own
-    ``log |a|``; returns (N, hidden)."""
+    """Pair terms for the flow's context: an edge MLP of ``pair_features`` at each of
+    ``frames`` frames, summed over them and at the receiver and (a second half) at the
+    sender, then a node MLP with the node's own ``log |a|`` at those frames; returns
+    (N, hidden). More than the newest frame (``mass_context_frames``): an impact, whose
+    momentum exchange gives the pair's mass ratio, shows wherever it falls in the window."""
 
-    def __init__(self, hidden: int, act: str) -> None:
+    def __init__(self, hidden: int, act: str, frames: int = 1) -> None:
         super().__init__()
-        self.hidden = hidden
+        self.hidden, self.frames = hidden, frames
         self.edge = nn.Sequential(nn.Linear(PAIR_FEATURES, hidden), activation(act),
                                   nn.Linear(hidden, 2 * hidden))
-        self.node = nn.Sequential(nn.Linear(2 * hidden + 1, hidden), activation(act),
+        self.node = nn.Sequential(nn.Linear(2 * hidden + frames, hidden), activation(act),
                                   nn.Linear(hidden, hidden))
 
     def forward(self, g: Graph) -> torch.Tensor:
         snd, rcv = g.edge_index[0], g.edge_index[1]
-        e = pair_features(g)
-        m = self.edge(e)
+        m = self.edge(pair_features(g, self.frames)).sum(1)
         n = len(g.vel)
         to_rcv = m.new_zeros(n, self.hidden).index_add_(0, rcv, m[:, :self.hidden])
         to_snd = m.new_zeros(n, self.hidden).index_add_(0, snd, m[:, self.hidden:])
-        acc = newest_acceleration(g)
-        log_a = 0.5 * torch.log((acc * acc).sum(-1, keepdim=True) + _EPS)
+        acc = window_accelerations(g, self.frames)
+        log_a = 0.5 * torch.log((acc * acc).sum(-1) + _EPS)
         return self.node(torch.cat([to_rcv, to_snd, log_a], -1))
 
 
@@ -114,25 +133,37 @@ class InverseModel(nn.Module):
     """
 
     def __init__(self, context: int, flow: str = "nsf", transforms: int = 3, hidden: int = 64,
-                 act: str = "silu", conditioning: str = "node", dropout: float = 0.0) -> None:
+                 act: str = "silu", conditioning: str = "node", dropout: float = 0.0,
+                 frames: int = 1) -> None:
         super().__init__()
         if conditioning not in CONTEXTS:
             raise ValueError(f"mass_context={conditioning!r}; choose one of {CONTEXTS}")
         self.kind = flow
-        self.pairs = PairContext(hidden, act) if conditioning == "pairs" else None
+        self.pairs = PairContext(hidden, act, frames) if conditioning in ("pairs", "fit") else None
+        self.uses_fit = conditioning == "fit"
         self.dropout = dropout
-        self.flow = make_flow(flow, context + (hidden if self.pairs else 0), transforms, hidden)
+        self.flow = make_flow(flow, context + (hidden if self.pairs else 0) + self.uses_fit,
+                              transforms, hidden)
         self.bilinear = nn.Bilinear(2, 2, hidden)     # Eq. 9 on [z, 1]
         self.act = activation(act)
         self.linear2 = nn.Linear(hidden, hidden)      # Eq. 10: W_Inv-Dec2
         self.linear3 = nn.Linear(hidden, 1)           # Eq. 10: W_Inv-Dec3
         self.edge_chunk: int | None = None            # set by PhysicsModel (its config)
+        # knots (z, r) of the radius map, (2, K); none: the identity. Not persistent: fitted
+        # after training on the validation split, not learned
+        self.register_buffer("calibration", torch.empty(2, 0), persistent=False)
 
-    def context(self, h_tilde_v: torch.Tensor, g: Graph) -> torch.Tensor:
+    def context(self, h_tilde_v: torch.Tensor, g: Graph,
+                fitted_log_mass: torch.Tensor | None = None) -> torch.Tensor:
         """What the flow is conditioned on: ``H̃_V`` (Eq. 6), with the pair terms under
-        ``pairs``; dropout on it while training."""
-        c = h_tilde_v if self.pairs is None else torch.cat([h_tilde_v, self.pairs(g)], -1)
-        return F.dropout(c, self.dropout, self.training)
+        ``pairs`` and ``fit``, and the force head's ``fitted_log_mass`` (N,) under ``fit``;
+        dropout on it while training."""
+        parts = [h_tilde_v] if self.pairs is None else [h_tilde_v, self.pairs(g)]
+        if self.uses_fit:
+            if fitted_log_mass is None:
+                raise ValueError("mass_context=fit needs the structured head's fitted masses")
+            parts.append(fitted_log_mass.detach()[:, None])
+        return F.dropout(torch.cat(parts, -1), self.dropout, self.training)
 
     def forward(self, context: torch.Tensor, log_mass: torch.Tensor,
                 noise: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -163,6 +194,38 @@ class InverseModel(nn.Module):
         h = self.act(F.linear(outer, self.bilinear.weight.flatten(1), self.bilinear.bias))
         return self.linear3(self.act(self.linear2(h))).squeeze(-1)
 
+    def _radius(self, x: torch.Tensor, inverse: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        """The radius map ``m`` (or its inverse) at ``|x|`` with the sign of ``x``, and the
+        map's slope there (piecewise linear between the knots, linear past the last)."""
+        z, r = self.calibration.to(x.dtype)
+        xp, fp = (r, z) if inverse else (z, r)
+        a = x.abs()
+        i = torch.searchsorted(xp, a.detach().contiguous()).clamp(1, len(xp) - 1)
+        slope = (fp[i] - fp[i - 1]) / (xp[i] - xp[i - 1])
+        return torch.sign(x) * (fp[i - 1] + slope * (a - xp[i - 1])), slope
+
+    def log_density(self, context: torch.Tensor, log_mass: torch.Tensor) -> torch.Tensor:
+        """(N,) log-density of the normalised ``log_mass`` (N,) under the calibrated posterior:
+        the flow's, with the base density ``N(0, 1)`` at ``u`` replaced by that of ``u`` under
+        the radius map, ``phi(m^-1(u)) / m'``."""
+        dist = self.flow(context)
+        log_p = dist.log_prob(log_mass[:, None])
+        if not self.calibration.numel():
+            return log_p
+        u = dist.transform(log_mass[:, None]).squeeze(-1)
+        e, slope = self._radius(u, inverse=True)
+        return log_p + 0.5 * (u * u - e * e) + torch.log(slope)
+
+    def base_value(self, context: torch.Tensor, log_mass: torch.Tensor) -> torch.Tensor:
+        """(N,) the normalised log-mass mapped to the flow's base space (uncalibrated): standard
+        normal across particles when the flow is calibrated (``bgn.metrics.fit_radius_map``)."""
+        return self.flow(context).transform(log_mass[:, None]).squeeze(-1)
+
     def sample_log_mass(self, context: torch.Tensor, n: int) -> torch.Tensor:
-        """``n`` samples of every particle's normalised log-mass, shape (n, N)."""
-        return self.flow(context).sample((n,)).squeeze(-1)
+        """``n`` samples of every particle's normalised log-mass under the calibrated
+        posterior, shape (n, N)."""
+        dist = self.flow(context)
+        if not self.calibration.numel():
+            return dist.sample((n,)).squeeze(-1)
+        e = torch.randn((n, len(context), 1), dtype=context.dtype, device=context.device)
+        return dist.transform.inv(self._radius(e, inverse=False)[0]).squeeze(-1)

@@ -11,9 +11,9 @@ from bgn.model import BGN, ModelConfig
 from bgn.model.inverse import InverseModel, pair_features
 
 
-def small(flow: str, context: str = "node") -> ModelConfig:
+def small(flow: str, context: str = "node", frames: int = 1) -> ModelConfig:
     return ModelConfig(hidden=16, decoder_hidden=16, flow=flow, flow_hidden=8,
-                       flow_transforms=2, mass_context=context)
+                       flow_transforms=2, mass_context=context, mass_context_frames=frames)
 
 
 @pytest.mark.parametrize("flow", ["nsf", "naf"])
@@ -35,11 +35,11 @@ def test_flow_forward_backward_and_sampling(meta, stats, graph, flow):
     assert samples.shape == (5, 6) and (samples > 0).all() and torch.isfinite(samples).all()
 
 
-@pytest.mark.parametrize(("flow", "context"), [("nsf", "node"), ("naf", "node"),
-                                               ("nsf", "pairs")])
-def test_coincident_particles_have_finite_gradients(meta, stats, graph, flow, context):
+@pytest.mark.parametrize(("flow", "context", "frames"), [
+    ("nsf", "node", 1), ("naf", "node", 1), ("nsf", "pairs", 1), ("nsf", "pairs", 2)])
+def test_coincident_particles_have_finite_gradients(meta, stats, graph, flow, context, frames):
     torch.manual_seed(0)
-    model = BGN(meta(6, 2), stats(), 2, small(flow, context)).double()
+    model = BGN(meta(6, 2), stats(), 2, small(flow, context, frames)).double()
     g = graph(6)
     pos, vel = g.pos.clone(), g.vel.clone()
     pos[1], vel[1] = pos[0], vel[0]             # particles 0 and 1 coincide
@@ -94,17 +94,21 @@ def test_log_probabilities_stay_finite_from_1e_4_to_1e2(meta, stats, graph, flow
 def test_pair_features_at_the_frame_of_the_newest_acceleration(graph):
     """Positions one frame back (x[t] - dt v[t]) and accelerations (v[t] - v[t-1]) / dt."""
     g = graph(3)
-    feats = pair_features(g)
     dt = float(g.dt[0])
-    acc = (g.vel[:, 0] - g.vel[:, 1]) / dt
-    prev = g.pos - dt * g.vel[:, 0]
     snd, rcv = g.edge_index
     e = 0
-    rel = prev[rcv[e]] - prev[snd[e]]
-    unit = rel / rel.norm()
-    expected = [rel.norm().log(), acc[rcv[e]].norm().log(), acc[snd[e]].norm().log(),
-                acc[rcv[e]] @ unit / acc[rcv[e]].norm(), acc[snd[e]] @ unit / acc[snd[e]].norm()]
-    torch.testing.assert_close(feats[e], torch.stack(expected))
+    # the newest frame alone, and the second frame of a two-frame window (t-2: one more step)
+    for frames, f, prev in ((1, 0, g.pos - dt * g.vel[:, 0]),
+                            (2, 1, g.pos - dt * g.vel[:, 0] - dt * g.vel[:, 1])):
+        feats = pair_features(g, frames)
+        assert feats.shape == (g.edge_index.shape[1], frames, 5)
+        acc = (g.vel[:, f] - g.vel[:, f + 1]) / dt
+        rel = prev[rcv[e]] - prev[snd[e]]
+        unit = rel / rel.norm()
+        expected = [rel.norm().log(), acc[rcv[e]].norm().log(), acc[snd[e]].norm().log(),
+                    acc[rcv[e]] @ unit / acc[rcv[e]].norm(),
+                    acc[snd[e]] @ unit / acc[snd[e]].norm()]
+        torch.testing.assert_close(feats[e, f], torch.stack(expected))
 
 
 def test_pair_context_trains_and_the_posterior_density_matches_the_loss(meta, stats, graph):
@@ -120,3 +124,44 @@ def test_pair_context_trains_and_the_posterior_density_matches_the_loss(meta, st
     # the density of the natural log-mass: the loss's, with the normalisation's Jacobian
     nll = model(g).mass_nll
     torch.testing.assert_close(log_density, -nll - model.normalizer.log_mass_scale.log())
+
+
+def test_a_linear_radius_map_scales_the_base_and_keeps_the_median(meta, stats, graph):
+    """Post-hoc calibration (InverseModel.calibration) with the map m(z) = 2 z: the true
+    log-mass maps to the same base value; the density is that of the base N(0, 4); samples sit
+    twice as far from the base's centre (their median, the flow's transform of 0, stays)."""
+    torch.manual_seed(0)
+    model = BGN(meta(6, 2), stats(), 2, small("nsf", "pairs")).double().eval()
+    g = graph(6)
+    u = model.mass_base_value(g)
+    _, density = model.mass_posterior(g, 4)
+    knots = torch.linspace(0, 3, 7)
+    model.inverse.calibration = torch.stack([knots, 2 * knots])
+    torch.testing.assert_close(model.mass_base_value(g), u)
+    _, scaled = model.mass_posterior(g, 4)
+    # log N(u; 0, 4) - log N(u; 0, 1) = -log 2 + 3 u^2 / 8
+    torch.testing.assert_close(scaled - density, -torch.log(torch.tensor(2.0)) + 0.375 * u**2)
+    torch.manual_seed(1)
+    z = model.sample_log_mass(g, 4000)
+    p, _, _ = model._process(g)
+    with torch.no_grad():
+        base = model.inverse.flow(model._mass_context(p, g)).transform(z[..., None]).squeeze(-1)
+    assert float(base.std()) == pytest.approx(2.0, rel=0.05)
+    assert "calibration" not in model.state_dict()           # fitted after training, not saved
+
+
+def test_a_calibrated_density_integrates_to_one(meta, stats, graph):
+    """A curved radius map (wider tails than centre): the change of variables keeps the
+    posterior a density (trapezoid over the normalised log-mass)."""
+    torch.manual_seed(0)
+    model = BGN(meta(6, 2), stats(), 2, small("nsf", "pairs")).double().eval()
+    g = graph(6)
+    knots = torch.linspace(0, 3, 13, dtype=torch.float64)
+    model.inverse.calibration = torch.stack([knots, 0.6 * knots + 0.3 * knots**2])
+    with torch.no_grad():
+        p, _, _ = model._process(g)
+        context = model._mass_context(p, g)
+        grid = torch.linspace(-30, 30, 60001, dtype=torch.float64)
+        dens = torch.stack([model.inverse.log_density(context, x.expand(6)) for x in grid[::10]])
+    mass = torch.trapezoid(dens.exp(), grid[::10], dim=0)
+    torch.testing.assert_close(mass, torch.ones(6, dtype=torch.float64), atol=2e-3, rtol=0)

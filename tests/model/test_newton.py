@@ -69,6 +69,22 @@ def test_inertial_fit_returns_the_true_masses(small_cfg):
     assert float((fitted / g.mass - 1).abs().median()) < 1e-4
 
 
+@pytest.mark.parametrize("scene", sorted(LAWS))
+def test_the_fitted_log_masses_of_the_true_law_are_the_masses(small_cfg, scene):
+    """What mass_context=fit feeds the flow: with the true force law, the window's fit gives
+    every particle's log-mass (gravity: the robust joint fit, close passes aside)."""
+    ds, g = frames(small_cfg, scene)
+    model = build_model({"name": "bgn", "dynamics": "newton", "mass_law": LAWS[scene][0],
+                         "mass_context": "fit"}, ds.meta, ds.file.stats(), ds.history).double()
+    model.force_head.force_law = TrueLaw(LAWS[scene][1],
+                                         float(model.normalizer.rel_position_scale))
+    error = (model.force_head.fitted_log_mass(g) - g.mass.log()).abs()
+    assert float(error.median()) < 1e-3
+    model.eval()
+    samples, density = model.mass_posterior(g, 3)            # the flow reads it
+    assert samples.shape == (3, len(g.mass)) and torch.isfinite(density).all()
+
+
 def test_pair_forces_are_equal_and_opposite(small_cfg):
     ds, g = frames(small_cfg, "spring")
     torch.manual_seed(0)
@@ -88,10 +104,15 @@ def test_scenes_without_pairwise_forces_and_short_windows_are_refused(small_cfg)
         build_model({"name": "bgn", "dynamics": "newton"}, radius, ds.file.stats(), ds.history)
     with pytest.raises(ValueError, match="mass_law"):
         build_model({"name": "bgn", "mass_law": "magic"}, ds.meta, ds.file.stats(), ds.history)
+    # without the pair-force head there is no fit: the flow reads the pair terms alone
+    decoder = build_model({"name": "bgn", "mass_context": "fit"}, ds.meta, ds.file.stats(),
+                          ds.history)
+    assert decoder.inverse.pairs is not None and not decoder.inverse.uses_fit
 
 
 @pytest.mark.parametrize(("scene", "overrides"), [
     ("spring", {}), ("gravity_r2", {"mass_law": "source"}),
+    ("gravity_r2", {"mass_law": "source", "mass_context": "fit"}),
     ("collisions", {}), ("collisions", {"contact": False})])
 def test_every_parameter_of_bgn_with_the_structured_head_gets_a_gradient(small_cfg, scene,
                                                                          overrides):

@@ -125,7 +125,10 @@ class ModelConfig(DynamicsConfig):
     contact_pos_weight: Any = "balanced"
     # Eq. 12 weights, one per task (keys: LOSS_KEYS); missing keys weigh 1. collisions
     # down-weights the auxiliary tasks (conf/dataset_model/collisions_bgn.yaml).
-    loss_weights: dict[str, float] = field(default_factory=lambda: dict.fromkeys(LOSS_KEYS, 1.0))
+    # "law" (the structured force head with the recorded masses, newton.law_loss) is the one
+    # task off unless weighted: gravity_r2 trains on it alone (conf/dataset_model/).
+    loss_weights: dict[str, float] = field(
+        default_factory=lambda: {**dict.fromkeys(LOSS_KEYS, 1.0), "law": 0.0})
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -227,7 +230,8 @@ class BGN(PhysicsModel):
             heads.add("contact")
         if self.inverse is not None:
             heads |= {"mass_nll", "relmass"}
-        if self.force_head is not None and not self.contact_scene:
+        if (self.force_head is not None and not self.contact_scene
+                and cfg.loss_weights.get("law", 0.0)):
             heads.add("law")                    # the force law with the recorded masses
         if self.force_head is not None and self.contact_scene:
             heads.add("impulse_mass")
@@ -329,7 +333,7 @@ class BGN(PhysicsModel):
         if self.force_head is not None and (mass := impulse_mass_loss(
                 self.force_head, g, self.normalizer)) is not None:
             terms["impulse_mass"] = mass                        # the impulse head's masses
-        if self.force_head is not None and (law := law_loss(self.force_head, g)) is not None:
+        if "law" in self.heads and (law := law_loss(self.force_head, g)) is not None:
             terms["law"] = law                                  # the law, masses known
         if out.relmass is not None:                             # L_Inv-Dec
             r = self.normalizer.rel_log_mass(g.edge_rel_log_mass)

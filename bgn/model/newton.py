@@ -313,8 +313,7 @@ class Newton(PhysicsModel):
         if self.meta.interaction == "contact":
             self.heads = frozenset({"dynamics", "contact", "impulse_mass"})
             self.contact_pos_weight = contact_pos_weight(stats, "balanced")
-        else:
-            self.heads = frozenset({"dynamics", "law"})
+
 
     def forward(self, g: Graph) -> ModelOutput:
         self.check(g)
@@ -337,6 +336,4 @@ class Newton(PhysicsModel):
         mass = impulse_mass_loss(self.head, g, self.normalizer)
         if mass is not None:
             terms["impulse_mass"] = mass
-        if (law := law_loss(self.head, g)) is not None:
-            terms["law"] = law
         return terms

@@ -23,8 +23,8 @@ def small(**overrides) -> ModelConfig:
 def test_full_model_has_every_head(meta, stats, graph):
     model = BGN(meta(6, 3), stats(), 2, small()).double()
     # every task head of the paper; "unroll" comes from the data (dataset.unroll), and
-    # "impulse_mass" with the structured head on contact scenes (tests/model/test_newton.py)
-    paper = frozenset(LOSS_KEYS) - {"unroll", "impulse_mass"}
+    # "impulse_mass" and "law" with the structured head (tests/model/test_newton.py)
+    paper = frozenset(LOSS_KEYS) - {"unroll", "impulse_mass", "law"}
     assert model.heads == paper
     assert any(n.startswith("processor.classifier") for n in names(model))
     assert any(n.startswith("processor.contact") for n in names(model))

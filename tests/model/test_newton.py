@@ -10,7 +10,7 @@ from torch import nn
 from bgn.data.datamodule import ParticleDataModule
 from bgn.graph import collate
 from bgn.model import build_model
-from bgn.model.newton import numerov, past_positions, shoot
+from bgn.model.newton import law_loss, numerov, past_positions, shoot
 from bgn.model.ops import scatter_sum
 
 # the scenes' pair laws f(s) u_ij (SIMS.md; s = r + 0.01), the masses left to the fit
@@ -166,3 +166,19 @@ def test_substeps_recover_gravity_targets_that_numerov_misses(small_cfg):
     # this data, 90th percentile 1.8e-4 -> 3.7e-5, 99th 1e-2 -> 2.4e-4
     assert float(errors[16].quantile(0.9)) < 0.5 * float(errors[1].quantile(0.9))
     assert float(errors[16].quantile(0.99)) < 0.1 * float(errors[1].quantile(0.99))
+
+
+def test_the_law_loss_vanishes_for_the_true_law_and_is_only_built_when_weighted(small_cfg):
+    ds, g = frames(small_cfg, "gravity_r2")
+    config = {"name": "bgn", "dynamics": "newton", "mass_law": "source"}
+    unweighted = build_model(config, ds.meta, ds.file.stats(), ds.history)
+    assert "law" not in unweighted.heads
+    model = build_model({**config, "loss_weights": {"dynamics": 0.0, "law": 1.0}}, ds.meta,
+                        ds.file.stats(), ds.history).double()
+    assert "law" in model.heads
+    untrained = float(law_loss(model.force_head, g))
+    model.force_head.force_law = TrueLaw(LAWS["gravity_r2"][1],
+                                         float(model.normalizer.rel_position_scale))
+    terms = model.loss_terms(g, model(g))
+    assert float(terms["law"]) < 1e-3 * untrained
+    assert float(model.total_loss(terms)) >= float(terms["law"])   # the fit's term weighs 0

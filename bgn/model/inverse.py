@@ -127,6 +127,7 @@ class InverseModel(nn.Module):
         self.linear2 = nn.Linear(hidden, hidden)      # Eq. 10: W_Inv-Dec2
         self.linear3 = nn.Linear(hidden, 1)           # Eq. 10: W_Inv-Dec3
         self.edge_chunk: int | None = None            # set by PhysicsModel (its config)
+        self.checkpoint_edges: int | None = None
 
     def context(self, h_tilde_v: torch.Tensor, g: Graph) -> torch.Tensor:
         """What the flow is conditioned on: ``H̃_V`` (Eq. 6), with the pair terms under
@@ -153,7 +154,7 @@ class InverseModel(nn.Module):
         (E, hidden) layers in chunks on very large graphs (``edge_chunk``)."""
         zt = torch.stack([z, torch.ones_like(z)], -1)              # [z, 1]
         return edge_chunks(self._relative, self.edge_chunk, (edge_index[1], edge_index[0]),
-                           (zt,))
+                           (zt,), self.checkpoint_edges)
 
     def _relative(self, rcv: torch.Tensor, snd: torch.Tensor, zt: torch.Tensor) -> torch.Tensor:
         # s(Z_Kᵀ W1 Z_K): nn.Bilinear's own kernel is slow for 2 x 2 inputs on CPU; the same

@@ -13,7 +13,13 @@ import bgn.model.encoder as encoder
 import bgn.model.ops as ops
 import bgn.model.processor as processor
 from bgn.model import build_model
-from bgn.model.message_passing import adjacency, edge_difference, edge_dot, spmm
+from bgn.model.message_passing import (
+    adjacency,
+    edge_chunks,
+    edge_difference,
+    edge_dot,
+    spmm,
+)
 from bgn.model.ops import EdgeMLP
 from tests.model.conftest import fake_stats, make_meta, random_graph
 
@@ -111,9 +117,11 @@ def test_gcn_aggregate_matches_the_gather_scatter_form(weighted, normalize):
 
 @pytest.mark.parametrize("chunk", [None, 7])
 @pytest.mark.parametrize("layer_norm", [False, True])
-def test_edge_mlp_factored_and_chunked_equals_the_concatenation(chunk, layer_norm):
+@pytest.mark.parametrize("act", ["silu", "softplus"])  # softplus(0) != 0 on padded channels
+def test_edge_mlp_factored_padded_and_chunked_equals_the_concatenation(chunk, layer_norm, act):
+    """Hidden widths 10 and 20 run padded to 16 and 32 (``ops.PAD_WIDTH``)."""
     torch.manual_seed(0)
-    mlp = EdgeMLP(3, 4, [8, 8, 5], "silu", layer_norm).double()
+    mlp = EdgeMLP(3, 4, [10, 20, 5], act, layer_norm).double()
     mlp.edge_chunk = chunk
     e = radius_edges()
     gen = torch.Generator().manual_seed(3)
@@ -128,6 +136,19 @@ def test_edge_mlp_factored_and_chunked_equals_the_concatenation(chunk, layer_nor
         torch.testing.assert_close(got, want, **TOL)
 
 
+def test_checkpointing_only_above_its_threshold():
+    calls = []
+
+    def fn(a):
+        calls.append(a.shape[0])
+        return a * 2
+
+    a = torch.ones(100, 3)
+    assert torch.equal(edge_chunks(fn, 30, (a,), above=100), a * 2) and calls == [100]
+    calls.clear()
+    assert torch.equal(edge_chunks(fn, 30, (a,), above=99), a * 2) and calls == [30, 30, 30, 10]
+
+
 def loss_and_grads(model, g):
     torch.manual_seed(7)  # the same training noise and flow draws in both runs
     loss = model.total_loss(model.loss_terms(g, model(g)))
@@ -139,10 +160,11 @@ def test_every_model_equals_its_plain_form(monkeypatch, name):
     """Loss and every gradient of each model with the fast kernels against the same model
     with the kernels swapped back to gathers, index_add_ and concatenations (float64)."""
     small = {"bgn": {"hidden": 16, "decoder_hidden": 16, "flow_hidden": 8,
-                     "contact_message": "vector", "edge_chunk": 50},
+                     "contact_message": "vector", "edge_chunk": 50, "checkpoint_edges": 0},
              "gns": {"latent": 16, "mlp_hidden": 16, "message_passing_steps": 3,
-                     "edge_chunk": 50},
-             "cranmer_gn": {"hidden": 16, "message_dim": 8, "edge_chunk": 50}}[name]
+                     "edge_chunk": 50, "checkpoint_edges": 0},
+             "cranmer_gn": {"hidden": 20, "message_dim": 8, "edge_chunk": 50,
+                            "checkpoint_edges": 0}}[name]
     meta = make_meta(30, 2, "contact", "radius", box=4.0)
     torch.manual_seed(0)
     model = build_model({"name": name, **small}, meta, fake_stats(), 2).double().train()
@@ -169,7 +191,8 @@ def test_every_model_equals_its_plain_form(monkeypatch, name):
 
 def test_activation_in_place_only_where_allowed():
     assert ops.activation("relu", inplace=True).inplace
-    assert ops.activation("silu", inplace=True).inplace
+    # SiLU's backward reads its input: in place, autograd would clone it (no gain)
+    assert not ops.activation("silu", inplace=True).inplace
     assert not ops.activation("relu").inplace
     assert isinstance(ops.activation("tanh", inplace=True), torch.nn.Tanh)
 

@@ -13,6 +13,7 @@ import bgn.model.encoder as encoder
 import bgn.model.ops as ops
 import bgn.model.processor as processor
 from bgn.model import build_model
+from bgn.model.impulse import ContactImpulseHead
 from bgn.model.message_passing import (
     adjacency,
     edge_chunks,
@@ -155,22 +156,38 @@ def loss_and_grads(model, g):
     return loss, torch.autograd.grad(loss, list(model.parameters()), allow_unused=True)
 
 
-@pytest.mark.parametrize("name", ["bgn", "gns", "cranmer_gn"])
+@pytest.mark.parametrize("name", ["bgn", "bgn_newton", "gns", "cranmer_gn"])
 def test_every_model_equals_its_plain_form(monkeypatch, name):
     """Loss and every gradient of each model with the fast kernels against the same model
-    with the kernels swapped back to gathers, index_add_ and concatenations (float64)."""
+    with the kernels swapped back to gathers, index_add_ and concatenations (float64);
+    ``bgn_newton`` (the collisions default) also with the impulse head's gate on every edge
+    in every replayed frame."""
     small = {"bgn": {"hidden": 16, "decoder_hidden": 16, "flow_hidden": 8,
                      "contact_message": "vector", "edge_chunk": 50, "checkpoint_edges": 0},
+             "bgn_newton": {"hidden": 16, "decoder_hidden": 20, "flow_hidden": 8,
+                            "dynamics": "newton", "edge_chunk": 50, "checkpoint_edges": 0},
              "gns": {"latent": 16, "mlp_hidden": 16, "message_passing_steps": 3,
                      "edge_chunk": 50, "checkpoint_edges": 0},
              "cranmer_gn": {"hidden": 20, "message_dim": 8, "edge_chunk": 50,
                             "checkpoint_edges": 0}}[name]
     meta = make_meta(30, 2, "contact", "radius", box=4.0)
     torch.manual_seed(0)
-    model = build_model({"name": name, **small}, meta, fake_stats(), 2).double().train()
+    model = build_model({"name": name.removesuffix("_newton"), **small}, meta, fake_stats(),
+                        2).double().train()
     g = random_graph(30, history=2, kind="radius", contact=True, box=4.0, seed=4, cutoff=1.5)
     assert g.edge_index.shape[1] > 50  # several chunks
     loss, grads = loss_and_grads(model, g)
+    if name == "bgn_newton":
+        hits = []
+        fast_impacts = ContactImpulseHead.impacts
+
+        def plain_impacts(self, g, x, v, dt, every_edge=True):
+            out = fast_impacts(self, g, x, v, dt, True)
+            if not every_edge:  # a replayed frame: count its impacts
+                hits.append(int((out[1] < 1).sum()))
+            return out
+
+        monkeypatch.setattr(ContactImpulseHead, "impacts", plain_impacts)
 
     monkeypatch.setattr(ops, "spmm", naive_spmm)
     monkeypatch.setattr(encoder, "gcn_aggregate", naive_gcn_aggregate)
@@ -181,6 +198,8 @@ def test_every_model_equals_its_plain_form(monkeypatch, name):
         if hasattr(module, "edge_chunk"):
             module.edge_chunk = None
     plain_loss, plain_grads = loss_and_grads(model, g)
+    if name == "bgn_newton":  # the replays met impacts (else the gate's subset is empty)
+        assert len(hits) == 2 and min(hits) > 0          # history 2: two replays
     torch.testing.assert_close(loss, plain_loss, **TOL)
     for got, want in zip(grads, plain_grads, strict=True):
         if want is None:

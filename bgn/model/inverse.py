@@ -38,7 +38,7 @@ from torch.nn import functional as F
 
 from bgn.graph import Graph
 from bgn.model.message_passing import edge_chunks
-from bgn.model.ops import activation
+from bgn.model.ops import Linear, activation, linear
 
 FLOWS = ("nsf", "naf")
 CONTEXTS = ("node", "pairs")
@@ -90,7 +90,7 @@ class PairContext(nn.Module):
     def __init__(self, hidden: int, act: str) -> None:
         super().__init__()
         self.hidden = hidden
-        self.edge = nn.Sequential(nn.Linear(PAIR_FEATURES, hidden), activation(act),
+        self.edge = nn.Sequential(Linear(PAIR_FEATURES, hidden), activation(act),
                                   nn.Linear(hidden, 2 * hidden))
         self.node = nn.Sequential(nn.Linear(2 * hidden + 1, hidden), activation(act),
                                   nn.Linear(hidden, hidden))
@@ -161,7 +161,7 @@ class InverseModel(nn.Module):
         # map as a linear layer on the 4 products [z_i, 1] ⊗ [z_j, 1]
         outer = (zt.index_select(0, rcv)[:, :, None] * zt.index_select(0, snd)[:, None, :]
                  ).flatten(1)
-        h = self.act(F.linear(outer, self.bilinear.weight.flatten(1), self.bilinear.bias))
+        h = self.act(linear(outer, self.bilinear.weight.flatten(1), self.bilinear.bias))
         return self.linear3(self.act(self.linear2(h))).squeeze(-1)
 
     def sample_log_mass(self, context: torch.Tensor, n: int) -> torch.Tensor:

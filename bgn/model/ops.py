@@ -92,12 +92,54 @@ def pad_features(x: torch.Tensor, width: int) -> torch.Tensor:
     return torch.nn.functional.pad(x, (0, width - f))
 
 
+# Below this many input features a Linear layer's weight gradient is computed as
+# ``(xᵀ g)ᵀ`` instead of autograd's ``gᵀ x``: MKL's single-thread kernel for the latter is about
+# 10x slower when x is that narrow (65 536 x 4 inputs, 128 outputs: 0.18 s against 0.016 s).
+NARROW_INPUT = 16
+
+
+class _NarrowLinear(torch.autograd.Function):
+    """``x Wᵀ + b`` for narrow ``x`` (..., K), K < ``NARROW_INPUT``; backward as autograd's,
+    with the weight gradient's product in the orientation MKL runs fast."""
+
+    @staticmethod
+    def forward(ctx, x: torch.Tensor, weight: torch.Tensor,
+                bias: torch.Tensor | None) -> torch.Tensor:
+        ctx.save_for_backward(x, weight)
+        ctx.has_bias = bias is not None
+        return F.linear(x, weight, bias)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        x, weight = ctx.saved_tensors
+        grad_x = grad @ weight if ctx.needs_input_grad[0] else None
+        g2 = grad.reshape(-1, grad.shape[-1])
+        grad_w = (x.reshape(-1, x.shape[-1]).t() @ g2).t() if ctx.needs_input_grad[1] else None
+        grad_b = g2.sum(0) if ctx.has_bias and ctx.needs_input_grad[2] else None
+        return grad_x, grad_w, grad_b
+
+
+def linear(x: torch.Tensor, weight: torch.Tensor,
+           bias: torch.Tensor | None = None) -> torch.Tensor:
+    """``F.linear`` with a fast weight gradient for narrow inputs (``NARROW_INPUT``)."""
+    if weight.shape[1] < NARROW_INPUT and torch.is_grad_enabled() and weight.requires_grad:
+        return _NarrowLinear.apply(x, weight, bias)
+    return F.linear(x, weight, bias)
+
+
+class Linear(nn.Linear):
+    """``nn.Linear`` (same parameters, same state-dict keys) through ``linear``."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return linear(x, self.weight, self.bias)
+
+
 def mlp(sizes: list[int], act: str = "silu", layer_norm: bool = False,
         activate_last: bool = False) -> nn.Sequential:
     """Plain MLP ``sizes[0] -> ... -> sizes[-1]``; optional LayerNorm on the output (GNS style)."""
     layers: list[nn.Module] = []
     for i, (a, b) in enumerate(pairwise(sizes)):
-        layers.append(nn.Linear(a, b))
+        layers.append(Linear(a, b))
         if i < len(sizes) - 2 or activate_last:
             layers.append(activation(act, inplace=True))  # on the Linear's own output
     if layer_norm:

@@ -225,3 +225,19 @@ def test_mlp_in_place_activations_leave_the_input_alone():
     torch.testing.assert_close(net(x), F.linear(F.relu(F.linear(F.relu(
         F.linear(x, net[0].weight, net[0].bias)), net[2].weight, net[2].bias)),
         net[4].weight, net[4].bias))
+
+
+@pytest.mark.parametrize("shape", [(30, 4), (5, 6, 3)])
+def test_narrow_linear_equals_f_linear_and_its_gradients(shape):
+    gen = torch.Generator().manual_seed(5)
+    x = torch.randn(*shape, generator=gen, dtype=torch.float64, requires_grad=True)
+    layer = ops.Linear(shape[-1], 7).double()
+    assert shape[-1] < ops.NARROW_INPUT
+    assert torch.autograd.gradcheck(ops.linear, (x, layer.weight, layer.bias))
+    fast = layer(x)
+    grads = torch.autograd.grad(fast.square().sum(), [x, layer.weight, layer.bias])
+    slow = F.linear(x, layer.weight, layer.bias)
+    expected = torch.autograd.grad(slow.square().sum(), [x, layer.weight, layer.bias])
+    torch.testing.assert_close(fast, slow, **TOL)
+    for got, want in zip(grads, expected, strict=True):
+        torch.testing.assert_close(got, want, **TOL)

@@ -97,11 +97,16 @@ class PairContext(nn.Module):
 
     def forward(self, g: Graph) -> torch.Tensor:
         snd, rcv = g.edge_index[0], g.edge_index[1]
-        e = pair_features(g)
-        m = self.edge(e)
-        n = len(g.vel)
-        to_rcv = m.new_zeros(n, self.hidden).index_add_(0, rcv, m[:, :self.hidden])
-        to_snd = m.new_zeros(n, self.hidden).index_add_(0, snd, m[:, self.hidden:])
+        n, h = len(g.vel), self.hidden
+        first, act, last = self.edge
+        s = act(first(pair_features(g)))                                # (E, hidden)
+        # the edge MLP's last layer is linear, so it runs after the sums, per node:
+        # sum_j (W s_ij + b) = W (sum_j s_ij) + deg b; no (E, 2 hidden) messages
+        w, b = last.weight.split(h), last.bias.split(h)
+        to_rcv, to_snd = (
+            F.linear(s.new_zeros(n, h).index_add_(0, index, s), w_half)
+            + torch.bincount(index, minlength=n).to(s.dtype)[:, None] * b_half
+            for index, w_half, b_half in ((rcv, w[0], b[0]), (snd, w[1], b[1])))
         acc = newest_acceleration(g)
         log_a = 0.5 * torch.log((acc * acc).sum(-1, keepdim=True) + _EPS)
         return self.node(torch.cat([to_rcv, to_snd, log_a], -1))

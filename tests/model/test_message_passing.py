@@ -241,3 +241,27 @@ def test_narrow_linear_equals_f_linear_and_its_gradients(shape):
     torch.testing.assert_close(fast, slow, **TOL)
     for got, want in zip(grads, expected, strict=True):
         torch.testing.assert_close(got, want, **TOL)
+
+
+def test_pair_context_sums_before_its_last_layer_as_the_plain_messages():
+    """``PairContext`` applies its edge MLP's last (linear) layer after the sums at the nodes:
+    the same as summing the (E, 2 hidden) messages, values and gradients (float64)."""
+    from bgn.model.inverse import _EPS, PairContext, newest_acceleration, pair_features
+
+    g = random_graph(30, history=2, kind="radius", contact=True, box=4.0, seed=4, cutoff=1.5)
+    torch.manual_seed(0)
+    ctx = PairContext(8, "silu").double()
+    fast = ctx(g)
+    grads = torch.autograd.grad(fast.square().sum(), list(ctx.parameters()))
+
+    snd, rcv = g.edge_index
+    m = ctx.edge(pair_features(g))
+    n = len(g.vel)
+    acc = newest_acceleration(g)
+    plain = ctx.node(torch.cat([m.new_zeros(n, 8).index_add(0, rcv, m[:, :8]),
+                                m.new_zeros(n, 8).index_add(0, snd, m[:, 8:]),
+                                0.5 * torch.log((acc * acc).sum(-1, keepdim=True) + _EPS)], -1))
+    expected = torch.autograd.grad(plain.square().sum(), list(ctx.parameters()))
+    torch.testing.assert_close(fast, plain, **TOL)
+    for got, want in zip(grads, expected, strict=True):
+        torch.testing.assert_close(got, want, **TOL)

@@ -29,6 +29,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 from torch.nn import functional as F
+from torch.utils.checkpoint import checkpoint
 
 from bgn.graph import Graph
 from bgn.model.message_passing import edge_chunks
@@ -163,6 +164,17 @@ class ContactImpulseHead(nn.Module):
         wall_dv = -(1 + e_wall) * v * torch.sigmoid(wall_logits) * wall_hit
         return kick[:, None] * normal, frac, logits, wall_dv, wall_frac
 
+    def _impacts(self, g: Graph, x: torch.Tensor, v: torch.Tensor, dt: torch.Tensor,
+                 every_edge: bool) -> tuple[torch.Tensor, ...]:
+        """``impacts``; on graphs of more than ``checkpoint_edges`` edges with its per-edge
+        intermediates (a few dozen (E,) and (E, D) tensors per frame) recomputed in the
+        backward pass instead of kept (activation checkpointing: element-wise work only)."""
+        n_edges = g.edge_index.shape[1]
+        if (torch.is_grad_enabled() and self.edge_chunk
+                and n_edges > max(self.edge_chunk, self.checkpoint_edges or 0)):
+            return checkpoint(self.impacts, g, x, v, dt, every_edge, use_reentrant=False)
+        return self.impacts(g, x, v, dt, every_edge)
+
     def forward(self, g: Graph) -> tuple[torch.Tensor, torch.Tensor]:
         if g.dt is None:
             raise ValueError("the impulse head needs the frame spacing: the graph has no dt")
@@ -178,12 +190,12 @@ class ContactImpulseHead(nn.Module):
         v = g.vel[:, depth]
         for j in range(depth, 0, -1):
             # the replays' logits are not outputs: the gate runs on their impacts only
-            pair_dv, frac, _, wall_dv, wall_frac = self.impacts(g, x, v, dt, every_edge=False)
+            pair_dv, frac, _, wall_dv, wall_frac = self._impacts(g, x, v, dt, False)
             x = x + g.vel[:, j - 1] * dt[:, None]                         # x[t - j + 1]
             v = (g.vel[:, j - 1] + scatter_sum(pair_dv * frac[:, None], rcv, n)
                  + wall_dv * wall_frac)
         # the next frame: free flight, then each impact's change for the rest of the frame
-        pair_dv, frac, logits, wall_dv, wall_frac = self.impacts(g, g.pos, v, dt)
+        pair_dv, frac, logits, wall_dv, wall_frac = self._impacts(g, g.pos, v, dt, True)
         v_next = (v + scatter_sum(pair_dv * (1 - frac)[:, None], rcv, n)
                   + wall_dv * (1 - wall_frac))
         return v_next, logits

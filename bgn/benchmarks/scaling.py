@@ -273,6 +273,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="largest N for the other checkout (the old code may not fit)")
     parser.add_argument("--max-gb", type=float, default=12.0,
                         help="skip the training of a cell predicted to grow memory past this")
+    parser.add_argument("--train-max-n", type=int, default=None,
+                        help="largest N whose training is run (inference only above)")
     parser.add_argument("--timeout", type=float, default=900.0, help="seconds per cell")
     parser.add_argument("--training-steps", type=int, default=0,
                         help="also time the default collisions training over this many steps "
@@ -321,6 +323,9 @@ def main(argv: list[str] | None = None) -> int:
                     if skip:
                         row["note"] = (f"training skipped: ~{guess:.0f} GB predicted "
                                        f"> --max-gb {args.max_gb:g}")
+                    elif args.train_max_n is not None and n > args.train_max_n:
+                        skip = True
+                        row["note"] = f"training skipped: N > --train-max-n {args.train_max_n}"
                     cell = run_cell(checkout, payload, model, args,
                                     ["--repeats", str(args.repeats)]
                                     + (["--skip-train"] if skip else []))

@@ -76,17 +76,23 @@ class DynamicsConfig:
     # true trajectory; 0 trains on clean windows (the paper).
     rollout_noise: float = 0.0
     # Activation checkpointing for large graphs (message_passing.edge_chunks): edge MLPs on
-    # graphs with more edges than this run in chunks of it and recompute their hidden layers
-    # in the backward pass. The default never triggers in training on the paper's scenes
-    # (a few thousand edges per batch); at 20 000 discs (300 000 edges) it halved BGN's peak
-    # memory (docs/results.md, "Measurements behind the defaults"). null: never.
+    # graphs with more than ``checkpoint_edges`` edges (and more than ``edge_chunk``) run in
+    # chunks of ``edge_chunk`` edges and recompute their hidden layers in the backward pass.
+    # The default never triggers in training on the paper's scenes (a few thousand edges per
+    # batch); at 20 000 discs (300 000 edges) it halved BGN's peak memory (docs/results.md,
+    # "Measurements behind the defaults"). The baselines, whose edge MLPs are most of their
+    # time, checkpoint only above a million edges. null: never.
     edge_chunk: int | None = 65_536
+    checkpoint_edges: int | None = 65_536
 
     def __post_init__(self) -> None:
         if not self.rollout_noise >= 0.0:
             raise ValueError(f"rollout_noise={self.rollout_noise} must be >= 0")
         if self.edge_chunk is not None and not self.edge_chunk >= 1:
             raise ValueError(f"edge_chunk={self.edge_chunk} must be >= 1 (or null: never)")
+        if self.checkpoint_edges is not None and not self.checkpoint_edges >= 0:
+            raise ValueError(f"checkpoint_edges={self.checkpoint_edges} must be >= 0 (or "
+                             "null: from edge_chunk)")
         if self.target_prior not in PRIORS:
             raise ValueError(f"target_prior={self.target_prior!r}; choose one of {PRIORS}")
         if self.dynamics_loss not in LOSSES:
@@ -136,6 +142,7 @@ class PhysicsModel(nn.Module, ABC):
         for module in self.modules():  # the edge MLPs (ops.EdgeMLP, the relative-mass decoder)
             if hasattr(module, "edge_chunk"):
                 module.edge_chunk = cfg.edge_chunk
+                module.checkpoint_edges = cfg.checkpoint_edges
 
     @abstractmethod
     def build(self, cfg: Any, stats: Mapping[str, Any]) -> None:

@@ -49,6 +49,8 @@ class CranmerGNConfig(DynamicsConfig):
     activation: str = "relu"   # relu (theirs) | silu | gelu | tanh | softplus
     # also feed the true log-mass (and one-hot type) to the nodes -> "cranmer_gn+oracle"
     oracle: bool = False
+    # the edge MLP is most of the step: no recompute below a million edges (DynamicsConfig)
+    checkpoint_edges: int | None = 1_000_000
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -81,6 +83,7 @@ class GNSConfig(DynamicsConfig):
     noise_std: float = 0.5
     # also feed the true log-mass (and one-hot type) to the nodes -> "gns+oracle"
     oracle: bool = False
+    checkpoint_edges: int | None = 1_000_000   # as CranmerGNConfig's
 
     def __post_init__(self) -> None:
         super().__post_init__()

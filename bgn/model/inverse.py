@@ -49,7 +49,7 @@ from torch.nn import functional as F
 
 from bgn.graph import Graph
 from bgn.model.message_passing import edge_chunks
-from bgn.model.ops import activation
+from bgn.model.ops import Linear, activation, linear
 
 FLOWS = ("nsf", "naf")
 CONTEXTS = ("node", "pairs", "fit")
@@ -110,17 +110,25 @@ class PairContext(nn.Module):
     def __init__(self, hidden: int, act: str, frames: int = 1) -> None:
         super().__init__()
         self.hidden, self.frames = hidden, frames
-        self.edge = nn.Sequential(nn.Linear(PAIR_FEATURES, hidden), activation(act),
+        self.edge = nn.Sequential(Linear(PAIR_FEATURES, hidden), activation(act),
                                   nn.Linear(hidden, 2 * hidden))
         self.node = nn.Sequential(nn.Linear(2 * hidden + frames, hidden), activation(act),
                                   nn.Linear(hidden, hidden))
 
     def forward(self, g: Graph) -> torch.Tensor:
         snd, rcv = g.edge_index[0], g.edge_index[1]
-        m = self.edge(pair_features(g, self.frames)).sum(1)
-        n = len(g.vel)
-        to_rcv = m.new_zeros(n, self.hidden).index_add_(0, rcv, m[:, :self.hidden])
-        to_snd = m.new_zeros(n, self.hidden).index_add_(0, snd, m[:, self.hidden:])
+        n, h = len(g.vel), self.hidden
+        first, act, last = self.edge
+        features = pair_features(g, self.frames)                       # (E, F, features)
+        s = act(first(features)).sum(1)                                 # (E, hidden)
+        # the edge MLP's last layer is linear, so it runs after the sums over frames and
+        # at the nodes: sum_j sum_f (W s_ijf + b) = W (sum s) + F deg b; no (E, 2 hidden)
+        w, b = last.weight.split(h), last.bias.split(h)
+        to_rcv, to_snd = (
+            F.linear(s.new_zeros(n, h).index_add_(0, index, s), w_half)
+            + features.shape[1] * torch.bincount(index, minlength=n).to(s.dtype)[:, None]
+            * b_half
+            for index, w_half, b_half in ((rcv, w[0], b[0]), (snd, w[1], b[1])))
         acc = window_accelerations(g, self.frames)
         log_a = 0.5 * torch.log((acc * acc).sum(-1) + _EPS)
         return self.node(torch.cat([to_rcv, to_snd, log_a], -1))
@@ -152,6 +160,7 @@ class InverseModel(nn.Module):
         # knots (z, r) of the radius map, (2, K); none: the identity. Not persistent: fitted
         # after training on the validation split, not learned
         self.register_buffer("calibration", torch.empty(2, 0), persistent=False)
+        self.checkpoint_edges: int | None = None
 
     def context(self, h_tilde_v: torch.Tensor, g: Graph,
                 fitted_log_mass: torch.Tensor | None = None) -> torch.Tensor:
@@ -184,14 +193,14 @@ class InverseModel(nn.Module):
         (E, hidden) layers in chunks on very large graphs (``edge_chunk``)."""
         zt = torch.stack([z, torch.ones_like(z)], -1)              # [z, 1]
         return edge_chunks(self._relative, self.edge_chunk, (edge_index[1], edge_index[0]),
-                           (zt,))
+                           (zt,), self.checkpoint_edges)
 
     def _relative(self, rcv: torch.Tensor, snd: torch.Tensor, zt: torch.Tensor) -> torch.Tensor:
         # s(Z_Kᵀ W1 Z_K): nn.Bilinear's own kernel is slow for 2 x 2 inputs on CPU; the same
         # map as a linear layer on the 4 products [z_i, 1] ⊗ [z_j, 1]
         outer = (zt.index_select(0, rcv)[:, :, None] * zt.index_select(0, snd)[:, None, :]
                  ).flatten(1)
-        h = self.act(F.linear(outer, self.bilinear.weight.flatten(1), self.bilinear.bias))
+        h = self.act(linear(outer, self.bilinear.weight.flatten(1), self.bilinear.bias))
         return self.linear3(self.act(self.linear2(h))).squeeze(-1)
 
     def _radius(self, x: torch.Tensor, inverse: bool) -> tuple[torch.Tensor, torch.Tensor]:

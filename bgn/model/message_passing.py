@@ -170,13 +170,14 @@ def edge_difference(x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
 
 def edge_chunks(fn: Callable[..., torch.Tensor], chunk: int | None,
                 per_edge: tuple[torch.Tensor, ...], shared: tuple[torch.Tensor, ...] = (),
-                ) -> torch.Tensor:
+                above: int | None = None) -> torch.Tensor:
     """``fn(*per_edge, *shared)`` with the per-edge arguments (first dimension E) split into
-    chunks of ``chunk`` edges when E is larger; with gradients on, each chunk's intermediates
-    are recomputed in the backward pass (activation checkpointing). Memory for ``fn``'s
-    intermediates is then O(chunk) instead of O(E), for one more forward of ``fn``."""
+    chunks of ``chunk`` edges when E is larger than both ``chunk`` and ``above``; with
+    gradients on, each chunk's intermediates are recomputed in the backward pass (activation
+    checkpointing). Memory for ``fn``'s intermediates is then O(chunk) instead of O(E), for one
+    more forward of ``fn``: ``above`` keeps that recompute off graphs small enough to hold."""
     n_edges = per_edge[0].shape[0]
-    if not chunk or n_edges <= chunk:
+    if not chunk or n_edges <= max(chunk, above or 0):
         return fn(*per_edge, *shared)
     parts = []
     for start in range(0, n_edges, chunk):

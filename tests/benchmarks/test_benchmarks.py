@@ -136,3 +136,15 @@ def test_scaling_exponents_and_ratios() -> None:
     for r in ratios(rows, "this", "old"):
         assert r["train_s_ratio"] == pytest.approx(3.0)
         assert r["train_peak_gb_ratio"] == pytest.approx(3.0)
+
+
+def test_scaling_trains_only_up_to_train_max_n(tmp_path, keep_threads) -> None:
+    from bgn.benchmarks.scaling import main
+
+    assert main(["--sizes", "40", "80", "--margin", "0.5", "--threads", "1", "--repeats", "1",
+                 "--models", "cranmer_gn", "--train-max-n", "40", "--in-process",
+                 "--out", str(tmp_path)]) == 0
+    with (tmp_path / "scaling.csv").open(newline="") as f:
+        rows = {int(r["n"]): r for r in csv.DictReader(f)}
+    assert float(rows[40]["train_s"]) > 0 and float(rows[80]["infer_s"]) > 0
+    assert rows[80]["train_s"] == "" and "--train-max-n" in rows[80]["note"]

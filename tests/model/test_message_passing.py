@@ -13,7 +13,14 @@ import bgn.model.encoder as encoder
 import bgn.model.ops as ops
 import bgn.model.processor as processor
 from bgn.model import build_model
-from bgn.model.message_passing import adjacency, edge_difference, edge_dot, spmm
+from bgn.model.impulse import ContactImpulseHead
+from bgn.model.message_passing import (
+    adjacency,
+    edge_chunks,
+    edge_difference,
+    edge_dot,
+    spmm,
+)
 from bgn.model.ops import EdgeMLP
 from tests.model.conftest import fake_stats, make_meta, random_graph
 
@@ -111,9 +118,11 @@ def test_gcn_aggregate_matches_the_gather_scatter_form(weighted, normalize):
 
 @pytest.mark.parametrize("chunk", [None, 7])
 @pytest.mark.parametrize("layer_norm", [False, True])
-def test_edge_mlp_factored_and_chunked_equals_the_concatenation(chunk, layer_norm):
+@pytest.mark.parametrize("act", ["silu", "softplus"])  # softplus(0) != 0 on padded channels
+def test_edge_mlp_factored_padded_and_chunked_equals_the_concatenation(chunk, layer_norm, act):
+    """Hidden widths 10 and 20 run padded to 16 and 32 (``ops.PAD_WIDTH``)."""
     torch.manual_seed(0)
-    mlp = EdgeMLP(3, 4, [8, 8, 5], "silu", layer_norm).double()
+    mlp = EdgeMLP(3, 4, [10, 20, 5], act, layer_norm).double()
     mlp.edge_chunk = chunk
     e = radius_edges()
     gen = torch.Generator().manual_seed(3)
@@ -128,27 +137,57 @@ def test_edge_mlp_factored_and_chunked_equals_the_concatenation(chunk, layer_nor
         torch.testing.assert_close(got, want, **TOL)
 
 
+def test_checkpointing_only_above_its_threshold():
+    calls = []
+
+    def fn(a):
+        calls.append(a.shape[0])
+        return a * 2
+
+    a = torch.ones(100, 3)
+    assert torch.equal(edge_chunks(fn, 30, (a,), above=100), a * 2) and calls == [100]
+    calls.clear()
+    assert torch.equal(edge_chunks(fn, 30, (a,), above=99), a * 2) and calls == [30, 30, 30, 10]
+
+
 def loss_and_grads(model, g):
     torch.manual_seed(7)  # the same training noise and flow draws in both runs
     loss = model.total_loss(model.loss_terms(g, model(g)))
     return loss, torch.autograd.grad(loss, list(model.parameters()), allow_unused=True)
 
 
-@pytest.mark.parametrize("name", ["bgn", "gns", "cranmer_gn"])
+@pytest.mark.parametrize("name", ["bgn", "bgn_newton", "gns", "cranmer_gn"])
 def test_every_model_equals_its_plain_form(monkeypatch, name):
     """Loss and every gradient of each model with the fast kernels against the same model
-    with the kernels swapped back to gathers, index_add_ and concatenations (float64)."""
+    with the kernels swapped back to gathers, index_add_ and concatenations (float64);
+    ``bgn_newton`` (the collisions default) also with the impulse head's gate on every edge
+    in every replayed frame."""
     small = {"bgn": {"hidden": 16, "decoder_hidden": 16, "flow_hidden": 8,
-                     "contact_message": "vector", "edge_chunk": 50},
+                     "contact_message": "vector", "edge_chunk": 50, "checkpoint_edges": 0},
+             "bgn_newton": {"hidden": 16, "decoder_hidden": 20, "flow_hidden": 8,
+                            "dynamics": "newton", "edge_chunk": 50, "checkpoint_edges": 0},
              "gns": {"latent": 16, "mlp_hidden": 16, "message_passing_steps": 3,
-                     "edge_chunk": 50},
-             "cranmer_gn": {"hidden": 16, "message_dim": 8, "edge_chunk": 50}}[name]
+                     "edge_chunk": 50, "checkpoint_edges": 0},
+             "cranmer_gn": {"hidden": 20, "message_dim": 8, "edge_chunk": 50,
+                            "checkpoint_edges": 0}}[name]
     meta = make_meta(30, 2, "contact", "radius", box=4.0)
     torch.manual_seed(0)
-    model = build_model({"name": name, **small}, meta, fake_stats(), 2).double().train()
+    model = build_model({"name": name.removesuffix("_newton"), **small}, meta, fake_stats(),
+                        2).double().train()
     g = random_graph(30, history=2, kind="radius", contact=True, box=4.0, seed=4, cutoff=1.5)
     assert g.edge_index.shape[1] > 50  # several chunks
     loss, grads = loss_and_grads(model, g)
+    if name == "bgn_newton":
+        hits = []
+        fast_impacts = ContactImpulseHead.impacts
+
+        def plain_impacts(self, g, x, v, dt, every_edge=True):
+            out = fast_impacts(self, g, x, v, dt, True)
+            if not every_edge:  # a replayed frame: count its impacts
+                hits.append(int((out[1] < 1).sum()))
+            return out
+
+        monkeypatch.setattr(ContactImpulseHead, "impacts", plain_impacts)
 
     monkeypatch.setattr(ops, "spmm", naive_spmm)
     monkeypatch.setattr(encoder, "gcn_aggregate", naive_gcn_aggregate)
@@ -159,6 +198,8 @@ def test_every_model_equals_its_plain_form(monkeypatch, name):
         if hasattr(module, "edge_chunk"):
             module.edge_chunk = None
     plain_loss, plain_grads = loss_and_grads(model, g)
+    if name == "bgn_newton":  # the replays met impacts (else the gate's subset is empty)
+        assert len(hits) == 2 and min(hits) > 0          # history 2: two replays
     torch.testing.assert_close(loss, plain_loss, **TOL)
     for got, want in zip(grads, plain_grads, strict=True):
         if want is None:
@@ -169,7 +210,8 @@ def test_every_model_equals_its_plain_form(monkeypatch, name):
 
 def test_activation_in_place_only_where_allowed():
     assert ops.activation("relu", inplace=True).inplace
-    assert ops.activation("silu", inplace=True).inplace
+    # SiLU's backward reads its input: in place, autograd would clone it (no gain)
+    assert not ops.activation("silu", inplace=True).inplace
     assert not ops.activation("relu").inplace
     assert isinstance(ops.activation("tanh", inplace=True), torch.nn.Tanh)
 
@@ -183,3 +225,45 @@ def test_mlp_in_place_activations_leave_the_input_alone():
     torch.testing.assert_close(net(x), F.linear(F.relu(F.linear(F.relu(
         F.linear(x, net[0].weight, net[0].bias)), net[2].weight, net[2].bias)),
         net[4].weight, net[4].bias))
+
+
+@pytest.mark.parametrize("shape", [(30, 4), (5, 6, 3)])
+def test_narrow_linear_equals_f_linear_and_its_gradients(shape):
+    gen = torch.Generator().manual_seed(5)
+    x = torch.randn(*shape, generator=gen, dtype=torch.float64, requires_grad=True)
+    layer = ops.Linear(shape[-1], 7).double()
+    assert shape[-1] < ops.NARROW_INPUT
+    assert torch.autograd.gradcheck(ops.linear, (x, layer.weight, layer.bias))
+    fast = layer(x)
+    grads = torch.autograd.grad(fast.square().sum(), [x, layer.weight, layer.bias])
+    slow = F.linear(x, layer.weight, layer.bias)
+    expected = torch.autograd.grad(slow.square().sum(), [x, layer.weight, layer.bias])
+    torch.testing.assert_close(fast, slow, **TOL)
+    for got, want in zip(grads, expected, strict=True):
+        torch.testing.assert_close(got, want, **TOL)
+
+
+@pytest.mark.parametrize("frames", [1, 2])
+def test_pair_context_sums_before_its_last_layer_as_the_plain_messages(frames):
+    """``PairContext`` applies its edge MLP's last (linear) layer after the sums over frames
+    and at the nodes: the same as summing the (E, F, 2 hidden) messages, values and gradients
+    (float64)."""
+    from bgn.model.inverse import _EPS, PairContext, pair_features, window_accelerations
+
+    g = random_graph(30, history=2, kind="radius", contact=True, box=4.0, seed=4, cutoff=1.5)
+    torch.manual_seed(0)
+    ctx = PairContext(8, "silu", frames).double()
+    fast = ctx(g)
+    grads = torch.autograd.grad(fast.square().sum(), list(ctx.parameters()))
+
+    snd, rcv = g.edge_index
+    m = ctx.edge(pair_features(g, frames)).sum(1)
+    n = len(g.vel)
+    acc = window_accelerations(g, frames)
+    plain = ctx.node(torch.cat([m.new_zeros(n, 8).index_add(0, rcv, m[:, :8]),
+                                m.new_zeros(n, 8).index_add(0, snd, m[:, 8:]),
+                                0.5 * torch.log((acc * acc).sum(-1) + _EPS)], -1))
+    expected = torch.autograd.grad(plain.square().sum(), list(ctx.parameters()))
+    torch.testing.assert_close(fast, plain, **TOL)
+    for got, want in zip(grads, expected, strict=True):
+        torch.testing.assert_close(got, want, **TOL)

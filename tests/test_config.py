@@ -45,7 +45,8 @@ def test_collisions_gives_bgn_its_measured_defaults():
 
 def test_gravity_r2_trains_the_structured_law_on_the_recorded_masses():
     model = model_of("dataset=gravity_r2", "model=bgn")
-    assert (model["dynamics"], model["mass_law"]) == ("newton", "source")
+    assert (model["dynamics"], model["mass_law"], model["mass_context"]) == (
+        "newton", "source", "fit")
     assert (model["loss_weights"]["dynamics"], model["loss_weights"]["law"]) == (0.0, 1.0)
 
 

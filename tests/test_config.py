@@ -43,19 +43,21 @@ def test_collisions_gives_bgn_its_measured_defaults():
     assert model["target_prior"] == "auto"
 
 
-def test_gravity_r2_trains_the_structured_law_on_the_recorded_masses():
-    model = model_of("dataset=gravity_r2", "model=bgn")
-    assert (model["dynamics"], model["mass_law"], model["mass_context"]) == (
-        "newton", "source", "fit")
+@pytest.mark.parametrize("scene", ["gravity_r1", "gravity_r2"])
+def test_gravity_trains_the_structured_law_on_the_recorded_masses(scene):
+    model = model_of(f"dataset={scene}", "model=bgn")
+    assert (model["dynamics"], model["mass_law"]) == ("newton", "source")
     assert (model["loss_weights"]["dynamics"], model["loss_weights"]["law"]) == (0.0, 1.0)
+    if scene == "gravity_r2":
+        assert model["mass_context"] == "fit"
 
 
-def test_spring_and_collisions_give_bgn_the_structured_head_and_the_command_line_wins():
+def test_every_scene_gives_bgn_the_structured_head_and_the_command_line_wins():
     assert model_of("dataset=spring", "model=bgn")["dynamics"] == "newton"
     assert model_of("dataset=spring", "model=bgn", "model.dynamics=decoder")["dynamics"] == \
         "decoder"
     assert model_of("dataset=collisions", "model=bgn")["dynamics"] == "newton"
-    assert model_of("dataset=gravity_r1", "model=bgn")["dynamics"] == "decoder"
+    assert model_of("dataset=gravity_r1", "model=bgn")["dynamics"] == "newton"
 
 
 @pytest.mark.parametrize("name", ["gns", "cranmer_gn"])
@@ -78,8 +80,8 @@ def test_other_scenes_keep_the_papers_bgn(scene):
     cfg = composed(f"dataset={scene}")
     assert cfg.model.contact_message == "linear" and cfg.optimizer.lr == 1e-3
     weights = dict(cfg.model.loss_weights)
-    # the paper's weights of 1; gravity_r2 trains its structured law alone (test above)
-    law_only = scene == "gravity_r2"
+    # the paper's weights of 1; gravity trains its structured law alone (test above)
+    law_only = scene.startswith("gravity")
     assert weights.pop("law") == (1.0 if law_only else 0.0)
     assert weights.pop("dynamics") == (0.0 if law_only else 1.0)
     assert set(weights.values()) == {1.0}

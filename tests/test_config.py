@@ -48,8 +48,7 @@ def test_gravity_trains_the_structured_law_on_the_recorded_masses(scene):
     model = model_of(f"dataset={scene}", "model=bgn")
     assert (model["dynamics"], model["mass_law"]) == ("newton", "source")
     assert (model["loss_weights"]["dynamics"], model["loss_weights"]["law"]) == (0.0, 1.0)
-    if scene == "gravity_r2":
-        assert model["mass_context"] == "fit"
+    assert model["mass_context"] == "fit"
 
 
 def test_every_scene_gives_bgn_the_structured_head_and_the_command_line_wins():

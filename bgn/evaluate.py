@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from scipy.stats import norm
 
 from bgn.checkpoints import read
 from bgn.data.dataset import FrameDataset
@@ -82,7 +83,7 @@ def calibrate_mass_posterior(module: PhysicsModule, dataset: FrameDataset,
     z, r = fit_radius_map(np.concatenate(values))
     inverse.calibration = torch.tensor(np.stack([z, r]), dtype=torch.float32)
     return {f"mass_calibration_scale{int(level * 100)}": float(np.interp(q, z, r) / q)
-            for level, q in ((0.5, 0.6744897501960817), (0.9, 1.6448536269514722))}
+            for level in (0.5, 0.9) for q in [norm.ppf((1 + level) / 2)]}
 
 
 @torch.no_grad()

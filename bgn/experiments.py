@@ -145,10 +145,20 @@ def best_checkpoint(run_dir: Path) -> Path:
     raise FileNotFoundError(f"no checkpoint in {ckpts}")
 
 
+def cell_datamodule(run_dir: Path, data_dir: str) -> Any:
+    """The set-up datamodule of a trained cell's dataset (its ``train_config.yaml``)."""
+    from bgn.data.datamodule import ParticleDataModule
+
+    train_cfg = OmegaConf.load(run_dir / "train_config.yaml")
+    datamodule = ParticleDataModule(train_cfg.dataset, train_cfg.fps, data_dir,
+                                    show_progress=False)
+    datamodule.setup()
+    return datamodule
+
+
 def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
     """Test-split metrics of a cell's best checkpoint (cached in eval.json), and its KDE
     figure under the report's figures/ when the model has an inverse head."""
-    from bgn.data.datamodule import ParticleDataModule
     from bgn.evaluate import evaluate_model, evaluate_rollouts, load_model, mass_figure
 
     run_dir = Path(cfg.cells_dir) / cell.name
@@ -159,10 +169,7 @@ def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
         result = read_record(eval_path)  # None when damaged (named in a warning): redone
         if result is not None and (not result.get("figure") or figure.exists()):
             return result
-    train_cfg = OmegaConf.load(run_dir / "train_config.yaml")
-    datamodule = ParticleDataModule(train_cfg.dataset, train_cfg.fps, cfg.data_dir,
-                                    show_progress=False)
-    datamodule.setup()
+    datamodule = cell_datamodule(run_dir, cfg.data_dir)
     e = cfg.preset.eval
     module, test = load_model(ckpt), datamodule.datasets["test"]
     metrics, arrays = evaluate_model(module, test, max_frames=e.max_frames,

@@ -205,7 +205,8 @@ def inverse_metrics(true_log: np.ndarray, sampled_log: np.ndarray,
     S samples for each particle (natural log).
 
     Coverage: the fraction of particles whose true log-mass lies inside the central 50% / 90%
-    interval of its own samples (0.5 / 0.9 when calibrated; ``coverage_curve``). Welch p and
+    interval of its posterior, read from the truth's randomised rank among the samples (0.5 /
+    0.9 when calibrated; ``coverage_curve``). Welch p and
     W1 compare the pooled distributions (all true values against all samples).
     """
     true_log, sampled_log = _check_samples(true_log, sampled_log)
@@ -238,7 +239,8 @@ def fit_radius_map(base_values: np.ndarray, levels: np.ndarray = RECALIBRATION_L
     u = u[np.isfinite(u)]
     z = norm.ppf((1.0 + np.asarray(levels)) / 2)
     r = np.quantile(u, levels)
-    r[0] = 0.0 if levels[0] == 0 else r[0]
+    if levels[0] == 0:
+        r[0] = 0.0
     # strictly increasing (ties in |u| would make the inverse map undefined)
     r = np.maximum.accumulate(r) + 1e-9 * np.arange(len(r))
     return z, r

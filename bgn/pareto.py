@@ -24,6 +24,7 @@ the report is rewritten from disk.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import json
 import math
@@ -40,7 +41,7 @@ from lightning.pytorch.callbacks import Callback
 from omegaconf import DictConfig
 
 from bgn.checkpoints import read_record, write_atomic
-from bgn.experiments import Cell, train_cell
+from bgn.experiments import Cell, cell_datamodule, train_cell
 from bgn.tables import fmt, write_table
 
 SCHEDULE = "schedule"    # the group of the cells with checkpoints on the time schedule
@@ -217,17 +218,10 @@ def checkpoints(run_dir: Path) -> list[tuple[Path, float]]:
     return sorted(out, key=lambda c: c[1])
 
 
+@functools.cache
 def test_split(run_dir: Path, data_dir: str) -> Any:
-    """The test split of a cell's dataset."""
-    from omegaconf import OmegaConf
-
-    from bgn.data.datamodule import ParticleDataModule
-
-    train_cfg = OmegaConf.load(run_dir / "train_config.yaml")
-    datamodule = ParticleDataModule(train_cfg.dataset, train_cfg.fps, data_dir,
-                                    show_progress=False)
-    datamodule.setup()
-    return datamodule.datasets["test"]
+    """The test split of a cell's dataset, read once per run of the study."""
+    return cell_datamodule(run_dir, data_dir).datasets["test"]
 
 
 def evaluate_cell(cell: Cell, cfg: DictConfig) -> list[dict[str, Any]]:

@@ -15,13 +15,12 @@ frames), so only the dynamics head is trained on unrolled steps.
 
 from __future__ import annotations
 
-from dataclasses import replace
-
 import torch
 
 from bgn.data.targets import step
 from bgn.graph import Graph
 from bgn.model.base import ModelOutput, PhysicsModel
+from bgn.model.noise import moved
 
 
 def advance(g: Graph, predicted: torch.Tensor, kind: str, s: int) -> Graph:
@@ -36,24 +35,22 @@ def advance(g: Graph, predicted: torch.Tensor, kind: str, s: int) -> Graph:
     pos, vel = step(g.pos, g.vel[:, 0], predicted.to(g.vel.dtype), dt, kind)
     v_true = g.future_vel[:, s]
     target = v_true if kind == "velocity" else (v_true - vel) / dt
-    shift = pos - g.pos
-    wall = None if g.wall is None else g.wall + torch.cat([shift, -shift], dim=-1)
-    return replace(g, pos=pos, vel=torch.cat([vel[:, None], g.vel[:, :-1]], dim=1),
-                   wall=wall, target=target, frame=g.frame + 1)
+    return moved(g, pos - g.pos, vel=torch.cat([vel[:, None], g.vel[:, :-1]], dim=1),
+                 target=target, frame=g.frame + 1)
 
 
 def unrolled_loss(model: PhysicsModel, g: Graph, out: ModelOutput) -> torch.Tensor:
     """Mean dynamics loss of the ``S = g.future_vel.shape[1]`` steps that follow ``g`` when
     ``model`` is fed its own frames (``out``: its outputs on ``g``). Push-forward: no gradient
     flows through the inputs of a step, only through its prediction."""
+    if g.future_vel is None or g.future_vel.shape[1] == 0:
+        raise ValueError("unrolled training needs graphs with future velocities: set "
+                         "dataset.unroll > 0")
     predicted = model.denormalize_target(out.target.detach(), g)
     losses = []
-    for s in range(0 if g.future_vel is None else g.future_vel.shape[1]):
+    for s in range(g.future_vel.shape[1]):
         g = advance(g, predicted, model.meta.target, s)
         target = model.forward_target(g)
         losses.append(model.target_coder.loss(target, g))
         predicted = model.denormalize_target(target.detach(), g)
-    if not losses:
-        raise ValueError("unrolled training needs graphs with future velocities: set "
-                         "dataset.unroll > 0")
     return torch.stack(losses).mean()

@@ -4,8 +4,8 @@ Run as a script by path, with ``PYTHONPATH`` at the checkout to measure, so the 
 this checkout or another one (``--against``): it imports only what every checkout has
 (``build_model``, the ``Graph`` dataclass, ``SceneMeta``, the Hydra configs under ``conf/``).
 The frame, its statistics and the scene record come in a ``torch.save`` file written by the
-parent; one JSON line goes out on stdout. A process per cell makes the peak resident memory
-(``ru_maxrss``) that cell's alone::
+parent; one JSON line goes out on stdout. A process per cell keeps the peak resident memory
+(``VmHWM``, reset at the cell's start) that cell's alone::
 
     python bgn/benchmarks/_scaling_cell.py PAYLOAD MODEL [--repeats 2] [--device cpu]
 """
@@ -18,6 +18,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import bgn  # noqa: F401  (first: a checkout may set allocator variables before torch loads)
 
@@ -79,6 +80,13 @@ def reset_peak() -> None:
         pass
 
 
+def train_step(model: Any, opt: torch.optim.Optimizer, g: Any) -> None:
+    """One training step: forward, every loss term, backward, optimiser."""
+    opt.zero_grad(set_to_none=True)
+    model.total_loss(model.loss_terms(g, model(g))).backward()
+    opt.step()
+
+
 def training_throughput(overrides: list[str], steps: int) -> dict:
     """Samples/s of a real training run's parts (``bgn.train.build``): the data loader alone,
     the model step alone (forward, backward, AdamW on batches already loaded), and Lightning's
@@ -108,9 +116,7 @@ def training_throughput(overrides: list[str], steps: int) -> dict:
     times = []
     for g in batches:
         start = time.perf_counter()
-        opt.zero_grad(set_to_none=True)
-        model.total_loss(model.loss_terms(g, model(g))).backward()
-        opt.step()
+        train_step(model, opt, g)
         times.append(time.perf_counter() - start)
     result["step_samples_s"] = rate(sum(times[1:]), steps - 1)
 
@@ -191,21 +197,14 @@ def main(argv: list[str] | None = None) -> int:
     if not args.skip_train:
         model.train()
         opt = torch.optim.AdamW(model.parameters(), lr=lr)
-
-        def train_step() -> None:
-            opt.zero_grad(set_to_none=True)
-            loss = model.total_loss(model.loss_terms(g, model(g)))
-            loss.backward()
-            opt.step()
-
-        train_step()                                           # warm-up
-        result["train_s"] = timed(train_step)
+        train_step(model, opt, g)                              # warm-up
+        result["train_s"] = timed(lambda: train_step(model, opt, g))
         result["train_peak_bytes"] = max(peak() - base, 0)
         # the FLOP count last: its dispatch keeps more alive than a plain step (BGN at 20 000:
         # a peak of 1.27 GB against 0.77-0.90 GB without it)
         counter = FlopCounterMode(display=False)
         with counter:
-            train_step()
+            train_step(model, opt, g)
         result["train_flop"] = counter.get_total_flops()
     json.dump(result, sys.stdout)
     print()

@@ -37,7 +37,13 @@ from bgn.model.encoder import (
     node_input_dim,
 )
 from bgn.model.inverse import CONTEXTS, FLOWS, InverseModel
-from bgn.model.newton import MASS_LAWS, build_head, impulse_mass_loss, law_loss
+from bgn.model.newton import (
+    MASS_LAWS,
+    PairForceHead,
+    build_head,
+    impulse_mass_loss,
+    law_loss,
+)
 from bgn.model.processor import CONTACT_MODES, MESSAGES, Processor, ProcessorOutput
 
 DYNAMICS = ("decoder", "newton")
@@ -274,26 +280,34 @@ class BGN(PhysicsModel):
         flow sample behind ``relmass`` (drawn here when None)."""
         p, w, x = self._process(g)
         contact = p.contact
+        fitted = None  # the force head's fitted log-masses, for mass_context=fit
         if self.force_head is None:
             target = self._decode(p, x)                        # Eq. 5
-        else:  # the structured head (and, on contact scenes, its gate as the contact head)
+        elif isinstance(self.force_head, PairForceHead):  # one window, one mass fit for both
+            raw, terms = self.force_head.window(g)
+            fit = self.force_head.fit(g, terms)
+            target = self.target_coder.code(g, self.force_head.accelerate(g, raw, fit))
+            if self.inverse is not None and self.inverse.uses_fit:
+                fitted = self.force_head.fitted_log_mass(g, fit)
+        else:  # the impulse head, its gate the contact head
             physical, gate = self.force_head(g)
             target = self.target_coder.code(g, physical)
             contact = gate if gate is not None and self.cfg.contact else contact
         mass_nll = relmass = z = None
         if self.inverse is not None:
             log_m = self.normalizer.log_mass(torch.log(g.mass))
-            context = self._mass_context(p, g)           # Eq. 6
+            context = self._mass_context(p, g, fitted)           # Eq. 6
             mass_nll, z = self.inverse(context, log_m, noise)       # Eq. 7-8
             relmass = self.inverse.relative(z, g.edge_index)        # Eq. 9-10
         return ModelOutput(target, p.type_logits, contact, mass_nll, relmass, z, w)
 
-    def _mass_context(self, p: ProcessorOutput, g: Graph) -> torch.Tensor:
+    def _mass_context(self, p: ProcessorOutput, g: Graph,
+                      fitted: torch.Tensor | None = None) -> torch.Tensor:
         """The flow's context (``InverseModel.context``), with the structured head's fitted
-        log-masses under ``mass_context=fit``."""
+        log-masses under ``mass_context=fit`` (``fitted``, where ``forward`` has them)."""
         assert self.inverse is not None
-        fitted = (self.force_head.fitted_log_mass(g)
-                  if self.inverse.uses_fit and self.force_head is not None else None)
+        if fitted is None and self.inverse.uses_fit and self.force_head is not None:
+            fitted = self.force_head.fitted_log_mass(g)
         return self.inverse.context(p.h_tilde_v, g, fitted)
 
     def forward_target(self, g: Graph) -> torch.Tensor:

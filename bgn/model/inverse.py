@@ -69,12 +69,6 @@ def make_flow(kind: str, context: int, transforms: int, hidden: int) -> zuko.flo
     raise ValueError(f"flow={kind!r}; choose one of {FLOWS}")
 
 
-def newest_acceleration(g: Graph) -> torch.Tensor:
-    """(N, D) the window's newest finite-difference acceleration ``(v[t] - v[t-1]) / dt``, in
-    physical units (the pair terms take its log-magnitude: no scale to learn)."""
-    return window_accelerations(g, 1)[:, 0]
-
-
 def window_accelerations(g: Graph, frames: int) -> torch.Tensor:
     """(N, F, D) the window's ``frames`` newest finite-difference accelerations
     ``(v[t-f] - v[t-f-1]) / dt``, f = 0 .. F-1, in physical units."""

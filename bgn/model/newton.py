@@ -153,9 +153,7 @@ class PairForceHead(nn.Module):
 
     def __init__(self, meta: SceneMeta, normalizer: Normalizer, hidden: int, layers: int,
                  act: str, mass_law: str, substeps: int = 1) -> None:
-        super().__init__()
-        if mass_law not in MASS_LAWS:
-            raise ValueError(f"mass_law={mass_law!r}; choose one of {MASS_LAWS}")
+        super().__init__()  # mass_law: checked by the model configs (NewtonConfig, BGN's)
         self.mass_law, self.types, self.substeps = mass_law, meta.n_types, substeps
         # lengths in the units the model normalises relative positions by (a copy: the
         # normaliser belongs to the model)
@@ -181,32 +179,42 @@ class PairForceHead(nn.Module):
         """(N, D) predicted acceleration at frame t, physical units (and no contact logits:
         the interface of ``build_head``'s heads). ``known_masses``: the graph's recorded
         masses in place of the window's fit (training only: ``law_loss``)."""
-        raw = self.pair_terms(g, past_positions(g))                 # frames t, t-1, .., t-k
-        terms = numerov(raw)                                       # frames t, .., t-k+1
-        fit = g.mass.to(terms.dtype) if known_masses else self.fit(g, terms)
-        if self.mass_law == "inertial":
-            inverse_mass = 1 / fit if known_masses else fit
-
-            def combine(t: torch.Tensor) -> torch.Tensor:          # a_i = sum_j F_ij / m_i
-                return inverse_mass[:, None] * scatter_sum(t, g.edge_index[1], g.pos.shape[0])
+        raw, terms = self.window(g)
+        if known_masses:
+            mass = g.mass.to(terms.dtype)
+            fit = 1 / mass if self.mass_law == "inertial" else mass
         else:
-            masses = fit
+            fit = self.fit(g, terms)
+        return self.accelerate(g, raw, fit), None
 
+    def window(self, g: Graph) -> tuple[torch.Tensor, torch.Tensor]:
+        """The pair terms of the window's frames t, t-1, .., t-k (E, k+1, D) and what a
+        finite-difference acceleration sees of them (``numerov``), frames t .. t-k+1."""
+        raw = self.pair_terms(g, past_positions(g))
+        return raw, numerov(raw)
+
+    def accelerate(self, g: Graph, raw: torch.Tensor, fit: torch.Tensor) -> torch.Tensor:
+        """(N, D) the acceleration at frame t from the window's pair terms ``raw`` and the
+        mass fit ``fit`` (``1 / m_i`` inertial, ``m_i`` source)."""
+        snd, rcv = g.edge_index
+        if self.mass_law == "inertial":
+            def combine(t: torch.Tensor) -> torch.Tensor:          # a_i = sum_j F_ij / m_i
+                return fit[:, None] * scatter_sum(t, rcv, g.pos.shape[0])
+        else:
             def combine(t: torch.Tensor) -> torch.Tensor:          # a_i = sum_j m_j F_ij
-                snd, rcv = g.edge_index
-                return scatter_sum(masses[snd, None] * t, rcv, g.pos.shape[0])
+                return scatter_sum(fit[snd, None] * t, rcv, g.pos.shape[0])
         dt = g.dt.to(g.vel.dtype)[g.batch][:, None]
         if self.substeps > 1:  # the frame integrated in substeps with the fitted masses
             return shoot(lambda x: combine(self.pair_terms(g, x[:, None])[:, 0]), g.pos,
-                         g.vel[:, 0], dt, self.substeps), None
+                         g.vel[:, 0], dt, self.substeps)
         # Numerov at frame t needs the forces at x[t+1], which the acceleration sets: a few
         # fixed-point steps of the implicit scheme, the next position by the step rule
-        a = combine(terms[:, 0])
+        a = combine(numerov(raw)[:, 0])
         for _ in range(IMPLICIT_STEPS):
             x_next = g.pos + dt * (g.vel[:, 0] + dt * a)
             ahead = self.pair_terms(g, x_next[:, None])[:, 0]
             a = combine((ahead + 10 * raw[:, 0] + raw[:, 1]) / 12)
-        return a, None
+        return a
 
     def fit(self, g: Graph, terms: torch.Tensor) -> torch.Tensor:
         """(N,) the window's least-squares fit: ``1 / m_i`` under the inertial law, ``m_i``
@@ -217,11 +225,13 @@ class PairForceHead(nn.Module):
             return (past * seen).sum((1, 2)) / ((past * past).sum((1, 2)) + FIT_EPS)
         return self.source_masses(g, terms[:, 1:], seen)
 
-    def fitted_log_mass(self, g: Graph) -> torch.Tensor:
+    def fitted_log_mass(self, g: Graph, fit: torch.Tensor | None = None) -> torch.Tensor:
         """(N,) log of the masses the window's fit gives (up to the free scale of the learned
         force law, a constant per model): a feature that carries each particle's mass, for
-        the inverse model's context (``mass_context=fit``)."""
-        fit = self.fit(g, numerov(self.pair_terms(g, past_positions(g))))
+        the inverse model's context (``mass_context=fit``). ``fit``: the head's own fit of
+        this graph where the caller has it (no second solve)."""
+        if fit is None:
+            fit = self.fit(g, self.window(g)[1])
         log_fit = torch.log(fit.abs() + FIT_EPS)
         return -log_fit if self.mass_law == "inertial" else log_fit
 
@@ -312,8 +322,8 @@ class Newton(PhysicsModel):
                                cfg.activation, cfg.mass_law, "model=newton", cfg.substeps)
         if self.meta.interaction == "contact":
             self.heads = frozenset({"dynamics", "contact", "impulse_mass"})
-            self.contact_pos_weight = contact_pos_weight(stats, "balanced")
-
+            self.register_buffer("contact_pos_weight", torch.tensor(
+                contact_pos_weight(stats, "balanced")), persistent=False)
 
     def forward(self, g: Graph) -> ModelOutput:
         self.check(g)
@@ -329,10 +339,9 @@ class Newton(PhysicsModel):
     def loss_terms(self, g: Graph, out: ModelOutput) -> dict[str, torch.Tensor]:
         terms = super().loss_terms(g, out)
         if out.contact is not None and out.contact.numel():
-            weight = torch.tensor(self.contact_pos_weight, dtype=out.contact.dtype,
-                                  device=out.contact.device)
             terms["contact"] = F.binary_cross_entropy_with_logits(
-                out.contact, g.edge_contact.to(out.contact.dtype), pos_weight=weight)
+                out.contact, g.edge_contact.to(out.contact.dtype),
+                pos_weight=self.contact_pos_weight.to(out.contact.dtype))
         mass = impulse_mass_loss(self.head, g, self.normalizer)
         if mass is not None:
             terms["impulse_mass"] = mass

@@ -15,6 +15,7 @@ Noise is a property of training, not of a model: the same function serves every 
 from __future__ import annotations
 
 from dataclasses import replace
+from typing import Any
 
 import torch
 
@@ -49,5 +50,11 @@ def add_random_walk_noise(g: Graph, std: torch.Tensor | float, kind: str) -> Gra
     dt = g.dt.to(g.vel.dtype)[g.batch][:, None]                    # (N, 1)
     shift = dt * noise.sum(1)                                      # (N, D) moves x[t]
     target = g.target - noise[:, 0] / dt if kind == "acceleration" else g.target
+    return moved(g, shift, vel=g.vel + noise, target=target)
+
+
+def moved(g: Graph, shift: torch.Tensor, **changes: Any) -> Graph:
+    """The graph with every position moved by ``shift`` (N, D), its wall distances with them
+    (``[x - lo, hi - x]``), and the other fields in ``changes`` replaced."""
     wall = None if g.wall is None else g.wall + torch.cat([shift, -shift], dim=-1)
-    return replace(g, vel=g.vel + noise, pos=g.pos + shift, wall=wall, target=target)
+    return replace(g, pos=g.pos + shift, wall=wall, **changes)

@@ -184,6 +184,9 @@ class EdgeMLP(nn.Module):
         self.edge_in, self.node_in, self.factored = edge_in, node_in, factored
         self.first = nn.Linear(edge_in + 2 * node_in, sizes[0])
         self.rest = nn.Sequential(activation(act, inplace=True), *mlp(sizes, act, layer_norm))
+        # the output layer (None: the first layer is the only one); its columns stay unpadded
+        linears = [m for m in self.rest if isinstance(m, nn.Linear)]
+        self._last = linears[-1] if linears else None
         self.edge_chunk: int | None = None
         self.checkpoint_edges: int | None = None
 
@@ -194,7 +197,7 @@ class EdgeMLP(nn.Module):
             return self.rest(self.first(torch.cat([e, x.index_select(0, rcv),
                                                    x.index_select(0, snd)], dim=1)))
         first = self.first
-        width = _padded(first.out_features) if len(self.rest) > 1 else first.out_features
+        width = _padded(first.out_features) if self._last is not None else first.out_features
         weight, bias = _pad_linear(first.weight, first.bias, width, first.in_features)
         w_e, w_r, w_s = weight.split([self.edge_in, self.node_in, self.node_in], dim=1)
         p_r, p_s = F.linear(x, w_r, bias), F.linear(x, w_s)   # per node
@@ -209,12 +212,11 @@ class EdgeMLP(nn.Module):
         z = p_r.index_select(0, rcv)
         z += p_s.index_select(0, snd)
         z.addmm_(e, w_e.t())
-        linears = [m for m in self.rest if isinstance(m, nn.Linear)]
         for module in self.rest:
             if isinstance(module, nn.Linear):
                 # every layer but the last writes padded columns; the next one's padded input
                 # weights are zero, so whatever the activation makes of them adds nothing
-                rows = (module.out_features if module is linears[-1]
+                rows = (module.out_features if module is self._last
                         else _padded(module.out_features))
                 z = F.linear(z, *_pad_linear(module.weight, module.bias, rows, z.shape[1]))
             else:

@@ -21,7 +21,7 @@ from bgn.checkpoints import read
 from bgn.data.dataset import FrameDataset
 from bgn.data.frames import evenly_spaced
 from bgn.graph import Graph, collate
-from bgn.inverse_references import MassPrior, physical_log_mass
+from bgn.inverse_references import MassPrior, impact_log_mass, physical_log_mass
 from bgn.metrics import (
     COVERAGE_LEVELS,
     aggregate_gaussian,
@@ -38,6 +38,7 @@ from bgn.metrics import (
     type_metrics,
 )
 from bgn.model.encoder import approach_gap
+from bgn.model.impulse import ContactImpulseHead
 from bgn.model.references import REFERENCES, Extrapolation
 from bgn.model.target import extrapolate, observed_targets
 from bgn.module import PhysicsModule
@@ -209,6 +210,32 @@ def _physical(dataset: FrameDataset, prior: MassPrior,
     return physical_log_mass(dataset.scene, prior, windows, dataset.dt, contacts)
 
 
+def _impact_solve_error(dataset: FrameDataset, prior: MassPrior,
+                        per_sim: dict[int, list[tuple[np.ndarray, np.ndarray | None]]],
+                        model_contacts: dict[int, list[np.ndarray]], sampled: np.ndarray,
+                        particles: np.ndarray) -> float:
+    """A contact scene's per-simulation masses the model's way, and their median relative
+    error: the momentum exchanged at the impacts its contact head sees in the evaluated
+    windows, solved jointly per simulation (``impact_log_mass``), each group of discs linked by
+    impacts placed by the flow's pooled posteriors of its members; a disc in no usable impact
+    keeps its pooled posterior mean. Per-frame posteriors alone cannot do this: each impact
+    says how a disc's mass compares with its partner's, which the flow sees one frame at a
+    time."""
+    labels, mean, var = aggregate_gaussian(sampled.mean(axis=0), sampled.var(axis=0), particles)
+    estimate, truth = [], []
+    for sim, views in per_sim.items():
+        true_log = np.log(dataset.file.read("masses", sim))
+        mine = labels // 1_000_000 == sim
+        index = labels[mine] % 1_000_000
+        gauge = np.full((2, len(true_log)), np.nan)
+        gauge[0, index], gauge[1, index] = mean[mine], var[mine]
+        solved = impact_log_mass(prior, np.stack([w for w, _ in views]), dataset.dt,
+                                 model_contacts[sim], gauge=(gauge[0], gauge[1]))
+        estimate.append(np.where(np.isfinite(solved), solved, gauge[0]))
+        truth.append(true_log)
+    return relative_mass_error(np.concatenate(estimate), np.concatenate(truth))
+
+
 @torch.no_grad()
 def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: int = 32,
                      mass_samples: int = 32, batch_size: int = 16, seed: int = 0,
@@ -231,6 +258,10 @@ def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: 
     indices = evenly_spaced(len(dataset), mass_frames)
     true_log, sampled, log_post, physical, particles, edges, edge_rel = ([] for _ in range(7))
     per_sim: dict[int, list[tuple[np.ndarray, np.ndarray | None]]] = {}
+    # the contact head's impacts in each window: its per-simulation mass solve
+    head = getattr(model, "force_head", None)
+    seen_contacts = (head.window_contacts if isinstance(head, ContactImpulseHead) else None)
+    model_contacts: dict[int, list[np.ndarray]] = {}
     offset = 0
     for s in range(0, len(indices), batch_size):
         chunk = indices[s:s + batch_size]
@@ -246,10 +277,17 @@ def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: 
         edges.append(g.edge_index.numpy() + offset)
         edge_rel.append(g.edge_rel_log_mass.double().numpy())
         offset += len(g.mass)
-        for i in chunk:
+        rows = None if seen_contacts is None else seen_contacts(g)
+        for b, i in enumerate(chunk):
             window, contacts = window_and_contacts(dataset, i)
-            per_sim.setdefault(dataset.locate(i)[0], []).append((window, contacts))
+            sim = dataset.locate(i)[0]
+            per_sim.setdefault(sim, []).append((window, contacts))
             physical.append(_physical(dataset, prior, [(window, contacts)]))
+            if rows is not None:    # (j, i, k) graph-wide -> (frame in the window, i, k) local
+                mine = rows[g.batch[rows[:, 1]] == b]
+                model_contacts.setdefault(sim, []).append(torch.stack(
+                    [len(window) - 1 - mine[:, 0], mine[:, 1] - first_node[b],
+                     mine[:, 2] - first_node[b]], 1).numpy())
     true_log_a, sampled_a = np.concatenate(true_log), np.concatenate(sampled, axis=1)
     particles_a, edges_a = np.concatenate(particles), np.concatenate(edges, axis=1)
     rel_a = np.concatenate(edge_rel)
@@ -259,6 +297,10 @@ def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: 
                                                  particles_a)
     metrics.update(_point_metrics(sampled_a.mean(axis=0), true_log_a, particles_a, edges_a,
                                   rel_a, sampled_a.var(axis=0)))
+    if model_contacts:
+        metrics["sim_mass_rel_err_flow"] = metrics["sim_mass_rel_err"]
+        metrics["sim_mass_rel_err"] = _impact_solve_error(
+            dataset, prior, per_sim, model_contacts, sampled_a, particles_a)
     metrics["mass_particles"] = int(len(true_log_a))
     prior_samples = prior.sample(sampled_a.shape, rng)
     references = {"prior": _posterior_metrics(true_log_a, prior_samples, log_prior, log_prior,

@@ -133,7 +133,8 @@ def gravity_log_mass(scene: Scene, windows: np.ndarray, dt: float) -> np.ndarray
 
 
 def impact_log_mass(prior: MassPrior, windows: np.ndarray, dt: float,
-                    contacts: list[np.ndarray]) -> np.ndarray:
+                    contacts: list[np.ndarray],
+                    gauge: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Collisions: log-masses from the momentum exchanged at isolated impacts.
 
     ``contacts[w]`` (M, 3) rows ``(frame, i, j)``: i and j touch between frames ``frame`` and
@@ -143,7 +144,9 @@ def impact_log_mass(prior: MassPrior, windows: np.ndarray, dt: float,
     velocities before and after are free flight), and the two velocity changes are
     antiparallel (no wall bounce in between): then ``m_i dv_i = -m_j dv_j``. The equations of
     a simulation are solved by least squares; each group of discs linked by impacts is
-    shifted to the most probable place under ``prior`` (only ratios are observable)."""
+    shifted to the most probable place under ``prior`` (only ratios are observable), or, given
+    a ``gauge`` (per-disc mean and variance (N,) of log-mass: a model's own posteriors), to the
+    precision-weighted agreement with it."""
     n = windows.shape[2]
     rows, rhs = [], []
     for x, table in zip(windows, contacts):
@@ -178,6 +181,10 @@ def impact_log_mass(prior: MassPrior, windows: np.ndarray, dt: float,
                          prior.means.max() + 3 * prior.stds.max(), 2001)
     for group in np.unique(labels):
         members = seen[labels == group]
+        if gauge is not None:       # the shift of most probability under Gaussians: closed form
+            weight = 1.0 / np.maximum(gauge[1][members], 1e-12)
+            out[members] += np.sum(weight * (gauge[0][members] - out[members])) / weight.sum()
+            continue
         score = prior.log_pdf(out[members][None, :] + shifts[:, None]).sum(axis=1)
         out[members] += shifts[np.argmax(score)]
     return out

@@ -92,8 +92,8 @@ def table1(report_dir: Path, cells: list[Cell], results: Results) -> str:
 
 INVERSE_COLUMNS = ["coverage50", "coverage90", "coverage_max_dev", "sbc_p", "tarp_atc",
                    "info_gain", "relmass_r2", "relmass_r2_estimate", "mass_rel_err",
-                   "sim_mass_rel_err", "welch_p", "wasserstein1", "modes_true",
-                   "modes_recovered"]
+                   "sim_mass_rel_err", "sim_mass_rel_err_flow", "welch_p", "wasserstein1",
+                   "modes_true", "modes_recovered"]
 # the references evaluated beside each inverse model (bgn.evaluate.evaluate_inverse)
 INVERSE_REFERENCES = {"prior": "prior-only sampler",
                       "physical": "physical estimator (force law, no learning)"}
@@ -135,7 +135,10 @@ def inverse_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
         "(Eq. 9-10); relmass_r2_estimate: of the posterior means' differences on the same "
         "edges; mass_rel_err: median |m_hat / m - 1| of one frame's posterior mean; "
         "sim_mass_rel_err: of each particle's per-frame posteriors pooled (their Gaussian "
-        "product) over the evaluated frames of its simulation. Welch p, W1 (log-masses) "
+        "product) over the evaluated frames of its simulation; on collisions, the momentum "
+        "exchanged at the impacts the contact head sees in those frames, solved jointly per "
+        "simulation, each group of discs linked by impacts placed by its members' pooled "
+        "posteriors (sim_mass_rel_err_flow: the pooled posteriors alone). Welch p, W1 (log-masses) "
         "and modes (KDE peaks of the true log-masses, how many have a sampled peak within "
         "0.5) compare pooled samples, which a sampler of the prior also passes. References "
         "on the same particles: the prior-only sampler (draws from the scene's mass law: "

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bgn.inverse_references import MassPrior, physical_log_mass
+from bgn.inverse_references import MassPrior, impact_log_mass, physical_log_mass
 from bgn.sim import make_scene
 
 
@@ -41,6 +41,12 @@ def test_impacts_recover_mass_ratios_and_the_prior_fixes_the_scale() -> None:
     # prior's spread of a type (0.1 in log-mass)
     assert np.ptp(err) < 1e-8
     assert abs(err[0]) < 0.1
+    # a gauge of per-disc Gaussians (a model's posteriors) places the group at their
+    # precision-weighted agreement: here all 0.05 above the truth
+    truth = np.log(traj.masses)
+    gauged = impact_log_mass(prior, traj.positions[None], 0.1, [traj.contacts],
+                             gauge=(truth + 0.05, np.ones_like(truth)))
+    np.testing.assert_allclose(gauged[seen], truth[seen] + 0.05, atol=1e-8)
     # a window without impacts says nothing
     quiet = physical_log_mass(scene, prior, traj.positions[None, :3], 0.1,
                               [np.empty((0, 3), dtype=int)])

@@ -124,15 +124,12 @@ class ContactImpulseHead(nn.Module):
         return (edge_chunks(self.gate, self.edge_chunk, (feats,), (), self.checkpoint_edges)
                 .squeeze(-1) + RULE_LOGIT * (2 * hit.to(feats.dtype) - 1))
 
-    def impacts(self, g: Graph, x: torch.Tensor, v: torch.Tensor, dt: torch.Tensor,
-                every_edge: bool = True) -> tuple[torch.Tensor, ...]:
-        """The impacts free flight from ``(x, v)`` meets within a frame: per edge the velocity
-        change of its receiver (E, D) and the fraction of the frame before it (E,), the gate's
-        logits (E,); per disc and axis the wall's velocity change and fraction (N, D).
-
-        ``every_edge=False`` runs the gate only on the edges with a time of impact (about 1 %
-        at the collisions density) and returns None for the logits: the kick is zero, value
-        and gradient, wherever there is none, so the velocities are the same."""
+    def pair_geometry(self, g: Graph, x: torch.Tensor, v: torch.Tensor, dt: torch.Tensor,
+                      ) -> tuple[torch.Tensor, ...]:
+        """Per edge, for free flight from ``(x, v)``: the fraction of the frame before the time
+        of impact (E,; 1 where none), whether there is one (E,), the unit normal at impact
+        (E, D), the approach speed along it (E,; < 0 when closing) and the gate's features
+        (E, 4)."""
         snd, rcv = g.edge_index
         dx, dv = x[rcv] - x[snd], v[rcv] - v[snd]
         reach = g.radius[rcv] + g.radius[snd]
@@ -143,6 +140,19 @@ class ContactImpulseHead(nn.Module):
         feats = torch.stack([frac, hit.to(frac.dtype), approach / self.speed_scale,
                              (torch.sqrt((dx * dx).sum(-1) + TINY) - reach) / self.length_scale],
                             dim=-1)
+        return frac, hit, normal, approach, feats
+
+    def impacts(self, g: Graph, x: torch.Tensor, v: torch.Tensor, dt: torch.Tensor,
+                every_edge: bool = True) -> tuple[torch.Tensor, ...]:
+        """The impacts free flight from ``(x, v)`` meets within a frame: per edge the velocity
+        change of its receiver (E, D) and the fraction of the frame before it (E,), the gate's
+        logits (E,); per disc and axis the wall's velocity change and fraction (N, D).
+
+        ``every_edge=False`` runs the gate only on the edges with a time of impact (about 1 %
+        at the collisions density) and returns None for the logits: the kick is zero, value
+        and gradient, wherever there is none, so the velocities are the same."""
+        snd, rcv = g.edge_index
+        frac, hit, normal, approach, feats = self.pair_geometry(g, x, v, dt)
         if every_edge:
             logits = self.gate_logits(feats, hit)
             gate = torch.sigmoid(logits)
@@ -175,27 +185,57 @@ class ContactImpulseHead(nn.Module):
             return checkpoint(self.impacts, g, x, v, dt, every_edge, use_reentrant=False)
         return self.impacts(g, x, v, dt, every_edge)
 
-    def forward(self, g: Graph) -> tuple[torch.Tensor, torch.Tensor]:
+    def _replay_start(self, g: Graph) -> tuple[int, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The frame spacing per disc, how many of the window's frames are replayed (``depth``)
+        and the position and backward-difference velocity ``depth`` frames before t."""
         if g.dt is None:
             raise ValueError("the impulse head needs the frame spacing: the graph has no dt")
         dt = g.dt.to(g.pos.dtype)[g.batch]
+        depth = min(REPLAY_FRAMES, g.vel.shape[1] - 1)
+        x = g.pos - (g.vel[:, :depth] * dt[:, None, None]).sum(1)     # x[t - depth]
+        return depth, dt, x, g.vel[:, depth]
+
+    def _replay_frame(self, g: Graph, x: torch.Tensor, v: torch.Tensor, dt: torch.Tensor,
+                      j: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """From ``(x, v)`` at frame t - j to frame t - j + 1: the recorded positions, and the
+        backward difference plus what the frame's impacts changed after their instant."""
+        rcv, n = g.edge_index[1], g.pos.shape[0]
+        # the replays' logits are not outputs: the gate runs on their impacts only
+        pair_dv, frac, _, wall_dv, wall_frac = self._impacts(g, x, v, dt, False)
+        return (x + g.vel[:, j - 1] * dt[:, None],
+                g.vel[:, j - 1] + scatter_sum(pair_dv * frac[:, None], rcv, n)
+                + wall_dv * wall_frac)
+
+    def forward(self, g: Graph) -> tuple[torch.Tensor, torch.Tensor]:
         rcv, n = g.edge_index[1], g.pos.shape[0]
         # The velocity at frame t: the backward difference plus what each frame's impacts
         # changed after their instant (a backward difference averages over its frame). Replayed
         # from REPLAY_FRAMES back, so that a disc that bounced in consecutive frames starts
         # each replay with its velocity after the last bounce, not the average that still
         # approaches its partner (which would bounce it again).
-        depth = min(REPLAY_FRAMES, g.vel.shape[1] - 1)
-        x = g.pos - (g.vel[:, :depth] * dt[:, None, None]).sum(1)     # x[t - depth]
-        v = g.vel[:, depth]
+        depth, dt, x, v = self._replay_start(g)
         for j in range(depth, 0, -1):
-            # the replays' logits are not outputs: the gate runs on their impacts only
-            pair_dv, frac, _, wall_dv, wall_frac = self._impacts(g, x, v, dt, False)
-            x = x + g.vel[:, j - 1] * dt[:, None]                         # x[t - j + 1]
-            v = (g.vel[:, j - 1] + scatter_sum(pair_dv * frac[:, None], rcv, n)
-                 + wall_dv * wall_frac)
+            x, v = self._replay_frame(g, x, v, dt, j)
         # the next frame: free flight, then each impact's change for the rest of the frame
         pair_dv, frac, logits, wall_dv, wall_frac = self._impacts(g, g.pos, v, dt, True)
         v_next = (v + scatter_sum(pair_dv * (1 - frac)[:, None], rcv, n)
                   + wall_dv * (1 - wall_frac))
         return v_next, logits
+
+    @torch.no_grad()
+    def window_contacts(self, g: Graph) -> torch.Tensor:
+        """The pair impacts the head sees in the window's replayed frames, as rows
+        ``(j, i, k)`` (M, 3): discs i < k (graph-wide node indices) touch between frames
+        t - j and t - j + 1, where free flight has a time of impact and the gate is open
+        (probability > 1/2). What the head's per-simulation mass solve reads
+        (``bgn.inverse_references.impact_log_mass``)."""
+        snd, rcv = g.edge_index
+        depth, dt, x, v = self._replay_start(g)
+        rows = []
+        for j in range(depth, 0, -1):
+            _, hit, _, _, feats = self.pair_geometry(g, x, v, dt)
+            hits = torch.nonzero(hit & (rcv < snd)).squeeze(1)
+            touch = hits[self.gate_logits(feats[hits], hit[hits]) > 0]
+            rows.append(torch.stack([torch.full_like(touch, j), rcv[touch], snd[touch]], 1))
+            x, v = self._replay_frame(g, x, v, dt, j)
+        return torch.cat(rows)

@@ -98,3 +98,20 @@ def test_walls_come_from_the_graph_not_the_training_box():
     torch.testing.assert_close(v_next[0], torch.tensor([1.0, 0.0], dtype=torch.float64))
     v_next, _ = h(disc_graph(torch.stack([x, far], 1), [0.1, 0.1], box=10.0))
     assert v_next[0, 0] < 0  # in the box of side 10 it bounces off the wall at 10
+
+
+def test_window_contacts_finds_the_impact_the_window_replays_and_the_gate_can_veto_it():
+    # equal discs (radius 0.5) approach at speed 2 each and swap velocities 0.05 after frame 4
+    # of the window 0 .. 6: the head's replay of frames 3 .. 6 meets it between t-2 and t-1
+    h = head()
+    tau = torch.arange(7, dtype=torch.float64) * DT
+    hit = 0.45
+    left = torch.where(tau < hit, 4.0 + 2 * tau, 4.9 - 2 * (tau - hit))
+    right = torch.where(tau < hit, 6.8 - 2 * tau, 5.9 + 2 * (tau - hit))
+    y = torch.full((7,), 5.0, dtype=torch.float64)
+    g = disc_graph(torch.stack([torch.stack([left, y], -1), torch.stack([right, y], -1)], 1),
+                   [0.5, 0.5])
+    assert h.window_contacts(g).tolist() == [[2, 0, 1]]   # (frames back from t, i < k)
+    with torch.no_grad():
+        h.gate[-1].bias.fill_(-40.0)
+    assert h.window_contacts(g).shape == (0, 3)

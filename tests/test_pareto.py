@@ -139,6 +139,7 @@ def test_pareto_presets_plan_schedule_and_size_cells(name: str) -> None:
 
 def test_the_issue_cells_are_in_the_full_pareto_preset() -> None:
     p = preset_cfg("pareto_full").preset
+    assert preset_cfg("pareto").preset == p  # the issue's name for it, one study behind both
     assert set(p.scenes) == {"spring", "gravity_r2", "collisions"}
     assert list(p.fps) == [10, 50] and list(p.schedule_s) == [60, 120, 240, 480]
     assert list(p.sizes.grid.bgn.hidden["values"]) == [32, 64, 128, 256]

@@ -48,7 +48,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from bgn.graph import Graph
-from bgn.model.message_passing import edge_chunks
+from bgn.model.message_passing import edge_chunks, edge_sums
 from bgn.model.ops import Linear, activation, linear
 
 FLOWS = ("nsf", "naf")
@@ -108,24 +108,33 @@ class PairContext(nn.Module):
                                   nn.Linear(hidden, 2 * hidden))
         self.node = nn.Sequential(nn.Linear(2 * hidden + frames, hidden), activation(act),
                                   nn.Linear(hidden, hidden))
+        self.edge_chunk: int | None = None            # set by PhysicsModel (its config)
+        self.checkpoint_edges: int | None = None
 
     def forward(self, g: Graph) -> torch.Tensor:
         snd, rcv = g.edge_index[0], g.edge_index[1]
         n, h = len(g.vel), self.hidden
-        first, act, last = self.edge
         features = pair_features(g, self.frames)                       # (E, F, features)
-        s = act(first(features)).sum(1)                                 # (E, hidden)
         # the edge MLP's last layer is linear, so it runs after the sums over frames and
-        # at the nodes: sum_j sum_f (W s_ijf + b) = W (sum s) + F deg b; no (E, 2 hidden)
-        w, b = last.weight.split(h), last.bias.split(h)
+        # at the nodes: sum_j sum_f (W s_ijf + b) = W (sum s) + F deg b; no (E, 2 hidden).
+        # On large graphs the sums run in chunks of edges (``edge_chunk``): at 20 000 discs
+        # the (E, hidden) activations and their gradients were most of BGN's peak memory
+        sums = edge_sums(self._edge_hidden, self.edge[0].parameters(), features, g.edge_index,
+                         n, self.edge_chunk, self.checkpoint_edges)    # (2, N, hidden)
+        w, b = self.edge[2].weight.split(h), self.edge[2].bias.split(h)
         to_rcv, to_snd = (
-            F.linear(s.new_zeros(n, h).index_add_(0, index, s), w_half)
-            + features.shape[1] * torch.bincount(index, minlength=n).to(s.dtype)[:, None]
+            F.linear(part, w_half)
+            + features.shape[1] * torch.bincount(index, minlength=n).to(part.dtype)[:, None]
             * b_half
-            for index, w_half, b_half in ((rcv, w[0], b[0]), (snd, w[1], b[1])))
+            for part, index, w_half, b_half in ((sums[0], rcv, w[0], b[0]),
+                                                (sums[1], snd, w[1], b[1])))
         acc = window_accelerations(g, self.frames)
         log_a = 0.5 * torch.log((acc * acc).sum(-1) + _EPS)
         return self.node(torch.cat([to_rcv, to_snd, log_a], -1))
+
+    def _edge_hidden(self, features: torch.Tensor) -> torch.Tensor:
+        """(E, hidden): the edge MLP's hidden layer on (E, F, features), summed over frames."""
+        return self.edge[1](self.edge[0](features)).sum(1)
 
 
 class InverseModel(nn.Module):

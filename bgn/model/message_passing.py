@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import warnings
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import torch
@@ -185,3 +185,56 @@ def edge_chunks(fn: Callable[..., torch.Tensor], chunk: int | None,
         parts.append(checkpoint(fn, *args, use_reentrant=False) if torch.is_grad_enabled()
                      else fn(*args))
     return torch.cat(parts)
+
+
+class _EdgeSums(torch.autograd.Function):
+    """``out[0, i] = sum over edges e with receiver i of phi(x_e)``, ``out[1, j]`` the same over
+    senders, in chunks of edges; the backward recomputes each chunk's ``phi`` and returns the
+    gradients of its parameters (``x`` is data: no gradient). No per-edge tensor of the whole
+    graph exists in either pass, and no node-sized tensor per chunk."""
+
+    @staticmethod
+    def forward(ctx, phi: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor,
+                rcv: torch.Tensor, snd: torch.Tensor, n: int, chunk: int,
+                *params: torch.Tensor) -> torch.Tensor:
+        ctx.phi, ctx.n, ctx.chunk = phi, n, chunk
+        ctx.save_for_backward(x, rcv, snd, *params)
+        out = None
+        for start in range(0, x.shape[0], chunk):
+            y = phi(x[start:start + chunk])
+            if out is None:
+                out = y.new_zeros(2, n, *y.shape[1:])
+            out[0].index_add_(0, rcv[start:start + chunk], y)
+            out[1].index_add_(0, snd[start:start + chunk], y)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        x, rcv, snd, *params = ctx.saved_tensors
+        grads = [torch.zeros_like(p) for p in params]
+        for start in range(0, x.shape[0], ctx.chunk):
+            r, s = rcv[start:start + ctx.chunk], snd[start:start + ctx.chunk]
+            with torch.enable_grad():
+                y = ctx.phi(x[start:start + ctx.chunk])
+            g = grad[0].index_select(0, r) + grad[1].index_select(0, s)
+            for total, part in zip(grads, torch.autograd.grad(y, params, g, allow_unused=True),
+                                   strict=True):
+                if part is not None:
+                    total += part
+        return (None, None, None, None, None, None, *grads)
+
+
+def edge_sums(phi: Callable[[torch.Tensor], torch.Tensor], params: Iterable[torch.Tensor],
+              x: torch.Tensor, edge_index: torch.Tensor, n: int, chunk: int | None = None,
+              above: int | None = None) -> torch.Tensor:
+    """(2, N, ...) ``phi`` of every edge's data ``x`` (E, ...) summed at the receivers and at
+    the senders; ``params``: the parameters ``phi`` uses (``x`` has no gradient). On graphs of
+    more than ``chunk`` and ``above`` edges, in chunks (``_EdgeSums``): the memory of
+    ``phi``'s activations is O(chunk), for one more forward of ``phi``."""
+    snd, rcv = edge_index[0], edge_index[1]
+    if not chunk or x.shape[0] <= max(chunk, above or 0):
+        y = phi(x)
+        zeros = y.new_zeros(n, *y.shape[1:])
+        return torch.stack([zeros.index_add(0, rcv, y), zeros.index_add(0, snd, y)])
+    return _EdgeSums.apply(phi, x, rcv, snd, n, chunk,
+                           *(p for p in params if p.requires_grad))

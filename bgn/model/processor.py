@@ -229,7 +229,7 @@ class Processor(nn.Module):
             extra = hidden                                     # sum_j ĉ_ij m_ij
         self.out_features = self.tilde_v_features + extra
 
-    def forward(self, h_v: torch.Tensor, h_e: torch.Tensor | None, e: torch.Tensor,
+    def forward(self, h_v: torch.Tensor, h_e: torch.Tensor | None, e: torch.Tensor | None,
                 g: Graph) -> ProcessorOutput:
         type_logits = None
         h_tilde_v = h_v
@@ -238,7 +238,7 @@ class Processor(nn.Module):
             h_tilde_v = torch.cat([h_v, torch.softmax(type_logits, -1)], -1)  # H_V ‖ Ŷ
         contact = impulse = None
         if self.contact is not None:
-            assert h_e is not None
+            assert h_e is not None and e is not None
             gap = approach_gap(g) if self.contact.gap else None
             contact = self.contact.logits(h_e, g.edge_index, e, gap)
         if not self.decode:
@@ -251,7 +251,7 @@ class Processor(nn.Module):
             rows = self.contact.dense_rows(contact, h_e, g, self.n_particles)
             h_cv = torch.cat([rows, h_tilde_v], -1)
         else:
-            assert contact is not None
+            assert contact is not None and e is not None
             agg = self.contact.aggregate(contact, e, g.edge_index, h_tilde_v)
             h_cv = torch.cat([h_tilde_v, agg], -1)
             if self.contact.kind == "vector":

@@ -6,7 +6,13 @@ from dataclasses import replace
 import torch
 
 from bgn.graph import window_graph
-from bgn.model.impulse import ContactImpulseHead, time_of_impact, wall_impact
+from bgn.model.impulse import (
+    RULE_LOGIT,
+    ContactImpulseHead,
+    time_of_impact,
+    wall_impact,
+    walls,
+)
 from bgn.model.ops import scatter_sum
 from tests.model.conftest import make_meta
 
@@ -115,3 +121,52 @@ def test_window_contacts_finds_the_impact_the_window_replays_and_the_gate_can_ve
     with torch.no_grad():
         h.gate[-1].bias.fill_(-40.0)
     assert h.window_contacts(g).shape == (0, 3)
+
+
+def test_the_gate_runs_on_candidates_and_leaves_the_velocities_as_on_every_edge(monkeypatch):
+    # a random gas: candidates are the pairs with a time of impact or a gap their speeds close
+    # within a frame; elsewhere the logit is the rule's -RULE_LOGIT and the kick is zero
+    h = head()
+    with torch.no_grad():  # a gate that is not the rule alone: the MLP matters where it runs
+        h.gate[-1].weight.normal_()
+        h.gate[-1].bias.fill_(0.3)
+    torch.manual_seed(2)
+    n = 40
+    x = torch.rand(n, 2, dtype=torch.float64) * 6 + 2
+    v = torch.randn(n, 2, dtype=torch.float64) * 3
+    window = torch.stack([x + v * DT * s for s in range(-3, 1)])
+    g = disc_graph(window, [0.2 if k % 2 else 0.3 for k in range(n)])
+    dt = g.dt[g.batch].double()
+    _, hit, _, _, feats = h.pair_geometry(g, g.pos, g.vel[:, 0], dt)
+    chosen = h.candidates(g, g.vel[:, 0], dt, hit, feats)
+    assert 0 < int(hit.sum()) < int(chosen.sum()) < chosen.numel()  # hits, near pairs, others
+
+    pair_dv, frac, logits, _, _ = h.impacts(g, g.pos, g.vel[:, 0], dt)
+    monkeypatch.setattr(ContactImpulseHead, "candidates",
+                        lambda self, g, v, dt, hit, feats: torch.ones_like(hit))
+    every_dv, every_frac, every_logits, _, _ = h.impacts(g, g.pos, g.vel[:, 0], dt)
+    torch.testing.assert_close(pair_dv, every_dv, atol=0, rtol=0)
+    torch.testing.assert_close(frac, every_frac, atol=0, rtol=0)
+    torch.testing.assert_close(logits[chosen], every_logits[chosen])
+    assert (logits[~chosen] == -RULE_LOGIT).all()
+
+
+def test_the_wall_gate_on_the_wall_hits_equals_the_gate_on_every_disc():
+    h = head(box=4.0)
+    with torch.no_grad():
+        h.wall_gate[-1].weight.normal_()
+        h.wall_gate[-1].bias.fill_(-2.0)
+    torch.manual_seed(5)
+    n = 30
+    x = torch.rand(n, 2, dtype=torch.float64) * 3.2 + 0.4
+    v = torch.randn(n, 2, dtype=torch.float64) * 10
+    g = disc_graph(torch.stack([x + v * DT * s for s in range(-3, 1)]), [0.2] * n, box=4.0)
+    dt = g.dt[g.batch].double()
+    _, _, _, wall_dv, wall_frac = h.impacts(g, g.pos, g.vel[:, 0], dt)
+    frac, hit = wall_impact(g.pos, g.vel[:, 0], g.radius, walls(g), dt)
+    assert 0 < int(hit.sum()) < hit.numel()
+    feats = torch.stack([frac, hit.double(), g.vel[:, 0].abs()], -1)
+    gate = torch.sigmoid(h.wall_gate(feats).squeeze(-1) + RULE_LOGIT * (2 * hit.double() - 1))
+    _, e_wall = h.restitutions()
+    torch.testing.assert_close(wall_dv, -(1 + e_wall) * g.vel[:, 0] * gate * hit)
+    torch.testing.assert_close(wall_frac, frac)

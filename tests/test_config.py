@@ -200,3 +200,12 @@ def test_messages_come_from_rank_zero_only(caplog, monkeypatch):
     monkeypatch.setattr(rank_zero_only, "rank", 0)
     info("from rank 0")
     assert [r.getMessage() for r in caplog.records] == ["from rank 0"]
+
+
+def test_the_more_sims_experiment_sets_the_sizes_and_nothing_else():
+    plain, more = composed("dataset=gravity_r2"), composed("dataset=gravity_r2",
+                                                           "experiment=more_sims")
+    assert (more.dataset.n_sims, more.dataset.n_frames) == (100, 300)
+    for cfg in (plain, more):
+        cfg.dataset.n_sims = cfg.dataset.n_frames = 0
+    assert OmegaConf.to_container(plain) == OmegaConf.to_container(more)

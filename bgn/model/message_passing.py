@@ -228,11 +228,13 @@ def edge_sums(phi: Callable[[torch.Tensor], torch.Tensor], params: Iterable[torc
               x: torch.Tensor, edge_index: torch.Tensor, n: int, chunk: int | None = None,
               above: int | None = None) -> torch.Tensor:
     """(2, N, ...) ``phi`` of every edge's data ``x`` (E, ...) summed at the receivers and at
-    the senders; ``params``: the parameters ``phi`` uses (``x`` has no gradient). On graphs of
-    more than ``chunk`` and ``above`` edges, in chunks (``_EdgeSums``): the memory of
-    ``phi``'s activations is O(chunk), for one more forward of ``phi``."""
+    the senders; ``params``: the parameters ``phi`` uses. On graphs of more than ``chunk`` and
+    ``above`` edges, in chunks (``_EdgeSums``): the memory of ``phi``'s activations is
+    O(chunk), for one more forward of ``phi``. ``_EdgeSums`` returns no gradient for ``x``, so
+    an ``x`` that needs one (data made by the model itself, an unrolled loss) takes the plain
+    path."""
     snd, rcv = edge_index[0], edge_index[1]
-    if not chunk or x.shape[0] <= max(chunk, above or 0):
+    if not chunk or x.shape[0] <= max(chunk, above or 0) or x.requires_grad:
         y = phi(x)
         zeros = y.new_zeros(n, *y.shape[1:])
         return torch.stack([zeros.index_add(0, rcv, y), zeros.index_add(0, snd, y)])

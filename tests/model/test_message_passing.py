@@ -291,3 +291,17 @@ def test_edge_sums_in_chunks_equal_the_plain_sums_and_their_gradients():
     torch.testing.assert_close(chunked, plain, **TOL)
     for got, want in zip(chunked_grads, plain_grads, strict=True):
         torch.testing.assert_close(got, want, **TOL)
+
+
+def test_edge_sums_keep_the_gradient_of_data_that_needs_one():
+    # features made by the model itself (an unrolled loss): the chunked path would drop their
+    # gradient, so they take the plain one
+    torch.manual_seed(4)
+    n, e = 9, 120
+    edge_index = torch.stack([torch.randint(0, n, (e,)), torch.randint(0, n, (e,))])
+    x = torch.randn(e, 1, 5, dtype=torch.float64, requires_grad=True)
+    net = torch.nn.Sequential(torch.nn.Linear(5, 4), torch.nn.SiLU()).double()
+    grads = [torch.autograd.grad(edge_sums(lambda v: net(v).sum(1), net.parameters(), x,
+                                           edge_index, n, chunk).sum(), x)[0]
+             for chunk in (None, 30)]
+    torch.testing.assert_close(grads[1], grads[0], **TOL)

@@ -197,7 +197,7 @@ class _EdgeSums(torch.autograd.Function):
     def forward(ctx, phi: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor,
                 rcv: torch.Tensor, snd: torch.Tensor, n: int, chunk: int,
                 *params: torch.Tensor) -> torch.Tensor:
-        ctx.phi, ctx.n, ctx.chunk = phi, n, chunk
+        ctx.phi, ctx.chunk = phi, chunk
         ctx.save_for_backward(x, rcv, snd, *params)
         out = None
         for start in range(0, x.shape[0], chunk):

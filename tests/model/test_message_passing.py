@@ -270,17 +270,21 @@ def test_pair_context_sums_before_its_last_layer_as_the_plain_messages(frames):
         torch.testing.assert_close(got, want, **TOL)
 
 
+def summed_edge_mlp(seed: int, n: int, e: int, frames: int, width: int,
+                    data_grad: bool = False):
+    """A random edge list of ``n`` nodes and ``e`` edges, edge data (E, frames, 5) and a
+    one-layer edge MLP summed over the frames: (edge_index, x, net, phi)."""
+    torch.manual_seed(seed)
+    edge_index = torch.stack([torch.randint(0, n, (e,)), torch.randint(0, n, (e,))])
+    x = torch.randn(e, frames, 5, dtype=torch.float64, requires_grad=data_grad)
+    net = torch.nn.Sequential(torch.nn.Linear(5, width), torch.nn.SiLU()).double()
+    return edge_index, x, net, lambda v: net(v).sum(1)
+
+
 def test_edge_sums_in_chunks_equal_the_plain_sums_and_their_gradients():
     # an edge MLP summed at receivers and senders: chunked (custom backward) == plain
-    torch.manual_seed(3)
-    n, e = 17, 230
-    edge_index = torch.stack([torch.randint(0, n, (e,)), torch.randint(0, n, (e,))])
-    x = torch.randn(e, 3, 5, dtype=torch.float64)
-    net = torch.nn.Sequential(torch.nn.Linear(5, 8), torch.nn.SiLU()).double()
-
-    def phi(v):
-        return net(v).sum(1)
-
+    n = 17
+    edge_index, x, net, phi = summed_edge_mlp(3, n, 230, frames=3, width=8)
     weights = torch.randn(2, n, 8, dtype=torch.float64)
     results = []
     for chunk in (None, 40):
@@ -296,12 +300,9 @@ def test_edge_sums_in_chunks_equal_the_plain_sums_and_their_gradients():
 def test_edge_sums_keep_the_gradient_of_data_that_needs_one():
     # features made by the model itself (an unrolled loss): the chunked path would drop their
     # gradient, so they take the plain one
-    torch.manual_seed(4)
-    n, e = 9, 120
-    edge_index = torch.stack([torch.randint(0, n, (e,)), torch.randint(0, n, (e,))])
-    x = torch.randn(e, 1, 5, dtype=torch.float64, requires_grad=True)
-    net = torch.nn.Sequential(torch.nn.Linear(5, 4), torch.nn.SiLU()).double()
-    grads = [torch.autograd.grad(edge_sums(lambda v: net(v).sum(1), net.parameters(), x,
-                                           edge_index, n, chunk).sum(), x)[0]
+    n = 9
+    edge_index, x, net, phi = summed_edge_mlp(4, n, 120, frames=1, width=4, data_grad=True)
+    grads = [torch.autograd.grad(edge_sums(phi, net.parameters(), x, edge_index, n,
+                                           chunk).sum(), x)[0]
              for chunk in (None, 30)]
     torch.testing.assert_close(grads[1], grads[0], **TOL)

@@ -71,6 +71,10 @@ class ModelConfig(DynamicsConfig):
     # on that context.
     mass_context: str = "pairs"
     mass_context_dropout: float = 0.0
+    # mass_context=fit: also the fit's relative standard error, so the flow can tell a window
+    # that pins the masses from one that does not (gravity_r2: docs/results.md); where the
+    # context is not a fit (see _conditioning) there is no fit error to read, and it is unused
+    mass_fit_error: bool = False
     # frames of the window whose accelerations the pair terms read (1: the newest; at most
     # the history): an impact anywhere in the window carries the pair's mass ratio
     mass_context_frames: int = 1
@@ -225,7 +229,8 @@ class BGN(PhysicsModel):
                                      cfg.flow_transforms, cfg.flow_hidden, cfg.activation,
                                      self._conditioning(cfg, history),
                                      cfg.mass_context_dropout,
-                                     max(1, min(cfg.mass_context_frames, history)))
+                                     max(1, min(cfg.mass_context_frames, history)),
+                                     cfg.mass_fit_error)
                         if cfg.inverse else None)
         if self.processor.contact is None and self.decoder is None:
             self.edge_encoder = None  # H_E would feed neither a contact head nor a decoder
@@ -280,7 +285,8 @@ class BGN(PhysicsModel):
 
     def forward(self, g: Graph, noise: torch.Tensor | None = None) -> ModelOutput:
         """All heads on a graph (one frame or a batch). ``noise`` (N,): base draws of the
-        flow sample behind ``relmass`` (drawn here when None)."""
+        flow sample behind ``relmass`` (when None: drawn while training, the posterior's
+        median in eval mode, ``InverseModel.forward``)."""
         p, w, x = self._process(g)
         contact = p.contact
         fitted = None  # the force head's fitted log-masses, for mass_context=fit
@@ -288,10 +294,11 @@ class BGN(PhysicsModel):
             target = self._decode(p, x)                        # Eq. 5
         elif isinstance(self.force_head, PairForceHead):  # one window, one mass fit for both
             raw, terms = self.force_head.window(g)
-            fit = self.force_head.fit(g, terms)
+            fit, error = self.force_head.fit_with_error(g, terms)
             target = self.target_coder.code(g, self.force_head.accelerate(g, raw, fit))
             if self.inverse is not None and self.inverse.uses_fit:
-                fitted = self.force_head.fitted_log_mass(g, fit)
+                fitted = self.force_head.fitted_log_mass(
+                    g, fit, error if self.inverse.fit_error else None)
         else:  # the impulse head, its gate the contact head
             physical, gate = self.force_head(g)
             target = self.target_coder.code(g, physical)
@@ -310,7 +317,9 @@ class BGN(PhysicsModel):
         log-masses under ``mass_context=fit`` (``fitted``, where ``forward`` has them)."""
         assert self.inverse is not None
         if fitted is None and self.inverse.uses_fit and self.force_head is not None:
-            fitted = self.force_head.fitted_log_mass(g)
+            fit, error = self.force_head.fit_with_error(g, self.force_head.window(g)[1])
+            fitted = self.force_head.fitted_log_mass(g, fit,
+                                                     error if self.inverse.fit_error else None)
         return self.inverse.context(p.h_tilde_v, g, fitted)
 
     def forward_target(self, g: Graph) -> torch.Tensor:

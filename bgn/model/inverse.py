@@ -145,15 +145,18 @@ class InverseModel(nn.Module):
 
     def __init__(self, context: int, flow: str = "nsf", transforms: int = 3, hidden: int = 64,
                  act: str = "silu", conditioning: str = "node", dropout: float = 0.0,
-                 frames: int = 1) -> None:
+                 frames: int = 1, fit_error: bool = False) -> None:
         super().__init__()
         if conditioning not in CONTEXTS:
             raise ValueError(f"mass_context={conditioning!r}; choose one of {CONTEXTS}")
         self.kind = flow
         self.pairs = PairContext(hidden, act, frames) if conditioning in ("pairs", "fit") else None
         self.uses_fit = conditioning == "fit"
+        # under fit, also the fit's relative standard error (newton.PairForceHead.fit_with_error)
+        self.fit_error = fit_error and self.uses_fit
         self.dropout = dropout
-        self.flow = make_flow(flow, context + (hidden if self.pairs else 0) + self.uses_fit,
+        fit_width = self.uses_fit + self.fit_error
+        self.flow = make_flow(flow, context + (hidden if self.pairs else 0) + fit_width,
                               transforms, hidden)
         self.bilinear = nn.Bilinear(2, 2, hidden)     # Eq. 9 on [z, 1]
         self.act = activation(act)
@@ -168,13 +171,14 @@ class InverseModel(nn.Module):
     def context(self, h_tilde_v: torch.Tensor, g: Graph,
                 fitted_log_mass: torch.Tensor | None = None) -> torch.Tensor:
         """What the flow is conditioned on: ``H̃_V`` (Eq. 6), with the pair terms under
-        ``pairs`` and ``fit``, and the force head's ``fitted_log_mass`` (N,) under ``fit``;
-        dropout on it while training."""
+        ``pairs`` and ``fit``, and the force head's ``fitted_log_mass`` (N,) under ``fit``
+        ((N, 2) with ``fit_error``: with the fit's relative error); dropout on it while
+        training."""
         parts = [h_tilde_v] if self.pairs is None else [h_tilde_v, self.pairs(g)]
         if self.uses_fit:
             if fitted_log_mass is None:
                 raise ValueError("mass_context=fit needs the structured head's fitted masses")
-            parts.append(fitted_log_mass.detach()[:, None])
+            parts.append(fitted_log_mass.detach().reshape(len(h_tilde_v), -1))
         return F.dropout(torch.cat(parts, -1), self.dropout, self.training)
 
     def forward(self, context: torch.Tensor, log_mass: torch.Tensor,
@@ -182,12 +186,15 @@ class InverseModel(nn.Module):
         """Per particle: NLL of the normalised log-mass (Eq. 7-8) and one sample ``z_K``.
 
         ``noise`` (N,) is the base-distribution (standard normal) draw; pass it to make the
-        sample reproducible (tests), else it is drawn here. Returns ``(nll (N,), z (N,))``.
+        sample reproducible (tests), else it is drawn here while training, and is 0 in eval
+        mode: the posterior's median, so that Eq. 9-10 decode a point estimate of the relative
+        masses (a random draw adds the posterior's width to their error: gravity_r2's
+        relative-mass R^2 0.78 -> 0.81, docs/results.md). Returns ``(nll (N,), z (N,))``.
         """
         dist = self.flow(context)  # the context network runs once for both uses
         nll = -dist.log_prob(log_mass[:, None])
         if noise is None:
-            noise = torch.randn_like(log_mass)
+            noise = torch.randn_like(log_mass) if self.training else torch.zeros_like(log_mass)
         z = dist.transform.inv(noise[:, None]).squeeze(-1)  # rsample: differentiable
         return nll, z
 

@@ -55,6 +55,7 @@ from bgn.sim.scene import SceneMeta
 MASS_LAWS = ("inertial", "source")
 FIT_EPS = 1e-12  # keeps a mass fit finite when a particle feels no force over the window
 ROBUST_STEPS, ROBUST_SCALE = 2, 0.01  # reweighting of the gravity mass fit (source law)
+REL_ERROR_FLOOR = 1e-6  # the log of a fit's relative error stays finite for an exact fit
 IMPLICIT_STEPS = 1  # fixed-point steps of the implicit Numerov prediction (more: no gain)
 # Newton steps of the shooting that finds the velocity at frame t (substeps > 1): with the true
 # law on gravity_r2 test frames, 3 and 8 give the same median and 90th percentile (results.md)
@@ -219,27 +220,45 @@ class PairForceHead(nn.Module):
     def fit(self, g: Graph, terms: torch.Tensor) -> torch.Tensor:
         """(N,) the window's least-squares fit: ``1 / m_i`` under the inertial law, ``m_i``
         under the source law, to the pair terms ``terms`` (E, F, D) of frames t .. t-k+1."""
-        seen = observed_targets(g, "acceleration")[:, :terms.shape[1] - 1]  # a[t-1] .. a[t-k+1]
-        if self.mass_law == "inertial":
-            past = scatter_sum(terms[:, 1:], g.edge_index[1], g.pos.shape[0])
-            return (past * seen).sum((1, 2)) / ((past * past).sum((1, 2)) + FIT_EPS)
-        return self.source_masses(g, terms[:, 1:], seen)
+        return self.fit_with_error(g, terms)[0]
 
-    def fitted_log_mass(self, g: Graph, fit: torch.Tensor | None = None) -> torch.Tensor:
+    def fit_with_error(self, g: Graph, terms: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``fit`` and its standard error (N,), from the least squares' residuals: small where
+        the window pins the mass, large where it does not (bodies far apart under gravity)."""
+        seen = observed_targets(g, "acceleration")[:, :terms.shape[1] - 1]  # a[t-1] .. a[t-k+1]
+        if self.mass_law == "source":
+            return self.source_masses(g, terms[:, 1:], seen)
+        past = scatter_sum(terms[:, 1:], g.edge_index[1], g.pos.shape[0])
+        norm = (past * past).sum((1, 2)) + FIT_EPS
+        fit = (past * seen).sum((1, 2)) / norm
+        residual = ((seen - fit[:, None, None] * past) ** 2).sum((1, 2))
+        dof = max(seen.shape[1] * seen.shape[2] - 1, 1)  # one unknown per particle
+        return fit, torch.sqrt(residual / dof / norm)
+
+    def fitted_log_mass(self, g: Graph, fit: torch.Tensor | None = None,
+                        error: torch.Tensor | None = None) -> torch.Tensor:
         """(N,) log of the masses the window's fit gives (up to the free scale of the learned
         force law, a constant per model): a feature that carries each particle's mass, for
         the inverse model's context (``mass_context=fit``). ``fit``: the head's own fit of
-        this graph where the caller has it (no second solve)."""
+        this graph where the caller has it (no second solve). With the fit's standard
+        ``error`` (``fit_with_error``): (N, 2), also the log of the relative error, which says
+        how far the log-mass can be trusted."""
         if fit is None:
             fit = self.fit(g, self.window(g)[1])
         log_fit = torch.log(fit.abs() + FIT_EPS)
-        return -log_fit if self.mass_law == "inertial" else log_fit
+        log_fit = -log_fit if self.mass_law == "inertial" else log_fit
+        if error is None:
+            return log_fit
+        return torch.stack([log_fit, torch.log(error / (fit.abs() + FIT_EPS) + REL_ERROR_FLOOR)],
+                           -1)
 
-    def source_masses(self, g: Graph, past: torch.Tensor, seen: torch.Tensor) -> torch.Tensor:
+    def source_masses(self, g: Graph, past: torch.Tensor,
+                      seen: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(N,) one mass per particle such that ``a_i = sum_j m_j f(s_ij) u_ij`` fits the
         window's accelerations best, by least squares jointly per simulation (ridge-regularised
         normal equations, differentiable; every graph of a batch has the same N, the n-body
-        scenes). ``past``: (E, F, D) pair terms at the F frames of ``seen`` (N, F, D)."""
+        scenes). ``past``: (E, F, D) pair terms at the F frames of ``seen`` (N, F, D). Also
+        their standard errors (N,): the residuals' variance times the inverse normal matrix."""
         n_graphs, n_frames, dim = g.num_graphs, past.shape[1], past.shape[2]
         n = g.pos.shape[0] // n_graphs
         snd, rcv = g.edge_index
@@ -255,7 +274,7 @@ class PairForceHead(nn.Module):
         # otherwise set every mass of its simulation.
         weight = 1 / (target.abs() + target.abs().mean(1, keepdim=True) * 1e-3 + FIT_EPS)
         eye = torch.eye(n, dtype=design.dtype, device=design.device)
-        for _ in range(ROBUST_STEPS + 1):
+        for step in range(ROBUST_STEPS + 1):
             wd = design * weight
             gram = wd.transpose(1, 2) @ wd
             # a ridge relative to the system's own scale: a particle that pulls on no one
@@ -263,8 +282,11 @@ class PairForceHead(nn.Module):
             ridge = 1e-6 * gram.diagonal(dim1=1, dim2=2).mean(-1)[:, None, None] + FIT_EPS
             masses = torch.linalg.solve(gram + ridge * eye, wd.transpose(1, 2) @ (target * weight))
             residual = (design @ masses - target) * weight
-            weight = weight / (1 + (residual / ROBUST_SCALE) ** 2).sqrt()
-        return masses.reshape(-1).to(past.dtype)
+            if step < ROBUST_STEPS:
+                weight = weight / (1 + (residual / ROBUST_SCALE) ** 2).sqrt()
+        variance = (residual**2).sum(1) / max(design.shape[1] - n, 1)            # (B, 1)
+        error = (variance * torch.linalg.inv(gram + ridge * eye).diagonal(dim1=1, dim2=2)).sqrt()
+        return masses.reshape(-1).to(past.dtype), error.reshape(-1).to(past.dtype)
 
 
 def build_head(meta: SceneMeta, normalizer: Normalizer, history: int, hidden: int, layers: int,

@@ -5,6 +5,7 @@ from dataclasses import fields, replace
 
 import pytest
 import torch
+from scipy import stats
 from torch import nn
 
 from bgn.data.datamodule import ParticleDataModule
@@ -85,6 +86,48 @@ def test_the_fitted_log_masses_of_the_true_law_are_the_masses(small_cfg, scene):
     assert samples.shape == (3, len(g.mass)) and torch.isfinite(density).all()
 
 
+@pytest.mark.parametrize("scene", ["spring", "gravity_r2"])
+def test_the_fits_standard_error_ranks_its_errors(small_cfg, scene):
+    """mass_fit_error: with the true law, noise on the window's accelerations makes the fitted
+    log-masses err, and the fit's own relative error says which: it grows with the noise and
+    ranks the particles' errors (Spearman), so the flow can tell what to trust."""
+    ds, g = frames(small_cfg, scene)
+    model = build_model({"name": "bgn", "dynamics": "newton", "mass_law": LAWS[scene][0],
+                         "mass_context": "fit", "mass_fit_error": True}, ds.meta,
+                        ds.file.stats(), ds.history).double()
+    head = model.force_head
+    head.force_law = TrueLaw(LAWS[scene][1], float(model.normalizer.rel_position_scale))
+    torch.manual_seed(0)
+    spread = []
+    for noise in (0.0, 1e-3):
+        noisy = replace(g, vel=g.vel * (1 + noise * torch.randn_like(g.vel)))
+        fit, error = head.fit_with_error(noisy, head.window(noisy)[1])
+        features = head.fitted_log_mass(noisy, fit, error)
+        assert features.shape == (len(g.mass), 2) and torch.isfinite(features).all()
+        wrong = (features[:, 0] - g.mass.log()).abs()
+        spread.append(float(features[:, 1].median()))
+        if noise:
+            assert stats.spearmanr(wrong, features[:, 1]).statistic > 0.4
+    assert spread[1] > spread[0] + 3.0   # the noise raises the relative error e^3-fold at least
+    model.eval()
+    samples, density = model.mass_posterior(g, 3)            # the flow reads both features
+    assert samples.shape == (3, len(g.mass)) and torch.isfinite(density).all()
+
+
+def test_the_fit_error_is_read_only_where_the_context_is_a_fit(small_cfg):
+    """One gravity_r2 setting serves every dynamics: with the paper's decoder (no fit) or a
+    pairs context, mass_fit_error has no fit to read and the flow's context is as without."""
+    ds, _ = frames(small_cfg, "gravity_r2")
+    widths = {}
+    for config in ({"mass_context": "pairs"}, {"mass_context": "pairs", "mass_fit_error": True},
+                   {"mass_context": "fit", "mass_fit_error": True}):
+        model = build_model({"name": "bgn", **config}, ds.meta, ds.file.stats(), ds.history)
+        widths[tuple(config.values())] = (model.inverse.fit_error,
+                                          sum(p.numel() for p in model.inverse.parameters()))
+    assert widths[("pairs",)] == widths[("pairs", True)] == widths[("fit", True)]
+    assert not widths[("pairs", True)][0]
+
+
 def test_pair_forces_are_equal_and_opposite(small_cfg):
     ds, g = frames(small_cfg, "spring")
     torch.manual_seed(0)
@@ -160,7 +203,7 @@ def test_substeps_recover_gravity_targets_that_numerov_misses(small_cfg):
                             ds.meta, ds.file.stats(), ds.history).double()
         model.head.force_law = TrueLaw(LAWS["gravity_r2"][1],
                                        float(model.normalizer.rel_position_scale))
-        model.head.source_masses = lambda g, past, seen: g.mass  # noqa: B023 (the true masses)
+        model.head.source_masses = lambda g, past, seen: (g.mass, 0 * g.mass)  # noqa: B023
         errors[substeps] = (model.predict(g) - g.target).norm(dim=1) / g.target.norm(dim=1)
     # smooth frames are Numerov's (O(dt^4)); the close passes are the substeps': measured on
     # this data, 90th percentile 1.8e-4 -> 3.7e-5, 99th 1e-2 -> 2.4e-4

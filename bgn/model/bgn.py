@@ -294,11 +294,11 @@ class BGN(PhysicsModel):
             target = self._decode(p, x)                        # Eq. 5
         elif isinstance(self.force_head, PairForceHead):  # one window, one mass fit for both
             raw, terms = self.force_head.window(g)
-            fit, error = self.force_head.fit_with_error(g, terms)
+            fit, error = self.force_head.least_squares(
+                g, terms, self.inverse is not None and self.inverse.fit_error)
             target = self.target_coder.code(g, self.force_head.accelerate(g, raw, fit))
             if self.inverse is not None and self.inverse.uses_fit:
-                fitted = self.force_head.fitted_log_mass(
-                    g, fit, error if self.inverse.fit_error else None)
+                fitted = self.force_head.fitted_log_mass(g, fit, error)
         else:  # the impulse head, its gate the contact head
             physical, gate = self.force_head(g)
             target = self.target_coder.code(g, physical)
@@ -317,9 +317,9 @@ class BGN(PhysicsModel):
         log-masses under ``mass_context=fit`` (``fitted``, where ``forward`` has them)."""
         assert self.inverse is not None
         if fitted is None and self.inverse.uses_fit and self.force_head is not None:
-            fit, error = self.force_head.fit_with_error(g, self.force_head.window(g)[1])
-            fitted = self.force_head.fitted_log_mass(g, fit,
-                                                     error if self.inverse.fit_error else None)
+            fit, error = self.force_head.least_squares(g, self.force_head.window(g)[1],
+                                                       self.inverse.fit_error)
+            fitted = self.force_head.fitted_log_mass(g, fit, error)
         return self.inverse.context(p.h_tilde_v, g, fitted)
 
     def forward_target(self, g: Graph) -> torch.Tensor:

@@ -152,7 +152,7 @@ class InverseModel(nn.Module):
         self.kind = flow
         self.pairs = PairContext(hidden, act, frames) if conditioning in ("pairs", "fit") else None
         self.uses_fit = conditioning == "fit"
-        # under fit, also the fit's relative standard error (newton.PairForceHead.fit_with_error)
+        # under fit, also the fit's relative standard error (newton.PairForceHead.least_squares)
         self.fit_error = fit_error and self.uses_fit
         self.dropout = dropout
         fit_width = self.uses_fit + self.fit_error

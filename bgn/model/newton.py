@@ -220,17 +220,21 @@ class PairForceHead(nn.Module):
     def fit(self, g: Graph, terms: torch.Tensor) -> torch.Tensor:
         """(N,) the window's least-squares fit: ``1 / m_i`` under the inertial law, ``m_i``
         under the source law, to the pair terms ``terms`` (E, F, D) of frames t .. t-k+1."""
-        return self.fit_with_error(g, terms)[0]
+        return self.least_squares(g, terms)[0]
 
-    def fit_with_error(self, g: Graph, terms: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``fit`` and its standard error (N,), from the least squares' residuals: small where
-        the window pins the mass, large where it does not (bodies far apart under gravity)."""
+    def least_squares(self, g: Graph, terms: torch.Tensor, with_error: bool = False,
+                      ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """``fit`` and, ``with_error``, its standard error (N,) from the residuals: small where
+        the window pins the mass, large where it does not (bodies far apart under gravity).
+        Without it (rollouts, the heads that do not read it) the error is not computed."""
         seen = observed_targets(g, "acceleration")[:, :terms.shape[1] - 1]  # a[t-1] .. a[t-k+1]
         if self.mass_law == "source":
-            return self.source_masses(g, terms[:, 1:], seen)
+            return self.source_masses(g, terms[:, 1:], seen, with_error)
         past = scatter_sum(terms[:, 1:], g.edge_index[1], g.pos.shape[0])
         norm = (past * past).sum((1, 2)) + FIT_EPS
         fit = (past * seen).sum((1, 2)) / norm
+        if not with_error:
+            return fit, None
         residual = ((seen - fit[:, None, None] * past) ** 2).sum((1, 2))
         dof = max(seen.shape[1] * seen.shape[2] - 1, 1)  # one unknown per particle
         return fit, torch.sqrt(residual / dof / norm)
@@ -241,7 +245,7 @@ class PairForceHead(nn.Module):
         force law, a constant per model): a feature that carries each particle's mass, for
         the inverse model's context (``mass_context=fit``). ``fit``: the head's own fit of
         this graph where the caller has it (no second solve). With the fit's standard
-        ``error`` (``fit_with_error``): (N, 2), also the log of the relative error, which says
+        ``error`` (``least_squares``): (N, 2), also the log of the relative error, which says
         how far the log-mass can be trusted."""
         if fit is None:
             fit = self.fit(g, self.window(g)[1])
@@ -252,13 +256,14 @@ class PairForceHead(nn.Module):
         return torch.stack([log_fit, torch.log(error / (fit.abs() + FIT_EPS) + REL_ERROR_FLOOR)],
                            -1)
 
-    def source_masses(self, g: Graph, past: torch.Tensor,
-                      seen: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def source_masses(self, g: Graph, past: torch.Tensor, seen: torch.Tensor,
+                      with_error: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
         """(N,) one mass per particle such that ``a_i = sum_j m_j f(s_ij) u_ij`` fits the
         window's accelerations best, by least squares jointly per simulation (ridge-regularised
         normal equations, differentiable; every graph of a batch has the same N, the n-body
-        scenes). ``past``: (E, F, D) pair terms at the F frames of ``seen`` (N, F, D). Also
-        their standard errors (N,): the residuals' variance times the inverse normal matrix."""
+        scenes). ``past``: (E, F, D) pair terms at the F frames of ``seen`` (N, F, D).
+        ``with_error``: also their standard errors (N,), the residuals' variance times the
+        inverse normal matrix (else None)."""
         n_graphs, n_frames, dim = g.num_graphs, past.shape[1], past.shape[2]
         n = g.pos.shape[0] // n_graphs
         snd, rcv = g.edge_index
@@ -284,6 +289,8 @@ class PairForceHead(nn.Module):
             residual = (design @ masses - target) * weight
             if step < ROBUST_STEPS:
                 weight = weight / (1 + (residual / ROBUST_SCALE) ** 2).sqrt()
+        if not with_error:
+            return masses.reshape(-1).to(past.dtype), None
         variance = (residual**2).sum(1) / max(design.shape[1] - n, 1)            # (B, 1)
         error = (variance * torch.linalg.inv(gram + ridge * eye).diagonal(dim1=1, dim2=2)).sqrt()
         return masses.reshape(-1).to(past.dtype), error.reshape(-1).to(past.dtype)

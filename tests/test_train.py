@@ -190,6 +190,19 @@ def test_checkpoint_reload_reproduces_predictions(tiny_train_cfg, tmp_path):
         assert torch.equal(loaded.model.predict(batch), again.model.predict(batch))
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device (CI has none)")
+@pytest.mark.parametrize("scene", ["spring", "gravity_r2", "collisions"])
+def test_trainer_gpu_trains_and_evaluates_end_to_end(tiny_train_cfg, tmp_path, scene):
+    """trainer=gpu: training, validation rollouts, figures and the test evaluation of the best
+    checkpoint (rollouts included) all run with the model on the GPU."""
+    metrics = train(tiny_train_cfg(scene, "trainer=gpu", "trainer.max_epochs=1",
+                                   "+trainer.limit_train_batches=3",
+                                   "trainer.limit_val_batches=2", "figures=true"))
+    assert np.isfinite(metrics["train/loss"]) and np.isfinite(metrics["val/rollout_error"])
+    record = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert record["dataset"] == scene and np.isfinite(record["metrics"]["test/nmse"])
+
+
 @pytest.mark.slow  # a Hydra multirun in a subprocess: two trainings
 def test_multirun_sweep_writes_summary(tmp_path, shared_data_dir):
     env = {**os.environ, "PYTHONPATH": str(ROOT)}

@@ -87,10 +87,11 @@ def train_step(model: Any, opt: torch.optim.Optimizer, g: Any) -> None:
     opt.step()
 
 
-def training_throughput(overrides: list[str], steps: int) -> dict:
+def training_throughput(overrides: list[str], steps: int, device: str = "cpu") -> dict:
     """Samples/s of a real training run's parts (``bgn.train.build``): the data loader alone,
     the model step alone (forward, backward, AdamW on batches already loaded), and Lightning's
-    fit loop for ``steps`` steps (loader, step, logging, metrics, clipping; no validation)."""
+    fit loop for ``steps`` steps (loader, step, logging, metrics, clipping; no validation),
+    all on ``device``."""
     import lightning as L
     from hydra.utils import instantiate
 
@@ -110,13 +111,17 @@ def training_throughput(overrides: list[str], steps: int) -> dict:
         next(loader)
     result = {"loader_samples_s": rate(time.perf_counter() - start, steps)}
 
-    model = module.model
+    cuda = torch.device(device).type == "cuda"
+    model = module.model.to(device)
+    batches = [g.to(device) for g in batches]
     opt = instantiate(cfg.optimizer, _convert_="all")(model.parameters()) \
         if "optimizer" in cfg else torch.optim.AdamW(model.parameters(), lr=1e-3)
     times = []
     for g in batches:
         start = time.perf_counter()
         train_step(model, opt, g)
+        if cuda:
+            torch.cuda.synchronize()
         times.append(time.perf_counter() - start)
     result["step_samples_s"] = rate(sum(times[1:]), steps - 1)
 
@@ -130,7 +135,7 @@ def training_throughput(overrides: list[str], steps: int) -> dict:
                         enable_progress_bar=False, enable_model_summary=False,
                         limit_val_batches=0, num_sanity_val_steps=0, callbacks=[clock],
                         gradient_clip_val=cfg.trainer.get("gradient_clip_val"),
-                        accelerator="cpu", devices=1)
+                        accelerator="gpu" if cuda else "cpu", devices=1)
     trainer.fit(module, datamodule=datamodule)
     result["fit_samples_s"] = rate(time.perf_counter() - clock.start, steps)
     return result
@@ -147,8 +152,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="measure the default collisions training instead (with overrides)")
     args = parser.parse_args(argv)
     if args.training is not None:
-        json.dump(training_throughput([f"model={args.model}", *args.training], args.repeats),
-                  sys.stdout)
+        json.dump(training_throughput([f"model={args.model}", *args.training], args.repeats,
+                                      args.device), sys.stdout)
         print()
         return 0
 

@@ -21,7 +21,10 @@ over the float32 matmul rate measured at the start of the same run.
 ``--against REF`` exports ``git archive REF`` to a temporary folder and runs the same cells with
 that checkout in separate processes, interleaved with this one's, and reports the ratios (old
 time / new time, old memory / new memory) from this one run: absolute times on a shared
-machine drift; ratios taken minutes apart drift less. A cell whose predicted memory (the
+machine drift; ratios taken minutes apart drift less. ``--against`` also takes a folder holding
+such an export, for a machine without the history. ``--device cuda`` (the default where a GPU
+is present) runs the cells there: memory is then the peak GPU memory allocated, and the rates
+are the GPU's. A cell whose predicted memory (the
 previous size's, scaled by N) exceeds ``--max-gb`` is skipped and the report says so.
 """
 
@@ -93,32 +96,40 @@ def scene(n: int) -> SceneMeta:
 
 
 # ----------------------------------------------------------------------------- the machine
-def matmul_rate(size: int = 2048) -> float:
-    """float32 FLOP/s of a ``size`` x ``size`` matrix product, best of 3."""
-    a, b = torch.randn(size, size), torch.randn(size, size)
+def matmul_rate(size: int = 2048, device: str = "cpu") -> float:
+    """float32 FLOP/s of a ``size`` x ``size`` matrix product on ``device``, best of 3."""
+    a, b = (torch.randn(size, size, device=device) for _ in range(2))
     a @ b
-    best = min(_seconds(lambda: a @ b) for _ in range(3))
+    best = min(_seconds(lambda: a @ b, device) for _ in range(3))
     return 2 * size**3 / best
 
 
-def copy_bandwidth(nbytes: int = 512 * 2**20) -> float:
-    """Bytes/s moved (read + write) by copying a tensor of ``nbytes``, best of 3."""
-    src = torch.ones(nbytes // 4)
+def copy_bandwidth(nbytes: int = 512 * 2**20, device: str = "cpu") -> float:
+    """Bytes/s moved (read + write) by copying a tensor of ``nbytes`` on ``device``, best of 3."""
+    src = torch.rand(nbytes // 4, device=device)
     dst = torch.empty_like(src)
     dst.copy_(src)
-    best = min(_seconds(lambda: dst.copy_(src)) for _ in range(3))
+    best = min(_seconds(lambda: dst.copy_(src), device) for _ in range(3))
     return 2 * nbytes / best
 
 
-def _seconds(fn) -> float:
+def _seconds(fn, device: str = "cpu") -> float:
+    """Wall time of ``fn()``; on a GPU, of the work it queued (synchronised before and after)."""
+    sync = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
+    sync()
     start = time.perf_counter()
     fn()
+    sync()
     return time.perf_counter() - start
 
 
 # ----------------------------------------------------------------------------- the cells
 def export(ref: str, into: Path) -> Path:
-    """``git archive ref`` of this repository extracted under ``into``."""
+    """The checkout of ``ref``: a folder holding one (``bgn/`` and ``conf/``) as it is, else
+    ``git archive ref`` of this repository extracted under ``into`` (a machine without the git
+    history, a lent GPU say, gets a folder exported where the history is)."""
+    if (Path(ref) / "bgn").is_dir() and (Path(ref) / "conf").is_dir():
+        return Path(ref).resolve()
     repo = Path(bgn.__file__).resolve().parents[1]
     tar = subprocess.run(["git", "-C", str(repo), "archive", ref], check=True,
                          capture_output=True).stdout
@@ -268,7 +279,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=2, help="timed steps after a warm-up")
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--against", default=None, help="a git ref to run side by side")
+    parser.add_argument("--against", default=None,
+                        help="a git ref (or a folder holding its export) to run side by side")
     parser.add_argument("--against-max-n", type=int, default=None,
                         help="largest N for the other checkout (the old code may not fit)")
     parser.add_argument("--max-gb", type=float, default=12.0,
@@ -297,9 +309,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     out = console()
     torch.set_num_threads(args.threads)
-    rate, bandwidth = matmul_rate(), copy_bandwidth()
+    # the rates of the device the cells run on (a GPU's products: 8192, large enough to fill it)
+    size = 8192 if torch.device(args.device).type == "cuda" else 2048
+    rate = matmul_rate(size, args.device)
+    bandwidth = copy_bandwidth(device=args.device)
     out.log(f"float32 matmul {rate / 1e9:.0f} GFLOP/s, copy {bandwidth / GB:.1f} GB/s "
-            f"({args.threads} threads)")
+            f"({args.device}, {args.threads} threads)")
     checkouts = {"this": Path(bgn.__file__).resolve().parents[1]}
     rows: list[dict] = []
     with tempfile.TemporaryDirectory(prefix="bgn-scaling-") as tmp:
@@ -358,13 +373,15 @@ def main(argv: list[str] | None = None) -> int:
         f"Machine: {machine(torch=torch.__version__)}; {args.threads} threads, device "
         f"{args.device}" + (f" ({torch.cuda.get_device_name()})" if args.device == "cuda"
                             else "") + ".",
-        f"Measured in this run: float32 matmul {rate / 1e9:.1f} GFLOP/s (2048 x 2048), "
+        f"Measured in this run on {args.device}: float32 matmul {rate / 1e9:.1f} GFLOP/s "
+        f"({size} x {size}), "
         f"copy {bandwidth / GB:.1f} GB/s (read + write). THP_MEM_ALLOC_ENABLE="
         f"{os.environ.get('THP_MEM_ALLOC_ENABLE', '(unset)')} in this process; each "
         "checkout's own `bgn` decides for its cells.",
         f"Frames: collisions-like, {DENSITY * 100:g} discs per 10 x 10, margin {args.margin:g}; "
         f"times are medians of {args.repeats} after a warm-up; memory is the growth of the "
-        "peak resident set over the cell's baseline (model and frame loaded)."]
+        + ("peak GPU memory allocated" if torch.device(args.device).type == "cuda"
+           else "peak resident set") + " over the cell's baseline (model and frame loaded)."]
     args.out.mkdir(parents=True, exist_ok=True)
     write_report(rows, training, header, args.against, args.out)
     print_table(out, "scaling", COLUMNS, [[fmt(r.get(c)) for c in COLUMNS] for r in rows])

@@ -168,6 +168,13 @@ def edge_difference(x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
     return x.index_select(0, edge_index[1]) - x.index_select(0, edge_index[0])
 
 
+def checkpoint_above(module: object, x: torch.Tensor) -> int | None:
+    """The edge count above which ``module`` checkpoints, for work on ``x``'s device: its
+    ``checkpoint_edges_gpu`` on a GPU, its ``checkpoint_edges`` elsewhere (set by
+    ``PhysicsModel`` from its config)."""
+    return module.checkpoint_edges_gpu if x.is_cuda else module.checkpoint_edges
+
+
 def edge_chunks(fn: Callable[..., torch.Tensor], chunk: int | None,
                 per_edge: tuple[torch.Tensor, ...], shared: tuple[torch.Tensor, ...] = (),
                 above: int | None = None) -> torch.Tensor:

@@ -5,6 +5,8 @@ them swapped back to the gather / ``index_add_`` / concatenation forms."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import pytest
 import torch
 from torch.nn import functional as F
@@ -16,6 +18,7 @@ from bgn.model import build_model
 from bgn.model.impulse import ContactImpulseHead
 from bgn.model.message_passing import (
     adjacency,
+    checkpoint_above,
     edge_chunks,
     edge_difference,
     edge_dot,
@@ -149,6 +152,21 @@ def test_checkpointing_only_above_its_threshold():
     assert torch.equal(edge_chunks(fn, 30, (a,), above=100), a * 2) and calls == [100]
     calls.clear()
     assert torch.equal(edge_chunks(fn, 30, (a,), above=99), a * 2) and calls == [30, 30, 30, 10]
+
+
+def test_a_gpu_has_its_own_checkpointing_threshold(meta, stats):
+    """Every module that checkpoints gets both thresholds from the config and reads the GPU's
+    for work on a GPU (there checkpointing costs more time than the memory is worth)."""
+    model = build_model({"name": "bgn", "contact_message": "vector", "checkpoint_edges": 7,
+                         "checkpoint_edges_gpu": 11}, meta(6, 2, "contact", "radius", box=4.0),
+                        stats(), 2)
+    modules = [m for m in model.modules() if hasattr(m, "checkpoint_edges")]
+    assert modules
+    for module in modules:
+        assert checkpoint_above(module, torch.ones(1)) == 7
+        assert checkpoint_above(module, SimpleNamespace(is_cuda=True)) == 11
+    with pytest.raises(ValueError, match="checkpoint_edges_gpu=-1 must be >= 0"):
+        build_model({"name": "gns", "checkpoint_edges_gpu": -1}, meta(), stats(), 2)
 
 
 def loss_and_grads(model, g):

@@ -8,6 +8,7 @@ import importlib
 import math
 import pkgutil
 import re
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -148,3 +149,17 @@ def test_scaling_trains_only_up_to_train_max_n(tmp_path, keep_threads) -> None:
         rows = {int(r["n"]): r for r in csv.DictReader(f)}
     assert float(rows[40]["train_s"]) > 0 and float(rows[80]["infer_s"]) > 0
     assert rows[80]["train_s"] == "" and "--train-max-n" in rows[80]["note"]
+
+
+def test_against_takes_a_folder_holding_an_export_as_it_is(tmp_path) -> None:
+    """A machine without the git history (a lent GPU) compares with a checkout exported
+    elsewhere; a folder without ``bgn/`` and ``conf/`` is taken as a git ref."""
+    from bgn.benchmarks.scaling import export
+
+    checkout = tmp_path / "old"
+    (checkout / "bgn").mkdir(parents=True)
+    (checkout / "conf").mkdir()
+    assert export(str(checkout), tmp_path / "unused") == checkout.resolve()
+    assert not (tmp_path / "unused").exists()
+    with pytest.raises(subprocess.CalledProcessError):
+        export(str(tmp_path / "not-a-checkout"), tmp_path / "unused")

@@ -309,8 +309,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     out = console()
     torch.set_num_threads(args.threads)
+    on_gpu = torch.device(args.device).type == "cuda"
     # the rates of the device the cells run on (a GPU's products: 8192, large enough to fill it)
-    size = 8192 if torch.device(args.device).type == "cuda" else 2048
+    size = 8192 if on_gpu else 2048
     rate = matmul_rate(size, args.device)
     bandwidth = copy_bandwidth(device=args.device)
     out.log(f"float32 matmul {rate / 1e9:.0f} GFLOP/s, copy {bandwidth / GB:.1f} GB/s "
@@ -371,7 +372,7 @@ def main(argv: list[str] | None = None) -> int:
             out.log(f"{impl} default collisions training: {cell}")
     header = [
         f"Machine: {machine(torch=torch.__version__)}; {args.threads} threads, device "
-        f"{args.device}" + (f" ({torch.cuda.get_device_name()})" if args.device == "cuda"
+        f"{args.device}" + (f" ({torch.cuda.get_device_name(args.device)})" if on_gpu
                             else "") + ".",
         f"Measured in this run on {args.device}: float32 matmul {rate / 1e9:.1f} GFLOP/s "
         f"({size} x {size}), "
@@ -380,8 +381,8 @@ def main(argv: list[str] | None = None) -> int:
         "checkout's own `bgn` decides for its cells.",
         f"Frames: collisions-like, {DENSITY * 100:g} discs per 10 x 10, margin {args.margin:g}; "
         f"times are medians of {args.repeats} after a warm-up; memory is the growth of the "
-        + ("peak GPU memory allocated" if torch.device(args.device).type == "cuda"
-           else "peak resident set") + " over the cell's baseline (model and frame loaded)."]
+        + ("peak GPU memory allocated" if on_gpu else "peak resident set")
+        + " over the cell's baseline (model and frame loaded)."]
     args.out.mkdir(parents=True, exist_ok=True)
     write_report(rows, training, header, args.against, args.out)
     print_table(out, "scaling", COLUMNS, [[fmt(r.get(c)) for c in COLUMNS] for r in rows])

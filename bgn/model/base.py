@@ -26,6 +26,7 @@ import torch
 from torch import nn
 
 from bgn.graph import Graph
+from bgn.model.message_passing import CheckpointEdges
 from bgn.model.noise import add_random_walk_noise
 from bgn.model.normalizer import Normalizer
 from bgn.model.target import LOSSES, PRIORS, TargetCoder
@@ -147,8 +148,8 @@ class PhysicsModel(nn.Module, ABC):
         for module in self.modules():  # the edge MLPs (ops.EdgeMLP, the relative-mass decoder)
             if hasattr(module, "edge_chunk"):
                 module.edge_chunk = cfg.edge_chunk
-                module.checkpoint_edges = cfg.checkpoint_edges
-                module.checkpoint_edges_gpu = cfg.checkpoint_edges_gpu
+                module.checkpoint_edges = CheckpointEdges(cfg.checkpoint_edges,
+                                                          cfg.checkpoint_edges_gpu)
 
     @abstractmethod
     def build(self, cfg: Any, stats: Mapping[str, Any]) -> None:

@@ -32,7 +32,7 @@ from torch.nn import functional as F
 from torch.utils.checkpoint import checkpoint
 
 from bgn.graph import Graph
-from bgn.model.message_passing import checkpoint_above, edge_chunks, edge_difference
+from bgn.model.message_passing import CheckpointEdges, edge_chunks, edge_difference
 from bgn.model.ops import mlp, scatter_sum
 from bgn.sim.scene import SceneMeta
 
@@ -98,8 +98,7 @@ class ContactImpulseHead(nn.Module):
         self.restitution = nn.Parameter(torch.full((), -5.0))
         self.wall_restitution = nn.Parameter(torch.full((), -5.0))
         self.edge_chunk: int | None = None             # set by PhysicsModel (its config)
-        self.checkpoint_edges: int | None = None
-        self.checkpoint_edges_gpu: int | None = None
+        self.checkpoint_edges = CheckpointEdges()
         with torch.no_grad():  # start as the time-of-impact rule: a hit is a contact
             for gate in (self.gate, self.wall_gate):
                 gate[-1].weight.zero_()
@@ -127,7 +126,7 @@ class ContactImpulseHead(nn.Module):
         +-RULE_LOGIT; in chunks with activation checkpointing on large graphs (``edge_chunk``,
         as the edge MLPs)."""
         return (edge_chunks(self.gate, self.edge_chunk, (feats,), (),
-                            checkpoint_above(self, feats))
+                            self.checkpoint_edges.above(feats))
                 .squeeze(-1) + RULE_LOGIT * (2 * hit.to(feats.dtype) - 1))
 
     def pair_geometry(self, g: Graph, x: torch.Tensor, v: torch.Tensor, dt: torch.Tensor,
@@ -202,7 +201,7 @@ class ContactImpulseHead(nn.Module):
         backward pass instead of kept (activation checkpointing: element-wise work only)."""
         n_edges = g.edge_index.shape[1]
         if (torch.is_grad_enabled() and self.edge_chunk
-                and n_edges > max(self.edge_chunk, checkpoint_above(self, x) or 0)):
+                and n_edges > max(self.edge_chunk, self.checkpoint_edges.above(x) or 0)):
             return checkpoint(self.impacts, g, x, v, dt, every_edge, use_reentrant=False)
         return self.impacts(g, x, v, dt, every_edge)
 

@@ -48,7 +48,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from bgn.graph import Graph
-from bgn.model.message_passing import checkpoint_above, edge_chunks, edge_sums
+from bgn.model.message_passing import CheckpointEdges, edge_chunks, edge_sums
 from bgn.model.ops import Linear, activation, linear
 
 FLOWS = ("nsf", "naf")
@@ -109,8 +109,7 @@ class PairContext(nn.Module):
         self.node = nn.Sequential(nn.Linear(2 * hidden + frames, hidden), activation(act),
                                   nn.Linear(hidden, hidden))
         self.edge_chunk: int | None = None            # set by PhysicsModel (its config)
-        self.checkpoint_edges: int | None = None
-        self.checkpoint_edges_gpu: int | None = None
+        self.checkpoint_edges = CheckpointEdges()
 
     def forward(self, g: Graph) -> torch.Tensor:
         snd, rcv = g.edge_index[0], g.edge_index[1]
@@ -121,7 +120,7 @@ class PairContext(nn.Module):
         # On large graphs the sums run in chunks of edges (``edge_chunk``): at 20 000 discs
         # the (E, hidden) activations and their gradients were most of BGN's peak memory
         sums = edge_sums(self._edge_hidden, self.edge[0].parameters(), features, g.edge_index,
-                         n, self.edge_chunk, checkpoint_above(self, features))
+                         n, self.edge_chunk, self.checkpoint_edges.above(features))
         w, b = self.edge[2].weight.split(h), self.edge[2].bias.split(h)
         to_rcv, to_snd = (
             F.linear(part, w_half)
@@ -167,8 +166,7 @@ class InverseModel(nn.Module):
         # knots (z, r) of the radius map, (2, K); none: the identity. Not persistent: fitted
         # after training on the validation split, not learned
         self.register_buffer("calibration", torch.empty(2, 0), persistent=False)
-        self.checkpoint_edges: int | None = None
-        self.checkpoint_edges_gpu: int | None = None
+        self.checkpoint_edges = CheckpointEdges()
 
     def context(self, h_tilde_v: torch.Tensor, g: Graph,
                 fitted_log_mass: torch.Tensor | None = None) -> torch.Tensor:
@@ -205,7 +203,7 @@ class InverseModel(nn.Module):
         (E, hidden) layers in chunks on very large graphs (``edge_chunk``)."""
         zt = torch.stack([z, torch.ones_like(z)], -1)              # [z, 1]
         return edge_chunks(self._relative, self.edge_chunk, (edge_index[1], edge_index[0]),
-                           (zt,), checkpoint_above(self, zt))
+                           (zt,), self.checkpoint_edges.above(zt))
 
     def _relative(self, rcv: torch.Tensor, snd: torch.Tensor, zt: torch.Tensor) -> torch.Tensor:
         # s(Z_Kᵀ W1 Z_K): nn.Bilinear's own kernel is slow for 2 x 2 inputs on CPU; the same

@@ -26,6 +26,7 @@ import warnings
 import weakref
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch.utils.checkpoint import checkpoint
@@ -168,11 +169,17 @@ def edge_difference(x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
     return x.index_select(0, edge_index[1]) - x.index_select(0, edge_index[0])
 
 
-def checkpoint_above(module: object, x: torch.Tensor) -> int | None:
-    """The edge count above which ``module`` checkpoints, for work on ``x``'s device: its
-    ``checkpoint_edges_gpu`` on a GPU, its ``checkpoint_edges`` elsewhere (set by
-    ``PhysicsModel`` from its config)."""
-    return module.checkpoint_edges_gpu if x.is_cuda else module.checkpoint_edges
+class CheckpointEdges(NamedTuple):
+    """The edge counts above which a module checkpoints its edge work (``edge_chunks``), on
+    the CPU and on a GPU; None: from the chunk size alone. Set by ``PhysicsModel`` from its
+    config (``checkpoint_edges``, ``checkpoint_edges_gpu``)."""
+
+    cpu: int | None = None
+    gpu: int | None = None
+
+    def above(self, x: torch.Tensor) -> int | None:
+        """The threshold for work on ``x``'s device."""
+        return self.gpu if x.is_cuda else self.cpu
 
 
 def edge_chunks(fn: Callable[..., torch.Tensor], chunk: int | None,

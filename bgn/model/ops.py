@@ -12,7 +12,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from bgn.model.message_passing import checkpoint_above, edge_chunks, spmm
+from bgn.model.message_passing import CheckpointEdges, edge_chunks, spmm
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "silu": nn.SiLU,
@@ -188,8 +188,7 @@ class EdgeMLP(nn.Module):
         linears = [m for m in self.rest if isinstance(m, nn.Linear)]
         self._last = linears[-1] if linears else None
         self.edge_chunk: int | None = None
-        self.checkpoint_edges: int | None = None
-        self.checkpoint_edges_gpu: int | None = None
+        self.checkpoint_edges = CheckpointEdges()
 
     def forward(self, e: torch.Tensor, x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
         """Edge (E, edge_in) and node (N, node_in) features -> (E, sizes[-1])."""
@@ -203,7 +202,7 @@ class EdgeMLP(nn.Module):
         w_e, w_r, w_s = weight.split([self.edge_in, self.node_in, self.node_in], dim=1)
         p_r, p_s = F.linear(x, w_r, bias), F.linear(x, w_s)   # per node
         return edge_chunks(self._edges, self.edge_chunk, (e, rcv, snd), (p_r, p_s, w_e),
-                           checkpoint_above(self, e))
+                           self.checkpoint_edges.above(e))
 
     def _edges(self, e: torch.Tensor, rcv: torch.Tensor, snd: torch.Tensor, p_r: torch.Tensor,
                p_s: torch.Tensor, w_e: torch.Tensor) -> torch.Tensor:

@@ -18,7 +18,6 @@ from bgn.model import build_model
 from bgn.model.impulse import ContactImpulseHead
 from bgn.model.message_passing import (
     adjacency,
-    checkpoint_above,
     edge_chunks,
     edge_difference,
     edge_dot,
@@ -163,8 +162,8 @@ def test_a_gpu_has_its_own_checkpointing_threshold(meta, stats):
     modules = [m for m in model.modules() if hasattr(m, "checkpoint_edges")]
     assert modules
     for module in modules:
-        assert checkpoint_above(module, torch.ones(1)) == 7
-        assert checkpoint_above(module, SimpleNamespace(is_cuda=True)) == 11
+        assert module.checkpoint_edges.above(torch.ones(1)) == 7
+        assert module.checkpoint_edges.above(SimpleNamespace(is_cuda=True)) == 11
     with pytest.raises(ValueError, match="checkpoint_edges_gpu=-1 must be >= 0"):
         build_model({"name": "gns", "checkpoint_edges_gpu": -1}, meta(), stats(), 2)
 

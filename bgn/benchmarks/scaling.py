@@ -53,12 +53,11 @@ from bgn.benchmarks.flow import synthetic_stats
 from bgn.data.graphs import radius_graph
 from bgn.graph import Graph, window_graph
 from bgn.model.registry import MODELS
+from bgn.sim.collisions import CollisionScene
 from bgn.sim.scene import SceneMeta
 from bgn.tables import fmt, markdown_table, write_csv
 
 DENSITY = 200 / 10.0**2              # discs per unit area: the collisions scene's
-RADII = (0.1, 0.2)                   # the two types of conf/dataset/collisions.yaml
-LOG_MASS_MODES = (math.log(0.001), math.log(0.4))
 HISTORY = 5
 FPS = 50.0
 CELL = Path(__file__).with_name("_scaling_cell.py")
@@ -67,19 +66,17 @@ GB = 1e9
 
 # ----------------------------------------------------------------------------- the frames
 def frame(n: int, margin: float, seed: int = 0) -> Graph:
-    """One collisions-like frame of n discs in a box of side ``sqrt(n / DENSITY)``."""
+    """One collisions frame of n discs in a box of side ``sqrt(n / DENSITY)``: the collisions
+    scene's own start (``CollisionScene.draw_initial``: its two types, thermal speeds, and
+    discs placed without overlap, as in every simulation), in free flight over the window."""
     rng = np.random.default_rng(seed)
     box = math.sqrt(n / DENSITY)
-    types = np.arange(n) % 2
-    radii = np.asarray(RADII)[types]
-    log_m = np.asarray(LOG_MASS_MODES)[types] + 0.1 * rng.standard_normal(n)
-    pos = rng.uniform(0.2, box - 0.2, (n, 2))
-    vel = 0.05 * np.exp(-0.5 * (log_m - LOG_MASS_MODES[1]))[:, None] * rng.standard_normal((n, 2))
+    types, masses, radii, pos, vel = CollisionScene(n_particles=n, box=box).draw_initial(rng)
     # a window of k+2 positions in free flight, oldest first (the last one is x[t])
     steps = np.arange(-HISTORY - 1, 1)[:, None, None] / FPS
     window = torch.from_numpy(pos[None] + steps * vel[None])[None]        # (1, k+2, N, 2)
     edges = torch.from_numpy(radius_graph(pos, radii=radii, margin=margin))
-    g = window_graph(window, 1.0 / FPS, edges, torch.from_numpy(np.exp(log_m))[None],
+    g = window_graph(window, 1.0 / FPS, edges, torch.from_numpy(masses)[None],
                      torch.from_numpy(radii)[None], torch.from_numpy(types)[None], box,
                      torch.zeros(1), torch.zeros(1))
     snd, rcv = edges
@@ -379,7 +376,8 @@ def main(argv: list[str] | None = None) -> int:
         f"copy {bandwidth / GB:.1f} GB/s (read + write). THP_MEM_ALLOC_ENABLE="
         f"{os.environ.get('THP_MEM_ALLOC_ENABLE', '(unset)')} in this process; each "
         "checkout's own `bgn` decides for its cells.",
-        f"Frames: collisions-like, {DENSITY * 100:g} discs per 10 x 10, margin {args.margin:g}; "
+        f"Frames: the collisions scene's start (no overlaps), {DENSITY * 100:g} discs per "
+        f"10 x 10, margin {args.margin:g}; "
         f"times are medians of {args.repeats} after a warm-up; memory is the growth of the "
         + ("peak GPU memory allocated" if on_gpu else "peak resident set")
         + " over the cell's baseline (model and frame loaded)."]

@@ -21,10 +21,14 @@ This head writes the structure down and learns only what the frames do not say:
 A backward-difference velocity that straddles an impact is not the disc's velocity: the head
 first replays the window's last frames and adds the part of each impact's change that the
 average over its frame missed (``dv s' / dt``), then predicts the next frame.
-Several impacts of one disc within one frame are treated one pair at a time.
+Several impacts within one frame are resolved one at a time in time order, each disc flying
+from its last impact (``ContactImpulseHead.resolve``), as the simulator does.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
 
 import torch
 from torch import nn
@@ -33,7 +37,7 @@ from torch.utils.checkpoint import checkpoint
 
 from bgn.graph import Graph
 from bgn.model.message_passing import CheckpointEdges, edge_chunks, edge_difference
-from bgn.model.ops import mlp, scatter_sum
+from bgn.model.ops import mlp
 from bgn.sim.scene import SceneMeta
 
 TINY = 1e-20         # keeps roots, divisions and norms (and their gradients) finite
@@ -41,6 +45,8 @@ REPLAY_FRAMES = 3    # frames of the window replayed to recover the velocity at 
 LOG_MASS_RANGE = 5.0  # e-folds of mass per unit of the mass MLP's output
 RULE_LOGIT = 4.0      # the gates start at the time-of-impact rule: +-4 (probability 0.98)
 NEAR_FRAMES = 1.0     # candidate pairs: a gap their speeds close within this many frames
+MAX_ROUNDS = 64      # rounds of impacts per frame; beyond, an inelastic collapse is cut off
+REACH_FRAMES = 2.0   # pairs that may meet within a frame: a gap twice their speeds close in one
 
 
 def time_of_impact(dx: torch.Tensor, dv: torch.Tensor, reach: torch.Tensor,
@@ -51,11 +57,16 @@ def time_of_impact(dx: torch.Tensor, dv: torch.Tensor, reach: torch.Tensor,
     b = (dx * dv).sum(-1)
     c = (dx * dx).sum(-1) - reach * reach
     disc = b * b - a * c
-    # every branch finite, so that torch.where's unused branch cannot turn a gradient to NaN
-    root = (-b - torch.sqrt(disc.clamp_min(TINY))) / (a + TINY)
+    # the root without cancellation, c / (-b + sqrt(disc)) (as the simulator): -b - sqrt(disc)
+    # loses all digits of a near pair in float32. Every branch finite, so that torch.where's
+    # unused branch cannot turn a gradient to NaN
+    closing = b < 0
+    root = c / torch.where(closing, torch.sqrt(disc.clamp_min(TINY)) - b, torch.ones_like(b))
     s = torch.where(c <= 0, torch.zeros_like(root), root.clamp_min(0.0))  # overlapping: now
-    hit = (b < 0) & (disc >= 0) & (s < dt)
-    return torch.where(hit, s / dt, torch.ones_like(s)), hit
+    hit = closing & (disc >= 0) & (s < dt)
+    # a disc whose last impact ends the frame has no time left (dt = 0): no hit, no 0 / 0
+    span = torch.where(dt > 0, dt, torch.ones_like(dt))
+    return torch.where(hit, s / span, torch.ones_like(s)), hit
 
 
 def wall_impact(x: torch.Tensor, v: torch.Tensor, radius: torch.Tensor,
@@ -66,9 +77,12 @@ def wall_impact(x: torch.Tensor, v: torch.Tensor, radius: torch.Tensor,
     r = radius[:, None]
     low, high = walls                                                 # (N, D) coordinates
     gap = torch.where(v < 0, x - r - low, high - r - x)               # to the wall ahead
-    s = (gap / (v.abs() + TINY)).clamp_min(0.0)
+    # finite in every branch (gradients too): a disc at rest, or with no time left, hits none
+    speed = torch.where(v != 0, v.abs(), torch.ones_like(v))
+    s = (gap / speed).clamp_min(0.0)
     hit = (v != 0) & (s < dt[:, None])
-    return torch.where(hit, s / dt[:, None], torch.ones_like(s)), hit
+    span = torch.where(dt > 0, dt, torch.ones_like(dt))[:, None]
+    return torch.where(hit, s / span, torch.ones_like(s)), hit
 
 
 def walls(g: Graph) -> tuple[torch.Tensor, torch.Tensor]:
@@ -78,6 +92,101 @@ def walls(g: Graph) -> tuple[torch.Tensor, torch.Tensor]:
         raise ValueError("the impulse head needs graphs with wall distances (a scene in a box)")
     dim = g.pos.shape[1]
     return g.pos - g.wall[:, :dim], g.pos + g.wall[:, dim:]
+
+
+class FrameImpacts(NamedTuple):
+    """What ``ContactImpulseHead.resolve`` finds in one frame."""
+
+    velocity: torch.Tensor            # (N, D) after the frame's impacts
+    mean_velocity: torch.Tensor       # (N, D) the frame's finite-difference velocity
+    logits: torch.Tensor | None       # (E,) the gate at the frame's start (``every_edge``)
+    pairs: torch.Tensor               # (M,) edges (receiver < sender) of the pair impacts
+    pair_logits: torch.Tensor         # (M,) their gate logits
+
+
+def _pick(index: torch.Tensor) -> Callable[[torch.Tensor], torch.Tensor]:
+    """``t -> t[index]`` along the first dimension, as ``index_select``: its backward is
+    ``index_add_``, not the slower accumulating ``index_put_`` of ``t[index]``."""
+    return lambda t: t.index_select(0, index)
+
+
+class _Flight(NamedTuple):
+    """Free flight of each disc from its last impact: position ``x`` at time ``tau`` (a
+    fraction of the frame) and velocity ``v`` since."""
+
+    x: torch.Tensor
+    v: torch.Tensor
+    tau: torch.Tensor
+
+    def at(self, discs: torch.Tensor, when: torch.Tensor, dt: torch.Tensor) -> torch.Tensor:
+        """Positions of ``discs`` at ``when`` (fractions of the frame, not before their tau)."""
+        pick = _pick(discs)
+        return pick(self.x) + pick(self.v) * ((when - pick(self.tau)) * pick(dt))[:, None]
+
+    def advance(self, discs: torch.Tensor, when: torch.Tensor, kick: torch.Tensor,
+                dt: torch.Tensor) -> _Flight:
+        """Each of ``discs`` (distinct) flies to ``when`` and takes ``kick`` there."""
+        return _Flight(self.x.index_copy(0, discs, self.at(discs, when, dt)),
+                       self.v.index_add(0, discs, kick), self.tau.index_copy(0, discs, when))
+
+
+class _PairEvents(NamedTuple):
+    edge: torch.Tensor      # (P,) edge index (receiver < sender)
+    rcv: torch.Tensor
+    snd: torch.Tensor
+    time: torch.Tensor      # (P,) fraction of the frame
+    logit: torch.Tensor     # (P,) the gate's
+    dv_rcv: torch.Tensor    # (P, D)
+    dv_snd: torch.Tensor    # (P, D)
+
+    def take(self, keep: torch.Tensor) -> _PairEvents:
+        """The events of a mask."""
+        index = keep.nonzero()[:, 0]
+        return _PairEvents(*(t.index_select(0, index) for t in self))
+
+    def cat(self, other: _PairEvents) -> _PairEvents:
+        return _PairEvents(*(torch.cat(pair) for pair in zip(self, other, strict=True)))
+
+
+class _WallEvents(NamedTuple):
+    disc: torch.Tensor      # (W,)
+    axis: torch.Tensor      # (W,)
+    time: torch.Tensor      # (W,) fraction of the frame
+    dv: torch.Tensor        # (W,) velocity change along the axis
+
+    def take(self, keep: torch.Tensor) -> _WallEvents:
+        """The events of a mask."""
+        index = keep.nonzero()[:, 0]
+        return _WallEvents(*(t.index_select(0, index) for t in self))
+
+    def cat(self, other: _WallEvents) -> _WallEvents:
+        return _WallEvents(*(torch.cat(pair) for pair in zip(self, other, strict=True)))
+
+
+def _ready(n: int, edge_index: torch.Tensor, pairs: _PairEvents, walls: _WallEvents,
+           ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The pending impacts that can be applied now, as masks over ``pairs`` and ``walls``:
+    each the earliest of its discs (ties by index: every disc in at most one) and no later
+    than any pending impact of their neighbours in the graph, whose changes could otherwise
+    bring an earlier impact to them. The earliest impact of all is always among them."""
+    n_pair, n_wall = len(pairs.time), len(walls.time)
+    # every (event, disc) incidence: a pair impact twice, a wall impact once
+    when = torch.cat([pairs.time, pairs.time, walls.time]).detach()
+    disc = torch.cat([pairs.rcv, pairs.snd, walls.disc])
+    ids = torch.cat([torch.arange(n_pair, device=disc.device).repeat(2),
+                     torch.arange(n_pair, n_pair + n_wall, device=disc.device)])
+    earliest = when.new_full((n,), float("inf")).scatter_reduce_(0, disc, when, "amin")
+    near = earliest.scatter_reduce(0, edge_index[1], earliest.index_select(0, edge_index[0]),
+                                   "amin")
+    ok = when <= near.index_select(0, disc)
+    pair_first = ok[:n_pair] & ok[n_pair:2 * n_pair]
+    wall_first = ok[2 * n_pair:]
+    first = torch.cat([pair_first, pair_first, wall_first])
+    none = n_pair + n_wall
+    lowest = torch.full((n,), none, device=disc.device).scatter_reduce_(
+        0, disc, torch.where(first, ids, none), "amin")
+    mine = lowest.index_select(0, disc) == ids
+    return pair_first & mine[:n_pair] & mine[n_pair:2 * n_pair], wall_first & mine[2 * n_pair:]
 
 
 class ContactImpulseHead(nn.Module):
@@ -160,50 +269,161 @@ class ContactImpulseHead(nn.Module):
         gap = feats[:, 3] * self.length_scale                   # physical units
         return hit | (gap < NEAR_FRAMES * (speed[rcv] + speed[snd]) * dt[rcv])
 
-    def impacts(self, g: Graph, x: torch.Tensor, v: torch.Tensor, dt: torch.Tensor,
-                every_edge: bool = True) -> tuple[torch.Tensor, ...]:
-        """The impacts free flight from ``(x, v)`` meets within a frame: per edge the velocity
-        change of its receiver (E, D) and the fraction of the frame before it (E,), the gate's
-        logits (E,); per disc and axis the wall's velocity change and fraction (N, D).
+    def resolve(self, g: Graph, x: torch.Tensor, v: torch.Tensor, dt: torch.Tensor,
+                every_edge: bool = True) -> FrameImpacts:
+        """The frame ahead of ``(x, v)`` resolved event by event, as the scene's simulator does:
+        each disc flies freely until its earliest impact (a gated pair impact along the
+        normal, or a wall), whose kick changes its velocity for the rest of the frame; the
+        discs it changed then look for their next impact from where they are.
 
-        The gate's MLP runs on the candidate edges only (``candidates``: a few % of a disc
-        gas's edges); the others get the rule's logit, ``-RULE_LOGIT``. ``every_edge=False``
-        (a replayed frame) narrows them to the edges with a time of impact and returns None for
-        the logits: the kick is zero, value and gradient, wherever there is none, so the
-        velocities are the same."""
+        Events are applied in rounds: at once, every impact that is the earliest of its discs
+        and of the discs that may reach them within the frame (a gap that twice their speeds
+        close in a frame: an earlier impact could send one into them first), then the pairs
+        and walls of the discs that changed are solved again. That is the simulator's order
+        unless a chain of impacts runs through discs further apart.
+
+        A Jacobi sum of every impact a disc meets, each from the velocities at the frame's
+        start, creates energy whenever a disc is hit twice within a frame (docs/results.md:
+        the fps 10 hard case); one impact at a time, an elastic impact conserves energy and
+        every pair impact momentum, whatever the number of impacts. As in the simulator, a
+        pair (or a wall) is not solved again right after its own impact, only once one of
+        its discs has had another.
+
+        ``every_edge``: also the gate's logits at the frame's start on every edge (the contact
+        head's output; the MLP runs on ``candidates`` only, ``-RULE_LOGIT`` elsewhere); a
+        replayed frame needs none."""
         snd, rcv = g.edge_index
-        frac, hit, normal, approach, feats = self.pair_geometry(g, x, v, dt)
-        chosen = (self.candidates(g, v, dt, hit, feats) if every_edge else hit).nonzero()[:, 0]
-        chosen_logits = self.gate_logits(feats.index_select(0, chosen), hit.index_select(0, chosen))
-        logits = (frac.new_full(frac.shape, -RULE_LOGIT).index_copy(0, chosen, chosen_logits)
-                  if every_edge else None)
-        gate = frac.new_zeros(frac.shape).index_copy(0, chosen, torch.sigmoid(chosen_logits))
+        n = x.shape[0]
+        speed = torch.sqrt((v * v).sum(-1) + TINY)
+        logits = None
+        if every_edge:
+            frac, hit, _, _, feats = self.pair_geometry(g, x, v, dt)
+            chosen = self.candidates(g, v, dt, hit, feats).nonzero()[:, 0]
+            chosen_logits = self.gate_logits(feats.index_select(0, chosen),
+                                             hit.index_select(0, chosen))
+            logits = frac.new_full(frac.shape, -RULE_LOGIT).index_copy(0, chosen, chosen_logits)
+            gap = feats[:, 3] * self.length_scale
+        else:
+            gap = (torch.sqrt((edge_difference(x, g.edge_index) ** 2).sum(-1) + TINY)
+                   - g.radius[rcv] - g.radius[snd])
+        # the pairs that may meet within the frame, even after a kick (REACH_FRAMES): the
+        # impacts' work is on these alone (a few % of a gas's edges), round after round
+        near = (gap < REACH_FRAMES * (speed[rcv] + speed[snd]) * dt[rcv]).nonzero()[:, 0]
+        near_edges = g.edge_index.index_select(1, near)
+        pairs_near = near[near_edges[1] < near_edges[0]]    # each pair once (graphs are symmetric)
+        near_snd, near_rcv = g.edge_index.index_select(1, pairs_near)
+        first = pairs_near[hit[pairs_near]] if every_edge else pairs_near
+        flight = _Flight(x, v, x.new_zeros(n))
         log_m = self.log_masses(g)
-        share = torch.sigmoid(log_m[snd] - log_m[rcv])                   # m_j / (m_i + m_j)
         e_pair, e_wall = self.restitutions()
-        # the gate may veto an impact of the rule, not create one without a time of impact
-        kick = -(1 + e_pair) * share * approach * gate * hit
+        box = walls(g)
+        pending_pairs = self._pair_events(g, flight, dt, first, log_m, e_pair)
+        pending_walls = self._wall_events(g, flight, dt, torch.arange(n, device=x.device),
+                                          None, e_wall, box)
+        mean_v, fired, fired_logits = v, [first[:0]], [x.new_zeros(0)]
+        for _ in range(MAX_ROUNDS):
+            if not (len(pending_pairs.edge) or len(pending_walls.disc)):
+                break
+            pair_now, wall_now = _ready(n, near_edges, pending_pairs, pending_walls)
+            every = bool(pair_now.all() & wall_now.all())     # the usual case: none wait
+            pairs, walls_now = ((pending_pairs, pending_walls) if every else
+                                (pending_pairs.take(pair_now), pending_walls.take(wall_now)))
+            discs = torch.cat([pairs.rcv, pairs.snd, walls_now.disc])
+            when = torch.cat([pairs.time, pairs.time, walls_now.time])
+            kick = torch.cat([pairs.dv_rcv, pairs.dv_snd, walls_now.dv[:, None]
+                              * F.one_hot(walls_now.axis, x.shape[1]).to(x.dtype)])
+            flight = flight.advance(discs, when, kick, dt)
+            mean_v = mean_v.index_add(0, discs, kick * (1 - when)[:, None])
+            fired.append(pairs.edge)
+            fired_logits.append(pairs.logit)
+            # the discs that changed look again; their other pending impacts are void
+            changed = torch.zeros(n, dtype=torch.bool, device=x.device)
+            changed[discs] = True
+            if not every:
+                pending_pairs = pending_pairs.take(
+                    ~(changed[pending_pairs.rcv] | changed[pending_pairs.snd]))
+                pending_walls = pending_walls.take(~changed[pending_walls.disc])
+            # not the pair that just met (each changed disc met one partner at most)
+            partner = torch.full((n,), -1, dtype=torch.long, device=x.device)
+            partner[pairs.rcv] = pairs.snd
+            again = (changed[near_rcv] | changed[near_snd]) & (partner[near_rcv] != near_snd)
+            moved = changed.nonzero()[:, 0]
+            just_walled = torch.zeros(n, x.shape[1], dtype=torch.bool, device=x.device)
+            just_walled[walls_now.disc, walls_now.axis] = True
+            new_pairs = self._pair_events(g, flight, dt, pairs_near[again], log_m, e_pair)
+            new_walls = self._wall_events(g, flight, dt, moved, just_walled[moved], e_wall, box)
+            pending_pairs = new_pairs if every else pending_pairs.cat(new_pairs)
+            pending_walls = new_walls if every else pending_walls.cat(new_walls)
+        return FrameImpacts(flight.v, mean_v, logits, torch.cat(fired), torch.cat(fired_logits))
 
-        # the wall gate on the discs and axes that reach a wall within the frame only: the
-        # kick is zero, value and gradient, elsewhere
-        wall_frac, wall_hit = wall_impact(x, v, g.radius, walls(g), dt)
-        wall_feats = torch.stack([wall_frac, wall_hit.to(v.dtype), v.abs() / self.speed_scale],
-                                 dim=-1)[wall_hit]                          # (hits, 3)
-        wall_gate = torch.zeros_like(v).masked_scatter(wall_hit, torch.sigmoid(
-            self.wall_gate(wall_feats).squeeze(-1) + RULE_LOGIT))
-        wall_dv = -(1 + e_wall) * v * wall_gate
-        return kick[:, None] * normal, frac, logits, wall_dv, wall_frac
+    def _pair_events(self, g: Graph, flight: _Flight, dt: torch.Tensor, edges: torch.Tensor,
+                     log_m: torch.Tensor, restitution: torch.Tensor) -> _PairEvents:
+        """The impacts ahead on the given edges (receiver < sender), each pair from the later
+        of its two discs' times: when, the gate's logit, and both discs' velocity changes."""
+        snd, rcv = g.edge_index.index_select(1, edges)
+        at_rcv, at_snd = _pick(rcv), _pick(snd)
+        start = torch.maximum(at_rcv(flight.tau), at_snd(flight.tau))
+        dx = flight.at(rcv, start, dt) - flight.at(snd, start, dt)
+        dv = at_rcv(flight.v) - at_snd(flight.v)
+        reach = at_rcv(g.radius) + at_snd(g.radius)
+        rest = (1 - start) * at_rcv(dt)                  # what is left of the frame
+        frac, hit = time_of_impact(dx, dv, reach, rest)
+        k = hit.nonzero()[:, 0]
+        if not len(k):
+            return _PairEvents(edges[:0], rcv[:0], snd[:0], *(dx.new_zeros(0),) * 2,
+                               *(dx.new_zeros(0, dx.shape[1]),) * 2)
+        dx, dv, frac, start, rest, reach = (t.index_select(0, k)
+                                            for t in (dx, dv, frac, start, rest, reach))
+        at_impact = dx + dv * (frac * rest)[:, None]
+        normal = at_impact / torch.sqrt((at_impact * at_impact).sum(-1, keepdim=True) + TINY)
+        approach = (dv * normal).sum(-1)                                  # < 0 when closing
+        when = start + frac * (1 - start)                                 # in frames
+        gap = torch.sqrt((dx * dx).sum(-1) + TINY) - reach
+        feats = torch.stack([when, torch.ones_like(when), approach / self.speed_scale,
+                             gap / self.length_scale], dim=-1)
+        logit = self.gate_logits(feats, torch.ones_like(when, dtype=torch.bool))
+        # equal and opposite: m_i dv_i = -m_j dv_j (shares m_j / (m_i + m_j) and m_i / ...)
+        kick = -(1 + restitution) * approach * torch.sigmoid(logit)
+        rcv, snd = rcv.index_select(0, k), snd.index_select(0, k)
+        log_ratio = log_m.index_select(0, snd) - log_m.index_select(0, rcv)   # log m_j / m_i
+        dv_rcv = (torch.sigmoid(log_ratio) * kick)[:, None] * normal
+        dv_snd = -(torch.sigmoid(-log_ratio) * kick)[:, None] * normal
+        return _PairEvents(edges.index_select(0, k), rcv, snd, when, logit, dv_rcv, dv_snd)
 
-    def _impacts(self, g: Graph, x: torch.Tensor, v: torch.Tensor, dt: torch.Tensor,
-                 every_edge: bool) -> tuple[torch.Tensor, ...]:
-        """``impacts``; on graphs of more than ``checkpoint_edges`` edges with its per-edge
+    def _wall_events(self, g: Graph, flight: _Flight, dt: torch.Tensor, discs: torch.Tensor,
+                     skip: torch.Tensor | None, restitution: torch.Tensor,
+                     box: tuple[torch.Tensor, torch.Tensor]) -> _WallEvents:
+        """The wall impacts ahead of the given discs (per axis; ``skip`` (len, D): axes not
+        to solve again): when, and the velocity change along the axis."""
+        pick = _pick(discs)
+        tau, v = pick(flight.tau), pick(flight.v)
+        rest = (1 - tau) * pick(dt)
+        frac, hit = wall_impact(pick(flight.x), v, pick(g.radius), (pick(box[0]), pick(box[1])),
+                                rest)
+        if skip is not None:
+            hit = hit & ~skip
+        row, axis = hit.nonzero().unbind(1)
+        if not len(row):
+            return _WallEvents(row, axis, v.new_zeros(0), v.new_zeros(0))
+        flat = row * v.shape[1] + axis                   # (row, axis) into the flattened (N, D)
+        tau = tau.index_select(0, row)
+        when = tau + frac.flatten().index_select(0, flat) * (1 - tau)
+        speed = v.flatten().index_select(0, flat)
+        feats = torch.stack([when, torch.ones_like(when), speed.abs() / self.speed_scale], -1)
+        gate = torch.sigmoid(self.wall_gate(feats).squeeze(-1) + RULE_LOGIT)
+        return _WallEvents(discs.index_select(0, row), axis, when,
+                           -(1 + restitution) * speed * gate)
+
+    def _resolve(self, g: Graph, x: torch.Tensor, v: torch.Tensor, dt: torch.Tensor,
+                 every_edge: bool) -> FrameImpacts:
+        """``resolve``; on graphs of more than ``checkpoint_edges`` edges with its per-edge
         intermediates (a few dozen (E,) and (E, D) tensors per frame) recomputed in the
         backward pass instead of kept (activation checkpointing: element-wise work only)."""
         n_edges = g.edge_index.shape[1]
         if (torch.is_grad_enabled() and self.edge_chunk
                 and n_edges > max(self.edge_chunk, self.checkpoint_edges.above(x) or 0)):
-            return checkpoint(self.impacts, g, x, v, dt, every_edge, use_reentrant=False)
-        return self.impacts(g, x, v, dt, every_edge)
+            return checkpoint(self.resolve, g, x, v, dt, every_edge, use_reentrant=False)
+        return self.resolve(g, x, v, dt, every_edge)
 
     def _replay_start(self, g: Graph) -> tuple[int, torch.Tensor, torch.Tensor, torch.Tensor]:
         """The frame spacing per disc, how many of the window's frames are replayed (``depth``)
@@ -215,47 +435,42 @@ class ContactImpulseHead(nn.Module):
         x = g.pos - (g.vel[:, :depth] * dt[:, None, None]).sum(1)     # x[t - depth]
         return depth, dt, x, g.vel[:, depth]
 
-    def _replay_frame(self, g: Graph, x: torch.Tensor, v: torch.Tensor, dt: torch.Tensor,
-                      j: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """From ``(x, v)`` at frame t - j to frame t - j + 1: the recorded positions, and the
-        backward difference plus what the frame's impacts changed after their instant."""
-        rcv, n = g.edge_index[1], g.pos.shape[0]
-        # the replays' logits are not outputs: the gate runs on their impacts only
-        pair_dv, frac, _, wall_dv, wall_frac = self._impacts(g, x, v, dt, False)
-        return (x + g.vel[:, j - 1] * dt[:, None],
-                g.vel[:, j - 1] + scatter_sum(pair_dv * frac[:, None], rcv, n)
-                + wall_dv * wall_frac)
+    def _replay(self, g: Graph) -> tuple[torch.Tensor, torch.Tensor, list[FrameImpacts]]:
+        """The velocity at frame t, the frame spacing per disc and the replayed frames'
+        impacts (oldest first). Each frame from t - j to t - j + 1 keeps the recorded
+        positions; its velocity is the backward difference plus what the frame's impacts
+        changed after their instant (a backward difference averages over its frame).
+        Replayed from REPLAY_FRAMES back, so that a disc that bounced in consecutive frames
+        starts each replay with its velocity after the last bounce, not the average that
+        still approaches its partner (which would bounce it again)."""
+        depth, dt, x, v = self._replay_start(g)
+        frames = []
+        for j in range(depth, 0, -1):
+            # the replays' logits are not outputs: the gate runs on their impacts only
+            frame = self._resolve(g, x, v, dt, False)
+            frames.append(frame)
+            x = x + g.vel[:, j - 1] * dt[:, None]
+            v = g.vel[:, j - 1] + (frame.velocity - frame.mean_velocity)
+        return v, dt, frames
 
     def forward(self, g: Graph) -> tuple[torch.Tensor, torch.Tensor]:
-        rcv, n = g.edge_index[1], g.pos.shape[0]
-        # The velocity at frame t: the backward difference plus what each frame's impacts
-        # changed after their instant (a backward difference averages over its frame). Replayed
-        # from REPLAY_FRAMES back, so that a disc that bounced in consecutive frames starts
-        # each replay with its velocity after the last bounce, not the average that still
-        # approaches its partner (which would bounce it again).
-        depth, dt, x, v = self._replay_start(g)
-        for j in range(depth, 0, -1):
-            x, v = self._replay_frame(g, x, v, dt, j)
-        # the next frame: free flight, then each impact's change for the rest of the frame
-        pair_dv, frac, logits, wall_dv, wall_frac = self._impacts(g, g.pos, v, dt, True)
-        v_next = (v + scatter_sum(pair_dv * (1 - frac)[:, None], rcv, n)
-                  + wall_dv * (1 - wall_frac))
-        return v_next, logits
+        v, dt, _ = self._replay(g)
+        # the next frame: free flight and its impacts, one at a time
+        frame = self._resolve(g, g.pos, v, dt, True)
+        return frame.mean_velocity, frame.logits
 
     @torch.no_grad()
     def window_contacts(self, g: Graph) -> torch.Tensor:
-        """The pair impacts the head sees in the window's replayed frames, as rows
+        """The pair impacts the head resolves in the window's replayed frames, as rows
         ``(j, i, k)`` (M, 3): discs i < k (graph-wide node indices) touch between frames
-        t - j and t - j + 1, where free flight has a time of impact and the gate is open
-        (probability > 1/2). What the head's per-simulation mass solve reads
+        t - j and t - j + 1, where free flight meets and the gate is open (probability
+        > 1/2). What the head's per-simulation mass solve reads
         (``bgn.inverse_references.impact_log_mass``)."""
         snd, rcv = g.edge_index
-        depth, dt, x, v = self._replay_start(g)
+        _, _, frames = self._replay(g)
+        depth = len(frames)
         rows = []
-        for j in range(depth, 0, -1):
-            _, hit, _, _, feats = self.pair_geometry(g, x, v, dt)
-            hits = torch.nonzero(hit & (rcv < snd)).squeeze(1)
-            touch = hits[self.gate_logits(feats[hits], hit[hits]) > 0]
+        for j, frame in zip(range(depth, 0, -1), frames, strict=True):
+            touch = frame.pairs[frame.pair_logits > 0]
             rows.append(torch.stack([torch.full_like(touch, j), rcv[touch], snd[touch]], 1))
-            x, v = self._replay_frame(g, x, v, dt, j)
         return torch.cat(rows)

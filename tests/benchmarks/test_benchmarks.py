@@ -163,3 +163,17 @@ def test_against_takes_a_folder_holding_an_export_as_it_is(tmp_path) -> None:
     assert not (tmp_path / "unused").exists()
     with pytest.raises(subprocess.CalledProcessError):
         export(str(tmp_path / "not-a-checkout"), tmp_path / "unused")
+
+
+def test_scaling_frames_are_the_collisions_scenes_start() -> None:
+    # discs placed without overlap inside the box at the scene's density (a uniform draw
+    # overlapped hundreds of pairs, which no simulation has), both types, finite window
+    from bgn.benchmarks.scaling import DENSITY, frame
+
+    g = frame(2000, 1.25)
+    snd, rcv = g.edge_index
+    gap = (g.pos[rcv] - g.pos[snd]).norm(dim=1) - g.radius[rcv] - g.radius[snd]
+    assert gap.min() > 0
+    box = math.sqrt(2000 / DENSITY)
+    assert ((g.pos - g.radius[:, None] >= 0) & (g.pos + g.radius[:, None] <= box)).all()
+    assert set(g.types.tolist()) == {0, 1} and torch.isfinite(g.vel).all()

@@ -45,7 +45,7 @@ REPLAY_FRAMES = 3    # frames of the window replayed to recover the velocity at 
 LOG_MASS_RANGE = 5.0  # e-folds of mass per unit of the mass MLP's output
 RULE_LOGIT = 4.0      # the gates start at the time-of-impact rule: +-4 (probability 0.98)
 NEAR_FRAMES = 1.0     # candidate pairs: a gap their speeds close within this many frames
-MAX_ROUNDS = 64      # rounds of impacts per frame; beyond, an inelastic collapse is cut off
+MAX_ROUNDS = 256     # rounds of impacts per frame; beyond, an inelastic collapse is cut off
 REACH_FRAMES = 2.0   # pairs that may meet within a frame: a gap twice their speeds close in one
 
 

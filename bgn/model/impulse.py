@@ -58,8 +58,8 @@ def time_of_impact(dx: torch.Tensor, dv: torch.Tensor, reach: torch.Tensor,
     c = (dx * dx).sum(-1) - reach * reach
     disc = b * b - a * c
     # the root without cancellation, c / (-b + sqrt(disc)) (as the simulator): -b - sqrt(disc)
-    # loses all digits of a near pair in float32. Every branch finite, so that torch.where's
-    # unused branch cannot turn a gradient to NaN
+    # subtracts two nearly equal numbers for a pair near contact (small c). Every branch
+    # finite, so that torch.where's unused branch cannot turn a gradient to NaN
     closing = b < 0
     root = c / torch.where(closing, torch.sqrt(disc.clamp_min(TINY)) - b, torch.ones_like(b))
     s = torch.where(c <= 0, torch.zeros_like(root), root.clamp_min(0.0))  # overlapping: now

@@ -167,8 +167,9 @@ def _ready(n: int, edge_index: torch.Tensor, pairs: _PairEvents, walls: _WallEve
            ) -> tuple[torch.Tensor, torch.Tensor]:
     """The pending impacts that can be applied now, as masks over ``pairs`` and ``walls``:
     each the earliest of its discs (ties by index: every disc in at most one) and no later
-    than any pending impact of their neighbours in the graph, whose changes could otherwise
-    bring an earlier impact to them. The earliest impact of all is always among them."""
+    than any pending impact of the discs linked to them in ``edge_index`` (the pairs that may
+    meet within the frame), whose changes could otherwise bring an earlier impact to them.
+    The earliest impact of all is always among them."""
     n_pair, n_wall = len(pairs.time), len(walls.time)
     # every (event, disc) incidence: a pair impact twice, a wall impact once
     when = torch.cat([pairs.time, pairs.time, walls.time]).detach()
@@ -310,8 +311,9 @@ class ContactImpulseHead(nn.Module):
         # impacts' work is on these alone (a few % of a gas's edges), round after round
         near = (gap < REACH_FRAMES * (speed[rcv] + speed[snd]) * dt[rcv]).nonzero()[:, 0]
         near_edges = g.edge_index.index_select(1, near)
-        pairs_near = near[near_edges[1] < near_edges[0]]    # each pair once (graphs are symmetric)
-        near_snd, near_rcv = g.edge_index.index_select(1, pairs_near)
+        once = near_edges[1] < near_edges[0]                # each pair once (graphs are symmetric)
+        pairs_near = near[once]
+        near_snd, near_rcv = near_edges[:, once]
         first = pairs_near[hit[pairs_near]] if every_edge else pairs_near
         flight = _Flight(x, v, x.new_zeros(n))
         log_m = self.log_masses(g)

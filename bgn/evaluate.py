@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from scipy.stats import norm
 
-from bgn.checkpoints import read
+from bgn.checkpoints import CheckpointError, read
 from bgn.data.dataset import FrameDataset
 from bgn.data.frames import evenly_spaced
 from bgn.graph import Graph, collate
@@ -55,8 +55,19 @@ __all__ = ["batches", "calibrate_mass_posterior", "evaluate_model", "evaluate_ro
 def load_model(ckpt: str | Path) -> PhysicsModule:
     """The LightningModule of a checkpoint, on the CPU, in eval mode; read with
     ``weights_only=True``, and an unreadable file is named (``bgn.checkpoints.read``)."""
-    read(ckpt)  # a missing, truncated or foreign file: one CheckpointError naming it
-    return PhysicsModule.load_from_checkpoint(ckpt, map_location="cpu", weights_only=True).eval()
+    record = read(ckpt)  # a missing, truncated or foreign file: one CheckpointError naming it
+    try:
+        module = PhysicsModule.load_from_checkpoint(ckpt, map_location="cpu", weights_only=True)
+    except RuntimeError as err:  # torch: "Error(s) in loading state_dict ... key(s) ..."
+        if "state_dict" not in str(err):
+            raise
+        model = ((record.get("hyper_parameters") or {}).get("model_config") or {}).get("name")
+        detail = " ".join(str(err).split())[:300]
+        raise CheckpointError(
+            f"checkpoint {ckpt} does not fit this version of bgn's {model or 'model'}: it was "
+            "written by a bgn whose model had other weights (torch says: "
+            f"{detail}); retrain it with this version (python -m bgn.train ...)") from None
+    return module.eval()
 
 
 def batches(dataset: FrameDataset, indices: list[int], batch_size: int) -> list[Graph]:

@@ -8,9 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from omegaconf import OmegaConf
 from PIL import Image
 
+from bgn.checkpoints import CheckpointError
+from bgn.evaluate import load_model
 from bgn.figures import rollout_animation
 from bgn.module import add_animation
 from bgn.render import main
@@ -71,3 +74,10 @@ def test_render_command_animates_a_trained_checkpoint(tmp_path: Path, shared_dat
         main([str(lone)])
     with pytest.raises(SystemExit, match="no checkpoint"):
         main([str(tmp_path / "missing.ckpt")])
+    # weights of an older model (as the impulse head's unit buffers, dropped since): one error
+    older = torch.load(run / "checkpoints" / "last.ckpt", weights_only=True)
+    older["state_dict"]["model.node_encoder.length_scale"] = torch.tensor(1.0)
+    torch.save(older, tmp_path / "older.ckpt")
+    with pytest.raises(CheckpointError, match="does not fit this version of bgn's bgn") as err:
+        load_model(tmp_path / "older.ckpt")
+    assert "retrain" in str(err.value) and "\n" not in str(err.value)

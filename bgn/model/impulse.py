@@ -12,9 +12,9 @@ This head writes the structure down and learns only what the frames do not say:
 - when the window's free flight brings two discs (or a disc and a wall) into contact within
   the next frame (the time of impact, solved from positions and velocities), a learned gate
   says whether they really touch (trained on the recorded contacts, ``ModelOutput.contact``);
-- the masses, as a function of a disc's radius (``log m(r)``: types differ in size), trained
-  on the training split's relative log-masses like BGN's Eq. 9-10 (the loss
-  ``impulse_mass``), and the restitution ``e``;
+- the masses, as a function of a disc's radius relative to the largest of its scene
+  (``log m(r / r_max)``: types differ in size), trained on the training split's relative
+  log-masses like BGN's Eq. 9-10 (the loss ``impulse_mass``), and the restitution ``e``;
 - the next finite-difference velocity is the exact one of a single impact at time ``s`` into
   a frame of length ``dt``: ``v + dv (1 - s / dt)``.
 
@@ -23,6 +23,13 @@ first replays the window's last frames and adds the part of each impact's change
 average over its frame missed (``dv s' / dt``), then predicts the next frame.
 Several impacts within one frame are resolved one at a time in time order, each disc flying
 from its last impact (``ContactImpulseHead.resolve``), as the simulator does.
+
+Nothing the head reads has a length or a time unit: the gates see times as fractions of the
+frame, gaps in contact distances (``r_i + r_j``) and speeds relative to the root mean square
+speed of the disc's scene (the window's last velocities), the masses see radii relative to
+the largest. Elastic impacts in a box are the same
+motion at any length scale (``bgn.sim.transform.scaled``), and so is the head's prediction
+(tested): a scene in millimetres is the scene in metres.
 """
 
 from __future__ import annotations
@@ -94,6 +101,28 @@ def walls(g: Graph) -> tuple[torch.Tensor, torch.Tensor]:
     return g.pos - g.wall[:, :dim], g.pos + g.wall[:, dim:]
 
 
+def gate_features(when: torch.Tensor, hit: torch.Tensor, approach: torch.Tensor,
+                  gap: torch.Tensor, reach: torch.Tensor, speed_unit: torch.Tensor,
+                  ) -> torch.Tensor:
+    """The pair gate's inputs (E, 4), none with a unit: the time of impact as a fraction of
+    the frame, whether the window's free flight hits, the approach speed along the normal in
+    ``speed_unit`` (``scene_speed``; < 0 when closing) and the gap in contact distances
+    ``reach``."""
+    return torch.stack([when, hit.to(when.dtype), approach / speed_unit,
+                        gap / reach.clamp_min(TINY)], dim=-1)
+
+
+def scene_speed(g: Graph) -> torch.Tensor:
+    """(N,) the root mean square speed of each disc's scene over its last window velocity:
+    the gates' unit of speed. Neither the length scale nor the frame rate changes what a
+    gate sees of a thermal gas then (a unit of contact distances per frame would grow five
+    times from fps 50 to fps 10)."""
+    square = (g.vel[:, 0] ** 2).sum(-1)
+    total = square.new_zeros(g.num_graphs).index_add_(0, g.batch, square)
+    count = square.new_zeros(g.num_graphs).index_add_(0, g.batch, torch.ones_like(square))
+    return torch.sqrt(total / count).clamp_min(TINY).index_select(0, g.batch)
+
+
 class FrameImpacts(NamedTuple):
     """What ``ContactImpulseHead.resolve`` finds in one frame."""
 
@@ -128,6 +157,17 @@ class _Flight(NamedTuple):
         """Each of ``discs`` (distinct) flies to ``when`` and takes ``kick`` there."""
         return _Flight(self.x.index_copy(0, discs, self.at(discs, when, dt)),
                        self.v.index_add(0, discs, kick), self.tau.index_copy(0, discs, when))
+
+
+class _FrameTerms(NamedTuple):
+    """What every impact of a frame reads: the learned log-masses (N,), the pair and wall
+    restitutions, the walls each disc sees and the gates' unit of speed (N,)."""
+
+    log_mass: torch.Tensor
+    pair_restitution: torch.Tensor
+    wall_restitution: torch.Tensor
+    walls: tuple[torch.Tensor, torch.Tensor]
+    speed_unit: torch.Tensor
 
 
 class _PairEvents(NamedTuple):
@@ -194,14 +234,11 @@ class ContactImpulseHead(nn.Module):
     """Positions and velocity window of a contact scene's graph -> the next finite-difference
     velocity (N, D, physical units) and the contact gate's logits on the edges (E,)."""
 
-    def __init__(self, meta: SceneMeta, length_scale: torch.Tensor, speed_scale: torch.Tensor,
-                 hidden: int, act: str) -> None:
+    def __init__(self, meta: SceneMeta, hidden: int, act: str) -> None:
         super().__init__()
         if meta.box is None:
             raise ValueError("the impulse head needs a scene in a box (its walls)")
-        self.register_buffer("length_scale", length_scale.detach().clone())
-        self.register_buffer("speed_scale", speed_scale.detach().clone())
-        self.log_mass = mlp([1, hidden, 1], act)             # log m(radius), up to a constant
+        self.log_mass = mlp([1, hidden, 1], act)     # log m(r / r_max), up to a constant
         self.gate = mlp([4, hidden, hidden, 1], act)         # pair: touch within the frame?
         self.wall_gate = mlp([3, hidden, 1], act)
         # restitution = exp(-softplus(p)): 0.993 at p = -5, approaching 1 (elastic) from below
@@ -220,15 +257,18 @@ class ContactImpulseHead(nn.Module):
                 torch.exp(-F.softplus(self.wall_restitution)))
 
     def log_masses(self, g: Graph) -> torch.Tensor:
-        """(N,) the learned log-masses (a function of the radius: the scene's types differ in
-        size)."""
+        """(N,) the learned log-masses: a function of the radius relative to the largest in
+        the disc's scene (the scene's types differ in size; only mass ratios enter an impact,
+        and a ratio of radii has no unit)."""
         # log-radius in, log-mass out at LOG_MASS_RANGE e-folds per unit: the masses of a
         # scene's types differ by several e-folds (collisions: 6 for radii 0.1 and 0.2), which
         # a unit-scale MLP of the radius reached only after thousands of steps
-        # once per distinct radius (a scene's types: two), not per disc: the (N, hidden)
+        # once per distinct ratio (a scene's types: two), not per disc: the (N, hidden)
         # layer was the largest node-level cost of a step at 200 000 discs
-        radii, index = torch.unique(g.radius, return_inverse=True)
-        log_r = torch.log(radii.clamp_min(TINY))[:, None]
+        largest = g.radius.new_zeros(g.num_graphs).scatter_reduce_(0, g.batch, g.radius, "amax")
+        ratios, index = torch.unique(g.radius / largest.clamp_min(TINY)[g.batch],
+                                     return_inverse=True)
+        log_r = torch.log(ratios.clamp_min(TINY))[:, None]
         return LOG_MASS_RANGE * self.log_mass(log_r).squeeze(-1)[index]
 
     def gate_logits(self, feats: torch.Tensor, hit: torch.Tensor) -> torch.Tensor:
@@ -243,8 +283,8 @@ class ContactImpulseHead(nn.Module):
                       ) -> tuple[torch.Tensor, ...]:
         """Per edge, for free flight from ``(x, v)``: the fraction of the frame before the time
         of impact (E,; 1 where none), whether there is one (E,), the unit normal at impact
-        (E, D), the approach speed along it (E,; < 0 when closing) and the gate's features
-        (E, 4)."""
+        (E, D), the approach speed along it (E,; < 0 when closing), the gap between the
+        discs (E,) and the gate's features (E, 4)."""
         snd, rcv = g.edge_index
         dx, dv = edge_difference(x, g.edge_index), edge_difference(v, g.edge_index)
         reach = g.radius[rcv] + g.radius[snd]
@@ -252,13 +292,12 @@ class ContactImpulseHead(nn.Module):
         at_impact = dx + dv * (frac * dt[rcv])[:, None]
         normal = at_impact / torch.sqrt((at_impact * at_impact).sum(-1, keepdim=True) + TINY)
         approach = (dv * normal).sum(-1)                                  # < 0 when closing
-        feats = torch.stack([frac, hit.to(frac.dtype), approach / self.speed_scale,
-                             (torch.sqrt((dx * dx).sum(-1) + TINY) - reach) / self.length_scale],
-                            dim=-1)
-        return frac, hit, normal, approach, feats
+        gap = torch.sqrt((dx * dx).sum(-1) + TINY) - reach
+        return (frac, hit, normal, approach, gap,
+                gate_features(frac, hit, approach, gap, reach, scene_speed(g)[rcv]))
 
     def candidates(self, g: Graph, v: torch.Tensor, dt: torch.Tensor, hit: torch.Tensor,
-                   feats: torch.Tensor) -> torch.Tensor:
+                   gap: torch.Tensor) -> torch.Tensor:
         """(E,) the edges whose contact the gate's MLP decides: a time of impact within the
         frame, or a gap that the two discs' speeds could close within ``NEAR_FRAMES`` frames
         (an impact with a third disc can turn one towards the other). Elsewhere no contact is
@@ -267,7 +306,6 @@ class ContactImpulseHead(nn.Module):
         candidates, and 0.7 % of the recorded contacts lie outside them."""
         snd, rcv = g.edge_index
         speed = torch.sqrt((v * v).sum(-1) + TINY)
-        gap = feats[:, 3] * self.length_scale                   # physical units
         return hit | (gap < NEAR_FRAMES * (speed[rcv] + speed[snd]) * dt[rcv])
 
     def resolve(self, g: Graph, x: torch.Tensor, v: torch.Tensor, dt: torch.Tensor,
@@ -298,12 +336,11 @@ class ContactImpulseHead(nn.Module):
         speed = torch.sqrt((v * v).sum(-1) + TINY)
         logits = None
         if every_edge:
-            frac, hit, _, _, feats = self.pair_geometry(g, x, v, dt)
-            chosen = self.candidates(g, v, dt, hit, feats).nonzero()[:, 0]
+            frac, hit, _, _, gap, feats = self.pair_geometry(g, x, v, dt)
+            chosen = self.candidates(g, v, dt, hit, gap).nonzero()[:, 0]
             chosen_logits = self.gate_logits(feats.index_select(0, chosen),
                                              hit.index_select(0, chosen))
             logits = frac.new_full(frac.shape, -RULE_LOGIT).index_copy(0, chosen, chosen_logits)
-            gap = feats[:, 3] * self.length_scale
         else:
             gap = (torch.sqrt((edge_difference(x, g.edge_index) ** 2).sum(-1) + TINY)
                    - g.radius[rcv] - g.radius[snd])
@@ -316,12 +353,10 @@ class ContactImpulseHead(nn.Module):
         near_snd, near_rcv = near_edges[:, once]
         first = pairs_near[hit[pairs_near]] if every_edge else pairs_near
         flight = _Flight(x, v, x.new_zeros(n))
-        log_m = self.log_masses(g)
-        e_pair, e_wall = self.restitutions()
-        box = walls(g)
-        pending_pairs = self._pair_events(g, flight, dt, first, log_m, e_pair)
+        terms = _FrameTerms(self.log_masses(g), *self.restitutions(), walls(g), scene_speed(g))
+        pending_pairs = self._pair_events(g, flight, dt, first, terms)
         pending_walls = self._wall_events(g, flight, dt, torch.arange(n, device=x.device),
-                                          None, e_wall, box)
+                                          None, terms)
         mean_v, fired, fired_logits = v, [first[:0]], [x.new_zeros(0)]
         for _ in range(MAX_ROUNDS):
             if not (len(pending_pairs.edge) or len(pending_walls.disc)):
@@ -352,14 +387,14 @@ class ContactImpulseHead(nn.Module):
             moved = changed.nonzero()[:, 0]
             just_walled = torch.zeros(n, x.shape[1], dtype=torch.bool, device=x.device)
             just_walled[walls_now.disc, walls_now.axis] = True
-            new_pairs = self._pair_events(g, flight, dt, pairs_near[again], log_m, e_pair)
-            new_walls = self._wall_events(g, flight, dt, moved, just_walled[moved], e_wall, box)
+            new_pairs = self._pair_events(g, flight, dt, pairs_near[again], terms)
+            new_walls = self._wall_events(g, flight, dt, moved, just_walled[moved], terms)
             pending_pairs = new_pairs if every else pending_pairs.cat(new_pairs)
             pending_walls = new_walls if every else pending_walls.cat(new_walls)
         return FrameImpacts(flight.v, mean_v, logits, torch.cat(fired), torch.cat(fired_logits))
 
     def _pair_events(self, g: Graph, flight: _Flight, dt: torch.Tensor, edges: torch.Tensor,
-                     log_m: torch.Tensor, restitution: torch.Tensor) -> _PairEvents:
+                     frame: _FrameTerms) -> _PairEvents:
         """The impacts ahead on the given edges (receiver < sender), each pair from the later
         of its two discs' times: when, the gate's logit, and both discs' velocity changes."""
         snd, rcv = g.edge_index.index_select(1, edges)
@@ -374,6 +409,7 @@ class ContactImpulseHead(nn.Module):
         if not len(k):
             return _PairEvents(edges[:0], rcv[:0], snd[:0], *(dx.new_zeros(0),) * 2,
                                *(dx.new_zeros(0, dx.shape[1]),) * 2)
+        rcv, snd = rcv.index_select(0, k), snd.index_select(0, k)
         dx, dv, frac, start, rest, reach = (t.index_select(0, k)
                                             for t in (dx, dv, frac, start, rest, reach))
         at_impact = dx + dv * (frac * rest)[:, None]
@@ -381,27 +417,26 @@ class ContactImpulseHead(nn.Module):
         approach = (dv * normal).sum(-1)                                  # < 0 when closing
         when = start + frac * (1 - start)                                 # in frames
         gap = torch.sqrt((dx * dx).sum(-1) + TINY) - reach
-        feats = torch.stack([when, torch.ones_like(when), approach / self.speed_scale,
-                             gap / self.length_scale], dim=-1)
-        logit = self.gate_logits(feats, torch.ones_like(when, dtype=torch.bool))
+        hit = torch.ones_like(when, dtype=torch.bool)
+        logit = self.gate_logits(gate_features(when, hit, approach, gap, reach,
+                                               frame.speed_unit.index_select(0, rcv)), hit)
         # equal and opposite: m_i dv_i = -m_j dv_j (shares m_j / (m_i + m_j) and m_i / ...)
-        kick = -(1 + restitution) * approach * torch.sigmoid(logit)
-        rcv, snd = rcv.index_select(0, k), snd.index_select(0, k)
-        log_ratio = log_m.index_select(0, snd) - log_m.index_select(0, rcv)   # log m_j / m_i
+        kick = -(1 + frame.pair_restitution) * approach * torch.sigmoid(logit)
+        log_ratio = (frame.log_mass.index_select(0, snd)
+                     - frame.log_mass.index_select(0, rcv))                  # log m_j / m_i
         dv_rcv = (torch.sigmoid(log_ratio) * kick)[:, None] * normal
         dv_snd = -(torch.sigmoid(-log_ratio) * kick)[:, None] * normal
         return _PairEvents(edges.index_select(0, k), rcv, snd, when, logit, dv_rcv, dv_snd)
 
     def _wall_events(self, g: Graph, flight: _Flight, dt: torch.Tensor, discs: torch.Tensor,
-                     skip: torch.Tensor | None, restitution: torch.Tensor,
-                     box: tuple[torch.Tensor, torch.Tensor]) -> _WallEvents:
+                     skip: torch.Tensor | None, frame: _FrameTerms) -> _WallEvents:
         """The wall impacts ahead of the given discs (per axis; ``skip`` (len, D): axes not
         to solve again): when, and the velocity change along the axis."""
         pick = _pick(discs)
         tau, v = pick(flight.tau), pick(flight.v)
         rest = (1 - tau) * pick(dt)
-        frac, hit = wall_impact(pick(flight.x), v, pick(g.radius), (pick(box[0]), pick(box[1])),
-                                rest)
+        low, high = frame.walls
+        frac, hit = wall_impact(pick(flight.x), v, pick(g.radius), (pick(low), pick(high)), rest)
         if skip is not None:
             hit = hit & ~skip
         row, axis = hit.nonzero().unbind(1)
@@ -411,10 +446,11 @@ class ContactImpulseHead(nn.Module):
         tau = tau.index_select(0, row)
         when = tau + frac.flatten().index_select(0, flat) * (1 - tau)
         speed = v.flatten().index_select(0, flat)
-        feats = torch.stack([when, torch.ones_like(when), speed.abs() / self.speed_scale], -1)
+        disc = discs.index_select(0, row)
+        feats = torch.stack([when, torch.ones_like(when),
+                             speed.abs() / frame.speed_unit.index_select(0, disc)], -1)
         gate = torch.sigmoid(self.wall_gate(feats).squeeze(-1) + RULE_LOGIT)
-        return _WallEvents(discs.index_select(0, row), axis, when,
-                           -(1 + restitution) * speed * gate)
+        return _WallEvents(disc, axis, when, -(1 + frame.wall_restitution) * speed * gate)
 
     def _resolve(self, g: Graph, x: torch.Tensor, v: torch.Tensor, dt: torch.Tensor,
                  every_edge: bool) -> FrameImpacts:

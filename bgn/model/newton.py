@@ -306,8 +306,7 @@ def build_head(meta: SceneMeta, normalizer: Normalizer, history: int, hidden: in
     if meta.interaction == "contact":
         if meta.target != "velocity":
             raise ValueError(f"{option} on a contact scene needs a next-velocity target")
-        return ContactImpulseHead(meta, normalizer.rel_position_scale,
-                                  normalizer.rel_velocity_scale, hidden, act)
+        return ContactImpulseHead(meta, hidden, act)
     check_scene(meta, history, option)
     return PairForceHead(meta, normalizer, hidden, layers, act, mass_law, substeps)
 

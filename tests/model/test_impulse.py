@@ -4,12 +4,14 @@ exact next frame of a single elastic impact."""
 from dataclasses import replace
 
 import numpy as np
+import pytest
 import torch
 
 from bgn.graph import window_graph
 from bgn.model.impulse import (
     RULE_LOGIT,
     ContactImpulseHead,
+    scene_speed,
     time_of_impact,
     wall_impact,
     walls,
@@ -23,7 +25,7 @@ DT = 0.1
 def head(box: float = 10.0) -> ContactImpulseHead:
     meta = replace(make_meta(n=2, n_types=2, interaction="contact", graph="radius", box=box))
     torch.manual_seed(0)
-    h = ContactImpulseHead(meta, torch.tensor(1.0), torch.tensor(1.0), 16, "silu").double()
+    h = ContactImpulseHead(meta, 16, "silu").double()
     with torch.no_grad():  # elastic, and gates that pass every impact of the rule
         h.restitution.fill_(-40.0)
         h.wall_restitution.fill_(-40.0)
@@ -38,7 +40,8 @@ def disc_graph(window: torch.Tensor, radii: list[float], box: float = 10.0):
     i, j = torch.meshgrid(torch.arange(n), torch.arange(n), indexing="ij")
     edges = torch.stack([j[i != j], i[i != j]])
     return window_graph(window[None].double(), DT, edges, torch.ones(1, n),
-                        torch.tensor([radii]), torch.zeros(1, n, dtype=torch.long), box,
+                        torch.tensor([radii], dtype=torch.float64),
+                        torch.zeros(1, n, dtype=torch.long), box,
                         torch.tensor([0]), torch.tensor([0]), dtype=torch.float64)
 
 
@@ -142,6 +145,7 @@ def test_impacts_never_create_kinetic_energy_whatever_the_gates_masses_and_resti
         for net in (h.gate, h.wall_gate, h.log_mass):
             net[-1].weight.normal_()
             net[-1].bias.normal_()
+        h.log_mass[-1].weight.mul_(10)  # masses of the two sizes well apart
         h.restitution.fill_(-0.5)
         h.wall_restitution.fill_(0.5)
     pos, vel, radii = dense_gas(box=box, seed=11)
@@ -158,17 +162,40 @@ def test_impacts_never_create_kinetic_energy_whatever_the_gates_masses_and_resti
     assert after < before
 
 
+@pytest.mark.parametrize("factor", [1e-3, 1e3])
+def test_the_head_is_the_same_motion_at_any_length_scale(factor):
+    # every length x factor at the same frame rate (bgn.sim.transform.scaled): elastic impacts
+    # in a box are the same motion, and the head's prediction too, gates and masses included
+    box = 4.0
+    h = head(box)
+    torch.manual_seed(3)
+    with torch.no_grad():  # gates and masses that are not the rule alone
+        for net in (h.gate, h.wall_gate, h.log_mass):
+            net[-1].weight.normal_()
+            net[-1].bias.normal_()
+    pos, vel, radii = dense_gas(box=box, seed=5)
+    window = torch.as_tensor(np.stack([pos - vel * DT * s for s in range(3, -1, -1)]))
+    v_next, logits = h(disc_graph(window, radii.tolist(), box=box))
+    v_scaled, logits_scaled = h(disc_graph(window * factor, (radii * factor).tolist(),
+                                           box=box * factor))
+    torch.testing.assert_close(v_scaled / factor, v_next, atol=1e-9, rtol=1e-9)
+    torch.testing.assert_close(logits_scaled, logits, atol=1e-9, rtol=1e-9)
+    assert (logits > 0).any() and (torch.exp(h.log_masses(disc_graph(
+        window, radii.tolist(), box=box))).unique().numel() == 2)
+
+
 def test_walls_come_from_the_graph_not_the_training_box():
     # a model of the box of side 10 rolling out a box of side 30: no phantom wall at 10
     h = head(box=10.0)
     t = torch.arange(-4, 1, dtype=torch.float64) * DT
-    x = torch.stack([9.85 + 1.0 * t, torch.full((5,), 5.0, dtype=torch.float64)], -1)
+    x = torch.stack([9.87 + 1.0 * t, torch.full((5,), 5.0, dtype=torch.float64)], -1)
     far = torch.stack([torch.full((5,), 20.0, dtype=torch.float64),
                        torch.full((5,), 20.0, dtype=torch.float64)], -1)
     v_next, _ = h(disc_graph(torch.stack([x, far], 1), [0.1, 0.1], box=30.0))
     torch.testing.assert_close(v_next[0], torch.tensor([1.0, 0.0], dtype=torch.float64))
     v_next, _ = h(disc_graph(torch.stack([x, far], 1), [0.1, 0.1], box=10.0))
-    assert v_next[0, 0] < 0  # in the box of side 10 it bounces off the wall at 10
+    # in the box of side 10 it bounces off the wall at 10, 0.3 into the frame
+    torch.testing.assert_close(v_next[0, 0], torch.tensor(1.0 - 2 * 0.7, dtype=torch.float64))
 
 
 def test_window_contacts_finds_the_impact_the_window_replays_and_the_gate_can_veto_it():
@@ -202,13 +229,13 @@ def test_the_gate_runs_on_candidates_and_leaves_the_velocities_as_on_every_edge(
     window = torch.stack([x + v * DT * s for s in range(-3, 1)])
     g = disc_graph(window, [0.2 if k % 2 else 0.3 for k in range(n)])
     dt = g.dt[g.batch].double()
-    _, hit, _, _, feats = h.pair_geometry(g, g.pos, g.vel[:, 0], dt)
-    chosen = h.candidates(g, g.vel[:, 0], dt, hit, feats)
+    _, hit, _, _, gap, _ = h.pair_geometry(g, g.pos, g.vel[:, 0], dt)
+    chosen = h.candidates(g, g.vel[:, 0], dt, hit, gap)
     assert 0 < int(hit.sum()) < int(chosen.sum()) < chosen.numel()  # hits, near pairs, others
 
     frame = h.resolve(g, g.pos, g.vel[:, 0], dt)
     monkeypatch.setattr(ContactImpulseHead, "candidates",
-                        lambda self, g, v, dt, hit, feats: torch.ones_like(hit))
+                        lambda self, g, v, dt, hit, gap: torch.ones_like(hit))
     every = h.resolve(g, g.pos, g.vel[:, 0], dt)
     torch.testing.assert_close(frame.mean_velocity, every.mean_velocity, atol=0, rtol=0)
     torch.testing.assert_close(frame.velocity, every.velocity, atol=0, rtol=0)
@@ -236,7 +263,7 @@ def test_the_wall_gate_on_the_wall_hits_equals_the_gate_on_every_disc():
     assert len(frame.pairs) == 0
     frac, hit = wall_impact(g.pos, g.vel[:, 0], g.radius, walls(g), dt)
     assert 0 < int(hit.sum()) < hit.numel()
-    feats = torch.stack([frac, hit.double(), g.vel[:, 0].abs()], -1)
+    feats = torch.stack([frac, hit.double(), g.vel[:, 0].abs() / scene_speed(g)[:, None]], -1)
     gate = torch.sigmoid(h.wall_gate(feats).squeeze(-1) + RULE_LOGIT * (2 * hit.double() - 1))
     _, e_wall = h.restitutions()
     wall_dv = -(1 + e_wall) * g.vel[:, 0] * gate * hit

@@ -215,6 +215,31 @@ def test_window_contacts_finds_the_impact_the_window_replays_and_the_gate_can_ve
     assert h.window_contacts(g).shape == (0, 3)
 
 
+def test_the_replays_carry_no_gradient_and_the_predicted_frame_trains_the_head():
+    # two pairs of equal discs approach at speed 2 each: the lower pair touches within the
+    # window (0.05 after frame 4 of 0 .. 6, in a replayed frame), the upper one in the frame
+    # ahead (0.05 after t)
+    h = head()
+    with torch.no_grad():  # gates and restitution off their saturated test values
+        h.gate[-1].bias.zero_()
+        h.restitution.fill_(-5.0)
+    tau = torch.arange(7, dtype=torch.float64) * DT
+    hit = 0.45
+    left = torch.where(tau < hit, 4.0 + 2 * tau, 4.9 - 2 * (tau - hit))
+    right = torch.where(tau < hit, 6.8 - 2 * tau, 5.9 + 2 * (tau - hit))
+    low, high = (torch.full((7,), y, dtype=torch.float64) for y in (2.0, 8.0))
+    discs = [torch.stack(xy, -1) for xy in ((left, low), (right, low),
+                                            (4.0 + 2 * tau, high), (7.6 - 2 * tau, high))]
+    g = disc_graph(torch.stack(discs, 1), [0.5] * 4)
+    v, _, frames = h._replay(g)
+    assert sum(len(f.pairs) for f in frames) == 1      # the lower pair's impact, replayed once
+    assert not v.requires_grad
+    prediction, _ = h(g)
+    prediction[2, 0].backward()                        # the upper pair's impact ahead
+    for p in (h.gate[-1].weight, h.restitution):
+        assert p.grad is not None and torch.isfinite(p.grad).all() and p.grad.abs().sum() > 0
+
+
 def test_the_gate_runs_on_candidates_and_leaves_the_velocities_as_on_every_edge(monkeypatch):
     # a random gas: candidates are the pairs with a time of impact or a gap their speeds close
     # within a frame; elsewhere the logit is the rule's -RULE_LOGIT and the kick is zero

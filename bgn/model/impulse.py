@@ -488,7 +488,7 @@ class ContactImpulseHead(nn.Module):
 
         Without gradients: the replays only correct the input velocity. The gates, masses and
         restitution learn from the predicted frame and the contact loss; the replays' backward
-        was 13 % of a default training step, and the default job trained without it is as
+        was 12 % of a default training step, and the default job trained without it is as
         accurate (docs/results.md, "The replay without gradients")."""
         depth, dt, x, v = self._replay_start(g)
         frames = []

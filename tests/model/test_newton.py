@@ -10,7 +10,7 @@ from scipy import stats
 from torch import nn
 
 from bgn.data.datamodule import ParticleDataModule
-from bgn.data.graphs import full_graph
+from bgn.data.graphs import batch_edges, full_graph
 from bgn.graph import collate, window_graph
 from bgn.model import build_model
 from bgn.model.newton import law_loss, numerov, past_positions, shoot
@@ -106,8 +106,7 @@ def test_the_gravity_fit_recovers_masses_a_thousand_times_apart(small_cfg):
     n = x.shape[1]
     starts = range(6, 59, 4)
     window = torch.as_tensor(np.stack([x[t - 6:t + 1] for t in starts]))
-    offsets = torch.arange(len(starts)) * n
-    edges = torch.cat([torch.as_tensor(full_graph(n)) + o for o in offsets], dim=1)
+    edges = torch.as_tensor(batch_edges([full_graph(n)] * len(starts), [n] * len(starts)))
     masses = torch.as_tensor(state.masses).repeat(len(starts), 1)
     g = window_graph(window, case.dt, edges, masses, torch.zeros_like(masses),
                      torch.zeros_like(masses, dtype=torch.long), None,

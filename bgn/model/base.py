@@ -150,6 +150,8 @@ class PhysicsModel(nn.Module, ABC):
                 module.edge_chunk = cfg.edge_chunk
                 module.checkpoint_edges = CheckpointEdges(cfg.checkpoint_edges,
                                                           cfg.checkpoint_edges_gpu)
+            if hasattr(module, "edge_block"):  # ops.EdgeMLP; the option of the baselines' configs
+                module.edge_block = getattr(cfg, "edge_block", None)
 
     @abstractmethod
     def build(self, cfg: Any, stats: Mapping[str, Any]) -> None:

@@ -14,8 +14,10 @@ scene has walls, the clipped wall distances; on edges the relative position and 
 masses or types, unless ``oracle=True``, which appends the true normalised log-mass (and the
 one-hot type when the scene has several) to the node inputs and labels the model ``...+oracle``.
 Positions enter only as differences (translation invariance); every graph operation is a gather
-or a ``scatter_sum`` over the edge list (O(E)). Targets are normalised by the same ``Normalizer``
-methods as BGN's, so the ``dynamics`` losses of all three models are in the same units.
+or an ``index_add_`` over the edge list (O(E)), run in blocks of edges on a CPU (``edge_block``:
+``EdgeMLP.blocks``, ``EdgeMLP.sum_at_receivers``). Targets are normalised by the same
+``Normalizer`` methods as BGN's, so the ``dynamics`` losses of all three models are in the same
+units.
 """
 
 from __future__ import annotations
@@ -32,12 +34,33 @@ from bgn.graph import Graph
 from bgn.model.base import DynamicsConfig, ModelOutput, PhysicsModel, check_positive_ints
 from bgn.model.encoder import edge_geometry, node_features, node_input_dim
 from bgn.model.noise import random_walk
-from bgn.model.ops import EdgeMLP, activation, mlp, scatter_sum
+from bgn.model.ops import EdgeMLP, activation, mlp
 
 
 # ----------------------------------------------------------------------------- configs
 @dataclass
-class CranmerGNConfig(DynamicsConfig):
+class BaselineConfig(DynamicsConfig):
+    """Options both baselines share (see ``CranmerGNConfig``, ``GNSConfig``)."""
+
+    # also feed the true log-mass (and one-hot type) to the nodes -> "<name>+oracle"
+    oracle: bool = False
+    # the edge MLPs are most of a step: no recompute below a million edges (DynamicsConfig)
+    checkpoint_edges: int | None = 1_000_000
+    # On a CPU the edges run in blocks of this many (ops.EdgeMLP.blocks): no per-edge tensor
+    # of the whole graph. At 20 000 discs (289 476 edges, 2 threads, one process) blocks of
+    # 16 384 made GNS's training step 1.23x faster than one block; cranmer_gn's was alike
+    # either way; 2 048, 8 192 and 32 768 were slower for GNS (docs/results.md, "Edge
+    # blocks"). null: one block.
+    edge_block: int | None = 16_384
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.edge_block is not None and not self.edge_block >= 1:
+            raise ValueError(f"edge_block={self.edge_block} must be >= 1 (or null: one block)")
+
+
+@dataclass
+class CranmerGNConfig(BaselineConfig):
     """BS1 options (the schema of ``conf/model/cranmer_gn.yaml``); defaults are the published
     ones (Cranmer et al. 2020, their ``GN``). ``target_prior``, ``dynamics_loss``,
     ``huber_delta``: as BGN's (equal terms); ``target_prior=none dynamics_loss=mse`` is the
@@ -47,10 +70,6 @@ class CranmerGNConfig(DynamicsConfig):
     message_dim: int = 100     # width of the messages, the edge MLP output (their `msg_dim`)
     hidden_layers: int = 3     # hidden layers per MLP, edge and node (their Seq of 4 Linear)
     activation: str = "relu"   # relu (theirs) | silu | gelu | tanh | softplus
-    # also feed the true log-mass (and one-hot type) to the nodes -> "cranmer_gn+oracle"
-    oracle: bool = False
-    # the edge MLP is most of the step: no recompute below a million edges (DynamicsConfig)
-    checkpoint_edges: int | None = 1_000_000
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -59,7 +78,7 @@ class CranmerGNConfig(DynamicsConfig):
 
 
 @dataclass
-class GNSConfig(DynamicsConfig):
+class GNSConfig(BaselineConfig):
     """BS2 options (the schema of ``conf/model/gns.yaml``); defaults follow Sanchez-Gonzalez
     et al. 2020 (section 3 and appendix). ``target_prior``, ``dynamics_loss``,
     ``huber_delta``: as BGN's (equal terms); ``target_prior=none dynamics_loss=mse`` is the
@@ -81,9 +100,6 @@ class GNSConfig(DynamicsConfig):
     message_passing_steps: int = 10    # unshared interaction networks (their M = 10)
     activation: str = "relu"           # relu (theirs) | silu | gelu | tanh | softplus
     noise_std: float = 0.5
-    # also feed the true log-mass (and one-hot type) to the nodes -> "gns+oracle"
-    oracle: bool = False
-    checkpoint_edges: int | None = 1_000_000   # as CranmerGNConfig's
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -171,8 +187,7 @@ class CranmerGN(Baseline):
 
     def _target(self, x: torch.Tensor, e: torch.Tensor,
                 edge_index: torch.Tensor) -> torch.Tensor:
-        m = self.message(e, x, edge_index)
-        aggregated = scatter_sum(m, edge_index[1], x.shape[0])   # sum at the receiver
+        aggregated = self.message.sum_at_receivers(e, x, edge_index, x.shape[0])
         return self.node(torch.cat([x, aggregated], dim=1))
 
 
@@ -186,12 +201,22 @@ class InteractionNetwork(nn.Module):
         self.edge = EdgeMLP(latent, latent, [*hidden, latent], act, layer_norm=True)
         self.node = mlp([2 * latent, *hidden, latent], act, layer_norm=True)
 
-    def forward(self, v: torch.Tensor, e: torch.Tensor,
-                edge_index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        de = self.edge(e, v, edge_index)
-        # nodes aggregate the *updated* edges, as graph_nets' InteractionNetwork does
-        dv = self.node(torch.cat([v, scatter_sum(de, edge_index[1], v.shape[0])], dim=1))
-        return v + dv, e + de
+    def forward(self, v: torch.Tensor, e: list[torch.Tensor], edge_index: torch.Tensor,
+                slices: list[slice]) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """Node latents (N, latent) and the edge latents as blocks (``e[k]`` belongs to the
+        edges ``edge_index[:, slices[k]]``; ``EdgeMLP.blocks``) -> both updated."""
+        rcv = edge_index[1]
+        summed: torch.Tensor | None = None
+        updated = []
+        for s, e_block, de in zip(slices, e, self.edge.blocks(e, v, edge_index, slices),
+                                  strict=True):
+            if summed is None:
+                summed = de.new_zeros(v.shape[0], de.shape[1])
+            # nodes aggregate the *updated* edges, as graph_nets' InteractionNetwork does
+            summed.index_add_(0, rcv[s], de)
+            updated.append(e_block + de)
+        assert summed is not None  # edge_blocks gives at least one (maybe empty) block
+        return v + self.node(torch.cat([v, summed], dim=1)), updated
 
 
 class GNS(Baseline):
@@ -230,7 +255,9 @@ class GNS(Baseline):
 
     def _target(self, x: torch.Tensor, e: torch.Tensor,
                 edge_index: torch.Tensor) -> torch.Tensor:
-        v, h_e = self.node_encoder(x), self.edge_encoder(e)
+        # the edge latents live in blocks from the encoder on (EdgeMLP.block_slices)
+        slices = self.processor[0].edge.block_slices(e)
+        v, h_e = self.node_encoder(x), [self.edge_encoder(e[s]) for s in slices]
         for step in self.processor:
-            v, h_e = step(v, h_e, edge_index)
+            v, h_e = step(v, h_e, edge_index, slices)
         return self.decoder(v)

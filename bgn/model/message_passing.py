@@ -201,6 +201,21 @@ def edge_chunks(fn: Callable[..., torch.Tensor], chunk: int | None,
     return torch.cat(parts)
 
 
+def edge_blocks(n_edges: int, block: int | None) -> list[slice]:
+    """Consecutive slices of at most ``block`` edges that cover ``n_edges``: one slice when
+    ``block`` is None or the graph is no larger (an empty one for a graph without edges).
+
+    Edge work run block by block, with each block's outputs summed or kept per block, never
+    makes a per-edge tensor of the whole graph. On a CPU that is faster, not only smaller: a
+    block's (16 384, 128) float32 tensors are 8 MB, which malloc recycles within the process
+    and the caches hold between consecutive operations, where a (300 000, 128) tensor is
+    150 MB of fresh pages that the kernel zeroes at every allocation (docs/results.md,
+    "Edge blocks")."""
+    if not block or n_edges <= block:
+        return [slice(0, n_edges)]
+    return [slice(start, min(start + block, n_edges)) for start in range(0, n_edges, block)]
+
+
 class _EdgeSums(torch.autograd.Function):
     """``out[0, i] = sum over edges e with receiver i of phi(x_e)``, ``out[1, j]`` the same over
     senders, in chunks of edges; the backward recomputes each chunk's ``phi`` and returns the

@@ -6,13 +6,15 @@ The paper's dense matrix products ``Â H`` are the special case of a complete ed
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from itertools import pairwise
 
 import torch
 from torch import nn
 from torch.nn import functional as F
+from torch.utils.checkpoint import checkpoint
 
-from bgn.model.message_passing import CheckpointEdges, edge_chunks, spmm
+from bgn.model.message_passing import CheckpointEdges, edge_blocks, edge_chunks, spmm
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "silu": nn.SiLU,
@@ -175,7 +177,9 @@ class EdgeMLP(nn.Module):
 
     ``edge_chunk`` and ``checkpoint_edges`` (set by ``PhysicsModel`` from its config): on
     graphs with more edges, the edges run in chunks with activation checkpointing
-    (``message_passing.edge_chunks``).
+    (``message_passing.edge_chunks``). ``edge_block`` (the baselines' configs): on a CPU,
+    ``blocks`` and ``sum_at_receivers`` run the edges in blocks of that many, without a
+    per-edge tensor of the whole graph (``message_passing.edge_blocks``).
     """
 
     def __init__(self, edge_in: int, node_in: int, sizes: list[int], act: str = "relu",
@@ -189,6 +193,7 @@ class EdgeMLP(nn.Module):
         self._last = linears[-1] if linears else None
         self.edge_chunk: int | None = None
         self.checkpoint_edges = CheckpointEdges()
+        self.edge_block: int | None = None
 
     def forward(self, e: torch.Tensor, x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
         """Edge (E, edge_in) and node (N, node_in) features -> (E, sizes[-1])."""
@@ -196,16 +201,70 @@ class EdgeMLP(nn.Module):
         if not self.factored:
             return self.rest(self.first(torch.cat([e, x.index_select(0, rcv),
                                                    x.index_select(0, snd)], dim=1)))
+        return edge_chunks(self._edges, self.edge_chunk, (e, rcv, snd), self.node_products(x),
+                           self.checkpoint_edges.above(e))
+
+    def node_products(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The first layer's node blocks applied per node, ``(W_r x + b, W_s x)``, and its
+        edge block ``W_e``, at the padded hidden width."""
         first = self.first
         width = _padded(first.out_features) if self._last is not None else first.out_features
         weight, bias = _pad_linear(first.weight, first.bias, width, first.in_features)
         w_e, w_r, w_s = weight.split([self.edge_in, self.node_in, self.node_in], dim=1)
-        p_r, p_s = F.linear(x, w_r, bias), F.linear(x, w_s)   # per node
-        return edge_chunks(self._edges, self.edge_chunk, (e, rcv, snd), (p_r, p_s, w_e),
-                           self.checkpoint_edges.above(e))
+        return F.linear(x, w_r, bias), F.linear(x, w_s), w_e
+
+    def block_slices(self, e: torch.Tensor) -> list[slice]:
+        """The blocks of ``e``'s edges (``edge_block`` on a CPU; one block on a GPU, whose
+        caching allocator already reuses memory and whose kernels want large tensors)."""
+        return edge_blocks(e.shape[0], None if e.is_cuda else self.edge_block)
+
+    def blocks(self, e_blocks: Sequence[torch.Tensor], x: torch.Tensor,
+               edge_index: torch.Tensor, slices: Sequence[slice],
+               hidden_only: bool = False) -> Iterator[torch.Tensor]:
+        """``phi`` of each block of edges, one after another: ``e_blocks[k]`` holds the edge
+        features of ``edge_index[:, slices[k]]``. ``hidden_only`` stops before the output layer.
+        On graphs above the checkpointing threshold each block is recomputed in the backward
+        pass (as ``forward``'s chunks)."""
+        products = self.node_products(x)
+        n_edges = edge_index.shape[1]
+        recompute = bool(torch.is_grad_enabled() and self.edge_chunk and n_edges > max(
+            self.edge_chunk, self.checkpoint_edges.above(x) or 0))
+        for e, s in zip(e_blocks, slices, strict=True):
+            args = (e, edge_index[1, s], edge_index[0, s], *products)
+            if recompute:
+                yield checkpoint(self._edges, *args, hidden_only, use_reentrant=False)
+            else:
+                yield self._edges(*args, hidden_only)
+
+    def sum_at_receivers(self, e: torch.Tensor, x: torch.Tensor, edge_index: torch.Tensor,
+                         n: int) -> torch.Tensor:
+        """(n, sizes[-1]): ``phi`` summed over each node's incoming edges, block by block.
+
+        When the output layer is linear with nothing after it, it runs once on the sums of
+        the last hidden layer, ``sum_j (W h_j + b) = W sum_j h_j + deg_i b``: the same sums
+        (to round-off) without the output layer's per-edge product."""
+        linear_out = self._last is not None and self.rest[-1] is self._last
+        slices = self.block_slices(e)
+        rcv = edge_index[1]
+        total: torch.Tensor | None = None
+        for s, y in zip(slices, self.blocks([e[s] for s in slices], x, edge_index, slices,
+                                            hidden_only=linear_out), strict=True):
+            if total is None:
+                total = y.new_zeros(n, y.shape[1])
+            total.index_add_(0, rcv[s], y)
+        assert total is not None  # edge_blocks gives at least one (maybe empty) block
+        if not linear_out:
+            return total
+        last = self._last
+        weight, _ = _pad_linear(last.weight, None, last.out_features, total.shape[1])
+        out = total @ weight.t()
+        if last.bias is not None:
+            degree = torch.bincount(rcv, minlength=n).to(out.dtype)
+            out = out + degree[:, None] * last.bias
+        return out
 
     def _edges(self, e: torch.Tensor, rcv: torch.Tensor, snd: torch.Tensor, p_r: torch.Tensor,
-               p_s: torch.Tensor, w_e: torch.Tensor) -> torch.Tensor:
+               p_s: torch.Tensor, w_e: torch.Tensor, hidden_only: bool = False) -> torch.Tensor:
         # z = (W_r x + b)_i + (W_s x)_j + W_e e accumulated in one (E, F) buffer: no
         # temporaries for the sums. index_select: its backward is index_add_, several times
         # faster on CPU than the accumulating index_put_ behind x[idx].
@@ -214,6 +273,8 @@ class EdgeMLP(nn.Module):
         z.addmm_(e, w_e.t())
         for module in self.rest:
             if isinstance(module, nn.Linear):
+                if hidden_only and module is self._last:
+                    break
                 # every layer but the last writes padded columns; the next one's padded input
                 # weights are zero, so whatever the activation makes of them adds nothing
                 rows = (module.out_features if module is self._last

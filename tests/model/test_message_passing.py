@@ -1,7 +1,7 @@
 """The fast kernels against the plain formulas they replace, in float64 (to 1e-5, in practice
 round-off): the sparse products of ``bgn.model.message_passing``, the edge MLP's accumulated
-first layer and its chunked checkpointing, and every model's loss and gradients with all of
-them swapped back to the gather / ``index_add_`` / concatenation forms."""
+first layer, its chunked checkpointing and its blocks, and every model's loss and gradients
+with all of them swapped back to the gather / ``index_add_`` / concatenation forms."""
 
 from __future__ import annotations
 
@@ -15,9 +15,12 @@ import bgn.model.encoder as encoder
 import bgn.model.ops as ops
 import bgn.model.processor as processor
 from bgn.model import build_model
+from bgn.model.baselines import InteractionNetwork
 from bgn.model.impulse import ContactImpulseHead
 from bgn.model.message_passing import (
+    CheckpointEdges,
     adjacency,
+    edge_blocks,
     edge_chunks,
     edge_difference,
     edge_dot,
@@ -61,6 +64,29 @@ def naive_edge_mlp(self, e, x, edge_index):
     """``EdgeMLP.forward`` as the plain concatenation ``phi([e, x_i, x_j])``, one chunk."""
     snd, rcv = edge_index
     return self.rest(self.first(torch.cat([e, x[rcv], x[snd]], dim=1)))
+
+
+def naive_blocks(self, e_blocks, x, edge_index, slices, hidden_only=False):
+    """``EdgeMLP.blocks`` as the plain concatenation on each block."""
+    layers = self.rest[:-1] if hidden_only else self.rest
+    for e, s in zip(e_blocks, slices, strict=True):
+        snd, rcv = edge_index[:, s]
+        yield layers(self.first(torch.cat([e, x[rcv], x[snd]], dim=1)))
+
+
+def naive_sum_at_receivers(self, e, x, edge_index, n):
+    """``EdgeMLP.sum_at_receivers`` as the plain messages of every edge, summed."""
+    m = naive_edge_mlp(self, e, x, edge_index)
+    return m.new_zeros(n, m.shape[1]).index_add(0, edge_index[1], m)
+
+
+def naive_interaction(self, v, e, edge_index, slices):
+    """GNS's ``InteractionNetwork.forward`` on the whole edge list: ``e' = e + phi_e``, nodes
+    sum the updated edges."""
+    e = torch.cat(e)
+    de = naive_edge_mlp(self.edge, e, v, edge_index)
+    summed = de.new_zeros(v.shape[0], de.shape[1]).index_add(0, edge_index[1], de)
+    return v + self.node(torch.cat([v, summed], dim=1)), [e + de]
 
 
 def radius_edges(n=40, seed=0, shuffle=False):
@@ -140,6 +166,46 @@ def test_edge_mlp_factored_padded_and_chunked_equals_the_concatenation(chunk, la
         torch.testing.assert_close(got, want, **TOL)
 
 
+def test_edge_blocks_cover_the_edges_once():
+    assert edge_blocks(10, None) == [slice(0, 10)] and edge_blocks(10, 10) == [slice(0, 10)]
+    assert edge_blocks(0, 4) == [slice(0, 0)]
+    blocks = edge_blocks(10, 4)
+    assert blocks == [slice(0, 4), slice(4, 8), slice(8, 10)]
+
+
+@pytest.mark.parametrize("block", [None, 7])
+@pytest.mark.parametrize("layer_norm", [False, True])   # True: no output layer after the sums
+@pytest.mark.parametrize("checkpointed", [False, True])
+@pytest.mark.parametrize("act", ["relu", "softplus"])    # softplus(0) != 0 on padded channels
+def test_edge_mlp_in_blocks_and_summed_equals_the_plain_messages(block, layer_norm,
+                                                                  checkpointed, act):
+    """``sum_at_receivers`` (blocks, the output layer after the sums) and ``blocks`` against
+    the concatenated MLP on every edge, values and gradients, in float64."""
+    torch.manual_seed(0)
+    mlp = EdgeMLP(3, 4, [10, 20, 5], act, layer_norm).double()
+    mlp.edge_block = block
+    if checkpointed:
+        mlp.edge_chunk, mlp.checkpoint_edges = 1, CheckpointEdges(0, 0)
+    e = radius_edges()
+    n_edges = e.shape[1]
+    gen = torch.Generator().manual_seed(3)
+    ef = torch.randn(n_edges, 3, generator=gen, dtype=torch.float64, requires_grad=True)
+    x = torch.randn(40, 4, generator=gen, dtype=torch.float64, requires_grad=True)
+    params = [ef, x, *mlp.parameters()]
+    slices = mlp.block_slices(ef)
+    assert len(slices) == (1 if block is None else -(-n_edges // block))
+    fast_sum = mlp.sum_at_receivers(ef, x, e, 40)
+    fast_blocks = torch.cat(list(mlp.blocks([ef[s] for s in slices], x, e, slices)))
+    slow_sum = naive_sum_at_receivers(mlp, ef, x, e, 40)
+    slow_blocks = naive_edge_mlp(mlp, ef, x, e)
+    for fast, slow in ((fast_sum, slow_sum), (fast_blocks, slow_blocks)):
+        torch.testing.assert_close(fast, slow, **TOL)
+        grads = torch.autograd.grad(fast.square().sum(), params)
+        expected = torch.autograd.grad(slow.square().sum(), params)
+        for got, want in zip(grads, expected, strict=True):
+            torch.testing.assert_close(got, want, **TOL)
+
+
 def test_checkpointing_only_above_its_threshold():
     calls = []
 
@@ -185,9 +251,9 @@ def test_every_model_equals_its_plain_form(monkeypatch, name):
              "bgn_newton": {"hidden": 16, "decoder_hidden": 20, "flow_hidden": 8,
                             "dynamics": "newton", "edge_chunk": 50, "checkpoint_edges": 0},
              "gns": {"latent": 16, "mlp_hidden": 16, "message_passing_steps": 3,
-                     "edge_chunk": 50, "checkpoint_edges": 0},
+                     "edge_chunk": 50, "checkpoint_edges": 0, "edge_block": 40},
              "cranmer_gn": {"hidden": 20, "message_dim": 8, "edge_chunk": 50,
-                            "checkpoint_edges": 0}}[name]
+                            "checkpoint_edges": 0, "edge_block": 40}}[name]
     meta = make_meta(30, 2, "contact", "radius", box=4.0)
     torch.manual_seed(0)
     model = build_model({"name": name.removesuffix("_newton"), **small}, meta, fake_stats(),
@@ -212,10 +278,15 @@ def test_every_model_equals_its_plain_form(monkeypatch, name):
     monkeypatch.setattr(encoder, "gcn_aggregate", naive_gcn_aggregate)
     monkeypatch.setattr(processor, "edge_dot", naive_edge_dot)
     monkeypatch.setattr(EdgeMLP, "forward", naive_edge_mlp)
+    monkeypatch.setattr(EdgeMLP, "blocks", naive_blocks)
+    monkeypatch.setattr(InteractionNetwork, "forward", naive_interaction)
+    monkeypatch.setattr(EdgeMLP, "sum_at_receivers", naive_sum_at_receivers)
     monkeypatch.setattr(encoder, "edge_difference", lambda x, e: x[e[1]] - x[e[0]])
     for module in model.modules():  # and no chunks (the relative-mass decoder has them too)
         if hasattr(module, "edge_chunk"):
             module.edge_chunk = None
+        if hasattr(module, "edge_block"):  # nor blocks
+            module.edge_block = None
     plain_loss, plain_grads = loss_and_grads(model, g)
     if name == "bgn_newton":  # the replays met impacts (else the gate's subset is empty)
         assert len(hits) == 2 and min(hits) > 0          # history 2: two replays

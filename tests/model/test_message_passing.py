@@ -18,6 +18,7 @@ from bgn.model import build_model
 from bgn.model.baselines import InteractionNetwork
 from bgn.model.impulse import ContactImpulseHead
 from bgn.model.message_passing import (
+    MAX_EDGE_BLOCKS,
     CheckpointEdges,
     adjacency,
     edge_blocks,
@@ -171,6 +172,10 @@ def test_edge_blocks_cover_the_edges_once():
     assert edge_blocks(0, 4) == [slice(0, 0)]
     blocks = edge_blocks(10, 4)
     assert blocks == [slice(0, 4), slice(4, 8), slice(8, 10)]
+    # never more than MAX_EDGE_BLOCKS: their node-sized gradients would make O(N E) work
+    many = edge_blocks(1000, 1)
+    assert len(many) == MAX_EDGE_BLOCKS and many[0].start == 0 and many[-1].stop == 1000
+    assert all(a.stop == b.start for a, b in zip(many, many[1:]))
 
 
 @pytest.mark.parametrize("block", [None, 7])

@@ -43,7 +43,12 @@ from torch.nn import functional as F
 from torch.utils.checkpoint import checkpoint
 
 from bgn.graph import Graph
-from bgn.model.message_passing import CheckpointEdges, edge_chunks, edge_difference
+from bgn.model.message_passing import (
+    CheckpointEdges,
+    checkpointed,
+    edge_chunks,
+    edge_difference,
+)
 from bgn.model.ops import mlp
 from bgn.sim.scene import SceneMeta
 
@@ -51,7 +56,8 @@ TINY = 1e-20         # keeps roots, divisions and norms (and their gradients) fi
 # frames of the window replayed to recover the velocity at frame t (at most history - 1): a
 # replay starts from a backward difference, which is wrong when that frame held an impact, and
 # each frame further back dilutes the error. On the dense gas (18 draws, 100 steps of the
-# model's own frames) the energy error's median is 41 % / 4.4 % / 2.8 % with 2 / 3 / 4
+# model's own frames) the energy error's median is 41 % / 4.4 % / 2.8 % with 2 / 3 / 4 frames
+# replayed (docs/results.md, "The replay without gradients, and four frames replayed")
 REPLAY_FRAMES = 4
 LOG_MASS_RANGE = 5.0  # e-folds of mass per unit of the mass MLP's output
 RULE_LOGIT = 4.0      # the gates start at the time-of-impact rule: +-4 (probability 0.98)
@@ -461,9 +467,8 @@ class ContactImpulseHead(nn.Module):
         """``resolve``; on graphs of more than ``checkpoint_edges`` edges with its per-edge
         intermediates (a few dozen (E,) and (E, D) tensors per frame) recomputed in the
         backward pass instead of kept (activation checkpointing: element-wise work only)."""
-        n_edges = g.edge_index.shape[1]
-        if (torch.is_grad_enabled() and self.edge_chunk
-                and n_edges > max(self.edge_chunk, self.checkpoint_edges.above(x) or 0)):
+        if torch.is_grad_enabled() and checkpointed(g.edge_index.shape[1], self.edge_chunk,
+                                                    self.checkpoint_edges.above(x)):
             return checkpoint(self.resolve, g, x, v, dt, every_edge, use_reentrant=False)
         return self.resolve(g, x, v, dt, every_edge)
 

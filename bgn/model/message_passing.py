@@ -182,6 +182,13 @@ class CheckpointEdges(NamedTuple):
         return self.gpu if x.is_cuda else self.cpu
 
 
+def checkpointed(n_edges: int, chunk: int | None, above: int | None) -> bool:
+    """Whether edge work on ``n_edges`` edges runs in checkpointed chunks: a chunk size is
+    set and the graph is larger than both it and the threshold ``above``
+    (``CheckpointEdges.above``). With gradients off nothing is recomputed."""
+    return bool(chunk) and n_edges > max(chunk, above or 0)
+
+
 def edge_chunks(fn: Callable[..., torch.Tensor], chunk: int | None,
                 per_edge: tuple[torch.Tensor, ...], shared: tuple[torch.Tensor, ...] = (),
                 above: int | None = None) -> torch.Tensor:
@@ -191,7 +198,7 @@ def edge_chunks(fn: Callable[..., torch.Tensor], chunk: int | None,
     checkpointing). Memory for ``fn``'s intermediates is then O(chunk) instead of O(E), for one
     more forward of ``fn``: ``above`` keeps that recompute off graphs small enough to hold."""
     n_edges = per_edge[0].shape[0]
-    if not chunk or n_edges <= max(chunk, above or 0):
+    if not checkpointed(n_edges, chunk, above):
         return fn(*per_edge, *shared)
     parts = []
     for start in range(0, n_edges, chunk):
@@ -271,7 +278,7 @@ def edge_sums(phi: Callable[[torch.Tensor], torch.Tensor], params: Iterable[torc
     an ``x`` that needs one (data made by the model itself, an unrolled loss) takes the plain
     path."""
     snd, rcv = edge_index[0], edge_index[1]
-    if not chunk or x.shape[0] <= max(chunk, above or 0) or x.requires_grad:
+    if not checkpointed(x.shape[0], chunk, above) or x.requires_grad:
         y = phi(x)
         zeros = y.new_zeros(n, *y.shape[1:])
         return torch.stack([zeros.index_add(0, rcv, y), zeros.index_add(0, snd, y)])

@@ -14,7 +14,13 @@ from torch import nn
 from torch.nn import functional as F
 from torch.utils.checkpoint import checkpoint
 
-from bgn.model.message_passing import CheckpointEdges, edge_blocks, edge_chunks, spmm
+from bgn.model.message_passing import (
+    CheckpointEdges,
+    checkpointed,
+    edge_blocks,
+    edge_chunks,
+    spmm,
+)
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "silu": nn.SiLU,
@@ -227,8 +233,8 @@ class EdgeMLP(nn.Module):
         pass (as ``forward``'s chunks)."""
         products = self.node_products(x)
         n_edges = edge_index.shape[1]
-        recompute = bool(torch.is_grad_enabled() and self.edge_chunk and n_edges > max(
-            self.edge_chunk, self.checkpoint_edges.above(x) or 0))
+        recompute = torch.is_grad_enabled() and checkpointed(
+            n_edges, self.edge_chunk, self.checkpoint_edges.above(x))
         for e, s in zip(e_blocks, slices, strict=True):
             args = (e, edge_index[1, s], edge_index[0, s], *products)
             if recompute:

@@ -15,9 +15,9 @@ masses or types, unless ``oracle=True``, which appends the true normalised log-m
 one-hot type when the scene has several) to the node inputs and labels the model ``...+oracle``.
 Positions enter only as differences (translation invariance); every graph operation is a gather
 or an ``index_add_`` over the edge list (O(E)), run in blocks of edges on a CPU (``edge_block``:
-``EdgeMLP.blocks``, ``EdgeMLP.sum_at_receivers``). Targets are normalised by the same
-``Normalizer`` methods as BGN's, so the ``dynamics`` losses of all three models are in the same
-units.
+``EdgeMLP.fused``, with the backward written out, for ReLU; ``EdgeMLP.blocks`` otherwise).
+Targets are normalised by the same ``Normalizer`` methods as BGN's, so the ``dynamics`` losses
+of all three models are in the same units.
 """
 
 from __future__ import annotations
@@ -46,12 +46,13 @@ class BaselineConfig(DynamicsConfig):
     oracle: bool = False
     # the edge MLPs are most of a step: no recompute below a million edges (DynamicsConfig)
     checkpoint_edges: int | None = 1_000_000
-    # On a CPU the edges run in blocks of this many (ops.EdgeMLP.blocks): no per-edge tensor
-    # of the whole graph. At 20 000 discs (289 476 edges, 2 threads, one process) blocks of
-    # 16 384 made GNS's training step 1.23x faster than one block; cranmer_gn's was alike
-    # either way; 2 048, 8 192 and 32 768 were slower for GNS (docs/results.md, "Edge
-    # blocks"). null: one block.
-    edge_block: int | None = 16_384
+    # On a CPU the edges run in blocks of this many (ops.EdgeMLP.fused with ReLU, else
+    # EdgeMLP.blocks): no per-edge tensor of the whole graph. GNS's training step at 20 000
+    # discs (289 476 edges, 2 threads, one process): fused blocks of 4 096, 8 192 and 16 384
+    # 1.14x, 1.15x and 1.07x faster than autograd's blocks of 16 384, which were 1.23x faster
+    # than one block; cranmer_gn's alike either way (docs/results.md, "Edge blocks").
+    # null: one block.
+    edge_block: int | None = 8192
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -205,6 +206,10 @@ class InteractionNetwork(nn.Module):
                 slices: list[slice]) -> tuple[torch.Tensor, list[torch.Tensor]]:
         """Node latents (N, latent) and the edge latents as blocks (``e[k]`` belongs to the
         edges ``edge_index[:, slices[k]]``; ``EdgeMLP.blocks``) -> both updated."""
+        fused = self.edge.fused(e, v, edge_index, slices, residual=True)
+        if fused is not None:
+            summed, updated = fused
+            return v + self.node(torch.cat([v, summed], dim=1)), updated
         rcv = edge_index[1]
         summed: torch.Tensor | None = None
         updated = []

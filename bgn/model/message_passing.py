@@ -214,20 +214,22 @@ def edge_chunks(fn: Callable[..., torch.Tensor], chunk: int | None,
 MAX_EDGE_BLOCKS = 32
 
 
-def edge_blocks(n_edges: int, block: int | None) -> list[slice]:
+def edge_blocks(n_edges: int, block: int | None,
+                max_blocks: int | None = MAX_EDGE_BLOCKS) -> list[slice]:
     """Consecutive slices of at most ``block`` edges that cover ``n_edges`` (larger ones where
-    that would make more than ``MAX_EDGE_BLOCKS``): one slice when ``block`` is None or the
+    that would make more than ``max_blocks``): one slice when ``block`` is None or the
     graph is no larger (an empty one for a graph without edges).
 
     Edge work run block by block, with each block's outputs summed or kept per block, never
     makes a per-edge tensor of the whole graph. On a CPU that is faster, not only smaller: a
-    block's (16 384, 128) float32 tensors are 8 MB, which malloc recycles within the process
+    block's (8 192, 128) float32 tensors are 4 MB, which malloc recycles within the process
     and the caches hold between consecutive operations, where a (300 000, 128) tensor is
     150 MB of fresh pages that the kernel zeroes at every allocation (docs/results.md,
     "Edge blocks")."""
     if not block or n_edges <= block:
         return [slice(0, n_edges)]
-    block = max(block, -(-n_edges // MAX_EDGE_BLOCKS))
+    if max_blocks:
+        block = max(block, -(-n_edges // max_blocks))
     return [slice(start, min(start + block, n_edges)) for start in range(0, n_edges, block)]
 
 

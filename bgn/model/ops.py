@@ -14,7 +14,9 @@ from torch import nn
 from torch.nn import functional as F
 from torch.utils.checkpoint import checkpoint
 
+from bgn.model.fused_edges import BlockedEdgeMLP, Plan
 from bgn.model.message_passing import (
+    MAX_EDGE_BLOCKS,
     CheckpointEdges,
     checkpointed,
     edge_blocks,
@@ -221,8 +223,67 @@ class EdgeMLP(nn.Module):
 
     def block_slices(self, e: torch.Tensor) -> list[slice]:
         """The blocks of ``e``'s edges (``edge_block`` on a CPU; one block on a GPU, whose
-        caching allocator already reuses memory and whose kernels want large tensors)."""
-        return edge_blocks(e.shape[0], None if e.is_cuda else self.edge_block)
+        caching allocator already reuses memory and whose kernels want large tensors). The
+        fused path has no per-block node-sized cost, so no cap on the number of blocks."""
+        if e.is_cuda:
+            return edge_blocks(e.shape[0], None)
+        return edge_blocks(e.shape[0], self.edge_block,
+                           None if self._fused_layers(False) is not None else MAX_EDGE_BLOCKS)
+
+    def _fused_layers(self, hidden_only: bool,
+                      ) -> tuple[list[tuple[nn.Linear, bool]], nn.LayerNorm | None] | None:
+        """The layers after the first as (Linear, ReLU after it) and the final LayerNorm, when
+        ``fused_edges.BlockedEdgeMLP`` can run them (factored, ReLU activations, an affine
+        LayerNorm or none, blocks on); None otherwise."""
+        if not self.factored or self.edge_block is None or not isinstance(self.rest[0], nn.ReLU):
+            return None
+        layers: list[tuple[nn.Linear, bool]] = []
+        norm = None
+        for module in list(self.rest)[1:]:
+            if isinstance(module, nn.Linear):
+                if hidden_only and module is self._last:
+                    break
+                layers.append((module, False))
+            elif isinstance(module, nn.ReLU) and layers:
+                layers[-1] = (layers[-1][0], True)
+            elif isinstance(module, nn.LayerNorm) and module.elementwise_affine \
+                    and module.bias is not None:
+                norm = module
+            else:
+                return None
+        return layers, norm
+
+    def fused(self, e_blocks: Sequence[torch.Tensor], x: torch.Tensor,
+              edge_index: torch.Tensor, slices: Sequence[slice], hidden_only: bool = False,
+              residual: bool = False) -> tuple[torch.Tensor, list[torch.Tensor]] | None:
+        """Every block through ``fused_edges.BlockedEdgeMLP`` on a CPU: the (N, F) sums of
+        ``phi`` at the receivers and, with ``residual``, each block's ``e + phi`` (GNS's edge
+        update); ``hidden_only`` stops before the output layer. None where the fused path does
+        not apply (a GPU, another activation, blocks off): the caller runs ``blocks``."""
+        found = None if x.is_cuda else self._fused_layers(hidden_only)
+        if found is None:
+            return None
+        layers, norm = found
+        p_r, p_s, w_e = self.node_products(x)
+        tensors: list[torch.Tensor] = []
+        cols = p_r.shape[1]
+        for module, _ in layers:
+            rows = module.out_features if module is self._last else _padded(module.out_features)
+            weight, bias = _pad_linear(module.weight, module.bias, rows, cols)
+            tensors += [weight, bias]
+            cols = rows
+        if norm is not None:
+            tensors += [norm.weight, norm.bias]
+        grad = torch.is_grad_enabled()
+        plan = Plan(slices=tuple(slices), n_nodes=x.shape[0],
+                    relu=tuple(relu for _, relu in layers),
+                    layer_norm_eps=None if norm is None else norm.eps,
+                    residual=residual, keep_blocks=residual, save=grad,
+                    recompute=grad and checkpointed(edge_index.shape[1], self.edge_chunk,
+                                                    self.checkpoint_edges.above(x)))
+        sums, *outputs = BlockedEdgeMLP.apply(plan, edge_index[1], edge_index[0], p_r, p_s,
+                                              w_e, *tensors, *e_blocks)
+        return sums, outputs
 
     def blocks(self, e_blocks: Sequence[torch.Tensor], x: torch.Tensor,
                edge_index: torch.Tensor, slices: Sequence[slice],
@@ -252,12 +313,15 @@ class EdgeMLP(nn.Module):
         linear_out = self._last is not None and self.rest[-1] is self._last
         slices = self.block_slices(e)
         rcv = edge_index[1]
-        total: torch.Tensor | None = None
-        for s, y in zip(slices, self.blocks([e[s] for s in slices], x, edge_index, slices,
-                                            hidden_only=linear_out), strict=True):
-            if total is None:
-                total = y.new_zeros(n, y.shape[1])
-            total.index_add_(0, rcv[s], y)
+        e_blocks = [e[s] for s in slices]
+        fused = self.fused(e_blocks, x, edge_index, slices, hidden_only=linear_out)
+        total: torch.Tensor | None = None if fused is None else fused[0]
+        if fused is None:
+            for s, y in zip(slices, self.blocks(e_blocks, x, edge_index, slices,
+                                                hidden_only=linear_out), strict=True):
+                if total is None:
+                    total = y.new_zeros(n, y.shape[1])
+                total.index_add_(0, rcv[s], y)
         assert total is not None  # edge_blocks gives at least one (maybe empty) block
         if not linear_out:
             return total

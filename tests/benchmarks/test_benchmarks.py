@@ -139,6 +139,22 @@ def test_scaling_exponents_and_ratios() -> None:
         assert r["train_peak_gb_ratio"] == pytest.approx(3.0)
 
 
+def test_the_flop_count_includes_in_place_products() -> None:
+    """The cell's counter counts ``addmm_`` (the edge MLPs accumulate weight gradients in
+    place) as ``addmm``: 2 m k n each."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from bgn.benchmarks._scaling_cell import addmm_flop
+
+    a, b, c = torch.randn(64, 32), torch.randn(32, 16), torch.zeros(64, 16)
+    counter = FlopCounterMode(display=False, custom_mapping={torch.ops.aten.addmm_: addmm_flop})
+    with counter:
+        c.addmm_(a, b)
+        torch.addmm(c, a, b)
+        c.t().addmm_(b.t(), a.t())
+    assert counter.get_total_flops() == 3 * 2 * 64 * 32 * 16
+
+
 def test_scaling_trains_only_up_to_train_max_n(tmp_path, keep_threads) -> None:
     from bgn.benchmarks.scaling import main
 

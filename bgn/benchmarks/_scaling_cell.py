@@ -4,7 +4,8 @@ Run as a script by path, with ``PYTHONPATH`` at the checkout to measure, so the 
 this checkout or another one (``--against``): it imports only what every checkout has
 (``build_model``, the ``Graph`` dataclass, ``SceneMeta``, the Hydra configs under ``conf/``).
 The frame, its statistics and the scene record come in a ``torch.save`` file written by the
-parent; one JSON line goes out on stdout. A process per cell keeps the peak resident memory
+parent; one JSON line goes out on stdout (two with training: the timings, then the same with the
+FLOP count). A process per cell keeps the peak resident memory
 (``VmHWM``, reset at the cell's start) that cell's alone::
 
     python bgn/benchmarks/_scaling_cell.py PAYLOAD MODEL [--repeats 2] [--device cpu]
@@ -212,8 +213,11 @@ def main(argv: list[str] | None = None) -> int:
         train_step(model, opt, g)                              # warm-up
         result["train_s"] = timed(lambda: train_step(model, opt, g))
         result["train_peak_bytes"] = max(peak() - base, 0)
-        # the FLOP count last: its dispatch keeps more alive than a plain step (BGN at 20 000:
-        # a peak of 1.27 GB against 0.77-0.90 GB without it)
+        # the timings out first: the FLOP count's dispatch keeps more alive than a plain
+        # step (BGN at 20 000: a peak of 1.27 GB against 0.77-0.90 GB; GNS at 200 000 went
+        # from 17 GB past the machine's 23), and a process killed there keeps its timings
+        json.dump(result, sys.stdout)
+        print(flush=True)
         counter = FlopCounterMode(display=False,
                                   custom_mapping={torch.ops.aten.addmm_: addmm_flop})
         with counter:

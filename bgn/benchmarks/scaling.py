@@ -155,10 +155,14 @@ def run_cell(checkout: Path, payload: Path | str, model: str, args: argparse.Nam
                               timeout=args.timeout)
     except subprocess.TimeoutExpired:
         return {"error": f"over the {args.timeout:g} s limit"}
+    lines = [line for line in done.stdout.splitlines() if line.startswith("{")]
     if done.returncode != 0:
         tail = (done.stderr.strip().splitlines() or ["?"])[-1]
-        return {"error": f"exit {done.returncode}: {tail[:160]}"}
-    return json.loads(done.stdout.strip().splitlines()[-1])
+        error = f"exit {done.returncode}: {tail[:160]}"
+        if lines:  # the timings came out before the FLOP count failed (memory, mostly)
+            return {**json.loads(lines[-1]), "note": f"no FLOP count ({error})"}
+        return {"error": error}
+    return json.loads(lines[-1])
 
 
 def predicted_gb(rows: list[dict], impl: str, model: str, n: int) -> float:
@@ -349,11 +353,14 @@ def main(argv: list[str] | None = None) -> int:
                                    infer_s=cell["infer_s"],
                                    infer_peak_gb=cell["infer_peak_bytes"] / GB)
                         if "train_s" in cell:
-                            flop = cell["train_flop"]
                             row.update(train_peak_gb=cell["train_peak_bytes"] / GB,
-                                       train_gflop=flop / 1e9,
-                                       matmul_fraction=flop / cell["train_s"] / rate,
                                        edges_per_s=cell["edges"] / cell["train_s"])
+                        if "train_flop" in cell:
+                            flop = cell["train_flop"]
+                            row.update(train_gflop=flop / 1e9,
+                                       matmul_fraction=flop / cell["train_s"] / rate)
+                        if "note" in cell:
+                            row["note"] = cell["note"]
                     rows.append(row)
                     out.log(f"{impl} {model} N={n:,}: " + ", ".join(
                         f"{k} {row[k]:.4g}" for k in ("train_s", "infer_s", "train_peak_gb")

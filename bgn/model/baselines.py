@@ -29,10 +29,12 @@ from typing import Any
 import torch
 from torch import nn
 from torch.nn import functional as F
+from torch.utils.checkpoint import checkpoint
 
 from bgn.graph import Graph
 from bgn.model.base import DynamicsConfig, ModelOutput, PhysicsModel, check_positive_ints
 from bgn.model.encoder import edge_geometry, node_features, node_input_dim
+from bgn.model.message_passing import checkpointed
 from bgn.model.noise import random_walk
 from bgn.model.ops import EdgeMLP, activation, mlp
 
@@ -261,8 +263,32 @@ class GNS(Baseline):
     def _target(self, x: torch.Tensor, e: torch.Tensor,
                 edge_index: torch.Tensor) -> torch.Tensor:
         # the edge latents live in blocks from the encoder on (EdgeMLP.block_slices)
-        slices = self.processor[0].edge.block_slices(e)
-        v, h_e = self.node_encoder(x), [self.edge_encoder(e[s]) for s in slices]
-        for step in self.processor:
-            v, h_e = step(v, h_e, edge_index, slices)
+        edge = self.processor[0].edge
+        slices = edge.block_slices(e)
+        v = self.node_encoder(x)
+        if not (torch.is_grad_enabled() and checkpointed(
+                edge_index.shape[1], edge.edge_chunk, edge.checkpoint_edges.above(x))):
+            h_e = [self.edge_encoder(e[s]) for s in slices]
+            for step in self.processor:
+                v, h_e = step(v, h_e, edge_index, slices)
+            return self.decoder(v)
+        # Above the checkpointing threshold the (E, latent) edge latents of every step would
+        # not fit (200 000 discs: 1.5 GB each, eleven of them, and the encoder's activations):
+        # only every SEGMENT-th step's latents are kept, and the steps between them are
+        # recomputed in the backward pass; the edge MLPs inside recompute their blocks too.
+        h_e = [checkpoint(self.edge_encoder, e[s], use_reentrant=False) for s in slices]
+        for start in range(0, len(self.processor), self.SEGMENT):
+            v, *h_e = checkpoint(self._steps, start, edge_index, slices, v, *h_e,
+                                 use_reentrant=False)
         return self.decoder(v)
+
+    # processor steps per checkpointed segment on graphs above the checkpointing threshold
+    SEGMENT = 2
+
+    def _steps(self, start: int, edge_index: torch.Tensor, slices: list[slice],
+               v: torch.Tensor, *h_e: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Processor steps ``start`` to ``start + SEGMENT`` (one checkpointed segment)."""
+        blocks = list(h_e)
+        for step in self.processor[start:start + self.SEGMENT]:
+            v, blocks = step(v, blocks, edge_index, slices)
+        return (v, *blocks)

@@ -36,8 +36,17 @@ class Plan:
     layer_norm_eps: float | None  # a LayerNorm (with weight and bias) at the end, or none
     residual: bool               # per-block outputs are e + y (GNS's edge update)
     keep_blocks: bool            # return the per-block outputs besides the sums
-    save: bool                   # keep the activations for the backward pass
+    save: bool                   # gradients are on: keep what the backward pass needs
     recompute: bool              # keep only the inputs; recompute activations in backward
+
+
+def _unpack(plan: Plan, tensors: Sequence[torch.Tensor]):
+    """``(*weights_and_biases, *norm, *e_blocks)`` -> (layers, norm or None, e_blocks)."""
+    n = 2 * len(plan.relu)
+    layers = list(zip(tensors[0:n:2], tensors[1:n:2], strict=True))
+    n_norm = 2 if plan.layer_norm_eps is not None else 0
+    norm = tuple(tensors[n:n + n_norm]) or None
+    return layers, norm, tensors[n + n_norm:]
 
 
 def _block(plan: Plan, e: torch.Tensor, rcv: torch.Tensor, snd: torch.Tensor,
@@ -70,12 +79,7 @@ class BlockedEdgeMLP(torch.autograd.Function):
     @staticmethod
     def forward(ctx, plan: Plan, rcv: torch.Tensor, snd: torch.Tensor, p_r: torch.Tensor,
                 p_s: torch.Tensor, w_e: torch.Tensor, *tensors: torch.Tensor):
-        n_layers = len(plan.relu)
-        flat = tensors[:2 * n_layers]
-        layers = list(zip(flat[0::2], flat[1::2], strict=True))
-        n_norm = 2 if plan.layer_norm_eps is not None else 0
-        norm = tuple(tensors[2 * n_layers:2 * n_layers + n_norm]) or None
-        e_blocks = tensors[2 * n_layers + n_norm:]
+        layers, norm, e_blocks = _unpack(plan, tensors)
         sums: torch.Tensor | None = None
         outputs, saved = [], []
         for s, e in zip(plan.slices, e_blocks, strict=True):
@@ -100,13 +104,9 @@ class BlockedEdgeMLP(torch.autograd.Function):
     def backward(ctx, grad_sums: torch.Tensor | None, *grad_blocks: torch.Tensor | None):
         plan: Plan = ctx.plan
         rcv, snd, p_r, p_s, w_e, *tensors = ctx.saved_tensors
-        n_layers = len(plan.relu)
-        layers = list(zip(tensors[0:2 * n_layers:2], tensors[1:2 * n_layers:2], strict=True))
-        n_norm = 2 if plan.layer_norm_eps is not None else 0
-        norm = tuple(tensors[2 * n_layers:2 * n_layers + n_norm]) or None
-        e_blocks = tensors[2 * n_layers + n_norm:]
-        needs = ctx.needs_input_grad
-        need_e = any(needs[6 + 2 * n_layers + n_norm:])
+        layers, norm, e_blocks = _unpack(plan, tensors)
+        n_layers = len(layers)
+        need_e = any(ctx.needs_input_grad[len(ctx.needs_input_grad) - len(e_blocks):])
 
         grad_p_r, grad_p_s = torch.zeros_like(p_r), torch.zeros_like(p_s)
         grad_w_e = torch.zeros_like(w_e)

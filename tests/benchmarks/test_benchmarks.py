@@ -155,6 +155,23 @@ def test_the_flop_count_includes_in_place_products() -> None:
     assert counter.get_total_flops() == 3 * 2 * 64 * 32 * 16
 
 
+def test_a_cell_killed_in_its_flop_count_keeps_its_timings(monkeypatch, tmp_path) -> None:
+    """The cell prints its timings before the FLOP count; a process killed after that (out of
+    memory) still gives them, with a note, and one killed before gives an error."""
+    import argparse
+
+    from bgn.benchmarks import scaling
+
+    args = argparse.Namespace(in_process=False, threads=1, device="cpu", timeout=10)
+    timings = '{"edges": 3, "nodes": 2, "infer_s": 0.1, "train_s": 0.2}'
+    for stdout, expected in ((timings + "\n", "note"), ("", "error")):
+        monkeypatch.setattr(scaling.subprocess, "run", lambda *a, out=stdout, **k:
+                            subprocess.CompletedProcess(a, -9, out, "Killed"))
+        cell = scaling.run_cell(tmp_path, "payload", "gns", args, [])
+        assert expected in cell and "exit -9" in cell[expected]
+        assert ("train_s" in cell) == (expected == "note")
+
+
 def test_scaling_trains_only_up_to_train_max_n(tmp_path, keep_threads) -> None:
     from bgn.benchmarks.scaling import main
 

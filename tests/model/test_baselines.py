@@ -244,3 +244,29 @@ def test_overfits_a_tiny_batch(meta, stats, graph, name):
         loss.backward()
         opt.step()
     assert first > 0.5 and loss.item() < 1e-3, (first, loss.item())
+
+
+@pytest.mark.parametrize("act", ["relu", "softplus"])  # the fused edge MLP and autograd's blocks
+def test_gns_checkpointed_in_segments_equals_gns_without(monkeypatch, meta, stats, graph, act):
+    """Above the checkpointing threshold GNS keeps only every ``SEGMENT``-th step's edge
+    latents and recomputes the rest: the same loss and gradients (float64), in segments."""
+    kwargs = dict(interaction="contact", kind="radius", n_types=2, box=4.0, n=12,
+                  message_passing_steps=5, activation=act, edge_block=9)
+    plain = build(meta, stats, "gns", **kwargs, checkpoint_edges=None, edge_chunk=None).train()
+    segmented = build(meta, stats, "gns", **kwargs, checkpoint_edges=0, edge_chunk=4).train()
+    segmented.load_state_dict(plain.state_dict())
+    g = sample(graph, 12, 2, "radius", 4.0, seed=5)
+    assert g.edge_index.shape[1] > 9  # several blocks
+    calls = []
+    steps = GNS._steps
+    monkeypatch.setattr(GNS, "_steps", lambda self, start, *a: calls.append(start)
+                        or steps(self, start, *a))
+    results = []
+    for model in (plain, segmented):
+        torch.manual_seed(2)  # the same training noise
+        loss = model.total_loss(model.loss_terms(g, model(g)))
+        results.append((loss, torch.autograd.grad(loss, list(model.parameters()))))
+    assert calls[:3] == [0, 2, 4] and len(calls) == 6  # three segments, each recomputed once
+    torch.testing.assert_close(results[0][0], results[1][0], rtol=1e-9, atol=1e-9)
+    for got, want in zip(results[1][1], results[0][1], strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-9, atol=1e-9)

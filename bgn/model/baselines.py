@@ -265,21 +265,19 @@ class GNS(Baseline):
         # the edge latents live in blocks from the encoder on (EdgeMLP.block_slices)
         edge = self.processor[0].edge
         slices = edge.block_slices(e)
-        v = self.node_encoder(x)
-        if not (torch.is_grad_enabled() and checkpointed(
-                edge_index.shape[1], edge.edge_chunk, edge.checkpoint_edges.above(x))):
-            h_e = [self.edge_encoder(e[s]) for s in slices]
-            for step in self.processor:
-                v, h_e = step(v, h_e, edge_index, slices)
-            return self.decoder(v)
         # Above the checkpointing threshold the (E, latent) edge latents of every step would
         # not fit (200 000 discs: 1.5 GB each, eleven of them, and the encoder's activations):
         # only every SEGMENT-th step's latents are kept, and the steps between them are
         # recomputed in the backward pass; the edge MLPs inside recompute their blocks too.
-        h_e = [checkpoint(self.edge_encoder, e[s], use_reentrant=False) for s in slices]
+        recompute = torch.is_grad_enabled() and checkpointed(
+            edge_index.shape[1], edge.edge_chunk, edge.checkpoint_edges.above(x))
+
+        def run(fn, *args):
+            return checkpoint(fn, *args, use_reentrant=False) if recompute else fn(*args)
+
+        v, h_e = self.node_encoder(x), [run(self.edge_encoder, e[s]) for s in slices]
         for start in range(0, len(self.processor), self.SEGMENT):
-            v, *h_e = checkpoint(self._steps, start, edge_index, slices, v, *h_e,
-                                 use_reentrant=False)
+            v, *h_e = run(self._steps, start, edge_index, slices, v, *h_e)
         return self.decoder(v)
 
     # processor steps per checkpointed segment on graphs above the checkpointing threshold

@@ -14,7 +14,7 @@ from torch import nn
 from torch.nn import functional as F
 from torch.utils.checkpoint import checkpoint
 
-from bgn.model.fused_edges import BlockedEdgeMLP, Plan
+from bgn.model.fused_edges import BlockedEdgeMLP, Plan, first_layer
 from bgn.model.message_passing import (
     MAX_EDGE_BLOCKS,
     CheckpointEdges,
@@ -186,8 +186,9 @@ class EdgeMLP(nn.Module):
     ``edge_chunk`` and ``checkpoint_edges`` (set by ``PhysicsModel`` from its config): on
     graphs with more edges, the edges run in chunks with activation checkpointing
     (``message_passing.edge_chunks``). ``edge_block`` (the baselines' configs): on a CPU,
-    ``blocks`` and ``sum_at_receivers`` run the edges in blocks of that many, without a
-    per-edge tensor of the whole graph (``message_passing.edge_blocks``).
+    ``sum_at_receivers`` and GNS's interaction step run the edges in blocks of that many,
+    without a per-edge tensor of the whole graph (``message_passing.edge_blocks``): through
+    ``fused`` (the backward written out, ``bgn.model.fused_edges``) for ReLU, else ``blocks``.
     """
 
     def __init__(self, edge_in: int, node_in: int, sizes: list[int], act: str = "relu",
@@ -220,6 +221,14 @@ class EdgeMLP(nn.Module):
         weight, bias = _pad_linear(first.weight, first.bias, width, first.in_features)
         w_e, w_r, w_s = weight.split([self.edge_in, self.node_in, self.node_in], dim=1)
         return F.linear(x, w_r, bias), F.linear(x, w_s), w_e
+
+    def _padded_weights(self, layer: nn.Linear, cols: int,
+                        ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """A hidden or output layer's weight and bias for ``cols`` (padded) inputs. Every layer
+        but the last writes padded columns; the next one's padded input weights are zero, so
+        whatever the activation makes of them adds nothing."""
+        rows = layer.out_features if layer is self._last else _padded(layer.out_features)
+        return _pad_linear(layer.weight, layer.bias, rows, cols)
 
     def block_slices(self, e: torch.Tensor) -> list[slice]:
         """The blocks of ``e``'s edges (``edge_block`` on a CPU; one block on a GPU, whose
@@ -268,17 +277,16 @@ class EdgeMLP(nn.Module):
         tensors: list[torch.Tensor] = []
         cols = p_r.shape[1]
         for module, _ in layers:
-            rows = module.out_features if module is self._last else _padded(module.out_features)
-            weight, bias = _pad_linear(module.weight, module.bias, rows, cols)
+            weight, bias = self._padded_weights(module, cols)
             tensors += [weight, bias]
-            cols = rows
+            cols = weight.shape[0]
         if norm is not None:
             tensors += [norm.weight, norm.bias]
         grad = torch.is_grad_enabled()
         plan = Plan(slices=tuple(slices), n_nodes=x.shape[0],
                     relu=tuple(relu for _, relu in layers),
                     layer_norm_eps=None if norm is None else norm.eps,
-                    residual=residual, keep_blocks=residual, save=grad,
+                    residual=residual, save=grad,
                     recompute=grad and checkpointed(edge_index.shape[1], self.edge_chunk,
                                                     self.checkpoint_edges.above(x)))
         sums, *outputs = BlockedEdgeMLP.apply(plan, edge_index[1], edge_index[0], p_r, p_s,
@@ -335,21 +343,12 @@ class EdgeMLP(nn.Module):
 
     def _edges(self, e: torch.Tensor, rcv: torch.Tensor, snd: torch.Tensor, p_r: torch.Tensor,
                p_s: torch.Tensor, w_e: torch.Tensor, hidden_only: bool = False) -> torch.Tensor:
-        # z = (W_r x + b)_i + (W_s x)_j + W_e e accumulated in one (E, F) buffer: no
-        # temporaries for the sums. index_select: its backward is index_add_, several times
-        # faster on CPU than the accumulating index_put_ behind x[idx].
-        z = p_r.index_select(0, rcv)
-        z += p_s.index_select(0, snd)
-        z.addmm_(e, w_e.t())
+        z = first_layer(e, rcv, snd, p_r, p_s, w_e)
         for module in self.rest:
             if isinstance(module, nn.Linear):
                 if hidden_only and module is self._last:
                     break
-                # every layer but the last writes padded columns; the next one's padded input
-                # weights are zero, so whatever the activation makes of them adds nothing
-                rows = (module.out_features if module is self._last
-                        else _padded(module.out_features))
-                z = F.linear(z, *_pad_linear(module.weight, module.bias, rows, z.shape[1]))
+                z = F.linear(z, *self._padded_weights(module, z.shape[1]))
             else:
                 z = module(z)
         return z

@@ -263,9 +263,12 @@ def test_gns_checkpointed_in_segments_equals_gns_without(monkeypatch, meta, stat
                         or steps(self, start, *a))
     results = []
     for model in (plain, segmented):
+        calls.clear()
         torch.manual_seed(2)  # the same training noise
         loss = model.total_loss(model.loss_terms(g, model(g)))
         results.append((loss, torch.autograd.grad(loss, list(model.parameters()))))
+        if model is plain:
+            assert calls == [0, 2, 4]  # the same segments, nothing recomputed
     assert calls[:3] == [0, 2, 4] and len(calls) == 6  # three segments, each recomputed once
     torch.testing.assert_close(results[0][0], results[1][0], rtol=1e-9, atol=1e-9)
     for got, want in zip(results[1][1], results[0][1], strict=True):

@@ -6,9 +6,10 @@ a symmetry transform) and presets (``preset/<preset>.yaml``) that list the cases
 
 - the simulator's own checks on the case's exact trajectory: finite values, relative energy
   drift, momentum drift where momentum is conserved (n-body; discs that never touch a wall),
-  overlaps and escapes from the box (discs), the closest approach and largest acceleration
-  (n-body), the most impacts of one disc within one frame, and for an offset or scaled case
-  the distance to the untransformed twin mapped back;
+  overlaps and escapes from the box (discs), the closest approach, largest acceleration and
+  fastest pair rotation per frame (n-body; ``aliased_frames``: the share of frames where it
+  is beyond what frames carry), the most impacts of one disc within one frame, and for an
+  offset or scaled case the distance to the untransformed twin mapped back;
 - for a model of the case's scene (``checkpoints.<scene>=path``; the preset's
   ``untrained_model`` stands in where none is given, to exercise the pipeline; else skipped):
   through ``bgn.simulator.LearnedSimulator`` from the first full window of the true
@@ -40,6 +41,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from bgn.sim import Scene, State, Trajectory, make_scene
 from bgn.sim.collisions import CollisionScene
+from bgn.sim.nbody import NYQUIST_TURN, pair_turns
 from bgn.sim.transform import offset, scaled
 from bgn.tables import markdown_table, write_csv
 
@@ -49,10 +51,11 @@ LIMITS = {"energy_contact": 1e-9, "energy_pairwise": 1e-6, "momentum": 1e-9, "ov
           "transform": 1e-6}
 SIM_COLUMNS = ["case", "scene", "n", "fps", "frames", "sim_s", "finite", "energy_drift",
                "momentum_drift", "min_gap", "inside_box", "max_impacts_per_frame",
-               "min_distance", "max_accel", "transform_error", "passed", "failed_checks"]
+               "min_distance", "max_accel", "max_turns_per_frame", "aliased_frames",
+               "transform_error", "passed", "failed_checks"]
 MODEL_COLUMNS = ["case", "scene", "model", "dtype", "steps", "finite", "first_non_finite",
-                 "left_scale", "one_step_rel_error", "error_1", "error_100", "error_1000",
-                 "position_scale", "energy_error", "s_per_step"]
+                 "left_scale", "aliased_frames", "one_step_rel_error", "error_1", "error_100",
+                 "error_1000", "position_scale", "energy_error", "s_per_step"]
 
 
 # ----------------------------------------------------------------------------- cases
@@ -148,6 +151,9 @@ def simulator_checks(case: Case, scene: Scene, traj: Trajectory, log: Any,
         i, j = np.triu_indices(x.shape[1], 1)
         row["min_distance"] = float(np.linalg.norm(x[:, i] - x[:, j], axis=-1).min())
         row["max_accel"] = float(np.abs(traj.accelerations).max())
+        turns = pair_turns(x, v, 1.0 / case.fps)
+        row["max_turns_per_frame"] = float(turns.max())
+        row["aliased_frames"] = float((turns > NYQUIST_TURN).mean())
     return row
 
 
@@ -339,6 +345,9 @@ def run_case(case: Case, cfg: DictConfig) -> tuple[dict[str, Any], list[dict[str
                                        scene, traj, oracle, oracle.label, horizons, starts)
             model_rows.append(predictability_row(case, scene, traj, picked[0].history,
                                                  horizons))
+        for model_row in model_rows:  # beside left_scale: how much the frames alias
+            if "aliased_frames" in row:
+                model_row["aliased_frames"] = row["aliased_frames"]
     return row, model_rows
 
 
@@ -428,7 +437,12 @@ def write_report(out: Path, preset: str, cases: list[Case], sim_rows: list[dict[
         "|P_t - P_0| / sum |m v_0| (blank where walls exchange momentum); min_gap: smallest "
         "surface gap / mean radius (< 0: overlap); max_impacts_per_frame: most events of one "
         "disc within one frame interval; min_distance, max_accel: closest pair and largest "
-        "|a| over the frames (n-body); transform_error: offset or scaled case mapped back, "
+        "|a| over the frames (n-body); max_turns_per_frame: the fastest rotation of any pair "
+        "at the frame times, in revolutions per frame (n-body); aliased_frames: the share of "
+        f"frames where some pair turns more than {NYQUIST_TURN:g} revolution per frame, "
+        "beyond what frames sampled at this rate carry (Nyquist: they cannot tell such a turn "
+        "from a slower one the other way round); transform_error: offset or "
+        "scaled case mapped back, "
         "max distance to the untransformed twin over its first `compare_frames` frames / "
         "position std. Limits: " + ", ".join(f"{k} {v:g}" for k, v in LIMITS.items())
         + " (a case may set its own).", "",
@@ -443,7 +457,8 @@ def write_report(out: Path, preset: str, cases: list[Case], sim_rows: list[dict[
                  "several starts; error_h: mean position error per particle after h steps; "
                  "energy_error: |E_end - E_start| / |E_start| (finite-difference velocities); "
                  "left_scale: a particle more than 10 scene scales astray (the box, or the true "
-                 "trajectory's extent; the evaluation's failure rule). Force scenes also "
+                 "trajectory's extent; the evaluation's failure rule); aliased_frames: the "
+                 "case's, from the simulator checks. Force scenes also "
                  "have two references: the frame oracle (the true law and masses fed the "
                  "same frames, integrated in substeps: what frames allow) and the "
                  "predictability limit (the exact simulator with positions 1e-6 off).", "",

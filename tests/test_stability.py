@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
 
-from bgn.stability import CONF_DIR, build, load_case, run
+from bgn.sim.nbody import NYQUIST_TURN
+from bgn.stability import CONF_DIR, build, load_case, run, simulate, simulator_checks
 
 
 def compose_stability(overrides: list[str]):
@@ -26,6 +27,11 @@ def test_tiny_preset_runs_end_to_end(tmp_path):
         sim_rows = list(csv.DictReader(f))
     assert [r["case"] for r in sim_rows] == list(cfg.preset.cases)
     assert all(r["passed"] == "True" for r in sim_rows), sim_rows
+    # the frame rate of every tiny n-body case carries its rotations; discs have no such row
+    for r in sim_rows:
+        assert (r["aliased_frames"] == "") == (r["scene"] == "collisions"), r
+        if r["scene"] != "collisions":
+            assert float(r["aliased_frames"]) == 0 < float(r["max_turns_per_frame"]) < NYQUIST_TURN
     with (tmp_path / "model.csv").open() as f:
         model_rows = list(csv.DictReader(f))
     refs = [r for r in model_rows if r["model"].startswith(("frame oracle", "predictability"))]
@@ -43,6 +49,22 @@ def test_tiny_preset_runs_end_to_end(tmp_path):
     assert all(float(r["error_1"]) < 1e-5 for r in chaos.values())
     text = report.read_text()
     assert "untrained" in text and "| spring_6_bodies |" in text
+    assert all(r["aliased_frames"] == "0.0" for r in model_rows if r["scene"] != "collisions")
+    assert "aliased_frames" in text
+
+
+def test_the_frames_of_the_heavy_centre_case_alias_and_its_resolved_twin_do_not():
+    """Masses 1000, 1, 1, 1 at fps 50: a light body turns more than half a revolution in some
+    frames (what no model fed frames can follow); masses 1, 1e-3, 1e-3, 1e-3 never do."""
+    rows = {}
+    for name in ("gravity_r2_mass_ratio_1e3", "gravity_r2_mass_ratio_1e3_resolved"):
+        case = load_case(name)
+        scene, state, _, _ = build(case)
+        traj, log = simulate(scene, state, np.arange(20) / case.fps)
+        rows[name] = simulator_checks(case, scene, traj, log, 0.0)
+    fast, resolved = rows["gravity_r2_mass_ratio_1e3"], rows["gravity_r2_mass_ratio_1e3_resolved"]
+    assert fast["aliased_frames"] > 0 and fast["max_turns_per_frame"] > 1
+    assert resolved["aliased_frames"] == 0 and resolved["max_turns_per_frame"] < 0.1
 
 
 def test_without_checkpoints_the_model_part_is_skipped(tmp_path):

@@ -4,7 +4,7 @@ import h5py
 import numpy as np
 import pytest
 
-from bgn.data.generate import ensure_dataset, main, simulate_one
+from bgn.data.generate import ALIASED_WARN, aliased_share, ensure_dataset, main, simulate_one
 from bgn.data.graphs import radius_graph
 from bgn.data.spec import DatasetSpec
 
@@ -113,3 +113,23 @@ def test_three_types_by_config(small_cfg):
                           cfg.paths.data_dir, workers=1)
     with h5py.File(path, "r") as f:
         assert set(np.unique(f["types"][...])) == {0, 1, 2}
+
+
+def test_frames_too_slow_for_the_encounters_warn_and_resolved_ones_do_not(small_cfg):
+    """gravity_r2 at fps 2: close passes turn a pair more than half a revolution between
+    frames in many frames, which generation says; at fps 200 the same motion is resolved."""
+    shares = {}
+    for fps in (2, 200):
+        cfg = small_cfg("gravity_r2", f"fps={fps}", "dataset.n_frames=40")
+        spec = DatasetSpec.from_config(cfg.dataset, fps, "train")
+        if fps == 2:
+            with pytest.warns(UserWarning, match="revolution per frame"):
+                path = ensure_dataset(spec, cfg.paths.data_dir, workers=1)
+        else:
+            import warnings
+
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")
+                path = ensure_dataset(spec, cfg.paths.data_dir, workers=1)
+        shares[fps] = aliased_share(_arrays(path), 1 / fps)
+    assert shares[2] > ALIASED_WARN > shares[200]

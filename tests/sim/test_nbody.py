@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from bgn.sim.nbody import NBodyScene
+from bgn.sim.nbody import NBodyScene, pair_turns
 
 POTENTIALS = ["spring", "r1", "r2"]
 FPS = [10, 30, 50, 100, 200]
@@ -295,3 +295,32 @@ def test_bad_times_raise() -> None:
                   np.zeros((2, 2))):
         with pytest.raises(ValueError, match="times"):
             scene.simulate(rng, times)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_pair_turns_of_a_circular_orbit_is_its_angular_rate_per_frame(dim):
+    """Two bodies on a circle of radius R at angular rate w: w dt / 2 pi revolutions per frame,
+    whatever the translation, common velocity (Galilean boost) and rotation of the frame."""
+    rng = np.random.default_rng(0)
+    w, radius, dt = 7.0, 0.3, 0.02
+    t = np.arange(50) * dt
+    pos = np.zeros((len(t), 2, dim))
+    vel = np.zeros_like(pos)
+    circle = np.stack([np.cos(w * t), np.sin(w * t)], -1) * radius
+    turning = np.stack([-np.sin(w * t), np.cos(w * t)], -1) * radius * w
+    pos[:, 0, :2], pos[:, 1, :2] = circle, -circle
+    vel[:, 0, :2], vel[:, 1, :2] = turning, -turning
+    expected = w * dt / (2 * np.pi)
+    np.testing.assert_allclose(pair_turns(pos, vel, dt), expected, rtol=1e-12)
+    rotation, _ = np.linalg.qr(rng.standard_normal((dim, dim)))
+    boost = rng.standard_normal(dim)
+    moved = (pos + 1e3 * rng.standard_normal(dim) + boost * t[:, None, None]) @ rotation.T
+    np.testing.assert_allclose(pair_turns(moved, (vel + boost) @ rotation.T, dt), expected,
+                               rtol=1e-9)
+
+
+def test_pair_turns_of_a_head_on_approach_is_zero_and_a_single_body_has_none():
+    pos = np.array([[[-1.0, 0.0], [1.0, 0.0]], [[-0.5, 0.0], [0.5, 0.0]]])
+    vel = np.array([[[1.0, 0.0], [-1.0, 0.0]]] * 2)
+    assert np.all(pair_turns(pos, vel, 0.1) == 0)
+    assert np.all(pair_turns(pos[:, :1], vel[:, :1], 0.1) == 0)

@@ -345,8 +345,8 @@ def run_case(case: Case, cfg: DictConfig) -> tuple[dict[str, Any], list[dict[str
                                        scene, traj, oracle, oracle.label, horizons, starts)
             model_rows.append(predictability_row(case, scene, traj, picked[0].history,
                                                  horizons))
-        for model_row in model_rows:  # beside left_scale: how much the frames alias
-            if "aliased_frames" in row:
+        if "aliased_frames" in row:  # beside left_scale: how much the frames alias
+            for model_row in model_rows:
                 model_row["aliased_frames"] = row["aliased_frames"]
     return row, model_rows
 

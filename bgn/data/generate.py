@@ -149,7 +149,7 @@ def generate_file(spec: DatasetSpec, path: Path, workers: int = 1,
                   progress: Progress | None = None) -> None:
     scene = spec.build_scene()
     arrays = stack(simulate_split(spec, workers, progress))
-    if scene.meta.graph != "radius" and spec.split == "train":  # force scenes
+    if scene.meta.interaction == "pairwise" and spec.split == "train":  # force scenes
         share = aliased_share(arrays, spec.dt)
         if share > ALIASED_WARN:
             warnings.warn(

@@ -46,19 +46,17 @@ def pair_turns(positions: np.ndarray, velocities: np.ndarray, dt: float) -> np.n
     interval ``dt``: a pair's angular rate ``|v_ij, perpendicular| / r_ij`` (any dimension)
     times ``dt / 2 pi``, at the frame times. Above ``NYQUIST_TURN`` the frames alias the
     motion: positions sampled once per frame cannot tell such a turn from a slower one the
-    other way round, so no model fed frames (and no integrator started from them) can follow
-    it. ``positions``, ``velocities``: (T, N, D)."""
+    other way round, so no model fed those frames can follow it. ``positions``,
+    ``velocities``: (T, N, D)."""
     i, j = _pair_indices(positions.shape[1])
+    if len(i) == 0:
+        return np.zeros(positions.shape[0])
     rel, vel = positions[:, i] - positions[:, j], velocities[:, i] - velocities[:, j]
-    r2 = np.einsum("tpd,tpd->tp", rel, rel)
+    r2 = np.maximum(np.einsum("tpd,tpd->tp", rel, rel), 1e-300)
     radial = np.einsum("tpd,tpd->tp", rel, vel)
     # |v_perp|^2 = |v|^2 - (r.v)^2 / r^2, clipped at 0 against round-off
-    perp2 = np.maximum(np.einsum("tpd,tpd->tp", vel, vel) - radial**2 / np.maximum(r2, 1e-300),
-                       0.0)
-    rate = np.sqrt(perp2) / np.sqrt(np.maximum(r2, 1e-300))
-    if rate.shape[1] == 0:
-        return np.zeros(positions.shape[0])
-    return rate.max(axis=1) * dt / (2 * np.pi)
+    perp2 = np.maximum(np.einsum("tpd,tpd->tp", vel, vel) - radial**2 / r2, 0.0)
+    return np.sqrt(perp2 / r2).max(axis=1) * dt / (2 * np.pi)
 
 
 @dataclass

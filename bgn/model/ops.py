@@ -323,8 +323,10 @@ class EdgeMLP(nn.Module):
         rcv = edge_index[1]
         e_blocks = [e[s] for s in slices]
         fused = self.fused(e_blocks, x, edge_index, slices, hidden_only=linear_out)
-        total: torch.Tensor | None = None if fused is None else fused[0]
-        if fused is None:
+        total: torch.Tensor | None = None
+        if fused is not None:
+            total = fused[0]
+        else:
             for s, y in zip(slices, self.blocks(e_blocks, x, edge_index, slices,
                                                 hidden_only=linear_out), strict=True):
                 if total is None:
@@ -334,7 +336,7 @@ class EdgeMLP(nn.Module):
         if not linear_out:
             return total
         last = self._last
-        weight, _ = _pad_linear(last.weight, None, last.out_features, total.shape[1])
+        weight, _ = self._padded_weights(last, total.shape[1])
         out = total @ weight.t()
         if last.bias is not None:
             degree = torch.bincount(rcv, minlength=n).to(out.dtype)

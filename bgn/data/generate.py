@@ -20,13 +20,14 @@ from glob import escape as glob_escape
 from multiprocessing import get_context
 from pathlib import Path
 
+import h5py
 import numpy as np
 from filelock import FileLock
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from bgn.data.files import DatasetFile, write_dataset
 from bgn.data.graphs import contact_margin
-from bgn.data.spec import SPLITS, DatasetSpec
+from bgn.data.spec import IMPORTED, SPLITS, DatasetSpec
 from bgn.data.stats import compute_stats
 from bgn.sim import Trajectory
 from bgn.sim.nbody import NYQUIST_TURN, pair_turns
@@ -119,20 +120,26 @@ def stack(trajectories: list[Trajectory]) -> dict[str, np.ndarray]:
     return arrays
 
 
+def contact_gaps(arrays: dict[str, np.ndarray]) -> np.ndarray:
+    """(M,) the gap between the surfaces of the two discs of every recorded contact, at the
+    frame it is recorded in (the contact comes before the next frame)."""
+    c, x, r = arrays["contacts"], arrays["positions"], arrays["radii"]
+    return (np.linalg.norm(x[c[:, 0], c[:, 1], c[:, 2]] - x[c[:, 0], c[:, 1], c[:, 3]], axis=-1)
+            - r[c[:, 0], c[:, 2]] - r[c[:, 0], c[:, 3]])
+
+
 def radius_margin(arrays: dict[str, np.ndarray], dt: float) -> float:
     """Margin of the radius graph that makes every contact before the next frame a candidate.
 
     Relative speed times dt (with a safety factor) from the fastest disc of the split, widened
     if a recorded contact would still fall outside (a chain of collisions within one frame).
+    Computed on the train split only: val and test take the train split's margin
+    (``generate_file``), so no test contact or speed shapes a test input.
     """
     speed = np.linalg.norm(arrays["velocities"], axis=-1).max()
     margin = contact_margin(2.0 * speed, dt)
-    c = arrays["contacts"]
-    if len(c):
-        x = arrays["positions"]
-        gap = (np.linalg.norm(x[c[:, 0], c[:, 1], c[:, 2]] - x[c[:, 0], c[:, 1], c[:, 3]], axis=-1)
-               - arrays["radii"][c[:, 0], c[:, 2]] - arrays["radii"][c[:, 0], c[:, 3]])
-        margin = max(margin, contact_margin(float(gap.max()) / dt, dt))
+    if len(arrays["contacts"]):
+        margin = max(margin, contact_margin(float(contact_gaps(arrays).max()) / dt, dt))
     return float(margin)
 
 
@@ -146,7 +153,10 @@ def aliased_share(arrays: dict[str, np.ndarray], dt: float) -> float:
 
 
 def generate_file(spec: DatasetSpec, path: Path, workers: int = 1,
-                  progress: Progress | None = None) -> None:
+                  progress: Progress | None = None, margin: float | None = None) -> None:
+    """Simulate a split and write its file. On a radius-graph scene the train split sets the
+    graph's margin (``radius_margin``); val and test take ``margin``, the train split's: a
+    recorded contact of theirs outside it is counted and warned about, never widened for."""
     scene = spec.build_scene()
     arrays = stack(simulate_split(spec, workers, progress))
     if scene.meta.interaction == "pairwise" and spec.split == "train":  # force scenes
@@ -157,9 +167,56 @@ def generate_file(spec: DatasetSpec, path: Path, workers: int = 1,
                 f"turns more than {NYQUIST_TURN:g} revolution per frame (close encounters "
                 "faster than the frame rate); frames cannot carry that motion and no model fed "
                 "them can follow it. A higher fps resolves it.", stacklevel=2)
-    margin = radius_margin(arrays, spec.dt) if scene.meta.graph == "radius" else 0.0
+    if scene.meta.graph != "radius":
+        margin = 0.0
+    elif spec.split == "train":
+        margin = radius_margin(arrays, spec.dt)
+    elif margin is None:
+        raise ValueError(f"the {spec.split} split of {spec.scene} takes the train split's "
+                         "radius-graph margin: pass margin= (ensure_dataset reads it from the "
+                         "train file)")
+    else:
+        warn_uncovered(spec, arrays, margin)
     stats = compute_stats(scene, arrays, spec.dt, margin) if spec.split == "train" else None
     write_dataset(path, spec, scene.meta, arrays, margin=margin, stats=stats)
+
+
+def warn_uncovered(spec: DatasetSpec, arrays: dict[str, np.ndarray], margin: float) -> int:
+    """Warn when recorded contacts of a val or test split are no candidate edges of the
+    radius graph with the train split's ``margin``; returns how many."""
+    gaps = contact_gaps(arrays)
+    missed = int(np.sum(gaps > margin))
+    if missed:
+        warnings.warn(
+            f"{spec.scene} at fps {spec.fps:g}, {spec.split} split: {missed} of {len(gaps)} "
+            f"recorded contacts lie outside the train split's radius-graph margin "
+            f"{margin:.4g} (no candidate edge); the margin is not widened from "
+            f"{spec.split} data", stacklevel=2)
+    return missed
+
+
+def train_margin(spec: DatasetSpec, data_dir: str | Path, workers: int | None = None,
+                 progress: Progress | None = None) -> float | None:
+    """The radius-graph margin a val or test file must carry: the train file's (generated
+    first if missing); None for a train split or a scene without a radius graph."""
+    if spec.split == "train" or spec.build_scene().meta.graph != "radius":
+        return None
+    path = ensure_dataset(spec.with_split("train"), data_dir, workers, progress)
+    with h5py.File(path, "r") as f:
+        return float(f.attrs["margin"])
+
+
+def _other_margin(path: Path, margin: float | None) -> bool:
+    """Whether the file at ``path`` was written with a margin other than ``margin`` (a val or
+    test file of the old rule, which took its own split's): stale, to be regenerated. A file
+    that cannot be read is left to validation, which names the problem."""
+    if margin is None or not path.exists():
+        return False
+    try:
+        with h5py.File(path, "r") as f:
+            return float(f.attrs["margin"]) != margin
+    except (OSError, KeyError):
+        return False
 
 
 def ensure_dataset(spec: DatasetSpec, data_dir: str | Path, workers: int | None = None,
@@ -168,16 +225,22 @@ def ensure_dataset(spec: DatasetSpec, data_dir: str | Path, workers: int | None 
 
     A lock next to the file lets concurrent processes share the work: the first generates,
     the others wait and then read the same file. An existing bad file raises
-    ``DatasetFileError`` and is left untouched.
+    ``DatasetFileError`` and is left untouched. A val or test file of a radius-graph scene
+    takes the train file's margin (the train file comes first); one written with another
+    margin (the old rule: its own split's) is regenerated.
     """
     path = spec.path(data_dir)
-    if not path.exists():
+    if spec.scene == IMPORTED:  # never generated: written by bgn.data.importing
+        DatasetFile(path, spec).close()
+        return path
+    margin = train_margin(spec, data_dir, workers, progress)
+    if not path.exists() or _other_margin(path, margin):
         path.parent.mkdir(parents=True, exist_ok=True)
         with FileLock(path.with_name(f".{path.name}.lock")):  # hidden; never removed (safe)
-            if not path.exists():
+            if not path.exists() or _other_margin(path, margin):  # replaced atomically
                 remove_stale_temporaries(path)  # a killed writer's partial file
                 workers = default_workers(spec.n_sims) if workers is None else workers
-                generate_file(spec, path, workers, progress)
+                generate_file(spec, path, workers, progress, margin)
     DatasetFile(path, spec).close()  # validate (cheap at our sizes) before anyone trains on it
     return path
 

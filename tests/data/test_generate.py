@@ -6,7 +6,14 @@ import h5py
 import numpy as np
 import pytest
 
-from bgn.data.generate import ALIASED_WARN, aliased_share, ensure_dataset, main, simulate_one
+from bgn.data.generate import (
+    ALIASED_WARN,
+    aliased_share,
+    ensure_dataset,
+    generate_file,
+    main,
+    simulate_one,
+)
 from bgn.data.graphs import radius_graph
 from bgn.data.spec import DatasetSpec
 
@@ -88,6 +95,54 @@ def test_every_recorded_contact_is_a_candidate_edge(small_cfg):
     for s, t, i, j in contacts:
         edges = radius_graph(x[s, t], radii=radii[s], margin=margin)
         assert ((edges[0] == i) & (edges[1] == j)).any()
+
+
+def _margin(path) -> float:
+    with h5py.File(path, "r") as f:
+        return float(f.attrs["margin"])
+
+
+def test_val_and_test_take_the_train_splits_margin(small_cfg):
+    """No test ground truth in test inputs: a val or test file's radius graph is the train
+    split's, whose file is written first even when the test split alone is asked for, and
+    whose recorded contacts are all within it (above)."""
+    cfg = small_cfg("collisions")
+    train = DatasetSpec.from_config(cfg.dataset, cfg.fps, "train")
+    test = ensure_dataset(train.with_split("test"), cfg.paths.data_dir, workers=1)
+    assert train.path(cfg.paths.data_dir).exists()
+    val = ensure_dataset(train.with_split("val"), cfg.paths.data_dir, workers=1)
+    margin = _margin(train.path(cfg.paths.data_dir))
+    assert margin > 0 and _margin(test) == margin and _margin(val) == margin
+
+
+def test_contacts_outside_the_train_margin_are_counted_not_widened_for(small_cfg, tmp_path):
+    """A test split whose recorded contacts the given margin misses says how many, and keeps
+    the margin it was given."""
+    cfg = small_cfg("collisions")
+    spec = DatasetSpec.from_config(cfg.dataset, cfg.fps, "test")
+    path = tmp_path / "test.h5"
+    with pytest.warns(UserWarning, match=r"\d+ of \d+ recorded contacts lie outside the train"):
+        generate_file(spec, path, margin=0.0)
+    assert _margin(path) == 0.0
+    with pytest.raises(ValueError, match="train split's radius-graph margin"):
+        generate_file(spec, tmp_path / "other.h5")
+
+
+def test_a_test_file_of_another_margin_is_regenerated(small_cfg):
+    """A cached test file written with its own split's margin (the old rule) is stale: it is
+    replaced by one with the train split's margin, the same simulations."""
+    cfg = small_cfg("collisions")
+    spec = DatasetSpec.from_config(cfg.dataset, cfg.fps, "test")
+    path = ensure_dataset(spec, cfg.paths.data_dir, workers=1)
+    margin = _margin(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # contacts outside a margin too small are warned of
+        generate_file(spec, path, margin=0.5 * margin)
+    before = _arrays(path)
+    assert ensure_dataset(spec, cfg.paths.data_dir, workers=1) == path
+    assert _margin(path) == margin
+    after = _arrays(path)
+    assert all(np.array_equal(before[k], after[k]) for k in before)
 
 
 def test_main_generates_all_splits(small_cfg, capsys):

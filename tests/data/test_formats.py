@@ -245,6 +245,41 @@ def test_arrays_box_lengths_and_dt_from_times(tmp_path: Path) -> None:
     assert sum(len(a.names) for a in raw.splits.values()) == 3
 
 
+def _field(number: int, payload: bytes) -> bytes:
+    """A length-delimited protobuf field (wire type 2), encoded by hand."""
+    def varint(v: int) -> bytes:
+        out = b""
+        while v >= 0x80:
+            out, v = out + bytes([v & 0x7F | 0x80]), v >> 7
+        return out + bytes([v])
+
+    return varint(number << 3 | 2) + varint(len(payload)) + payload
+
+
+def test_tfrecord_reads_sequence_examples_encoded_by_hand(tmp_path: Path) -> None:
+    """The wire format from TensorFlow's example.proto / feature.proto field numbers, written
+    without the reader's protobuf declarations (so a wrong field number would fail here)."""
+    from tensorboard.summary.writer.record_writer import RecordWriter
+
+    pos, types = trajectories(7, 1)[0]
+    def bytes_feature(b: bytes) -> bytes:
+        return _field(1, _field(1, b))  # Feature.bytes_list(1).value(1)
+
+    key = _field(3, _field(1, bytes([42])))  # Feature.int64_list(3), packed value(1) = 42
+    context = (_field(1, _field(1, b"key") + _field(2, key))
+               + _field(1, _field(1, b"particle_type") + _field(2, bytes_feature(
+                   types.tobytes()))))
+    steps = b"".join(_field(1, bytes_feature(frame.tobytes())) for frame in pos)
+    lists = _field(1, _field(1, b"position") + _field(2, steps))
+    with open(tmp_path / "train.tfrecord", "wb") as fh:
+        RecordWriter(fh).write(_field(1, context) + _field(2, lists))
+    (tmp_path / "metadata.json").write_text(json.dumps(META))
+    raw = read_trajectories(tmp_path, split_fractions=(1.0, 0.0, 0.0))
+    assert raw.splits["train"].names == ["42"]
+    np.testing.assert_array_equal(raw.splits["train"].positions[0], pos)
+    np.testing.assert_array_equal(raw.splits["train"].types[0], types)
+
+
 def test_tfrecord_damage_is_reported(tmp_path: Path) -> None:
     folder = write_tfrecord(tmp_path, {"train": trajectories(0, 3)}, META)
     damage_tfrecord_length(folder / "train.tfrecord")

@@ -107,6 +107,7 @@ class TrainKeys:
     val_rollout_steps: int = 50       # val/rollout_error rollout length (0: off)
     val_rollout_sims: int = 2
     test: bool = True
+    test_rollouts: bool = True        # the test phase's rollouts (bgn.evaluate.test_rollouts)
     ckpt_path: str | None = None      # resume from this checkpoint
 
 
@@ -116,6 +117,36 @@ class GenerateKeys:
 
     fps: float = 50.0
     workers: int | None = None        # simulation processes (null: one per core)
+
+
+@dataclass
+class EvaluateRolloutKeys:
+    """``rollout`` of ``conf/evaluate.yaml``: from frame 100 of every simulation of the split."""
+
+    steps: int = 100                  # rollout length (capped by the files' length)
+    starts_per_sim: int = 1           # start frames per simulation (frame 100 first)
+    max_sims: int | None = None       # simulations rolled out (null: every one of the split)
+
+
+@dataclass
+class EvaluateKeys:
+    """Top-level keys of ``conf/evaluate.yaml`` (``python -m bgn.evaluate <run or ckpt>``),
+    stored as ``evaluate_base``."""
+
+    ckpt: str | None = None           # a checkpoint or a run directory (the positional path)
+    run_config: str | None = None     # null: the run's .hydra/config.yaml (or train_config.yaml)
+    split: str = "test"               # the split scored
+    calibration_split: str = "val"    # the split the mass flow is recalibrated on
+    out_dir: str | None = None        # null: <run>/eval/<split>
+    data_dir: str | None = None       # null: the run's paths.data_dir
+    max_frames: int | None = 256      # one-step frames, evenly spread (null: all)
+    mass_frames: int = 32             # frames of the inverse metrics and of the calibration
+    mass_samples: int = 32            # posterior samples per particle
+    batch_size: int = 16
+    seed: int = 0                     # the flow's samples
+    figures: bool = True
+    progress: bool = True             # a progress bar on the long parts
+    rollout: EvaluateRolloutKeys = field(default_factory=EvaluateRolloutKeys)
 
 
 def with_groups(keys: type, groups: tuple[str, ...]) -> type:
@@ -139,6 +170,7 @@ def register_configs(models: bool = True) -> None:
             cs.store(group="dataset", name=f"{scene}_base", node=dataset_schema(scene))
         cs.store(name="train_base", node=TrainNode)
         cs.store(name="generate_base", node=GenerateNode)
+        cs.store(name="evaluate_base", node=EvaluateKeys)
         _registered.add("data")
     if models and "models" not in _registered:
         from bgn.model.registry import MODELS  # torch

@@ -9,6 +9,8 @@ rollout metrics of the model and the no-learning references through the learned 
 
 from __future__ import annotations
 
+import re
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -27,14 +29,18 @@ from bgn.metrics import (
     aggregate_gaussian,
     binary_f1,
     calibration_metrics,
+    capped_errors,
     coverage_curve,
+    energy_errors,
     fit_radius_map,
     inverse_metrics,
     kde_modes,
     r2_score,
     recovered_modes,
     relative_mass_error,
+    rollout_failures,
     rollout_metrics,
+    survived,
     type_metrics,
 )
 from bgn.model.encoder import approach_gap
@@ -44,6 +50,15 @@ from bgn.model.target import extrapolate, observed_targets
 from bgn.module import PhysicsModule
 from bgn.rollout import predictability, rollout_many, rollout_starts
 from bgn.simulator import Predictor
+from bgn.validate import (
+    DATA_EXIT,
+    MAX_SEED,
+    ConfigError,
+    cli,
+    fail,
+    need_int,
+    reported,
+)
 
 # the metric functions live in bgn.metrics; imports of them from here keep working
 __all__ = ["batches", "calibrate_mass_posterior", "evaluate_model", "evaluate_rollouts",
@@ -339,13 +354,18 @@ def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: 
 
 def evaluate_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 100,
                       starts_per_sim: int = 1, max_sims: int | None = None,
-                      references: bool = True) -> dict[str, float]:
+                      references: bool = True, predictability_limit: bool = True,
+                      curves: dict[str, dict[str, np.ndarray]] | None = None,
+                      step: Callable[[str], None] | None = None) -> dict[str, float]:
     """Rollout metrics (``bgn.metrics.rollout_metrics``) of ``model`` from the same start
     frames of every test simulation (frame 100 first), keyed ``rollout/<metric>``, and of the
-    no-learning references beside it (``rollout_last/...``, ``rollout_linear/...``) and the
-    scene's predictability limit (``predictability/...``: the exact simulator from positions
-    1e-6 off, ``bgn.rollout.predictability``). Steps are capped by the file's length.
-    Momentum is scored where the scene conserves it (no walls)."""
+    no-learning references beside it (``rollout_last/...``, ``rollout_linear/...``) and, with
+    ``predictability_limit``, the scene's predictability limit (``predictability/...``: the
+    exact simulator from positions 1e-6 off, ``bgn.rollout.predictability``). Steps are capped
+    by the file's length. Momentum is scored where the scene conserves it (no walls).
+    ``curves``, when given, receives per source the per-step curves behind the figures
+    (``pos_err_mean``, ``pos_err_median``, ``energy_err``, ``energy_err_truth``); ``step(name)``
+    is called before each source is rolled out (a progress bar)."""
     n_steps = min(n_steps, dataset.file.n_frames - dataset.history - 2)
     starts = rollout_starts(dataset, n_steps, starts_per_sim)
     sims = evenly_spaced(dataset.file.n_sims, max_sims)
@@ -357,10 +377,12 @@ def evaluate_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 10
             predictors[f"rollout_{prior}"] = Extrapolation(dataset.meta, dataset.history, prior)
     runs = {key: partial(rollout_many, predictor, dataset, sims, starts, n_steps)
             for key, predictor in predictors.items()}
-    if references:  # the true simulator from positions 1e-6 off: the chaos floor
+    if references and predictability_limit:  # the true simulator 1e-6 off: the chaos floor
         runs["predictability"] = partial(predictability, dataset, sims, starts, n_steps)
     metrics: dict[str, float] = {}
     for key, run in runs.items():
+        if step is not None:
+            step(f"rollouts: {key}")
         t = run()
         values = rollout_metrics(t.predicted, t.true, t.masses, dataset.dt, dataset.scene.energy,
                                  t.first_non_finite, dataset.meta.box,
@@ -369,7 +391,88 @@ def evaluate_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 10
                                            if dataset.meta.interaction == "contact" else None))
         values["seconds_per_step"] = t.seconds_per_step
         metrics.update({f"{key}/{name}": value for name, value in values.items()})
+        if curves is not None:
+            failed_at = rollout_failures(t.predicted, t.true, dataset.meta.box,
+                                         t.first_non_finite)
+            err, _, _ = capped_errors(t.predicted, t.true, dataset.meta.box, failed_at)
+            e_err, e_floor = energy_errors(t.predicted, t.true, t.masses, dataset.dt,
+                                           dataset.scene.energy)
+            alive = survived(failed_at, err.shape[1])
+            curves[key] = {"pos_err_mean": err.mean(axis=0),
+                           "pos_err_median": np.median(err, axis=0),
+                           "energy_err": np.median(np.where(alive, e_err, np.inf), axis=0),
+                           "energy_err_truth": np.median(e_floor, axis=0)}
     return metrics
+
+
+# the test phase's rollout figures (bgn.train), short keys: reference source -> suffix
+SUMMARY_HORIZONS = (10, 50, 100)
+SUMMARY_SOURCES = {"rollout_last": "last", "rollout_linear": "linear",
+                   "predictability": "predictability"}
+
+
+def rollout_summary(metrics: dict[str, float], prefix: str = "test/") -> dict[str, float]:
+    """The headline rollout figures of ``evaluate_rollouts``' metrics under short keys:
+    ``<prefix>rollout_error@h`` (mean over all rollouts, a failed one at the cap) at the
+    horizons reached of 10, 50 and 100 steps; at the longest of them H the median beside it
+    (``rollout_error_median@H``), the MSE over all rollouts (``rollout_mse@H``), the energy
+    error (``energy_error@H``), each reference's ``rollout_error@H_<reference>``; and
+    ``rollout_failed_share``."""
+    reached = [h for h in SUMMARY_HORIZONS if f"rollout/pos_err_mean@{h}" in metrics]
+    out = {f"{prefix}rollout_failed_share": metrics["rollout/failed_share"]}
+    for h in reached:
+        out[f"{prefix}rollout_error@{h}"] = metrics[f"rollout/pos_err_mean@{h}"]
+    if reached:
+        h = reached[-1]
+        out[f"{prefix}rollout_error_median@{h}"] = metrics[f"rollout/pos_err_median@{h}"]
+        out[f"{prefix}rollout_mse@{h}"] = metrics[f"rollout/pos_mse_mean@{h}"]
+        out[f"{prefix}energy_error@{h}"] = metrics[f"rollout/energy_err@{h}"]
+        for source, name in SUMMARY_SOURCES.items():
+            if f"{source}/pos_err_mean@{h}" in metrics:
+                out[f"{prefix}rollout_error@{h}_{name}"] = metrics[f"{source}/pos_err_mean@{h}"]
+    return out
+
+
+@torch.no_grad()
+def test_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 100,
+                  predictability_limit: bool = True) -> dict[str, float]:
+    """``bgn.train``'s test phase: ``evaluate_rollouts`` of ``model`` and the references on
+    every simulation of ``dataset`` (batched), as ``rollout_summary``'s ``test/...`` keys. The
+    model is rolled out in eval mode and left in the mode it was in."""
+    training = getattr(model, "training", False)
+    if isinstance(model, torch.nn.Module):
+        model.eval()
+    try:
+        metrics = evaluate_rollouts(model, dataset, n_steps,
+                                    predictability_limit=predictability_limit)
+    finally:
+        if isinstance(model, torch.nn.Module):
+            model.train(training)
+    return rollout_summary(metrics)
+
+
+def evaluate_split(module: PhysicsModule, dataset: FrameDataset,
+                   calibration: FrameDataset | None, max_frames: int | None = 256,
+                   mass_frames: int = 32, mass_samples: int = 32, batch_size: int = 16,
+                   seed: int = 0, rollout_steps: int = 100, rollout_starts: int = 1,
+                   rollout_sims: int | None = None,
+                   curves: dict[str, dict[str, np.ndarray]] | None = None,
+                   step: Callable[[str], None] | None = None,
+                   ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Everything ``python -m bgn.evaluate`` and the study (``bgn.experiments``) score on one
+    split: one-step, type and contact metrics and the inverse metrics with the flow
+    recalibrated on ``calibration`` (``evaluate_model``), then the rollouts of the model, the
+    references and the predictability limit (``evaluate_rollouts``). Returns the metrics and
+    the mass figure's arrays."""
+    if step is not None:
+        step("one-step, type, contact and inverse metrics")
+    metrics, arrays = evaluate_model(module, dataset, max_frames=max_frames,
+                                     mass_frames=mass_frames, mass_samples=mass_samples,
+                                     batch_size=batch_size, seed=seed, calibration=calibration)
+    metrics.update(evaluate_rollouts(module.model, dataset, n_steps=rollout_steps,
+                                     starts_per_sim=rollout_starts, max_sims=rollout_sims,
+                                     curves=curves, step=step))
+    return metrics, arrays
 
 
 def mass_figure(arrays: dict[str, np.ndarray], path: str | Path) -> Path:
@@ -381,3 +484,342 @@ def mass_figure(arrays: dict[str, np.ndarray], path: str | Path) -> Path:
                                  arrays["coverage_levels"],
                                  {"model": arrays["coverage"],
                                   "prior-only sampler": arrays["coverage_prior"]}), path)
+
+
+# ----------------------------------------------------------------------------- the command
+SPLITS = ("train", "val", "test")
+# Hydra options that take the next argument as their value (not a positional path)
+_VALUE_OPTIONS = {"-cp", "--config-path", "-cn", "--config-name", "-cd", "--config-dir",
+                  "-c", "--cfg", "-p", "--package", "--experimental-rerun"}
+
+
+_ARGV: list[str] = []  # the command line as typed (before path_override), for the report
+
+
+def path_override(argv: list[str]) -> list[str]:
+    """``argv`` with its first positional argument (a path: no ``=``, not an option) turned
+    into the override ``ckpt=<path>`` (quoted where Hydra's grammar needs it), so that
+    ``python -m bgn.evaluate <run> split=val`` reads as Hydra overrides."""
+    out, taken, after_option = list(argv[:1]), False, False
+    for arg in argv[1:]:
+        if not taken and not after_option and "=" not in arg and not arg.startswith("-"):
+            if not re.fullmatch(r"[\w./~+:@-]+", arg):
+                arg = "'" + arg.replace("\\", "\\\\").replace("'", "\\'") + "'"
+            out.append(f"ckpt={arg}")
+            taken = True
+        else:
+            out.append(arg)
+        after_option = arg in _VALUE_OPTIONS
+    return out
+
+
+def _run_config_paths(ckpt: Path, run_dir: Path) -> list[Path]:
+    """Where a run's config may lie: Hydra's record of a ``bgn.train`` run (beside the
+    checkpoints folder, or the checkpoint), or a study cell's ``train_config.yaml``."""
+    return list(dict.fromkeys([run_dir / ".hydra" / "config.yaml",
+                               ckpt.parent / ".hydra" / "config.yaml",
+                               run_dir / "train_config.yaml"]))
+
+
+def resolve_run(path: str, run_config: str | None = None) -> tuple[Path, Path, Path]:
+    """``(checkpoint, run directory, run config)`` of a checkpoint or run directory: a run
+    directory gives its best checkpoint (``bgn.experiments.best_checkpoint``: best.ckpt, the
+    newest best-vN.ckpt, else last.ckpt); a checkpoint in ``<run>/checkpoints/`` its run.
+    Bad input: one ``ConfigError`` naming the path and the fix."""
+    from bgn.experiments import best_checkpoint
+
+    given = Path(path).expanduser()
+    if not given.exists():
+        raise ConfigError("ckpt", path, "no such file or directory: give a checkpoint (.ckpt) "
+                          "or a run directory of python -m bgn.train")
+    if given.is_dir():
+        run_dir = given
+        try:
+            ckpt = best_checkpoint(given)
+        except FileNotFoundError:
+            raise ConfigError("ckpt", path, f"the run directory has no checkpoint (looked for "
+                              f"{given / 'checkpoints'}/best*.ckpt and last.ckpt): give a run "
+                              "that trained, or a checkpoint file") from None
+    else:
+        ckpt = given
+        run_dir = given.parent.parent if given.parent.name == "checkpoints" else given.parent
+    if run_config is not None:
+        config = Path(run_config).expanduser()
+        if not config.is_file():
+            raise ConfigError("run_config", run_config, "no such file: give the run's "
+                              ".hydra/config.yaml")
+        return ckpt, run_dir, config
+    for config in _run_config_paths(ckpt, run_dir):
+        if config.is_file():
+            return ckpt, run_dir, config
+    looked = ", ".join(str(p) for p in _run_config_paths(ckpt, run_dir))
+    raise ConfigError("ckpt", path, f"no run config beside the checkpoint (looked for {looked}): "
+                      "pass run_config=<the run's .hydra/config.yaml>")
+
+
+def validate_evaluate(cfg: Any) -> tuple[Path, Path, Path]:
+    """Everything ``python -m bgn.evaluate`` is given, before any data or model is read;
+    returns ``resolve_run``'s paths."""
+    if not cfg.get("ckpt"):
+        raise ConfigError("ckpt", None, "give a checkpoint or run directory: python -m "
+                          "bgn.evaluate outputs/train/runs/<run> [split=test]")
+    for key in ("split", "calibration_split"):
+        if cfg[key] not in SPLITS:
+            raise ConfigError(key, cfg[key], f"choose one of {list(SPLITS)}")
+    if cfg.calibration_split == cfg.split:
+        raise ConfigError("calibration_split", cfg.calibration_split, (
+            "the mass flow would be recalibrated on the split it is scored on; set "
+            "calibration_split to another split (val for split=test, train for split=val)"))
+    need_int(cfg.max_frames, "max_frames", 1, optional=True, why=" (null: every frame)")
+    for key in ("mass_frames", "mass_samples", "batch_size"):
+        need_int(cfg[key], key, 1)
+    need_int(cfg.seed, "seed", 0, MAX_SEED)
+    need_int(cfg.rollout.steps, "rollout.steps", 1)
+    need_int(cfg.rollout.starts_per_sim, "rollout.starts_per_sim", 1)
+    need_int(cfg.rollout.max_sims, "rollout.max_sims", 1, optional=True,
+             why=" (null: every simulation of the split)")
+    return resolve_run(str(cfg.ckpt), cfg.get("run_config"))
+
+
+def load_checked(ckpt: Path, run_cfg: Any, datamodule: Any) -> PhysicsModule:
+    """The checkpoint's module, refused in one line when its model is unknown to this bgn or
+    it was trained on another scene or model than its run config says."""
+    from bgn.checkpoints import check_compatible
+    from bgn.model.registry import MODELS
+    from bgn.train import run_provenance
+
+    record = read(ckpt)
+    name = ((record.get("hyper_parameters") or {}).get("model_config") or {}).get("name")
+    if name not in MODELS:
+        raise CheckpointError(f"checkpoint {ckpt} holds a model {name!r} that this bgn does not "
+                              f"know (models: {sorted(MODELS)}): evaluate it with the bgn that "
+                              "trained it")
+    check_compatible(ckpt, run_provenance(run_cfg, datamodule), ckpt=record)
+    return load_model(ckpt)
+
+
+def git_commit() -> str:
+    """``git rev-parse HEAD`` of the checkout bgn runs from, 'unknown' without git."""
+    import subprocess
+
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent,
+                             capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else "unknown"
+
+
+def provenance_record(cfg: Any, ckpt: Path, config: Path, run_cfg: Any) -> dict[str, Any]:
+    """The report's header: what was evaluated, by which code, where, with which seeds."""
+    import hashlib
+    import os
+    import platform
+    import shlex
+    import sys
+
+    return {"checkpoint": str(ckpt.resolve()), "run_config": str(config.resolve()),
+            "run_config_hash": hashlib.sha256(config.read_bytes()).hexdigest()[:10],
+            "git_commit": git_commit(),
+            "machine": f"{platform.platform()}, {platform.processor() or platform.machine()}",
+            "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
+            "seeds": {"evaluation": int(cfg.seed), "training": run_cfg.get("seed"),
+                      "data": run_cfg.dataset.get("seed")},
+            "split": str(cfg.split), "calibration_split": str(cfg.calibration_split),
+            "command": " ".join(["python -m bgn.evaluate",
+                                 *(shlex.quote(a) for a in (_ARGV or sys.argv)[1:])])}
+
+
+class Stages:
+    """A rich progress bar over the named stages of the evaluation (nothing when off)."""
+
+    def __init__(self, total: int, enabled: bool) -> None:
+        self.progress = None
+        if enabled:
+            from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+            self.progress = Progress(TextColumn("{task.description:<48}"), BarColumn(),
+                                     TextColumn("{task.completed}/{task.total}"),
+                                     TimeElapsedColumn())
+            self.progress.start()
+            self.task = self.progress.add_task("evaluation", total=total)
+        self.started = False
+
+    def __call__(self, name: str) -> None:
+        if self.progress is not None:
+            self.progress.update(self.task, advance=1 if self.started else 0, description=name)
+            self.started = True
+
+    def close(self) -> None:
+        if self.progress is not None:
+            self.progress.update(self.task, completed=self.progress.tasks[0].total,
+                                 description="done")
+            self.progress.stop()
+
+
+ROLLOUT_SOURCES = {"rollout": "model", "rollout_last": "repeat last (no learning)",
+                   "rollout_linear": "linear extrapolation (no learning)",
+                   "predictability": "predictability limit (simulator, 1e-6 off)"}
+ONE_STEP_KEYS = ["mse", "nmse", "nmse_last_extrapolation", "nmse_linear_extrapolation",
+                 "median_relative_error", "n_frames", "type_accuracy", "type_auroc",
+                 "contact_rate", "contact_f1_head", "contact_f1_toi_rule", "relmass_r2"]
+
+
+def report_text(record: dict[str, Any], metrics: dict[str, Any], figures: list[str]) -> str:
+    """report.md: the provenance header, then one-step, rollout and inverse tables."""
+    from bgn.report import INVERSE_COLUMNS, INVERSE_REFERENCES, ROLLOUT_COLUMNS
+    from bgn.tables import markdown_table
+
+    seeds = ", ".join(f"{k} {v}" for k, v in record["seeds"].items())
+    lines = [f"# Evaluation on the {record['split']} split", "",
+             f"- command: `{record['command']}`",
+             f"- checkpoint: `{record['checkpoint']}`",
+             f"- run config: `{record['run_config']}` (hash {record['run_config_hash']})",
+             f"- git commit: {record['git_commit']}",
+             f"- machine: {record['machine']}; {record['cpu_count']} CPUs, "
+             f"{record['torch_threads']} torch threads",
+             f"- seeds: {seeds}; mass flow recalibrated on the {record['calibration_split']} "
+             f"split; wall time {record['wall_time_s']:.1f} s", "",
+             "## One step", "",
+             markdown_table(["metric", "value"], [{"metric": k, "value": metrics[k]}
+                                                  for k in ONE_STEP_KEYS if k in metrics]),
+             "## Rollouts", "",
+             "From frame 100 of every simulation of the split (when the files are that long). "
+             "Every rollout counts: a failed one (a non-finite value, or a particle more than "
+             "10 scene scales astray) counts at the cap (rollout_cap: 10 scene scales) in "
+             "pos_err_mean and pos_mse_mean; pos_err_median beside the mean would hide up to "
+             "half the rollouts failing. energy_err: median |E_t - E_0| / |E_0|, a failed "
+             "rollout infinite. See bgn.metrics.rollout_metrics.", ""]
+    rows = [{"source": label, **{c: metrics.get(f"{key}/{c}") for c in ROLLOUT_COLUMNS}}
+            for key, label in ROLLOUT_SOURCES.items() if f"{key}/rollouts" in metrics]
+    lines += [markdown_table(["source", *ROLLOUT_COLUMNS], rows)]
+    if "coverage50" in metrics:
+        rows = [{"source": "model", **{c: metrics.get(c) for c in INVERSE_COLUMNS}}]
+        rows += [{"source": label, **{c: metrics.get(f"{key}/{c}") for c in INVERSE_COLUMNS}}
+                 for key, label in INVERSE_REFERENCES.items()]
+        lines += ["## Inverse model", "",
+                  f"Masses of every particle of {metrics.get('mass_particles')} particle-frames "
+                  f"(bgn.evaluate.evaluate_inverse); the flow recalibrated on the "
+                  f"{record['calibration_split']} split first (scale at 50 % / 90 %: "
+                  f"{metrics.get('mass_calibration_scale50', float('nan')):.3g} / "
+                  f"{metrics.get('mass_calibration_scale90', float('nan')):.3g}).", "",
+                  markdown_table(["source", *INVERSE_COLUMNS], rows)]
+    if figures:
+        lines += ["## Figures", ""] + [f"![{Path(f).stem}]({f})" for f in figures] + [""]
+    lines += ["Every value: metrics.json (and metrics.csv, one row per key).", ""]
+    return "\n".join(lines)
+
+
+def write_outputs(out_dir: Path, record: dict[str, Any], metrics: dict[str, Any],
+                  figures: dict[str, Any]) -> None:
+    """Write report.md, metrics.csv, metrics.json and the figures into ``out_dir``, each
+    through a temporary file and a rename (nothing half-written)."""
+    import csv
+    import io
+    import json
+    import os
+
+    from bgn.checkpoints import write_atomic
+    from bgn.figures import save
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    names = []
+    for name, fig in figures.items():
+        tmp = out_dir / f".{name}.tmp{os.getpid()}.png"
+        try:
+            save(fig, tmp)
+            os.replace(tmp, out_dir / f"{name}.png")
+        finally:
+            tmp.unlink(missing_ok=True)
+        names.append(f"{name}.png")
+    values = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in metrics.items()}
+    text = io.StringIO()
+    writer = csv.writer(text)
+    writer.writerow(["metric", "value"])
+    writer.writerows(sorted(values.items()))
+    write_atomic(out_dir / "metrics.csv", text.getvalue())
+    write_atomic(out_dir / "metrics.json", json.dumps(
+        {"provenance": record, "metrics": values}, indent=2, sort_keys=True))
+    write_atomic(out_dir / "report.md", report_text(record, values, names))
+
+
+def evaluate_run(cfg: Any, paths: tuple[Path, Path, Path]) -> Path:
+    """The command's work: the run's data and checkpoint, every metric, the files; returns
+    the output folder."""
+    import time
+
+    from omegaconf import OmegaConf
+
+    from bgn.data.datamodule import ParticleDataModule
+    from bgn.figures import energy_drift, rollout_errors
+
+    start = time.perf_counter()
+    ckpt, run_dir, config = paths
+    run_cfg = OmegaConf.load(config)
+    data_dir = cfg.data_dir or run_cfg.paths.data_dir
+    datamodule = ParticleDataModule(run_cfg.dataset, run_cfg.fps, data_dir,
+                                    generate_workers=run_cfg.dataset.get("generate_workers"),
+                                    show_progress=bool(cfg.progress))
+    datamodule.prepare_data()  # the run's data, generated again where they are missing
+    datamodule.setup()
+    module = load_checked(ckpt, run_cfg, datamodule)
+    dataset = datamodule.datasets[cfg.split]
+    references = 2 if dataset.meta.target == "velocity" else 3
+    stages = Stages(2 + references + bool(cfg.figures), bool(cfg.progress))
+    curves: dict[str, dict[str, np.ndarray]] = {}
+    try:
+        metrics, arrays = evaluate_split(
+            module, dataset, datamodule.datasets[cfg.calibration_split], cfg.max_frames,
+            cfg.mass_frames, cfg.mass_samples, cfg.batch_size, int(cfg.seed),
+            int(cfg.rollout.steps), int(cfg.rollout.starts_per_sim), cfg.rollout.max_sims,
+            curves=curves, step=stages)
+        figures: dict[str, Any] = {}
+        if cfg.figures:
+            stages("figures")
+            labelled = {ROLLOUT_SOURCES[k]: c for k, c in curves.items()}
+            figures["rollout_error"] = rollout_errors(labelled, metrics.get("rollout/rollout_cap"))
+            figures["energy_drift"] = energy_drift(labelled)
+            if arrays:
+                from bgn.figures import mass_calibration
+
+                figures["mass"] = mass_calibration(
+                    arrays["true_mass"], arrays["sampled_mass"].ravel(),
+                    arrays["coverage_levels"], {"model": arrays["coverage"],
+                                                "prior-only sampler": arrays["coverage_prior"]})
+    finally:
+        stages.close()
+    out_dir = Path(cfg.out_dir) if cfg.out_dir else run_dir / "eval" / str(cfg.split)
+    record = provenance_record(cfg, ckpt, config, run_cfg)
+    record["wall_time_s"] = time.perf_counter() - start
+    write_outputs(out_dir, record, metrics, figures)
+    return out_dir
+
+
+@cli("evaluate")  # Hydra app; bad input: one line, exit 2 (bgn.validate)
+def main(cfg: Any) -> Path:
+    """``python -m bgn.evaluate <checkpoint or run directory> [split=test] ...``."""
+    with reported():
+        paths = validate_evaluate(cfg)
+    try:
+        out_dir = evaluate_run(cfg, paths)
+    except CheckpointError as err:  # an unreadable or foreign checkpoint: one line
+        fail(err, DATA_EXIT)
+    print(f"report: {out_dir / 'report.md'}")
+    return out_dir
+
+
+def command() -> None:
+    """The console entry: the positional path becomes ``ckpt=<path>`` before Hydra parses
+    ``sys.argv`` (``path_override``)."""
+    import sys
+
+    from bgn.config import register_configs
+
+    register_configs(models=False)  # evaluate_base, before Hydra composes conf/evaluate.yaml
+    _ARGV[:] = sys.argv
+    sys.argv = path_override(sys.argv)
+    main()
+
+
+if __name__ == "__main__":
+    command()

@@ -159,7 +159,7 @@ def cell_datamodule(run_dir: Path, data_dir: str) -> Any:
 def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
     """Test-split metrics of a cell's best checkpoint (cached in eval.json), and its KDE
     figure under the report's figures/ when the model has an inverse head."""
-    from bgn.evaluate import evaluate_model, evaluate_rollouts, load_model, mass_figure
+    from bgn.evaluate import evaluate_split, load_model, mass_figure
 
     run_dir = Path(cfg.cells_dir) / cell.name
     ckpt = best_checkpoint(run_dir)
@@ -172,12 +172,11 @@ def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
     datamodule = cell_datamodule(run_dir, cfg.data_dir)
     e = cfg.preset.eval
     module, test = load_model(ckpt), datamodule.datasets["test"]
-    metrics, arrays = evaluate_model(module, test, max_frames=e.max_frames,
-                                     mass_frames=e.mass_frames, mass_samples=e.mass_samples,
-                                     batch_size=e.batch_size,
-                                     calibration=datamodule.datasets["val"])
-    metrics.update(evaluate_rollouts(module.model, test, n_steps=e.rollout_steps,
-                                     starts_per_sim=e.rollout_starts, max_sims=e.rollout_sims))
+    metrics, arrays = evaluate_split(  # the code of python -m bgn.evaluate
+        module, test, datamodule.datasets["val"], max_frames=e.max_frames,
+        mass_frames=e.mass_frames, mass_samples=e.mass_samples, batch_size=e.batch_size,
+        rollout_steps=e.rollout_steps, rollout_starts=e.rollout_starts,
+        rollout_sims=e.rollout_sims)
     result = {"checkpoint": str(ckpt), "metrics": metrics, "figure": None}
     if arrays:
         result["figure"] = str(mass_figure(arrays, figure))

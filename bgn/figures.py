@@ -218,3 +218,44 @@ def rollout_animation(result: dict[str, np.ndarray], path: str | Path, fps: int 
     animation.save(path, writer=writer, dpi=dpi)
     plt.close(fig)
     return path
+
+
+def rollout_errors(curves: dict[str, dict[str, np.ndarray]], cap: float | None = None,
+                   ) -> Figure:
+    """Position error against steps, one line per source (the model, the no-learning
+    references, the predictability limit): the mean over all rollouts with a failed one at
+    the cap (solid) and the median (dashed); ``curves[source]`` holds ``pos_err_mean`` and
+    ``pos_err_median`` per step from the start (``bgn.evaluate.evaluate_rollouts``)."""
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for name, c in curves.items():
+        steps = np.arange(len(c["pos_err_mean"]))[1:]
+        line, = ax.semilogy(steps, np.maximum(c["pos_err_mean"][1:], 1e-12), label=name)
+        ax.semilogy(steps, np.maximum(c["pos_err_median"][1:], 1e-12), "--", lw=1,
+                    color=line.get_color())
+    if cap is not None:
+        ax.axhline(cap, color="grey", lw=0.8, ls=":", label="cap (failed rollout)")
+    ax.set_xlabel("step")
+    ax.set_ylabel("mean position error per particle")
+    ax.set_title("rollout error (solid: mean, failures at the cap; dashed: median)", fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def energy_drift(curves: dict[str, dict[str, np.ndarray]]) -> Figure:
+    """Relative energy error ``|E_t - E_0| / |E_0|`` against steps (median over rollouts),
+    one line per source, and the truth's own (its finite-difference floor)."""
+    fig, ax = plt.subplots(figsize=(6, 4))
+    floor = None
+    for name, c in curves.items():
+        steps = np.arange(len(c["energy_err"]))[1:]
+        ax.semilogy(steps, np.clip(c["energy_err"][1:], 1e-16, 1e16), label=name)
+        floor = c["energy_err_truth"] if floor is None else floor
+    if floor is not None:
+        ax.semilogy(np.arange(len(floor))[1:], np.maximum(floor[1:], 1e-16), "k:", lw=1,
+                    label="truth (finite differences)")
+    ax.set_xlabel("step")
+    ax.set_ylabel("|E_t - E_0| / |E_0| (median)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig

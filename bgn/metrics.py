@@ -294,9 +294,16 @@ def capped_rollout_error(predicted: np.ndarray, true: np.ndarray, box: float | N
     step of R rollouts (R, T+2, N, D), each step's error capped at ``ESCAPE_FACTOR`` scene
     scales (where a rollout counts as failed), and a non-finite step counted at that cap, so
     the value stays finite and a failed rollout is the worst case."""
+    return float(capped_step_errors(predicted, true, box).mean())
+
+
+def capped_step_errors(predicted: np.ndarray, true: np.ndarray, box: float | None,
+                       ) -> np.ndarray:
+    """(R, T) the mean position error per particle after each step of R rollouts (R, T+2, N,
+    D), capped at ``ESCAPE_FACTOR`` scene scales, a non-finite step counted at that cap."""
     cap = ESCAPE_FACTOR * scene_scale(true, box)[1][:, None]
     err = np.linalg.norm(predicted[:, 2:] - true[:, 2:], axis=-1).mean(axis=-1)
-    return float(np.where(np.isfinite(err), np.minimum(err, cap), cap).mean())
+    return np.where(np.isfinite(err), np.minimum(err, cap), cap)
 
 
 def rollout_failures(predicted: np.ndarray, true: np.ndarray, box: float | None,
@@ -316,6 +323,56 @@ def rollout_failures(predicted: np.ndarray, true: np.ndarray, box: float | None,
     return np.where(np.isfinite(first), first, -1).astype(int)
 
 
+def rollout_cap(true: np.ndarray, box: float | None) -> np.ndarray:
+    """(R,) the position error a failed rollout counts at: ``ESCAPE_FACTOR`` scene scales
+    (``scene_scale``), the distance at which a rollout counts as failed."""
+    return ESCAPE_FACTOR * scene_scale(true, box)[1]
+
+
+def survived(failed_at: np.ndarray, length: int) -> np.ndarray:
+    """(R, length) whether each rollout is still alive at each step from the start (False
+    from the step it failed on, ``rollout_failures``)."""
+    return np.arange(length)[None, :] < np.where(failed_at < 0, length, failed_at)[:, None]
+
+
+def capped_errors(predicted: np.ndarray, true: np.ndarray, box: float | None,
+                  failed_at: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per rollout and step from the start (R, T+1): the mean position error per particle and
+    the mean squared error per coordinate, each counted at the cap (``rollout_cap``: error
+    ``cap``, squared error ``cap^2 / D``, as if every particle were ``cap`` off) from the step
+    a rollout failed on (``failed_at``, ``rollout_failures``) and wherever it exceeds the cap.
+    Returns ``(error, squared error, cap (R,))``: means over them count every rollout, and a
+    failed one as the worst case, where the survivors alone would hide it."""
+    cap = rollout_cap(true, box)
+    dim = predicted.shape[-1]
+    with np.errstate(invalid="ignore", over="ignore"):
+        err = np.linalg.norm(predicted - true, axis=-1).mean(axis=-1)[:, 1:]
+        sq = ((predicted - true) ** 2).mean(axis=(-1, -2))[:, 1:]
+    failed = ~survived(failed_at, err.shape[1]) | ~np.isfinite(err) | ~np.isfinite(sq)
+    err = np.where(failed, cap[:, None], np.minimum(err, cap[:, None]))
+    sq = np.where(failed, (cap**2 / dim)[:, None], np.minimum(sq, (cap**2 / dim)[:, None]))
+    return err, sq, cap
+
+
+def energy_errors(predicted: np.ndarray, true: np.ndarray, masses: np.ndarray, dt: float,
+                  energy: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray],
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Per rollout and step from the start (R, T+1): ``|E_t - E_0| / |E_0|`` of the prediction
+    and of the truth (its finite-difference floor); velocities are backward differences and
+    E_0 is the true start's energy."""
+    v_pred, v_true = np.diff(predicted, axis=1) / dt, np.diff(true, axis=1) / dt
+    e_pred, e_true = [], []
+    for r in range(len(predicted)):
+        e_true.append(energy(true[r, 1:], v_true[r], masses[r]))
+        with np.errstate(invalid="ignore", over="ignore"):
+            e_pred.append(energy(predicted[r, 1:], v_pred[r], masses[r]))
+    e_true_a = np.asarray(e_true)
+    e0 = np.abs(e_true_a[:, :1])
+    with np.errstate(invalid="ignore", over="ignore"):
+        e_err = np.abs(np.asarray(e_pred) - e_true_a[:, :1]) / e0
+    return e_err, np.abs(e_true_a - e_true_a[:, :1]) / e0
+
+
 def rollout_metrics(predicted: np.ndarray, true: np.ndarray, masses: np.ndarray, dt: float,
                     energy: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray],
                     first_non_finite: np.ndarray, box: float | None = None,
@@ -326,39 +383,32 @@ def rollout_metrics(predicted: np.ndarray, true: np.ndarray, masses: np.ndarray,
     hold the frame before the start, the start and T steps; ``energy(x, v, m)`` is the scene's
     energy of (T, N, D) arrays.
 
-    Per horizon h: ``pos_err@h`` the median over rollouts of the mean position error per
-    particle (a failed rollout counts as infinite), ``pos_mse@h`` the mean squared error over
-    the rollouts that did not fail by then; the same over the whole rollout (``@all``). Energy
-    error ``|E_t - E_0| / |E_0|`` (velocities are backward differences, E_0 from the true
-    start) at each horizon and at the end, beside the truth's own (its finite-difference
-    floor); momentum error likewise when the scene conserves momentum; the share of failed
-    rollouts (``rollout_failures``). ``contacts`` = (radii, types), each (R, N), for a disc
-    gas adds ``contact_rollout_metrics``.
+    Every rollout counts, a failed one at a stated cap (``capped_errors``: 10 scene scales,
+    ``rollout_cap`` its mean over the rollouts). Per horizon h: ``pos_err_mean@h`` the mean
+    over all rollouts of the mean position error per particle, ``pos_err_median@h`` their
+    median (beside the mean: up to half the rollouts can fail without moving a median),
+    ``pos_mse_mean@h`` the mean squared error per coordinate over all rollouts; the same over
+    the whole rollout (``@all``: the mean over its steps). Energy error
+    ``|E_t - E_0| / |E_0|`` (velocities are backward differences, E_0 from the true start):
+    the median over rollouts, a failed one infinite, at each horizon and at the end, beside
+    the truth's own (its finite-difference floor); momentum error likewise when the scene
+    conserves momentum; ``failed_share``, the share of failed rollouts
+    (``rollout_failures``). ``contacts`` = (radii, types), each (R, N), for a disc gas adds
+    ``contact_rollout_metrics``.
     """
     failed_at = rollout_failures(predicted, true, box, first_non_finite)
     n_steps = predicted.shape[1] - 2
-    err = np.linalg.norm(predicted - true, axis=-1).mean(axis=-1)[:, 1:]  # (R, T+1) from start
-    sq = ((predicted - true) ** 2).mean(axis=(-1, -2))[:, 1:]
-    alive = np.ones_like(err, dtype=bool)
-    for r, step in enumerate(failed_at):
-        if step >= 0:
-            alive[r, step:] = False
-    err = np.where(alive, err, np.inf)
+    err, sq, cap = capped_errors(predicted, true, box, failed_at)
+    alive = survived(failed_at, n_steps + 1)
     out: dict[str, float] = {"rollouts": float(len(predicted)), "rollout_steps": float(n_steps),
-                             "failed_share": float(np.mean(failed_at >= 0))}
+                             "failed_share": float(np.mean(failed_at >= 0)),
+                             "rollout_cap": float(np.mean(cap))}
     chosen = [h for h in horizons if h <= n_steps] + ["all"]
+    e_err, e_floor = energy_errors(predicted, true, masses, dt, energy)
     v_pred, v_true = np.diff(predicted, axis=1) / dt, np.diff(true, axis=1) / dt
-    e0, e_pred, e_true = [], [], []
-    for r in range(len(predicted)):
-        e_true.append(energy(true[r, 1:], v_true[r], masses[r]))
-        with np.errstate(invalid="ignore", over="ignore"):
-            e_pred.append(energy(predicted[r, 1:], v_pred[r], masses[r]))
-        e0.append(abs(e_true[-1][0]))
-    e0 = np.asarray(e0)[:, None]
-    e_err = np.abs(np.asarray(e_pred) - np.asarray(e_true)[:, :1]) / e0
-    e_floor = np.abs(np.asarray(e_true) - np.asarray(e_true)[:, :1]) / e0
     if momentum:
-        p_pred = np.einsum("rn,rtnd->rtd", masses, v_pred)
+        with np.errstate(invalid="ignore", over="ignore"):
+            p_pred = np.einsum("rn,rtnd->rtd", masses, v_pred)
         p_true = np.einsum("rn,rtnd->rtd", masses, v_true)
         p_scale = np.einsum("rn,rnd->r", masses, np.abs(v_true[:, 0]))[:, None]
         p_err = np.linalg.norm(p_pred - p_true[:, :1], axis=-1) / p_scale
@@ -367,9 +417,9 @@ def rollout_metrics(predicted: np.ndarray, true: np.ndarray, masses: np.ndarray,
             at, e_h, sq_h = n_steps, err[:, 1:].mean(axis=1), sq[:, 1:].mean(axis=1)
         else:
             at, e_h, sq_h = h, err[:, h], sq[:, h]
-        ok = alive[:, at]
-        out[f"pos_err@{h}"] = float(np.median(e_h))
-        out[f"pos_mse@{h}"] = float(sq_h[ok].mean()) if ok.any() else float("nan")
+        out[f"pos_err_mean@{h}"] = float(e_h.mean())
+        out[f"pos_err_median@{h}"] = float(np.median(e_h))
+        out[f"pos_mse_mean@{h}"] = float(sq_h.mean())
         out[f"energy_err@{h}"] = float(np.median(np.where(alive[:, at], e_err[:, at], np.inf)))
         out[f"energy_err_truth@{h}"] = float(np.median(e_floor[:, at]))
         if momentum:
@@ -415,23 +465,32 @@ def collisions_per_frame(positions: np.ndarray, radii: np.ndarray) -> np.ndarray
 def contact_rollout_metrics(predicted: np.ndarray, true: np.ndarray, radii: np.ndarray,
                             types: np.ndarray, dt: float, failed_at: np.ndarray,
                             ) -> dict[str, float]:
-    """What stays predictable in a chaotic disc gas, for R rollouts (R, T+2, N, D): each
-    type's speed distribution at the last step against the truth's (Wasserstein-1 over the
-    true mean speed of that type, pooled over the rollouts that did not fail), and the
-    impact rate over the rollout against the truth's (``collisions_per_frame``)."""
-    ok = failed_at < 0
+    """What stays predictable in a chaotic disc gas, for R rollouts (R, T+2, N, D), over all
+    of them. ``speed_w1_type<k>``: type k's speed distribution at the last step against the
+    truth's (Wasserstein-1 over the true mean speed of that type), pooled over every rollout;
+    a predicted speed counts at most ``ESCAPE_FACTOR`` times that mean speed, and the discs of
+    a failed rollout count at that cap (as if they had flown off). ``collision_rate_ratio``:
+    the impacts of the rollouts against the truth's over the same rollouts
+    (``collisions_per_frame``); a failed rollout's impacts count up to its failure and none
+    after it, while its truth counts to the end."""
+    failed = failed_at >= 0
     out: dict[str, float] = {}
-    if ok.any():
-        v_pred = np.linalg.norm(predicted[ok, -1] - predicted[ok, -2], axis=-1) / dt
-        v_true = np.linalg.norm(true[ok, -1] - true[ok, -2], axis=-1) / dt
-        for k in np.unique(types):
-            mask = types[ok] == k
-            mean = float(v_true[mask].mean())
-            out[f"speed_w1_type{k}"] = float(wasserstein_distance(v_pred[mask], v_true[mask])
-                                             / mean) if mean > 0 else float("nan")
-        hits_pred = sum(collisions_per_frame(predicted[r, 1:], radii[r]).sum()
-                        for r in np.flatnonzero(ok))
-        hits_true = sum(collisions_per_frame(true[r, 1:], radii[r]).sum()
-                        for r in np.flatnonzero(ok))
-        out["collision_rate_ratio"] = float(hits_pred / hits_true) if hits_true else float("nan")
+    with np.errstate(invalid="ignore", over="ignore"):
+        v_pred = np.linalg.norm(predicted[:, -1] - predicted[:, -2], axis=-1) / dt
+    v_true = np.linalg.norm(true[:, -1] - true[:, -2], axis=-1) / dt
+    for k in np.unique(types):
+        mask = types == k
+        mean = float(v_true[mask].mean())
+        if mean <= 0:
+            out[f"speed_w1_type{k}"] = float("nan")
+            continue
+        cap = ESCAPE_FACTOR * mean
+        capped = np.where(failed[:, None] | ~np.isfinite(v_pred), cap, np.minimum(v_pred, cap))
+        out[f"speed_w1_type{k}"] = float(wasserstein_distance(capped[mask], v_true[mask]) / mean)
+    hits_pred = hits_true = 0
+    for r in range(len(predicted)):
+        last = failed_at[r] + 1 if failed[r] else predicted.shape[1]  # frames before failure
+        hits_pred += int(collisions_per_frame(predicted[r, 1:last], radii[r]).clip(0).sum())
+        hits_true += int(collisions_per_frame(true[r, 1:], radii[r]).sum())
+    out["collision_rate_ratio"] = float(hits_pred / hits_true) if hits_true else float("nan")
     return out

@@ -198,10 +198,11 @@ def sample_efficiency_table(report_dir: Path, cells: list[Cell], results: Result
         "simulation of their splits).", empty=EMPTY)
 
 
-ROLLOUT_COLUMNS = ["pos_err@1", "pos_err@10", "pos_err@50", "pos_err@100", "pos_err@all",
-                   "pos_mse@all", "energy_err@all", "energy_err_truth@all", "momentum_err@all",
+ROLLOUT_COLUMNS = ["pos_err_mean@1", "pos_err_mean@10", "pos_err_mean@50", "pos_err_mean@100",
+                   "pos_err_median@100", "pos_err_mean@all", "pos_mse_mean@all",
+                   "energy_err@all", "energy_err_truth@all", "momentum_err@all",
                    "speed_w1_type0", "speed_w1_type1", "collision_rate_ratio", "failed_share",
-                   "rollout_steps", "seconds_per_step"]
+                   "rollout_cap", "rollout_steps", "seconds_per_step"]
 
 
 def rollout_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
@@ -223,20 +224,25 @@ def rollout_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
         report_dir, "rollouts", ["scene", "fps", "model", *ROLLOUT_COLUMNS], rows,
         "Rollouts on the test split",
         "Each model fed its own frames from the same start frames of every test simulation "
-        "(frame 100 when the file is long enough), through the learned simulator. pos_err@h: "
-        "median over rollouts of the mean position error per particle after h steps (a "
-        "failed rollout counts as infinite; @all: mean over the whole rollout); pos_mse: mean "
-        "squared position error of the rollouts that did not fail. energy_err: median "
+        "(frame 100 when the file is long enough), through the learned simulator. Every "
+        "rollout counts, a failed one at the cap (rollout_cap: 10 scene scales, the mean "
+        "over the rollouts). pos_err_mean@h: mean over all rollouts of the mean position "
+        "error per particle after h steps (@all: mean over the whole rollout); "
+        "pos_err_median: their median, which alone would hide up to half the rollouts "
+        "failing; pos_mse_mean: mean squared position error per coordinate over all "
+        "rollouts (a failed one at cap^2 / D). energy_err: median "
         "|E_t - E_0| / |E_0| at the end, with velocities as backward differences; "
         "energy_err_truth: the same for the true frames (the finite-difference floor). "
         "momentum_err where momentum is conserved (no walls). Disc gas: speed_w1_type<k>, "
         "the Wasserstein-1 distance of type k's speeds at the last step from the truth's, "
-        "over the true mean speed; collision_rate_ratio, predicted over true pairs touching "
-        "between frames (one detector for both). A rollout fails on a non-finite "
-        "value or a particle more than 10 scene scales astray. The extrapolation rows learn "
-        "nothing (repeat the last observed target, or extrapolate the last two). The "
-        "predictability row is the exact simulator started with every position 1e-6 off: "
-        "chaos alone; a rollout error above it is the model's.",
+        "over the true mean speed, pooled over all rollouts (a failed rollout's discs at 10 x "
+        "that speed); collision_rate_ratio, predicted over true impacts between frames (one "
+        "detector for both; a failed rollout's impacts stop at its failure). A rollout "
+        "fails on a non-finite value or a particle more than 10 scene scales astray. The "
+        "extrapolation rows learn nothing (repeat the last observed target, or "
+        "extrapolate the last two). The predictability row is the exact simulator "
+        "started with every position 1e-6 off: chaos alone; a rollout error above it is "
+        "the model's.",
         empty=EMPTY)
 
 

@@ -162,6 +162,10 @@ def train(cfg: DictConfig) -> dict[str, float]:
             trainer.test(module, datamodule=datamodule, ckpt_path=best or None,
                          weights_only=True)
             metrics.update({k: float(v) for k, v in trainer.callback_metrics.items()})
+            if cfg.test_rollouts and trainer.is_global_zero:  # the product: rollouts, batched
+                from bgn.evaluate import test_rollouts
+
+                metrics.update(test_rollouts(module.model, datamodule.datasets["test"]))
     except (SystemExit, KeyboardInterrupt):  # SIGTERMException is a SystemExit
         if stop.signal is None:
             raise

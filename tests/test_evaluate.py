@@ -1,17 +1,36 @@
-"""Evaluation of the inverse model beside its references, on small real datasets with an
-untrained BGN: every metric is there, the prior-only sampler adds no information, and the
-force-law estimator reads the masses off the frames."""
+"""Evaluation: the inverse model beside its references on small real datasets with an
+untrained BGN (every metric is there, the force-law estimator reads the masses off the
+frames); ``python -m bgn.evaluate`` on a tiny
+trained run, the training run's test-phase rollouts, failed rollouts counted at the cap, and
+bad input refused in one line."""
 
 from __future__ import annotations
 
+import csv
+import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
+from omegaconf import OmegaConf
 
-from bgn.evaluate import evaluate_model, mass_figure
-from bgn.train import build
+from bgn.data.datamodule import ParticleDataModule
+from bgn.evaluate import (
+    evaluate_model,
+    evaluate_rollouts,
+    mass_figure,
+    path_override,
+    rollout_summary,
+)
+from bgn.evaluate import main as evaluate_main
+from bgn.rollout import rollout_starts
+from bgn.train import build, train
 from tests.conftest import SMALL, compose_config
+from tests.test_simulator import Oracle
 
 TINY_BGN = ["model.hidden=8", "model.decoder_hidden=8", "model.flow_hidden=8",
             "model.mass_context=pairs"]
@@ -29,10 +48,152 @@ def test_inverse_evaluation_with_references(scene: str, tmp_path: Path,
     for key in ("coverage50", "coverage_max_dev", "sbc_p", "tarp_atc", "info_gain",
                 "sim_mass_rel_err", "prior/coverage90", "physical/relmass_r2_estimate"):
         assert np.isfinite(metrics[key]), key
-    assert metrics["prior/info_gain"] == 0.0
     if scene == "collisions":  # the contact head's per-simulation impact solve beside the flow's
         assert np.isfinite(metrics["sim_mass_rel_err_flow"])
     if scene != "collisions":  # O(dt^2) finite differences of the adaptive integrator's frames
         assert metrics["physical/mass_rel_err"] < 0.01
         assert metrics["physical/identified"] == 1.0
     assert mass_figure(arrays, tmp_path / "mass.png").stat().st_size > 0
+
+
+# ----------------------------------------------------------------------------- the command
+TINY_RUN = ["dataset=spring", *SMALL["spring"], "model.hidden=8", "model.decoder_hidden=8",
+            "model.flow_hidden=8", "figures=false", "val_rollout_steps=0",
+            "callbacks.progress_bar=null", "trainer.max_epochs=1",
+            "+trainer.limit_train_batches=2", "trainer.limit_val_batches=1",
+            "trainer.enable_model_summary=false"]
+FAST_EVAL = ["rollout.steps=20", "max_frames=8", "mass_frames=4", "mass_samples=8",
+             "batch_size=4", "progress=false"]
+
+
+@pytest.fixture(scope="module")
+def trained_run(tmp_path_factory, shared_data_dir: Path) -> tuple[Path, dict[str, float]]:
+    """A tiny spring run trained by ``bgn.train.train`` (its test phase included), with the
+    config Hydra would have saved in ``.hydra/config.yaml``; returns (run dir, its metrics)."""
+    run = tmp_path_factory.mktemp("run")
+    cfg = compose_config("train", [*TINY_RUN, f"paths.data_dir={shared_data_dir}",
+                                   f"paths.output_dir={run}"])
+    metrics = train(cfg)
+    (run / ".hydra").mkdir()
+    (run / ".hydra" / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+    return run, metrics
+
+
+def evaluate_cfg(*overrides: str):
+    return compose_config("evaluate", [*FAST_EVAL, *overrides])
+
+
+def test_the_training_test_phase_reports_rollouts_beside_one_step(trained_run) -> None:
+    run, metrics = trained_run
+    record = json.loads((run / "metrics.json").read_text())["metrics"]
+    for key in ("test/nmse", "test/rollout_error@10", "test/rollout_error@50",
+                "test/rollout_error_median@50", "test/rollout_mse@50",
+                "test/rollout_failed_share", "test/energy_error@50",
+                "test/rollout_error@50_last", "test/rollout_error@50_linear",
+                "test/rollout_error@50_predictability"):
+        assert np.isfinite(metrics[key]) and record[key] == metrics[key], key
+    assert 0 <= metrics["test/rollout_failed_share"] <= 1
+
+
+def test_the_test_phase_rollouts_can_be_skipped(tmp_path: Path, shared_data_dir: Path) -> None:
+    metrics = train(compose_config("train", [*TINY_RUN, f"paths.data_dir={shared_data_dir}",
+                                             f"paths.output_dir={tmp_path}",
+                                             "+trainer.fast_dev_run=true",
+                                             "test_rollouts=false"]))
+    assert "test/nmse" in metrics
+    assert not [k for k in metrics if "rollout" in k]
+
+
+@pytest.mark.parametrize("given", ["run", "checkpoint"])
+def test_the_command_writes_report_csv_json_and_figures(trained_run, tmp_path: Path,
+                                                        given: str) -> None:
+    run, _ = trained_run
+    path = run if given == "run" else run / "checkpoints" / "best.ckpt"
+    out = evaluate_main(evaluate_cfg(f"ckpt={path}", f"out_dir={tmp_path / 'eval'}"))
+    assert out == tmp_path / "eval"
+    record = json.loads((out / "metrics.json").read_text())
+    metrics = record["metrics"]
+    for key in ("mse", "nmse", "nmse_last_extrapolation", "rollout/pos_err_mean@10",
+                "rollout/pos_err_median@10", "rollout/pos_mse_mean@all",
+                "rollout/failed_share", "rollout/rollout_cap", "rollout/energy_err@10",
+                "rollout_last/pos_err_mean@10", "rollout_linear/pos_err_mean@10",
+                "predictability/pos_err_mean@10", "coverage50", "info_gain",
+                "mass_calibration_scale50", "prior/coverage50", "physical/mass_rel_err"):
+        assert np.isfinite(metrics[key]), key
+    assert record["provenance"]["checkpoint"] == str((run / "checkpoints" / "best.ckpt").resolve())
+    assert record["provenance"]["run_config"] == str((run / ".hydra" / "config.yaml").resolve())
+    assert record["provenance"]["calibration_split"] == "val"
+    with open(out / "metrics.csv", newline="") as fh:
+        rows = {r["metric"]: r["value"] for r in csv.DictReader(fh)}
+    assert float(rows["nmse"]) == metrics["nmse"]
+    report = (out / "report.md").read_text()
+    for text in ("best.ckpt", record["provenance"]["run_config_hash"], "git commit",
+                 "torch threads", "## Rollouts", "## Inverse model", "rollout_error.png"):
+        assert text in report, text
+    for figure in ("rollout_error.png", "energy_drift.png", "mass.png"):
+        assert (out / figure).stat().st_size > 0, figure
+    assert not list(out.glob(".*tmp*"))  # nothing half-written
+
+
+def test_the_default_output_folder_is_beside_the_run(trained_run) -> None:
+    run, _ = trained_run
+    out = evaluate_main(evaluate_cfg(f"ckpt={run}", "split=val", "calibration_split=train",
+                                     "figures=false", "rollout.steps=5"))
+    assert out == run / "eval" / "val"
+    assert (out / "report.md").is_file() and not list(out.glob("*.png"))
+
+
+def test_a_failed_rollout_counts_at_the_cap_where_the_median_hides_it(
+        shared_data_dir: Path) -> None:
+    """Three test simulations, an exact model that blows up in the first: the median of the
+    position error stays 0, the mean counts the failed rollout at 10 scene scales."""
+    cfg = compose_config("train", ["dataset=spring", *SMALL["spring"], "dataset.n_sims=3",
+                                   f"paths.data_dir={shared_data_dir}"])
+    dm = ParticleDataModule(cfg.dataset, cfg.fps, cfg.paths.data_dir, generate_workers=1)
+    dm.prepare_data()
+    dm.setup()
+    ds = dm.datasets["test"]
+    n = 20
+    start = rollout_starts(ds, n)[0]
+    out = rollout_summary(evaluate_rollouts(Oracle(ds, poison=(0, start + 2)), ds, n))
+    x = ds.file.read("positions", (0, slice(start - 1, start + n + 1)))
+    cap = 10 * np.linalg.norm(x - x.mean(axis=(0, 1)), axis=-1).max()
+    assert out["test/rollout_failed_share"] == pytest.approx(1 / 3)
+    assert out["test/rollout_error@10"] == pytest.approx(cap / 3, rel=1e-9)
+    assert out["test/rollout_error_median@10"] < 1e-9      # the median alone would hide it
+    assert out["test/rollout_mse@10"] == pytest.approx(cap**2 / 2 / 3, rel=1e-9)
+
+
+def test_bad_input_is_one_line(trained_run, tmp_path: Path, capsys) -> None:
+    run, _ = trained_run
+    empty = tmp_path / "empty_run"
+    empty.mkdir()
+    foreign = tmp_path / "foreign.ckpt"
+    ckpt = torch.load(run / "checkpoints" / "best.ckpt", weights_only=True)
+    ckpt["hyper_parameters"]["model_config"]["name"] = "mystery"
+    torch.save(ckpt, foreign)
+    (tmp_path / ".hydra").mkdir()
+    (tmp_path / ".hydra" / "config.yaml").write_text((run / ".hydra" / "config.yaml").read_text())
+    for path, code, words in ((tmp_path / "nope", 2, "no such file"),
+                              (empty, 2, "no checkpoint"),
+                              (foreign, 1, "'mystery'")):
+        with pytest.raises(SystemExit) as exit_:
+            evaluate_main(evaluate_cfg(f"ckpt={path}"))
+        err = capsys.readouterr().err
+        assert exit_.value.code == code, path
+        assert len(err.strip().splitlines()) == 1 and words in err, err
+
+
+def test_the_path_is_the_first_positional_argument() -> None:
+    assert path_override(["x", "runs/a", "split=val"]) == ["x", "ckpt=runs/a", "split=val"]
+    assert path_override(["x", "-cn", "evaluate", "r"]) == ["x", "-cn", "evaluate", "ckpt=r"]
+    assert path_override(["x", "my run,1"]) == ["x", "ckpt='my run,1'"]
+
+
+def test_the_command_line_refuses_a_missing_path(tmp_path: Path) -> None:
+    done = subprocess.run([sys.executable, "-m", "bgn.evaluate", str(tmp_path / "nope")],
+                          capture_output=True, text=True, cwd=tmp_path, timeout=300,
+                          env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert done.returncode == 2
+    assert len(done.stderr.strip().splitlines()) == 1 and "nope" in done.stderr
+    assert not list(tmp_path.iterdir())  # nothing written

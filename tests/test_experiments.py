@@ -63,7 +63,7 @@ def test_tiny_preset_end_to_end_and_resumes(tmp_path: Path, capsys) -> None:
         + (["linear extrapolation"] if s != "collisions" else [])}
     for row in rollouts:
         assert 0 <= float(row["failed_share"]) <= 1
-        assert float(row["pos_err@1"]) >= 0
+        assert float(row["pos_err_mean@1"]) >= 0
         if not row["model"].startswith("predictability"):
             assert float(row["seconds_per_step"]) > 0
     inverse = csv_rows(out / "inverse.csv")

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.stats import norm
+from scipy.stats import norm, wasserstein_distance
 
 from bgn.metrics import (
     COVERAGE_LEVELS,
@@ -109,22 +109,29 @@ def free_flight(r: int = 3, steps: int = 12, n: int = 4, dt: float = 0.1, seed: 
 def test_rollout_metrics_of_the_truth_are_zero():
     x, m, energy, dt = free_flight()
     out = rollout_metrics(x, x.copy(), m, dt, energy, np.full(3, -1), momentum=True)
-    for key in ("pos_err@1", "pos_err@10", "pos_err@all", "pos_mse@all", "energy_err@all",
-                "momentum_err@all", "failed_share"):
+    for key in ("pos_err_mean@1", "pos_err_median@10", "pos_err_mean@all", "pos_mse_mean@all",
+                "energy_err@all", "momentum_err@all", "failed_share"):
         assert out[key] == pytest.approx(0.0, abs=1e-12), key
-    assert "pos_err@50" not in out and out["rollout_steps"] == 12
+    assert "pos_err_mean@50" not in out and out["rollout_steps"] == 12
 
 
-def test_rollout_metrics_measure_drift_and_count_failures():
+def test_a_failed_rollout_counts_at_the_cap_in_the_mean_and_the_mse():
+    """One rollout in three fails: the median of the position error does not move (it
+    would hide the failure), the mean and the MSE count it at 10 scene scales."""
     x, m, energy, dt = free_flight()
     pred = x.copy()
     pred[:, 2:] += 0.5                          # every particle 0.5 * sqrt(2) off from step 1
     pred[0, 5:] = np.nan                        # rollout 0 fails at step 4 (index 5)
     out = rollout_metrics(pred, x, m, dt, energy, np.array([4, -1, -1]))
+    e = 0.5 * np.sqrt(2)
+    centre = x[0].mean(axis=(0, 1))
+    cap = 10 * np.linalg.norm(x[0] - centre, axis=-1).max()   # rollout 0's scene, 10 scales
     assert out["failed_share"] == pytest.approx(1 / 3)
-    assert out["pos_err@1"] == pytest.approx(0.5 * np.sqrt(2))   # median of three equal errors
-    assert out["pos_err@10"] == pytest.approx(0.5 * np.sqrt(2))  # inf, e, e: median e
-    assert out["pos_mse@10"] == pytest.approx(0.25)              # the two that did not fail
+    assert out["pos_err_mean@1"] == pytest.approx(e)          # three equal errors, none failed
+    assert out["pos_err_median@10"] == pytest.approx(e)       # cap, e, e: the median hides it
+    assert out["pos_err_mean@10"] == pytest.approx((cap + 2 * e) / 3)
+    assert out["pos_err_mean@10"] > 2 * out["pos_err_median@10"]
+    assert out["pos_mse_mean@10"] == pytest.approx((cap**2 / 2 + 2 * 0.25) / 3)
     assert out["energy_err@1"] > 0                               # the jump shows in dx/dt
     assert out["energy_err@10"] == pytest.approx(0.0, abs=1e-12)  # uniform motion again
 
@@ -171,6 +178,23 @@ def test_contact_rollout_metrics_of_the_truth():
                                    np.full(2, -1))["speed_w1_type0"] == pytest.approx(0.5)
 
 
+def test_a_failed_rollout_counts_in_the_contact_metrics():
+    """Two rollouts of the truth, one of them failed: its discs count at 10 x the mean speed
+    (the W1 of half the speeds moved there), and its impacts after the failure are missing."""
+    rng = np.random.default_rng(1)
+    true = np.cumsum(rng.normal(scale=0.05, size=(2, 12, 20, 2)), axis=1) + 5.0
+    radii, types = np.full((2, 20), 0.3), np.zeros((2, 20), dtype=int)
+    whole = contact_rollout_metrics(true, true, radii, types, 0.1, np.full(2, -1))
+    out = contact_rollout_metrics(true, true, radii, types, 0.1, np.array([3, -1]))
+    speeds = np.linalg.norm(true[:, -1] - true[:, -2], axis=-1) / 0.1
+    failed = np.concatenate([np.full(20, 10 * speeds.mean()), speeds[1]])
+    assert out["speed_w1_type0"] == pytest.approx(
+        wasserstein_distance(failed, speeds.ravel()) / speeds.mean())
+    assert out["speed_w1_type0"] > 1
+    assert whole["collision_rate_ratio"] == 1.0
+    assert out["collision_rate_ratio"] < 1.0
+
+
 # ----------------------------------------------------------------------------- calibration
 def gaussian_posteriors(rng: np.random.Generator, n: int, s: int, width: float,
                         sigma: float = 0.3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -212,15 +236,24 @@ def test_an_overconfident_gaussian_fails() -> None:
     assert coverage_curve(truth, samples, np.array([0.9]))[0] < 0.6
 
 
-def test_the_prior_only_sampler_is_calibrated_and_adds_no_information() -> None:
+def test_a_sampler_that_ignores_the_data_gains_nothing() -> None:
+    """A sampler that ignores the data: the prior itself is calibrated and gains nothing, a
+    wider one (N(0, 4)) loses the KL divergence from the prior to it,
+    ln 2 + 1/8 - 1/2 nats, whether its density is given or estimated from its samples (a KDE
+    per particle, as for a posterior known by samples only)."""
     rng = np.random.default_rng(2)
-    truth, samples = rng.standard_normal(2000), rng.standard_normal((256, 2000))
+    truth = rng.standard_normal(2000)
     log_prior = log_normal_pdf(truth)
-    m = calibration_metrics(truth, samples, log_prior, log_prior)
-    assert m["info_gain"] == 0.0 and m["coverage_max_dev"] < 0.05 and m["sbc_p"] > 0.01
-    # from its samples alone (a KDE per particle) the gain is about zero too
-    kde = calibration_metrics(truth[:400], samples[:, :400], None, log_prior[:400])
-    assert kde["info_gain"] == pytest.approx(0.0, abs=0.05)
+    prior, wide = rng.standard_normal((256, 2000)), 2 * rng.standard_normal((256, 2000))
+    m = calibration_metrics(truth, prior)
+    assert m["coverage_max_dev"] < 0.05 and m["sbc_p"] > 0.01
+    assert calibration_metrics(truth, wide)["coverage_max_dev"] > 0.1
+    kl = np.log(2) + 1 / 8 - 1 / 2
+    exact = calibration_metrics(truth, wide, log_normal_pdf(truth / 2) - np.log(2), log_prior)
+    assert exact["info_gain"] == pytest.approx(-kl, abs=0.05)
+    for samples, gain in ((prior, 0.0), (wide, -kl)):
+        kde = calibration_metrics(truth[:400], samples[:, :400], None, log_prior[:400])
+        assert kde["info_gain"] == pytest.approx(gain, abs=0.08)
 
 
 def test_sbc_ranks_and_groups() -> None:

@@ -45,7 +45,7 @@ def record(cell: Cell) -> dict[str, Any]:
         metrics["nmse"] = 1.0 / cell.train_sims
     for key, err in (("rollout", 0.01), ("rollout_last", 0.5), ("rollout_linear", 0.2),
                      ("predictability", 1e-6)):
-        metrics.update({f"{key}/pos_err@10": err, f"{key}/failed_share": 0.0})
+        metrics.update({f"{key}/pos_err_mean@10": err, f"{key}/failed_share": 0.0})
     return {"train": {"metrics": {"wall_time_s": 60.0, "test/contact_f1": 0.7}},
             "eval": {"metrics": metrics, "figure": figure}}
 
@@ -70,8 +70,8 @@ def test_rollout_table(tmp_path: Path) -> None:
         ("collisions", "bgn"), ("collisions", "gns"), ("collisions", "last extrapolation"),
         ("collisions", "linear extrapolation"), ("collisions", LIMIT), ("spring", "bgn"),
         ("spring", "last extrapolation"), ("spring", "linear extrapolation"), ("spring", LIMIT)]
-    assert [float(r["pos_err@10"]) for r in rows[:3]] == [0.01, 0.01, 0.5]
-    assert rows[0]["pos_err@100"] == ""  # not evaluated: blank, not zero
+    assert [float(r["pos_err_mean@10"]) for r in rows[:3]] == [0.01, 0.01, 0.5]
+    assert rows[0]["pos_err_mean@100"] == ""  # not evaluated: blank, not zero
 
 
 def test_paper_values() -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 
@@ -228,22 +229,32 @@ def test_oracle_inputs_and_label(meta, stats, graph, name, n_types, extra):
 
 
 # ----------------------------------------------------------------------------- learning
+# the largest training loss accepted after 100 steps, as a fraction of the no-learning MSE
+# (predicting zero) on the same batch: a little above what the fixed seed reaches
+OVERFIT_LIMIT = {"cranmer_gn": 8e-4, "gns": 2e-3}
+
+
 @pytest.mark.parametrize("name", NAMES)
 def test_overfits_a_tiny_batch(meta, stats, graph, name):
+    """The median loss of steps 50-100 on a tiny fixed batch, against predicting zero. Early:
+    later steps reach float32's round-off, where Adam's spikes span orders of magnitude."""
     torch.manual_seed(0)
     params = {**SMALL[name], **({"noise_std": 0.0} if name == "gns" else {}),  # a fixed target
               "target_prior": "none", "dynamics_loss": "mse"}  # random windows: no prior
     model = by_name(name, meta(4, 1), stats(), HISTORY, params)
     g = collate([graph(4, history=HISTORY, seed=s, dtype=torch.float32) for s in (11, 12)])
+    reference = float((model.normalized_target(g) ** 2).mean())
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
-    first = None
-    for _ in range(400):
+    losses = []
+    for _ in range(100):
         opt.zero_grad()
         loss = model.total_loss(model.loss_terms(g, model(g)))
-        first = loss.item() if first is None else first
+        losses.append(loss.item())
         loss.backward()
         opt.step()
-    assert first > 0.5 and loss.item() < 1e-3, (first, loss.item())
+    final = float(np.median(losses[-50:]))
+    assert losses[0] > 0.5 * reference and final < OVERFIT_LIMIT[name] * reference, (
+        losses[0], final, reference)
 
 
 @pytest.mark.parametrize("act", ["relu", "softplus"])  # the fused edge MLP and autograd's blocks

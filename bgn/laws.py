@@ -1,0 +1,858 @@
+"""The learned pair law as a formula: ``python -m bgn.laws <checkpoint> [out_dir=...]``.
+
+A pair-force head (``bgn.model.newton``: ``model=newton``, or BGN with
+``model.dynamics=newton``) learns a scene's interaction as an MLP ``f(r)`` of the pair's
+distance (and types): the force on particle i from j is ``f(r_ij) u_ij``, ``u_ij`` the unit
+vector from j to i (positive: repulsive). This module reads that law back:
+
+1. ``sample_law``: ``f`` on a log-spaced grid over the distances of the training split's pairs
+   (per pair of types where the law reads types), through the head's own ``pair_terms``; r in
+   the data's units. The law's scale is physical where the head was trained with the recorded
+   masses (BGN's ``law`` loss); where the window's mass fit absorbs it (``model=newton``, BGN
+   without the law loss) only the shape is learned, and ``calibrate_scale`` puts it in physical
+   units by least squares against the recorded masses of training frames (said in the report).
+2. ``fit_formula``: sparse regression over a library of candidate terms (``default_library``:
+   powers ``r^p``, ``log r``, ``exp(-r/c)``, softened ``(r + c)^p`` and ``(r^2 + c^2)^(p/2)``,
+   a constant): every subset of up to ``max_terms`` terms with at most one nonlinear constant
+   ``c`` (a grid over c, linear amplitudes solved at each), the best few of each complexity
+   refined jointly by ``scipy.optimize.least_squares``, then PySR's rule for the "best" model
+   (Cranmer 2023, arXiv:2305.01582): on the front of loss against complexity, the largest drop
+   of log-loss per added constant among the models within ``parsimony`` times the lowest
+   loss. Residuals are relative (``law_scale``), so every distance weighs alike. Constants get
+   standard errors from the Jacobian (covariance scaled by the residual variance) and from a
+   bootstrap over the sampled points; both measure how well the grid pins them, not the
+   network's own error, which shows in the band table.
+3. ``read_law`` -> ``LawReport``: the formula, how masses enter (the head's ``mass_law``),
+   relative errors in quantile bands of the data's distances (formula against the learned
+   law, and both against the true law where the scene is a built-in one of ``bgn.sim``);
+   ``write_report`` writes report.md, law.csv, law.json and law.png; ``law_section`` gives
+   the markdown for an evaluation report.
+
+Libraries. PySR (symbolic regression, Cranmer's route) downloads and compiles Julia at run
+time: not possible without network. PySINDy (pip-installable) fits libraries linear in their
+coefficients only: the softening ``c`` of ``(r + c)^p`` would have to be a fixed grid of
+columns, nearly collinear, and its STLSQ/SR3 thresholds act on coefficient sizes, which for
+powers of r over two decades differ by orders of magnitude whatever the terms' relevance; it
+would also add scikit-learn. An exhaustive search over subsets of up to three terms is exact
+where a sparse relaxation is a heuristic, and costs a few seconds: numpy, scipy and sympy
+(already dependencies) suffice.
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import csv
+import itertools
+import json
+import math
+import sys
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import sympy
+import torch
+from scipy.optimize import least_squares
+from scipy.signal import savgol_filter
+from scipy.stats import gaussian_kde
+
+# relative residuals: |f| floored near a zero crossing by the change of f over this fraction
+# of r (a spring's law crosses zero at s = 1, where a plain relative error is undefined)
+ZERO_CROSSING_WIDTH = 0.1
+GRID_POINTS = 240                 # log-spaced distances per pair of types
+KDE_POINTS = 20_000               # distances the density of log r is estimated from
+BAND_QUANTILES = (0.0, 0.01, 0.1, 0.5, 0.9, 0.99, 1.0)  # bands of the error table
+C_GRID = 41                       # values of a nonlinear constant tried before refinement
+REFINE_PER_COMPLEXITY = 4         # candidates of each complexity refined jointly
+CALIBRATION_FRAMES = 256          # training frames that put a free scale in physical units
+MAX_DISTANCES = 2_000_000         # pair distances read from the train split (frames thinned)
+SIGNIFICANT = 4                   # digits of the constants in the printed formula
+# a formula within this RMS relative error of the learned law is taken as it (module doc)
+TOLERANCE = 0.02
+
+# ----------------------------------------------------------------------------- library
+
+
+@dataclass(frozen=True)
+class Term:
+    """A candidate term: ``const``, ``power`` r^p, ``log`` log r, and with a constant c > 0,
+    ``exp`` exp(-r / c), ``shifted`` (r + c)^p, ``plummer`` (r^2 + c^2)^(p/2)."""
+
+    kind: str
+    power: float = 0.0
+
+    @property
+    def nonlinear(self) -> bool:
+        return self.kind in ("exp", "shifted", "plummer")
+
+    def __call__(self, r: np.ndarray, c: float = 1.0) -> np.ndarray:
+        p = self.power
+        if self.kind == "const":
+            return np.ones_like(r)
+        if self.kind == "power":
+            return r**p
+        if self.kind == "log":
+            return np.log(r)
+        if self.kind == "exp":
+            return np.exp(-r / c)
+        if self.kind == "shifted":
+            return (r + c) ** p
+        return (r * r + c * c) ** (p / 2)
+
+    def expr(self, r: sympy.Symbol, c: Any) -> sympy.Expr:
+        p = sympy.nsimplify(self.power)
+        return {"const": lambda: sympy.Integer(1), "power": lambda: r**p,
+                "log": lambda: sympy.log(r), "exp": lambda: sympy.exp(-r / c),
+                "shifted": lambda: (r + c) ** p,
+                "plummer": lambda: (r**2 + c**2) ** (p / 2)}[self.kind]()
+
+    @property
+    def label(self) -> str:
+        return str(self.expr(sympy.Symbol("r"), sympy.Symbol("c")))
+
+
+def default_library() -> list[Term]:
+    """The candidate terms (see the module doc). Shifted powers 1, 2, 3 are left out: they
+    are polynomials the plain powers already span, and would only make c arbitrary."""
+    powers = (-3, -2.5, -2, -1.5, -1, -0.5, 0.5, 1, 1.5, 2, 3)
+    return ([Term("const"), Term("log")] + [Term("power", p) for p in powers]
+            + [Term("exp")] + [Term("shifted", p) for p in (-3, -2, -1.5, -1, -0.5, 0.5)]
+            + [Term("plummer", p) for p in (-3, -2, -1)])
+
+
+# ----------------------------------------------------------------------------- fitting
+
+
+def law_scale(r: np.ndarray, y: np.ndarray, smooth: bool = True) -> np.ndarray:
+    """The size relative errors are taken against: ``sqrt(f^2 + (w r f')^2)``, w =
+    ``ZERO_CROSSING_WIDTH``: |f| within a few % for power laws, finite where f crosses zero.
+    ``smooth``: f is smoothed first (Savitzky-Golay along the sorted grid), for noisy points."""
+    y = np.asarray(y, dtype=np.float64)
+    if smooth and len(y) >= 7:
+        y = savgol_filter(y, min(21, len(y) - 1 + len(y) % 2), 3)  # an odd window
+    slope = np.gradient(y, np.log(r))
+    size = np.sqrt(y * y + (ZERO_CROSSING_WIDTH * slope) ** 2)
+    return np.maximum(size, 1e-12 * (size.max() + 1e-300))
+
+
+@dataclass
+class Formula:
+    """A fitted law ``sum_k a_k term_k(r; c)``; ``values`` holds the amplitudes, then the
+    nonlinear constant (if any); ``stderr`` from the Jacobian, ``boot_std`` from a bootstrap
+    over the points; ``loss`` the mean squared relative residual."""
+
+    terms: list[Term]
+    values: np.ndarray
+    stderr: np.ndarray
+    boot_std: np.ndarray
+    loss: float
+    complexity: int
+    front: list[dict[str, Any]] = field(default_factory=list)  # best model per complexity
+
+    @property
+    def names(self) -> list[str]:
+        amps = [f"a{k + 1}" for k in range(len(self.terms))]
+        return amps + (["c"] if any(t.nonlinear for t in self.terms) else [])
+
+    @property
+    def c(self) -> float:
+        return float(self.values[-1]) if any(t.nonlinear for t in self.terms) else 1.0
+
+    def __call__(self, r: np.ndarray) -> np.ndarray:
+        return design(self.terms, np.asarray(r, np.float64), self.c) @ self.values[:len(self.terms)]
+
+    def expr(self, digits: int = SIGNIFICANT) -> sympy.Expr:
+        r = sympy.Symbol("r", positive=True)
+        c = sympy.Float(self.c, digits)
+        return sum((sympy.Float(a, digits) * t.expr(r, c)
+                    for a, t in zip(self.values, self.terms)), sympy.Integer(0))
+
+    @property
+    def text(self) -> str:
+        return sympy.sstr(self.expr())
+
+    def constants(self) -> list[dict[str, Any]]:
+        """One row per constant: name, the term it multiplies (or "c"), value, errors."""
+        labels = [t.label for t in self.terms] + (["c"] if len(self.values) > len(self.terms)
+                                                  else [])
+        return [{"name": n, "term": lab, "value": float(v), "stderr": float(s),
+                 "bootstrap_std": float(b)}
+                for n, lab, v, s, b in zip(self.names, labels, self.values, self.stderr,
+                                           self.boot_std)]
+
+
+def design(terms: list[Term], r: np.ndarray, c: float) -> np.ndarray:
+    """(n, K) the terms' values at r."""
+    return np.stack([t(r, c) for t in terms], axis=1)
+
+
+def _solve(cols: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, float]:
+    """Weighted linear least squares: amplitudes and the mean squared residual."""
+    amps = np.linalg.lstsq(cols, b, rcond=None)[0]
+    res = cols @ amps - b
+    return amps, float(np.mean(res * res))
+
+
+def _subset_losses(cols: np.ndarray, b: np.ndarray, subsets: np.ndarray) -> np.ndarray:
+    """(m,) mean squared residual of the least-squares fit of ``b`` by each subset (m, k) of
+    the columns (n, K), all at once through the normal equations of unit-norm columns (a
+    ranking; the models kept are solved again by ``_solve`` and ``_refine``)."""
+    norm = np.linalg.norm(cols, axis=0)
+    unit = cols / np.where(norm > 0, norm, 1)
+    gram, proj = unit.T @ unit, unit.T @ b
+    g = gram[subsets[:, :, None], subsets[:, None, :]]             # (m, k, k)
+    v = proj[subsets]                                               # (m, k)
+    g = g + 1e-10 * np.eye(subsets.shape[1])                        # collinear subsets
+    explained = (v * np.linalg.solve(g, v[..., None])[..., 0]).sum(1)
+    return np.maximum(b @ b - explained, 0) / len(b)
+
+
+def _refine(terms: list[Term], r: np.ndarray, y: np.ndarray, w: np.ndarray, x0: np.ndarray,
+            ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Joint least squares of the amplitudes and log c from ``x0`` (amplitudes, c);
+    returns (values, jacobian in those values) or the start where the fit fails."""
+    k = len(terms)
+    nonlinear = len(x0) > k
+
+    def residual(theta: np.ndarray) -> np.ndarray:
+        c = math.exp(theta[k]) if nonlinear else 1.0
+        with np.errstate(all="ignore"):
+            out = (design(terms, r, c) @ theta[:k] - y) * w
+        return np.where(np.isfinite(out), out, 1e6)
+
+    theta0 = np.array([*x0[:k], math.log(x0[k])] if nonlinear else x0, dtype=np.float64)
+    try:
+        sol = least_squares(residual, theta0, method="lm" if len(r) > len(theta0) else "trf",
+                            x_scale="jac")
+    except (ValueError, np.linalg.LinAlgError):
+        return x0, None
+    values = sol.x.copy()
+    jac = sol.jac.copy()
+    if nonlinear:
+        values[k] = math.exp(sol.x[k])
+        jac[:, k] = jac[:, k] / values[k]  # d/dc = d/dlog c / c
+    return values, jac
+
+
+def fit_formula(r: np.ndarray, y: np.ndarray, weight: np.ndarray | None = None,
+                max_terms: int = 3, tolerance: float = TOLERANCE, parsimony: float = 1.5,
+                library: list[Term] | None = None, scale: np.ndarray | None = None,
+                n_boot: int = 100, seed: int = 0) -> Formula:
+    """The sparse formula of ``y(r)`` (see the module doc). ``r`` > 0; ``weight``: how much
+    each point counts (default alike); ``scale``: the size residuals are relative to (default
+    ``law_scale`` of the data). The loss is the weighted mean squared relative residual; the
+    formula chosen is the simplest whose RMS relative residual is within ``tolerance``, else
+    PySR's rule with ``parsimony``."""
+    order = np.argsort(r)
+    r, y = np.asarray(r, np.float64)[order], np.asarray(y, np.float64)[order]
+    if len(r) < 8 or not (r > 0).all() or not np.isfinite(y).all():
+        raise ValueError(f"a formula needs >= 8 finite points at r > 0; got {len(r)}")
+    share = np.ones_like(r) if weight is None else np.asarray(weight, np.float64)[order]
+    if not (np.isfinite(share).all() and (share >= 0).all() and share.sum() > 0):
+        raise ValueError("the weights of a formula's points must be finite, >= 0, not all 0")
+    w = np.sqrt(share / share.mean()) / (law_scale(r, y) if scale is None
+                                         else np.asarray(scale, np.float64)[order])
+    library = default_library() if library is None else library
+    linear = [t for t in library if not t.nonlinear]
+    nonlinear = [t for t in library if t.nonlinear]
+    b = y * w
+    lin_cols = np.stack([t(r) * w for t in linear], 1)
+    c_grid = np.geomspace(r[0] * 1e-2, r[-1] * 2, C_GRID)
+    candidates: dict[int, list[tuple[float, list[Term], np.ndarray]]] = {}
+
+    def keep(complexity: int, loss: float, terms: list[Term], c: float | None) -> None:
+        cols = design(terms, r, 1.0 if c is None else c) * w[:, None]
+        amps = _solve(cols, b)[0]
+        candidates.setdefault(complexity, []).append(
+            (loss, terms, amps if c is None else np.append(amps, c)))
+
+    n_lin = len(linear)
+    for k in range(1, max_terms + 1):  # linear terms only
+        subsets = np.array(list(itertools.combinations(range(n_lin), k)))
+        losses = _subset_losses(lin_cols, b, subsets)
+        for i in np.argsort(losses)[:REFINE_PER_COMPLEXITY]:
+            keep(k, float(losses[i]), [linear[j] for j in subsets[i]], None)
+    for k in range(max_terms):  # k linear terms and one term with a constant c
+        subsets = np.array([(*s, n_lin) for s in itertools.combinations(range(n_lin), k)],
+                           dtype=np.intp).reshape(-1, k + 1)
+        for t in nonlinear:
+            best = np.full(len(subsets), np.inf)
+            best_c = np.zeros(len(subsets))
+            for c in c_grid:
+                with np.errstate(all="ignore"):
+                    col = t(r, c) * w
+                if not np.isfinite(col).all():
+                    continue
+                losses = _subset_losses(np.column_stack([lin_cols, col]), b, subsets)
+                better = losses < best
+                best[better], best_c[better] = losses[better], c
+            for i in np.argsort(best)[:REFINE_PER_COMPLEXITY]:
+                if np.isfinite(best[i]):
+                    keep(k + 2, float(best[i]), [*(linear[j] for j in subsets[i][:-1]), t],
+                         float(best_c[i]))
+    front: list[dict[str, Any]] = []
+    refined: dict[int, tuple[float, list[Term], np.ndarray, np.ndarray | None]] = {}
+    for complexity in sorted(candidates):
+        for loss0, terms, x0 in sorted(candidates[complexity], key=lambda e: e[0])[
+                :REFINE_PER_COMPLEXITY]:
+            c0 = x0[-1] if len(x0) > len(terms) else 1.0
+            res0 = (design(terms, r, c0) @ x0[:len(terms)] - y) * w
+            loss0 = float(np.mean(res0 * res0))
+            values, jac = _refine(terms, r, y, w, x0)
+            c = values[-1] if len(values) > len(terms) else 1.0
+            with np.errstate(all="ignore"):
+                res = (design(terms, r, c) @ values[:len(terms)] - y) * w
+            loss = float(np.mean(res * res)) if np.isfinite(res).all() else loss0
+            if loss > loss0:
+                values, jac, loss = x0, None, loss0
+            if complexity not in refined or loss < refined[complexity][0]:
+                refined[complexity] = (loss, terms, values, jac)
+    # PySR's "best": the front of loss against complexity, the largest drop of log-loss per
+    # complexity among the models within `parsimony` times the lowest loss
+    floor = 1e-300
+    last_loss, last_c = float(np.mean(b * b)) + floor, 0  # the zero law
+    best_loss = min(v[0] for v in refined.values())
+    chosen, chosen_score = None, -np.inf
+    for complexity in sorted(refined):
+        loss, terms, values, jac = refined[complexity]
+        if loss >= last_loss:
+            continue
+        score = -(math.log(loss + floor) - math.log(last_loss)) / (complexity - last_c)
+        front.append({"complexity": complexity, "loss": loss, "score": score,
+                      "terms": [t.label for t in terms]})
+        if loss <= parsimony * best_loss + floor and score > chosen_score:
+            chosen, chosen_score = complexity, score
+        last_loss, last_c = loss, complexity
+    assert chosen is not None  # the lowest loss is on the front
+    # the discrepancy principle: the simplest formula as close to the points as they are
+    # trusted to be (the network's law is not exact either)
+    good = [e["complexity"] for e in front if math.sqrt(e["loss"]) <= tolerance]
+    chosen = good[0] if good else chosen
+    loss, terms, values, jac = refined[chosen]
+    n, p = len(r), len(values)
+    stderr = np.full(p, np.nan)
+    if jac is not None and n > p:
+        cov = np.linalg.pinv(jac.T @ jac) * loss * n / (n - p)
+        stderr = np.sqrt(np.clip(np.diag(cov), 0, None))
+    rng = np.random.default_rng(seed)
+    boots = []
+    for _ in range(n_boot):
+        pick = np.sort(rng.integers(0, n, n))
+        boots.append(_refine(terms, r[pick], y[pick], w[pick], values)[0])
+    boot_std = np.std(boots, axis=0) if boots else np.full(p, np.nan)
+    return Formula(terms, np.asarray(values, np.float64), stderr, boot_std, loss, chosen, front)
+
+
+# ----------------------------------------------------------------------------- the model's law
+
+
+def pair_force_head(module_or_model: Any) -> tuple[Any, Any]:
+    """(model, its ``PairForceHead``) of a LightningModule or model; a model without one is
+    refused in one line."""
+    from bgn.model.newton import PairForceHead
+
+    model = getattr(module_or_model, "model", module_or_model)
+    head = getattr(model, "force_head", None)
+    head = getattr(model, "head", None) if head is None else head
+    if not isinstance(head, PairForceHead):
+        name = getattr(model, "name", type(model).__name__)
+        scene = getattr(getattr(model, "meta", None), "name", "?")
+        raise ValueError(f"the {name} model of {scene} has no pair-force head, so it has no "
+                         "law to read: train model=newton, or model=bgn model.dynamics=newton, "
+                         "on a pairwise-force scene")
+    return model, head
+
+
+@torch.no_grad()
+def sample_law(head: Any, r: np.ndarray, dim: int, types: tuple[int, int] = (0, 0),
+               ) -> np.ndarray:
+    """The head's law ``f(r)`` at physical distances ``r`` between a particle of type
+    ``types[0]`` (the source) and one of ``types[1]``, through the head's own ``pair_terms``
+    (a two-particle graph, one edge): whatever inputs the law reads, they are read so."""
+    param = next(head.parameters())
+    pos = torch.zeros(2, len(r), dim, dtype=param.dtype, device=param.device)
+    pos[1, :, 0] = torch.as_tensor(np.asarray(r), dtype=param.dtype)
+    g = SimpleNamespace(edge_index=torch.tensor([[0], [1]], device=param.device),
+                        types=torch.tensor(types, device=param.device))
+    return head.pair_terms(g, pos)[0, :, 0].double().cpu().numpy()
+
+
+def pair_distances(dataset: Any) -> dict[tuple[int, int], np.ndarray]:
+    """The distances of every pair of particles at the frames of ``dataset``'s simulations
+    (a ``FrameDataset``; frames thinned evenly beyond ``MAX_DISTANCES``), per pair of types
+    (sorted; all (0, 0) where the scene has one type)."""
+    file, sims = dataset.file, list(dataset.sims)
+    n = dataset.meta.n_particles
+    i, j = np.triu_indices(n, k=1)
+    stride = max(1, math.ceil(len(sims) * file.n_frames * len(i) / MAX_DISTANCES))
+    found: dict[tuple[int, int], list[np.ndarray]] = {}
+    for s in sims:
+        x = np.asarray(file.read("positions", (s, slice(None, None, stride))), np.float64)
+        r = np.sqrt(((x[:, i] - x[:, j]) ** 2).sum(-1))                         # (T, P)
+        types = (np.asarray(file.read("types", s)) if dataset.meta.n_types > 1
+                 else np.zeros(n, dtype=np.int64))
+        lo, hi = np.minimum(types[i], types[j]), np.maximum(types[i], types[j])
+        for a, b in sorted(set(zip(lo.tolist(), hi.tolist()))):
+            found.setdefault((a, b), []).append(r[:, (lo == a) & (hi == b)].ravel())
+    return {k: np.concatenate(v) for k, v in found.items()}
+
+
+@torch.no_grad()
+def calibrate_scale(head: Any, dataset: Any, frames: int = CALIBRATION_FRAMES,
+                    ) -> tuple[float, float]:
+    """(k, relative error): the factor that puts the law in physical units, by least squares
+    of the head's prediction with the recorded masses against the training targets (relative,
+    as ``newton.law_loss``), and the mean relative squared error of ``k`` times the prediction
+    (how well the recorded masses and the law explain the targets)."""
+    from bgn.data.frames import evenly_spaced
+    from bgn.graph import collate
+
+    idx = evenly_spaced(len(dataset), frames)
+    pred, target = [], []
+    for start in range(0, len(idx), 64):
+        g = collate([dataset[k] for k in idx[start:start + 64]])
+        pred.append(head(g, known_masses=True)[0].double())
+        target.append(g.target.double())
+    p, t = torch.cat(pred), torch.cat(target)
+    size = (t * t).sum(-1)
+    w = 1 / (size + 1e-4 * size.mean() + 1e-300)
+    k = float((w * (p * t).sum(-1)).sum() / (w * (p * p).sum(-1)).sum().clamp_min(1e-300))
+    error = float((w * ((k * p - t) ** 2).sum(-1)).mean())
+    return k, error
+
+
+TRUE_LAWS = {"spring": "-2*(s - 1)", "r1": "-1/s", "r2": "-1/s**2"}  # f = -dphi/ds, s = r + eps
+
+
+def true_law(scene: Any) -> tuple[sympy.Expr, str] | None:
+    """The built-in scene's law in the head's convention (force on a unit mass from a unit
+    mass, along u_ij) as a sympy expression of r, and how masses enter it; None for a scene
+    without a simulator (``bgn.sim.imported``)."""
+    from bgn.sim.nbody import NBodyScene
+
+    if not isinstance(scene, NBodyScene):
+        return None
+    r = sympy.Symbol("r", positive=True)
+    expr = sympy.sympify(TRUE_LAWS[scene.potential]).subs(
+        "s", r + sympy.nsimplify(scene.softening))
+    # how masses enter: the receiver's acceleration with a heavier source, a heavier receiver
+    pos = np.array([[[0.0] * scene.dim, [1.5] + [0.0] * (scene.dim - 1)]])
+    unit = scene.accelerations(pos, np.ones(2))[0, 1, 0]
+    heavy_source = scene.accelerations(pos, np.array([2.0, 1.0]))[0, 1, 0] / unit
+    heavy_receiver = scene.accelerations(pos, np.array([1.0, 2.0]))[0, 1, 0] / unit
+    masses = ("source" if np.isclose(heavy_source, 2) and np.isclose(heavy_receiver, 1)
+              else "inertial" if np.isclose(heavy_source, 1) and np.isclose(heavy_receiver, 0.5)
+              else "other")
+    return expr, masses
+
+
+MASS_TEXT = {"inertial": "none: the force does not depend on the masses, a_i = sum_j f(r_ij) "
+                         "u_ij / m_i",
+             "source": "both: the force is m_i m_j f(r_ij), so a_i = sum_j m_j f(r_ij) u_ij "
+                       "(the receiver's own mass cancels)",
+             "other": "neither law of bgn.model.newton"}
+
+
+@dataclass
+class PairLaw:
+    """The law of one pair of types: the grid, the learned law (physical scale), the
+    formula, the truth (or None), the data's distance histogram and the band errors."""
+
+    types: tuple[int, int]
+    r: np.ndarray
+    learned: np.ndarray
+    formula: Formula
+    truth: np.ndarray | None
+    density: np.ndarray        # the data's density of log r on the grid: the fit's weights
+    hist_edges: np.ndarray
+    hist_counts: np.ndarray
+    bands: list[dict[str, Any]]
+    n_distances: int
+    truth_in_form: dict[str, Any] | None = None
+
+
+@dataclass
+class LawReport:
+    """What ``read_law`` finds; ``markdown`` and ``write_report`` present it."""
+
+    scene: str
+    model: str
+    mass_law: str
+    scale: str                 # "physical" (trained with recorded masses) | "calibrated"
+    scale_factor: float        # applied to the raw law ("calibrated"), else the check's value
+    calibration_error: float   # mean relative squared error with the recorded masses
+    length_scale: float
+    pairs: list[PairLaw]
+    truth_text: str | None = None
+    truth_masses: str | None = None
+
+
+def _rel_error(a: np.ndarray, b: np.ndarray, r: np.ndarray) -> np.ndarray:
+    return np.abs(a - b) / law_scale(r, b, smooth=False)
+
+
+def _bands(head: Any, dim: int, types: tuple[int, int], distances: np.ndarray, factor: float,
+           formula: Formula, truth: sympy.Expr | None) -> list[dict[str, Any]]:
+    """Median and largest relative errors in quantile bands of the data's distances, on 48
+    log-spaced points in each band."""
+    edges = np.quantile(distances, BAND_QUANTILES)
+    truth_f = None if truth is None else sympy.lambdify(sympy.Symbol("r", positive=True),
+                                                        truth, "numpy")
+    rows = []
+    for (q0, q1), (lo, hi) in zip(itertools.pairwise(BAND_QUANTILES), itertools.pairwise(edges)):
+        r = np.geomspace(lo, max(hi, lo * (1 + 1e-9)), 48)
+        learned = factor * sample_law(head, r, dim, types)
+        fitted = formula(r)
+        row = {"quantiles": [q0, q1], "r": [float(lo), float(hi)],
+               "formula_vs_learned": _stats(_rel_error(fitted, learned, r))}
+        if truth_f is not None:
+            true = np.broadcast_to(np.asarray(truth_f(r), np.float64), r.shape)
+            row["learned_vs_truth"] = _stats(_rel_error(learned, true, r))
+            row["formula_vs_truth"] = _stats(_rel_error(fitted, true, r))
+        rows.append(row)
+    return rows
+
+
+def _stats(err: np.ndarray) -> dict[str, float]:
+    return {"median": float(np.median(err)), "max": float(np.max(err))}
+
+
+def log_density(distances: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The density of log r of ``distances`` at ``r`` (a Gaussian KDE of at most
+    ``KDE_POINTS`` of them, evenly picked), mean 1 over ``r``."""
+    pick = distances[np.unique(np.linspace(0, len(distances) - 1, KDE_POINTS).astype(int))]
+    logs = np.log(pick)
+    if np.ptp(logs) == 0:
+        return np.ones_like(r)
+    density = gaussian_kde(logs)(np.log(r))
+    return density / density.mean()
+
+
+def read_law(module_or_model: Any, dataset: Any, max_terms: int = 3,
+             tolerance: float = TOLERANCE, parsimony: float = 1.5) -> LawReport:
+    """The learned pair law of a model with a pair-force head as a formula, over the
+    distances of ``dataset`` (a ``FrameDataset``: the training split); see the module doc."""
+    model, head = pair_force_head(module_or_model)
+    head = copy.deepcopy(head).double().eval()  # the law in float64: smooth to the last digit
+    dim = dataset.meta.dim
+    pinned = "law" in getattr(model, "heads", ())
+    k, error = calibrate_scale(head, _as_double(dataset))
+    factor = 1.0 if pinned else k
+    truth = true_law(dataset.scene)
+    pairs = []
+    for types, distances in pair_distances(dataset).items():
+        r = np.geomspace(distances.min(), distances.max(), GRID_POINTS)
+        density = log_density(distances, r)
+        learned = factor * sample_law(head, r, dim, types)
+        formula = fit_formula(r, learned, density, max_terms=max_terms, tolerance=tolerance,
+                              parsimony=parsimony)
+        true = None
+        in_form = None
+        if truth is not None:
+            truth_f = sympy.lambdify(sympy.Symbol("r", positive=True), truth[0], "numpy")
+            true = np.broadcast_to(np.asarray(truth_f(r), np.float64), r.shape).copy()
+            in_form = _in_form(formula, r, density, truth_f)
+        edges = np.geomspace(distances.min(), distances.max(), 61)
+        pairs.append(PairLaw(
+            types, r, learned, formula, true, density, edges, np.histogram(distances, edges)[0],
+            _bands(head, dim, types, distances, factor, formula,
+                   None if truth is None else truth[0]), len(distances), in_form))
+    return LawReport(
+        scene=dataset.meta.name, model=getattr(model, "name", type(model).__name__),
+        mass_law=head.mass_law, scale="physical" if pinned else "calibrated",
+        scale_factor=k, calibration_error=error, length_scale=float(head.length_scale),
+        pairs=pairs, truth_text=None if truth is None else sympy.sstr(truth[0]),
+        truth_masses=None if truth is None else truth[1])
+
+
+def _as_double(dataset: Any) -> Any:
+    """``dataset`` whose graphs come in float64 (for the float64 copy of the head)."""
+
+    class Double:
+        def __len__(self) -> int:
+            return len(dataset)
+
+        def __getitem__(self, index: int) -> Any:
+            g = dataset[index]
+            return type(g)(**{name: (v.double() if isinstance(v, torch.Tensor)
+                                     and v.is_floating_point() else v)
+                              for name, v in vars(g).items()})
+
+    return Double()
+
+
+def _in_form(formula: Formula, r: np.ndarray, density: np.ndarray, truth_f: Any,
+             ) -> dict[str, Any]:
+    """The truth fitted in the formula's own terms (same weights): its constants beside the
+    formula's and its relative residual there (about 0: the form is the truth's)."""
+    y = np.broadcast_to(np.asarray(truth_f(r), np.float64), r.shape)
+    w = np.sqrt(density / density.mean()) / law_scale(r, y, smooth=False)
+    values, _ = _refine(formula.terms, r, y, w, formula.values)
+    c = values[-1] if len(values) > len(formula.terms) else 1.0
+    res = (design(formula.terms, r, c) @ values[:len(formula.terms)] - y) * w
+    return {"values": [float(v) for v in values],
+            "relative_difference": [float(abs(a - b) / abs(b)) if b else float("inf")
+                                    for a, b in zip(formula.values, values)],
+            "residual_rms": float(np.sqrt(np.mean(res * res))),
+            "residual_max": float(np.max(np.abs(res)))}
+
+
+# ----------------------------------------------------------------------------- presenting
+
+
+def _g(x: float, digits: int = 3) -> str:
+    return "n/a" if x is None or not np.isfinite(x) else f"{x:.{digits}g}"
+
+
+def _pair_name(report: LawReport, types: tuple[int, int]) -> str:
+    return "" if len(report.pairs) == 1 else f" (types {types[0]}-{types[1]})"
+
+
+def markdown(report: LawReport, figure: str | None = None, level: int = 2) -> str:
+    """The law as a markdown section (``level``: its heading level): formula, constants,
+    masses, scale, band errors and the truth where known."""
+    h = "#" * level
+    lines = [f"{h} The learned pair law ({report.model} on {report.scene})", ""]
+    scale = ("physical: the head was trained with the recorded masses (the law loss); "
+             f"the recorded masses reproduce the training targets with the law times "
+             f"{_g(report.scale_factor, 4)}" if report.scale == "physical" else
+             "free in the model (the window's mass fit absorbs it): put in physical units by "
+             f"least squares against the recorded masses of training frames, factor "
+             f"{_g(report.scale_factor, 4)}")
+    lines += [f"- Convention: the force on particle i from j is f(r) u_ij, u_ij the unit vector "
+              "from j to i (f > 0: repulsive); r in the data's length units (the head reads r / "
+              f"{_g(report.length_scale, 4)}); f is the force between unit masses.",
+              f"- Masses (the head's mass_law={report.mass_law}): {MASS_TEXT[report.mass_law]}."
+              + ("" if report.truth_masses is None else
+                 f" The scene's own law: {report.truth_masses}"
+                 + (" (the same)." if report.truth_masses == report.mass_law else
+                    " (DIFFERENT: the learned law is not comparable with the truth).")),
+              f"- Scale: {scale}; relative squared error of the targets then "
+              f"{_g(report.calibration_error)}.",
+              ""]
+    if figure:
+        lines += [f"![learned law, formula and truth]({figure})", ""]
+    for pair in report.pairs:
+        f = pair.formula
+        lines += [f"{h}# Formula{_pair_name(report, pair.types)}", "",
+                  f"    f(r) = {f.text}", "",
+                  f"Fitted on {GRID_POINTS} log-spaced distances over the {pair.n_distances} "
+                  f"training pair distances (r = {_g(pair.r[0])} to {_g(pair.r[-1])}), each "
+                  "weighted by the data's density of log r: the RMS relative residual "
+                  f"{_g(math.sqrt(f.loss))} is the mean over the training pairs. Complexity "
+                  f"(constants) {f.complexity}; the best formula of each complexity and its "
+                  "residual: "
+                  + ", ".join(f"{e['complexity']}: {' + '.join(e['terms'])} "
+                              f"({_g(math.sqrt(e['loss']))})" for e in f.front) + ".", ""]
+        if report.truth_text is not None:
+            lines += [f"Truth (bgn.sim): f(r) = {report.truth_text}."]
+            if pair.truth_in_form is not None:
+                lines += [f"The truth in the formula's terms: relative residual "
+                          f"{_g(pair.truth_in_form['residual_rms'])} (RMS), "
+                          f"{_g(pair.truth_in_form['residual_max'])} (max): "
+                          + ("the form is the truth's." if pair.truth_in_form["residual_max"]
+                             < 1e-3 else "the form is NOT the truth's.")]
+            lines += [""]
+        header = "| constant | term | value | std. error (Jacobian) | std (bootstrap) |"
+        rule = "|---|---|---|---|---|"
+        if pair.truth_in_form is not None:
+            header += " truth in this form | relative difference |"
+            rule += "---|---|"
+        lines += [header, rule]
+        for i, row in enumerate(f.constants()):
+            line = (f"| {row['name']} | `{row['term']}` | {_g(row['value'], 5)} | "
+                    f"{_g(row['stderr'], 2)} | {_g(row['bootstrap_std'], 2)} |")
+            if pair.truth_in_form is not None:
+                line += (f" {_g(pair.truth_in_form['values'][i], 5)} | "
+                         f"{_g(pair.truth_in_form['relative_difference'][i], 2)} |")
+            lines.append(line)
+        lines += ["", "Relative errors (|a - b| / |b|, |b| floored near a zero crossing) in "
+                  "bands of the training distances (median / max):", ""]
+        cols = ["formula_vs_learned"] + (["learned_vs_truth", "formula_vs_truth"]
+                                         if pair.truth is not None else [])
+        lines += ["| data quantiles | r | " + " | ".join(c.replace("_", " ") for c in cols)
+                  + " |", "|---|---|" + "---|" * len(cols)]
+        for band in pair.bands:
+            lines.append(f"| {band['quantiles'][0]:g}-{band['quantiles'][1]:g} | "
+                         f"{_g(band['r'][0])}-{_g(band['r'][1])} | "
+                         + " | ".join(f"{_g(band[c]['median'], 2)} / {_g(band[c]['max'], 2)}"
+                                      for c in cols) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def law_section(module: Any, dataset: Any, level: int = 2) -> str:
+    """The markdown section of the learned law of ``module`` over ``dataset``'s distances
+    (the training split), for an evaluation report (``bgn.evaluate``): models with a
+    pair-force head only (``pair_force_head`` refuses the others)."""
+    return markdown(read_law(module, dataset), level=level)
+
+
+def law_figure(report: LawReport) -> Any:
+    """Learned law, formula and truth against r, their relative errors, and the histogram of
+    the training distances underneath; one column per pair of types."""
+    from bgn.figures import plt
+
+    n = len(report.pairs)
+    fig, axes = plt.subplots(3, n, figsize=(6 * n, 8.5), sharex="col", squeeze=False,
+                             gridspec_kw={"height_ratios": [3, 1.4, 1.2]})
+    for col, pair in enumerate(report.pairs):
+        law_ax, err_ax, hist_ax = axes[:, col]
+        curves = {"learned": pair.learned, "formula": pair.formula(pair.r)}
+        if pair.truth is not None:
+            curves["truth"] = pair.truth
+        signs = {np.sign(c[np.abs(c) > 0]).mean() for c in curves.values()}
+        one_sign = all(abs(s) == 1 for s in signs) and len(signs) == 1
+        flip = -1.0 if one_sign and signs.pop() < 0 else 1.0
+        styles = {"learned": "-", "formula": "--", "truth": ":"}
+        for name, c in curves.items():
+            law_ax.plot(pair.r, flip * c, styles[name], label=name, lw=2 if name == "learned"
+                        else 1.5)
+        law_ax.set_xscale("log")
+        if one_sign:
+            law_ax.set_yscale("log")
+        law_ax.set_ylabel(("-f(r)" if flip < 0 else "f(r)") + " (force between unit masses)")
+        law_ax.legend(fontsize=8)
+        law_ax.set_title(f"{report.scene}{_pair_name(report, pair.types)}: "
+                         f"f = {pair.formula.text}", fontsize=9)
+        err_ax.plot(pair.r, _rel_error(curves["formula"], pair.learned, pair.r),
+                    label="formula vs learned")
+        if pair.truth is not None:
+            err_ax.plot(pair.r, _rel_error(pair.learned, pair.truth, pair.r),
+                        label="learned vs truth")
+        err_ax.set_yscale("log")
+        err_ax.set_ylabel("relative error")
+        err_ax.legend(fontsize=8)
+        hist_ax.stairs(pair.hist_counts, pair.hist_edges, fill=True, color="0.6")
+        hist_ax.set_yscale("log")
+        hist_ax.set_xlabel("r (distance between the pair)")
+        hist_ax.set_ylabel("training pairs")
+    fig.tight_layout()
+    return fig
+
+
+def _jsonable(report: LawReport) -> dict[str, Any]:
+    out = {k: v for k, v in asdict(report).items() if k != "pairs"}
+    out["pairs"] = []
+    for pair in report.pairs:
+        f = pair.formula
+        out["pairs"].append({
+            "types": list(pair.types), "formula": f.text, "complexity": f.complexity,
+            "relative_rms": math.sqrt(f.loss), "constants": f.constants(), "front": f.front,
+            "r": pair.r.tolist(), "density": pair.density.tolist(),
+            "n_distances": pair.n_distances,
+            "bands": pair.bands, "truth_in_form": pair.truth_in_form,
+            "histogram": {"edges": pair.hist_edges.tolist(),
+                          "counts": pair.hist_counts.tolist()}})
+    return out
+
+
+def write_report(report: LawReport, out_dir: str | Path, title: str | None = None) -> Path:
+    """report.md, law.csv (r, learned, formula, truth per pair of types), law.json and
+    law.png in ``out_dir``; each file written whole or not at all."""
+    from bgn.checkpoints import write_atomic
+    from bgn.figures import save
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    rows = [["type_a", "type_b", "r", "learned", "formula", "truth"]]
+    for pair in report.pairs:
+        fitted = pair.formula(pair.r)
+        for k, r in enumerate(pair.r):
+            rows.append([*pair.types, f"{r:.9g}", f"{pair.learned[k]:.9g}", f"{fitted[k]:.9g}",
+                         "" if pair.truth is None else f"{pair.truth[k]:.9g}"])
+    text = []
+
+    class Lines:
+        def write(self, s: str) -> None:
+            text.append(s)
+
+    csv.writer(Lines(), lineterminator="\n").writerows(rows)
+    write_atomic(out / "law.csv", "".join(text))
+    write_atomic(out / "law.json", json.dumps(_jsonable(report), indent=2))
+    tmp = save(law_figure(report), out / "law.tmp.png")
+    tmp.replace(out / "law.png")
+    body = markdown(report, figure="law.png", level=2)
+    write_atomic(out / "report.md", (f"# {title}\n\n" if title else "") + body + "\n")
+    return out / "report.md"
+
+
+# ----------------------------------------------------------------------------- command line
+
+OPTIONS = {"out_dir": str, "config": str, "data_dir": str, "max_terms": int,
+           "tolerance": float, "parsimony": float}
+
+
+def parse(argv: list[str]) -> tuple[Path, dict[str, Any]]:
+    """``<checkpoint> [key=value ...]`` (keys: ``OPTIONS``)."""
+    parser = argparse.ArgumentParser(
+        prog="python -m bgn.laws", description=__doc__.split("\n\n")[0],
+        epilog="options: " + ", ".join(f"{k}=..." for k in OPTIONS) + " (out_dir: default "
+        "<run>/laws; config: the run's config, default found beside the checkpoint; "
+        "data_dir: default the run's paths.data_dir)")
+    parser.add_argument("checkpoint", type=Path)
+    parser.add_argument("options", nargs="*", metavar="key=value")
+    args = parser.parse_args(argv)
+    options: dict[str, Any] = {}
+    for item in args.options:
+        key, sep, value = item.partition("=")
+        if not sep or key not in OPTIONS:
+            raise ValueError(f"{item!r} is not an option; use key=value with key one of "
+                             f"{sorted(OPTIONS)}")
+        try:
+            options[key] = OPTIONS[key](value)
+        except ValueError:
+            raise ValueError(f"{key}={value!r} must be a {OPTIONS[key].__name__}") from None
+    return args.checkpoint, options
+
+
+def run(checkpoint: Path, options: dict[str, Any]) -> Path:
+    """Read the law of ``checkpoint`` over its training split and write the report."""
+    from omegaconf import OmegaConf
+
+    from bgn.data.datamodule import ParticleDataModule
+    from bgn.evaluate import load_model
+    from bgn.render import run_config
+
+    module = load_model(checkpoint)
+    pair_force_head(module)  # refused before any data are read
+    config = Path(options["config"]) if "config" in options else run_config(checkpoint)
+    cfg = OmegaConf.load(config)
+    data_dir = options.get("data_dir") or OmegaConf.select(cfg, "paths.data_dir",
+                                                           default="data")
+    datamodule = ParticleDataModule(cfg.dataset, cfg.fps, data_dir, show_progress=False)
+    datamodule.prepare_data()
+    datamodule.setup()
+    report = read_law(module, datamodule.datasets["train"],
+                      **{k: options[k] for k in ("max_terms", "tolerance", "parsimony")
+                         if k in options})
+    out = Path(options.get("out_dir") or checkpoint.resolve().parent.parent / "laws")
+    return write_report(report, out, title=f"Learned law of {checkpoint}")
+
+
+def main(argv: list[str] | None = None) -> Path:
+    """The command line: one clear line and exit code 2 on bad input."""
+    from bgn.checkpoints import CheckpointError
+    from bgn.data.files import DatasetFileError
+    from bgn.validate import CONFIG_EXIT, DATA_EXIT, fail, full_error
+
+    try:
+        checkpoint, options = parse(sys.argv[1:] if argv is None else argv)
+        path = run(checkpoint, options)
+    except DatasetFileError as err:
+        if full_error():
+            raise
+        fail(err, DATA_EXIT)
+    except (CheckpointError, ValueError, FileNotFoundError) as err:
+        if full_error():
+            raise
+        fail(err, CONFIG_EXIT)
+    print(f"law: {path}")
+    return path
+
+
+if __name__ == "__main__":
+    main()

@@ -6,8 +6,10 @@
 - ``dataset/<scene>_base``: the scene's own parameters (the fields of its ``bgn.sim`` class, so
   the scene dataclass stays their one source), the sizes and seed (``DatasetNode``) and the
   loader keys; ``conf/dataset/<scene>.yaml`` builds on it.
-- ``train_base`` and ``generate_base``: the top-level keys of ``conf/train.yaml`` and
-  ``conf/generate.yaml`` (fps, seed, ...); the config groups are untyped slots there.
+- ``dataset/imported_base``: ``dataset=imported`` (the import's name and the loader keys).
+- ``train_base``, ``generate_base`` and ``import_base``: the top-level keys of
+  ``conf/train.yaml``, ``conf/generate.yaml`` and ``conf/import.yaml`` (fps, seed, ...); the
+  config groups are untyped slots there.
 
 A composed node is then typed: ``model.hidden=abc`` or ``fps=abc`` is refused at composition
 and a typo (``model.hiden=3``) is an error. Ranges and cross-checks (``fps > 0``, enough
@@ -25,6 +27,7 @@ from dataclasses import MISSING, dataclass, field, fields, make_dataclass
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING as REQUIRED  # "???": a value the config must set (after defaults)
 
 from bgn.sim import SCENES
 from bgn.sim.collisions import ParticleType
@@ -47,15 +50,9 @@ ParticleTypeNode = make_dataclass(
 
 
 @dataclass
-class DatasetNode:
-    """Keys of every ``dataset`` node besides the scene's own parameters."""
+class LoaderNode:
+    """How a dataset is loaded (``bgn.data.spec.LOADER_KEYS``: not part of the cache key)."""
 
-    scene: str = MISSING
-    # sizes and seed (keyed into the cache file name with the scene parameters)
-    n_sims: int = 10                  # simulations per split (train, val, test)
-    n_frames: int = 1000              # frames per simulation (>= history + 3)
-    seed: int = 0
-    # loading (bgn.data.spec.LOADER_KEYS: not part of the cache key)
     history: int = 5                  # k previous velocities in the input window (>= 0)
     unroll: int = 0                   # training steps unrolled on the model's own frames
     batch_size: int = 64
@@ -64,7 +61,27 @@ class DatasetNode:
     num_workers: int = 0
     train_sims: int | None = None  # train on the first n simulations only (null: all)
     in_memory: bool = True
+
+
+@dataclass
+class DatasetNode(LoaderNode):
+    """Keys of every generated ``dataset`` node besides the scene's own parameters."""
+
+    scene: str = REQUIRED
+    # sizes and seed (keyed into the cache file name with the scene parameters)
+    n_sims: int = 10                  # simulations per split (train, val, test)
+    n_frames: int = 1000              # frames per simulation (>= history + 3)
+    seed: int = 0
     generate_workers: int | None = None  # simulation processes (null: one per core)
+
+
+@dataclass
+class ImportedDatasetNode(LoaderNode):
+    """``dataset=imported``: trajectories written by ``python -m bgn.data.import``; sizes,
+    frame rate and scene come from the files (``bgn.data.importing``)."""
+
+    scene: str = "imported"
+    name: str = REQUIRED              # the name given at import: <data_dir>/imported/<name>/
 
 
 def _config_type(tp: Any) -> Any:
@@ -120,6 +137,20 @@ class GenerateKeys:
 
 
 @dataclass
+class ImportKeys:
+    """Top-level keys of ``conf/import.yaml`` (``python -m bgn.data.import``)."""
+
+    path: str = MISSING               # the file or directory to import
+    name: str = MISSING               # the dataset's name: dataset=imported dataset.name=<name>
+    format: str | None = None         # null: detected from the files (bgn.data.formats)
+    split_seed: int = 0               # splits by trajectory where the source has none
+    overwrite: bool = False           # replace an earlier import of the same name
+    history: int = 5                  # the window the import checks every trajectory holds
+    target: str = "acceleration"      # velocity: contact data (a next-velocity target)
+    paths: Any = None
+
+
+@dataclass
 class EvaluateRolloutKeys:
     """``rollout`` of ``conf/evaluate.yaml``: from frame 100 of every simulation of the split."""
 
@@ -167,7 +198,9 @@ def register_configs(models: bool = True) -> None:
     cs = ConfigStore.instance()
     if "data" not in _registered:
         for scene in SCENES:
-            cs.store(group="dataset", name=f"{scene}_base", node=dataset_schema(scene))
+            cs.store(group="dataset", name=f"{scene}_base",
+                     node=ImportedDatasetNode if scene == "imported" else dataset_schema(scene))
+        cs.store(name="import_base", node=ImportKeys)
         cs.store(name="train_base", node=TrainNode)
         cs.store(name="generate_base", node=GenerateNode)
         cs.store(name="evaluate_base", node=EvaluateKeys)

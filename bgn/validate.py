@@ -17,7 +17,8 @@ cross-checks, run by every entry point (``bgn.train``, ``bgn.data.generate``,
 A bad value raises ``ConfigError`` (a ``ValueError``) naming the key, the value and what is
 accepted. ``cli`` turns an entry point into a Hydra app whose bad input (a value refused at
 composition, an unknown config, a ``ConfigError``) ends with that one line on stderr and exit
-code 2, and a bad dataset file with its one line and exit code 1; ``BGN_FULL_ERROR=1`` (or
+code 2, and a bad dataset file or import (``DataImportError``) with its one line and exit
+code 1; ``BGN_FULL_ERROR=1`` (or
 Hydra's ``HYDRA_FULL_ERROR=1``) shows the full trace instead.
 """
 
@@ -35,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from bgn.checks import as_float, as_int
-from bgn.data.spec import DatasetSpec
+from bgn.data.spec import IMPORTED, DatasetSpec
 from bgn.sim import SCENES, Scene
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
@@ -139,13 +140,50 @@ def check_resolution(scene: Scene, fps: float) -> None:
             f"{MAX_ROUNDOFF:g} accepted); use fps <= {fps_max:.3g}"))
 
 
-def validate_dataset(dataset: Any, fps: Any) -> DatasetSpec:
+def validate_imported(dataset: Any, data_dir: Any) -> DatasetSpec:
+    """``dataset=imported``: the name, the loader keys and the files' sizes (which the import
+    wrote: ``bgn.data.importing``); returns the train split's ``DatasetSpec``."""
+    try:
+        name = _get(dataset, "name")
+    except Exception:  # noqa: BLE001 (OmegaConf: a missing mandatory value)
+        name = None
+    if not name or name == "???":
+        raise ConfigError("dataset.name", message=(
+            "dataset.name is missing: give the name of an import (python -m bgn.data.import "
+            "<path> name=<name>), e.g. dataset=imported dataset.name=<name>"))
+    history = need_int(_get(dataset, "history", 5), "dataset.history", 0)
+    unroll = need_int(_get(dataset, "unroll", 0), "dataset.unroll", 0)
+    for key in ("batch_size",):
+        need_int(_get(dataset, key, 1), f"dataset.{key}", 1)
+    need_int(_get(dataset, "num_workers", 0), "dataset.num_workers", 0)
+    for key in ("val_samples", "test_samples"):
+        need_int(_get(dataset, key), f"dataset.{key}", 1, optional=True)
+    try:
+        spec = DatasetSpec.from_config(dataset, 1.0, "train", data_dir or "data")
+    except ValueError as err:
+        raise ConfigError("dataset.name", message=str(err)) from None
+    assert history is not None and unroll is not None
+    need_int(_get(dataset, "train_sims"), "dataset.train_sims", 1, spec.n_sims, optional=True,
+             why=f" (at most the {spec.n_sims} imported training trajectories)")
+    for split, (_, n_frames) in zip(("train", "val", "test"), spec.sizes):
+        if n_frames < history + 3 + unroll:
+            raise ConfigError("dataset.history", history, (
+                f"too long for the {split} split of {name!r} ({n_frames} frames): a sample needs "
+                f"dataset.history + 3{' + dataset.unroll' if unroll else ''} = "
+                f"{history + 3 + unroll}; lower dataset.history"))
+    return spec
+
+
+def validate_dataset(dataset: Any, fps: Any, data_dir: Any = None) -> DatasetSpec:
     """Check a ``dataset`` node and ``fps`` (types, ranges, the scene's parameters, enough
-    frames, a resolved frame spacing); returns the train split's ``DatasetSpec``."""
+    frames, a resolved frame spacing); returns the train split's ``DatasetSpec``. Imported
+    data (``scene: imported``) are read from their files under ``data_dir``."""
     fps = need_float(fps, "fps", 0.0, why=" (frames per unit of simulated time)")
     scene_name = _get(dataset, "scene")
     if scene_name not in SCENES:
         raise ConfigError("dataset.scene", scene_name, f"choose one of {sorted(SCENES)}")
+    if scene_name == IMPORTED:
+        return validate_imported(dataset, data_dir)
     n_sims = need_int(_get(dataset, "n_sims"), "dataset.n_sims", 1)
     history = need_int(_get(dataset, "history", 5), "dataset.history", 0)
     assert n_sims is not None and history is not None
@@ -236,10 +274,12 @@ def validate_train(cfg: Any) -> DatasetSpec:
     need_int(_get(cfg, "seed", 0), "seed", 0, MAX_SEED)
     for key in ("rollout_steps", "val_rollout_steps", "animation_every"):
         need_int(_get(cfg, key, 0), key, 0, why=" (0: off)")
-    spec = validate_dataset(_get(cfg, "dataset"), _get(cfg, "fps"))
+    spec = validate_dataset(_get(cfg, "dataset"), _get(cfg, "fps"),
+                            _get(_get(cfg, "paths"), "data_dir"))
     if (_get(cfg, "val_rollout_steps", 0) or 0) > 0:
-        need_int(_get(cfg, "val_rollout_sims", 1), "val_rollout_sims", 1, spec.n_sims,
-                 why=f" (validation simulations: dataset.n_sims={spec.n_sims})")
+        n_val = spec.with_split("val").n_sims  # imported data: each split its own
+        need_int(_get(cfg, "val_rollout_sims", 1), "val_rollout_sims", 1, n_val,
+                 why=f" (validation simulations: {n_val})")
     history = need_int(_get(_get(cfg, "dataset"), "history", 5), "dataset.history", 0)
     assert history is not None
     if _get(cfg, "model") is not None:
@@ -252,6 +292,9 @@ def validate_generate(cfg: Any) -> DatasetSpec:
     """Everything ``bgn.data.generate`` is given."""
     need_int(_get(cfg, "workers"), "workers", 1, optional=True,
              why=" (simulation processes; null: one per core)")
+    if _get(_get(cfg, "dataset"), "scene") == IMPORTED:
+        raise ConfigError("dataset", message="dataset=imported is not generated: import "
+                          "trajectories with python -m bgn.data.import <path> name=<name>")
     return validate_dataset(_get(cfg, "dataset"), _get(cfg, "fps"))
 
 
@@ -293,10 +336,11 @@ def reported() -> Iterator[None]:
     """Inside: a ``ConfigError`` exits 2 and a ``DatasetFileError`` exits 1, each with one
     line (the full trace when ``full_error()``)."""
     from bgn.data.files import DatasetFileError
+    from bgn.data.raw import DataImportError
 
     try:
         yield
-    except (ConfigError, DatasetFileError) as err:
+    except (ConfigError, DatasetFileError, DataImportError) as err:
         if full_error():
             raise
         fail(err, CONFIG_EXIT if isinstance(err, ConfigError) else DATA_EXIT)

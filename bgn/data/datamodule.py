@@ -1,7 +1,9 @@
-"""LightningDataModule: generates or finds the files, splits by simulation, batches graphs."""
+"""LightningDataModule: generates or finds the files (imported data: finds them only), splits
+by simulation, batches graphs."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -13,7 +15,7 @@ from bgn.data.dataset import FrameDataset
 from bgn.data.files import DatasetFile
 from bgn.data.frames import evenly_spaced
 from bgn.data.generate import ensure_splits
-from bgn.data.spec import DatasetSpec
+from bgn.data.spec import IMPORTED, DatasetSpec
 from bgn.graph import collate
 from bgn.sim import SceneMeta
 
@@ -33,7 +35,13 @@ class ParticleDataModule(L.LightningDataModule):
     def __init__(self, dataset: Any, fps: float, data_dir: str | Path = "data",
                  generate_workers: int | None = None, show_progress: bool = True) -> None:
         super().__init__()
-        self.spec = DatasetSpec.from_config(dataset, fps, "train")
+        # imported data (dataset=imported): the spec comes from the files under data_dir
+        self.spec = DatasetSpec.from_config(dataset, fps, "train", data_dir)
+        if self.spec.scene == IMPORTED:
+            logging.getLogger("bgn.data").info(
+                f"dataset=imported ({self.spec.params['name']}): frames are "
+                f"{self.spec.dt:g} apart as recorded ({self.spec.fps:g} per time unit); the "
+                f"top-level fps={float(fps):g} is ignored")
         get = dataset.get if hasattr(dataset, "get") else (lambda k, d=None: d)
         self.history = int(get("history", 5))
         self.unroll = int(get("unroll", 0))  # future frames of training samples (bgn.unroll)

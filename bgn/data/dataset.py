@@ -130,6 +130,8 @@ def frame_graph(window: np.ndarray, dt: float, meta: SceneMeta, scene: Scene,
         codes = pair_codes(snd, rcv, len(pos))
         known = contact_codes if contact_codes is not None else np.empty(0, np.int64)
         contact = np.isin(codes, known).astype(np.float32)
+    elif meta.interaction == "unknown":  # imported data: the pair force law is not known
+        contact = np.zeros(len(snd), dtype=np.float32)
     else:
         contact = scene.pair_force_magnitude(pos, masses, snd, rcv)
     g.edge_contact = torch.as_tensor(contact, dtype=torch.float32)

@@ -10,6 +10,9 @@ Layout (schema version ``SCHEMA_VERSION``), S simulations, T frames, N particles
 - ``accelerations`` (S, T, N, D) float64: force scenes only.
 - ``masses``, ``radii`` (S, N) float64; ``types`` (S, N) int64.
 - ``contacts`` (M, 4) int64 rows ``(sim, frame, i, j)``, i < j: contact scenes only.
+- imported data (``bgn.data.importing``): no ``accelerations`` (the law is unknown), a
+  ``kinematic`` (S, N) bool array, and the attributes ``source``, ``source_metadata`` (JSON)
+  and ``masses_known``.
 - group ``stats`` (train split only): normalisation statistics, see ``bgn.data.stats``.
 """
 
@@ -55,8 +58,9 @@ class DatasetFileError(RuntimeError):
 
 def write_dataset(path: Path, spec: DatasetSpec, meta: SceneMeta, arrays: dict[str, np.ndarray],
                   margin: float = 0.0, stats: dict[str, dict[str, np.ndarray]] | None = None,
-                  ) -> None:
-    """Write a complete file to a temporary name, then rename it into place (atomic)."""
+                  attrs: dict[str, Any] | None = None) -> None:
+    """Write a complete file to a temporary name, then rename it into place (atomic).
+    ``attrs``: further root attributes (imported data: their source)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f"{path.name}.tmp{os.getpid()}")
     try:
@@ -67,7 +71,7 @@ def write_dataset(path: Path, spec: DatasetSpec, meta: SceneMeta, arrays: dict[s
                 "n_frames": spec.n_frames, "n_particles": meta.n_particles, "dim": meta.dim,
                 "config": json.dumps(spec.generating_config(), sort_keys=True),
                 "meta": json.dumps(asdict(meta)), "margin": float(margin),
-                "bgn_version": __version__,
+                "bgn_version": __version__, **(attrs or {}),
             })
             for name, value in arrays.items():
                 value = np.asarray(value)
@@ -169,8 +173,10 @@ class DatasetFile:
                 meta = json.loads(attrs["meta"])
                 expected = {name: (s, t, n, d) for name in STATE_ARRAYS}
                 expected.update({name: (s, n) for name in PARTICLE_ARRAYS})
-                if meta["target"] == "acceleration":
-                    expected["accelerations"] = (s, t, n, d)
+                if meta["target"] == "acceleration" and meta["interaction"] != "unknown":
+                    expected["accelerations"] = (s, t, n, d)  # the true law's (imported: none)
+                if "kinematic" in f:  # imported: particles the source moves
+                    expected["kinematic"] = (s, n)
                 for name, shape in expected.items():
                     if name not in f:
                         raise self._fail(f"lacks the array {name!r}")

@@ -21,6 +21,12 @@ LOADER_KEYS = frozenset({"history", "batch_size", "num_workers", "train_sims", "
                          "test_samples",
                          "in_memory", "generate_workers", "unroll"})
 SIZE_KEYS = ("n_sims", "n_frames", "seed")
+IMPORTED = "imported"  # the scene of imported data (bgn.sim.imported, bgn.data.importing)
+
+
+def imported_dir(data_dir: str | Path, name: str) -> Path:
+    """Where an import named ``name`` keeps its three files."""
+    return Path(data_dir) / IMPORTED / name
 
 
 def _plain(value: Any) -> Any:
@@ -46,6 +52,9 @@ class DatasetSpec:
     fps: float
     split: str
     params: dict = field(default_factory=dict)  # scene parameters (config values)
+    # imported data (scene "imported"): (n_sims, n_frames) of train, val and test, read from
+    # the files (each split has its own); empty for generated data
+    sizes: tuple[tuple[int, int], ...] = ()
 
     def __post_init__(self) -> None:
         if self.scene not in SCENES:
@@ -59,9 +68,15 @@ class DatasetSpec:
         as_int(self.n_frames, "dataset.n_frames", 3)
 
     @classmethod
-    def from_config(cls, dataset: Any, fps: float, split: str) -> DatasetSpec:
-        """Build from a ``dataset`` config node (``scene`` + scene parameters + sizes)."""
+    def from_config(cls, dataset: Any, fps: float, split: str,
+                    data_dir: str | Path | None = None) -> DatasetSpec:
+        """Build from a ``dataset`` config node (``scene`` + scene parameters + sizes). An
+        imported dataset (``scene: imported``, ``name``) is read from its files under
+        ``data_dir`` instead (``fps`` is then the files')."""
         cfg = _plain(dataset)
+        if cfg.get("scene") == IMPORTED:
+            return cls.imported(str(cfg.get("name")), "data" if data_dir is None else data_dir,
+                                split)
         missing = [k for k in ("scene", *SIZE_KEYS) if k not in cfg]
         if missing:
             raise ValueError(f"dataset config lacks {missing}; see conf/dataset/*.yaml")
@@ -71,6 +86,35 @@ class DatasetSpec:
                    seed=int(cfg["seed"]), fps=float(fps), split=split, params=params)
         spec.build_scene()  # fail now, with the scene's own message, on a bad parameter
         return spec
+
+    @classmethod
+    def imported(cls, name: str, data_dir: str | Path, split: str = "train") -> DatasetSpec:
+        """The spec of an import's files ``<data_dir>/imported/<name>/<split>.h5``: scene
+        parameters, frame rate and each split's sizes from the files' attributes."""
+        import h5py
+
+        directory = imported_dir(data_dir, name)
+        sizes, config, fps = [], {}, 0.0
+        for part in SPLITS:
+            path = directory / f"{part}.h5"
+            if not path.is_file():
+                known = sorted(p.name for p in directory.parent.glob("*") if p.is_dir()) \
+                    if directory.parent.is_dir() else []
+                raise ValueError(
+                    f"no imported dataset {name!r}: {path} does not exist (imported under "
+                    f"{directory.parent}: {', '.join(known) or 'none'}); import it first with "
+                    f"`python -m bgn.data.import <path> name={name} paths.data_dir={data_dir}`")
+            try:
+                with h5py.File(path, "r") as f:
+                    sizes.append((int(f.attrs["n_sims"]), int(f.attrs["n_frames"])))
+                    if part == "train":
+                        config, fps = json.loads(f.attrs["config"]), float(f.attrs["fps"])
+            except (OSError, KeyError, ValueError) as err:
+                raise ValueError(f"imported dataset {name!r}: {path} cannot be read ({err}); "
+                                 f"import it again with `python -m bgn.data.import <path> "
+                                 f"name={name} overwrite=true`") from None
+        n_sims, n_frames = sizes[SPLITS.index(split)]
+        return cls(IMPORTED, n_sims, n_frames, 0, fps, split, config["params"], tuple(sizes))
 
     def build_scene(self) -> Scene:
         return make_scene(self.scene, **self.params)
@@ -94,18 +138,31 @@ class DatasetSpec:
         return hashlib.sha256(blob).hexdigest()[:10]
 
     def filename(self) -> str:
+        if self.scene == IMPORTED:  # found by name, never generated: no cache key
+            return f"{IMPORTED}/{self.params['name']}/{self.split}.h5"
         return f"{self.scene}_{self.key()}_fps{self.fps:g}_{self.split}.h5"
 
     def path(self, data_dir: str | Path) -> Path:
         return Path(data_dir) / self.filename()
 
     def with_split(self, split: str) -> DatasetSpec:
-        return DatasetSpec(self.scene, self.n_sims, self.n_frames, self.seed, self.fps, split,
-                           self.params)
+        n_sims, n_frames = (self.sizes[SPLITS.index(split)] if self.sizes
+                            else (self.n_sims, self.n_frames))
+        return DatasetSpec(self.scene, n_sims, n_frames, self.seed, self.fps, split,
+                           self.params, self.sizes)
 
     def regenerate_hint(self, data_dir: str | Path | None = None) -> str:
         """The command that writes this spec's files: the scene, fps, sizes, seed, every
-        parameter that differs from the scene's default, and the data directory."""
+        parameter that differs from the scene's default, and the data directory. Imported
+        data: the import's command."""
+        if self.scene == IMPORTED:
+            if not self.params.get("source"):  # imported from memory
+                return f"bgn.data.from_arrays(..., name={self.params['name']!r}, overwrite=True)"
+            where = [] if data_dir is None else [
+                _shell(f"paths.data_dir={Path(data_dir).parent.parent}")]
+            return " ".join(["python -m bgn.data.import",
+                             _shell(str(self.params["source"])),
+                             _shell(f"name={self.params['name']}"), "overwrite=true", *where])
         cls, fixed = SCENES[self.scene]
         defaults = {f.name: _plain(f.default) for f in fields(cls) if f.name not in fixed}
         resolved = self.generating_config()["params"]

@@ -38,7 +38,9 @@ def summarize(values: np.ndarray) -> dict[str, np.ndarray]:
 
 def compute_stats(scene: Scene, arrays: dict[str, np.ndarray], dt: float,
                   margin: float) -> dict[str, dict[str, np.ndarray]]:
-    """Statistics of inputs, targets, edge features and masses of one (training) split."""
+    """Statistics of inputs, targets, edge features and masses of one (training) split. The
+    ``contact`` group is the contact fraction (contact scenes), the true pair force magnitude
+    (force scenes) or zeros (imported data: the law is unknown)."""
     meta = scene.meta
     positions = arrays["positions"]  # (S, T, N, D)
     d = meta.dim
@@ -76,6 +78,8 @@ def compute_stats(scene: Scene, arrays: dict[str, np.ndarray], dt: float,
                 here = c[(c[:, 0] == s) & (c[:, 1] == t)]
                 contact.append(np.isin(pair_codes(snd, rcv, n),
                                        pair_codes(here[:, 2], here[:, 3], n)).astype(float))
+            elif meta.interaction == "unknown":  # imported data: no law, no force target
+                contact.append(np.zeros(len(snd)))
             else:
                 contact.append(scene.pair_force_magnitude(x, arrays["masses"][s], snd, rcv))
     stats["rel_position"] = summarize(np.concatenate(rel_pos))

@@ -208,7 +208,9 @@ class BGN(PhysicsModel):
                                    # on contact scenes the impulse head's gate is the
                                    # contact head when dynamics=newton
                                    contact=cfg.contact and not (
-                                       self.contact_scene and cfg.dynamics == "newton"),
+                                       self.contact_scene and cfg.dynamics == "newton")
+                                   # imported data: no pair force law, nothing to learn
+                                   and meta.interaction != "unknown",
                                    contact_mode=cfg.contact_mode,
                                    contact_edge_term=(history if cfg.contact_edge_term
                                                       else None),

@@ -138,7 +138,9 @@ def shoot(accel: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, back: 
 
 def check_scene(meta: SceneMeta, history: int, option: str) -> None:
     """One clear error when a scene or window cannot carry the structured force head."""
-    if meta.interaction != "pairwise" or meta.target != "acceleration" or meta.graph != "full":
+    # "unknown": imported data, whose law the head is a candidate for (DESIGN section 11)
+    if meta.interaction not in ("pairwise", "unknown") or meta.target != "acceleration" \
+            or meta.graph != "full":
         raise ValueError(f"{option} needs pairwise forces on a complete graph with an "
                          f"acceleration target; {meta.name} is {meta.interaction}, "
                          f"{meta.graph} graph, {meta.target} target: use model=bgn with "

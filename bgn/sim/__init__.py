@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from bgn.sim.collisions import CollisionScene
+from bgn.sim.imported import ImportedScene
 from bgn.sim.nbody import NBodyScene
 from bgn.sim.scene import Scene, SceneMeta, State, Trajectory
 
@@ -14,10 +15,12 @@ SCENES: dict[str, tuple[type, dict[str, Any]]] = {
     "spring": (NBodyScene, {"potential": "spring"}),
     "gravity_r1": (NBodyScene, {"potential": "r1"}),
     "gravity_r2": (NBodyScene, {"potential": "r2"}),
+    # trajectories from outside bgn (bgn.data.importing): no simulator, fields from the files
+    "imported": (ImportedScene, {}),
 }
 
 
-def make_scene(name: str, **params: Any) -> Scene:
+def make_scene(name: str, /, **params: Any) -> Scene:
     """Build scene ``name`` from config values; unknown names or parameters are errors."""
     if name not in SCENES:
         raise ValueError(f"unknown scene {name!r}; choose one of {sorted(SCENES)}")
@@ -29,4 +32,4 @@ def make_scene(name: str, **params: Any) -> Scene:
 
 
 __all__ = ["SCENES", "Scene", "SceneMeta", "State", "Trajectory", "make_scene", "CollisionScene",
-           "NBodyScene"]
+           "ImportedScene", "NBodyScene"]

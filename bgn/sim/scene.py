@@ -11,7 +11,8 @@ from typing import Literal, Protocol
 
 import numpy as np
 
-Interaction = Literal["contact", "pairwise"]
+# "unknown": imported data (bgn.sim.imported), whose pair forces bgn does not know
+Interaction = Literal["contact", "pairwise", "unknown"]
 TargetKind = Literal["velocity", "acceleration"]
 GraphKind = Literal["full", "radius"]
 

@@ -1,0 +1,131 @@
+"""The engine examples (examples/engines): each script at a tiny size writes the layout bgn's
+importer reads, with finite values, and the engine's energy where it conserves one. Each test
+skips when its engine is not installed (pip install -e ".[engines]")."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+ENGINES = Path(__file__).resolve().parents[1] / "examples" / "engines"
+
+
+def run(script: str, out: Path, *args: str) -> subprocess.CompletedProcess:
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    return subprocess.run([sys.executable, str(ENGINES / script), "--out", str(out), *args],
+                          capture_output=True, text=True, env=env, timeout=300)
+
+
+@pytest.fixture
+def engine_energy(monkeypatch):
+    monkeypatch.syspath_prepend(str(ENGINES))
+    import engine_energy
+
+    return engine_energy
+
+
+def check_split(split: np.ndarray, n: int) -> None:
+    assert split.shape == (n,)
+    assert set(split.tolist()) == {"train", "val", "test"}
+
+
+def test_rebound_nbody_plain_arrays(tmp_path, engine_energy):
+    pytest.importorskip("rebound")
+    out = tmp_path / "nbody"
+    res = run("rebound_nbody.py", out, "--sims", "4", "--frames", "30", "--bodies", "3")
+    assert res.returncode == 0, res.stderr
+    with np.load(out / "nbody.npz") as f:
+        assert set(f.files) == {"positions", "velocities", "masses", "dt", "split"}
+        pos, vel, masses, dt = f["positions"], f["velocities"], f["masses"], float(f["dt"])
+        check_split(f["split"], 4)
+    assert pos.shape == vel.shape == (4, 30, 3, 3) and masses.shape == (4, 3)
+    assert np.isfinite(pos).all() and np.isfinite(vel).all() and (masses > 0).all() and dt > 0
+    # the stored velocities are the positions' time derivative
+    fd = np.stack([engine_energy.frame_velocities(p, dt) for p in pos])
+    np.testing.assert_allclose(fd[:, 2:-2], vel[:, 2:-2], atol=1e-4 * np.abs(vel).max())
+    with np.load(out / "energy.npz") as e:
+        energy, momentum = e["energy"], e["momentum"]
+    assert energy.shape == (4, 30) and momentum.shape == (4, 30, 3)
+    # IAS15 conserves the softened energy to round-off; the helper rebuilds the same number
+    np.testing.assert_allclose(energy, energy[:, :1].repeat(30, 1), rtol=1e-9)
+    again = engine_energy.rebound_energy(pos[0], vel[0], masses[0], 1.0, 0.1)["energy"]
+    np.testing.assert_allclose(again, energy[0], rtol=1e-12)
+    rec = json.loads((out / "engine.json").read_text())
+    assert rec["engine"] == "rebound" and rec["params"]["softening"] == 0.1
+
+
+def test_an_existing_output_is_kept_and_nothing_half_written(tmp_path):
+    pytest.importorskip("rebound")
+    out = tmp_path / "nbody"
+    out.mkdir()
+    (out / "mine.txt").write_text("keep")
+    res = run("rebound_nbody.py", out, "--sims", "3", "--frames", "5")
+    assert res.returncode != 0 and "--overwrite" in res.stderr
+    assert [p.name for p in tmp_path.iterdir()] == ["nbody"]
+    assert [p.name for p in out.iterdir()] == ["mine.txt"]
+
+
+def test_ase_morse_gas_lagrangebench_layout(tmp_path, engine_energy):
+    pytest.importorskip("ase")
+    out = tmp_path / "gas"
+    res = run("ase_morse_gas.py", out, "--sims", "3", "--frames", "12", "--atoms", "16",
+              "--burn-in", "10")
+    assert res.returncode == 0, res.stderr
+    meta = json.loads((out / "metadata.json").read_text())
+    box = np.asarray(meta["bounds"])[:, 1]
+    assert meta["periodic_boundary_conditions"] == [True, True] and meta["dim"] == 2
+    assert meta["dt"] > 0 and meta["write_every"] >= 1 and meta["num_particles_max"] == 16
+    assert meta["default_connectivity_radius"] < box.min() / 2
+    for key in ("vel_mean", "vel_std", "acc_mean", "acc_std"):
+        assert len(meta[key]) == 2 and np.isfinite(meta[key]).all()
+    positions = {}
+    for stem in ("train", "valid", "test"):
+        with h5py.File(out / f"{stem}.h5", "r") as f:
+            assert sorted(f) == [str(j).zfill(5) for j in range(len(f))] and len(f) >= 1
+            for g in f.values():
+                assert g["position"].shape == (12, 16, 2) and g["particle_type"].shape == (16,)
+                p = g["position"][()]
+                assert np.isfinite(p).all() and (p >= 0).all() and (p <= box).all()  # wrapped
+            positions[stem] = np.stack([g["position"][()] for g in f.values()])
+    with np.load(out / "energy.npz") as e:
+        check_split(e["split"], 3)
+        energy, index = e["energy"], e["index"]
+        test_energy = energy[e["split"] == "test"][np.argsort(index[e["split"] == "test"])]
+    # velocity Verlet keeps the energy up to a small fluctuation
+    assert np.abs(energy - energy[:, :1]).max() < 0.02 * np.abs(energy).min()
+    # the helper gives the engine's energy back from positions alone, inside the stencil
+    again = engine_energy.dataset_energy(out, positions["test"], None, "test")
+    for e_again, e_true in zip(again, test_energy):
+        np.testing.assert_allclose(e_again["energy"][2:-2], e_true[2:-2], rtol=0.02)
+
+
+def test_pymunk_granular_gns_layout(tmp_path):
+    pytest.importorskip("pymunk")
+    out = tmp_path / "granular"
+    res = run("pymunk_granular.py", out, "--sims", "3", "--frames", "20", "--discs", "10")
+    assert res.returncode == 0, res.stderr
+    meta = json.loads((out / "metadata.json").read_text())
+    assert meta["dim"] == 2 and meta["dt"] > 0 and meta["sequence_length"] == 19
+    train = []
+    for stem in ("train", "valid", "test"):
+        with np.load(out / f"{stem}.npz", allow_pickle=True) as f:
+            assert f.files == [f"simulation_trajectory_{j}" for j in range(len(f.files))]
+            for key in f.files:
+                positions, types = f[key]
+                assert positions.shape == (20, 10, 2) and positions.dtype == np.float32
+                assert types.shape == (10,) and set(types.tolist()) == {0, 1}
+                assert np.isfinite(positions).all()
+                assert (positions > -0.01).all() and (positions < 1.01).all()  # in the box
+                if stem == "train":
+                    train.append(positions.astype(np.float64))
+    vel = np.concatenate([np.diff(p, axis=0).reshape(-1, 2) for p in train])
+    np.testing.assert_allclose(meta["vel_std"], vel.std(0), rtol=1e-6)  # from the train split
+    with np.load(out / "energy.npz") as e:
+        check_split(e["split"], 3)
+        energy = e["energy"]
+    assert np.isfinite(energy).all() and (energy[:, -1] < energy[:, 0]).all()  # dissipative

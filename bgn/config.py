@@ -112,6 +112,16 @@ def dataset_schema(scene: str) -> type:
 
 # ----------------------------------------------------------------------------- top level
 @dataclass
+class AutoKeys:
+    """``auto``: how ``model.dynamics=auto`` (``bgn.auto``) spends the budget and scores."""
+
+    share: float = 0.5                # of the budget, split evenly among the candidates
+    horizon: int = 50                 # rollout steps the choice is made at (capped by the files)
+    val_sims: int | None = None       # validation simulations rolled out (null: all)
+    references: list[str] = field(default_factory=lambda: ["gns", "cranmer_gn"])  # not chosen
+
+
+@dataclass
 class TrainKeys:
     """Top-level keys of ``conf/train.yaml`` (``TrainNode`` adds its groups' slots)."""
 
@@ -126,6 +136,7 @@ class TrainKeys:
     test: bool = True
     test_rollouts: bool = True        # the test phase's rollouts (bgn.evaluate.test_rollouts)
     ckpt_path: str | None = None      # resume from this checkpoint
+    auto: AutoKeys = field(default_factory=AutoKeys)  # model.dynamics=auto (bgn.auto)
 
 
 @dataclass

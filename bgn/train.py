@@ -188,7 +188,12 @@ def train(cfg: DictConfig) -> dict[str, float]:
 @cli("train", validate_train)  # Hydra app; bad input: one line, exit 2 (bgn.validate)
 def main(cfg: DictConfig) -> float:
     try:
-        metrics = train(cfg)
+        if cfg.model.get("dynamics") == "auto":  # the structure chosen by evidence
+            from bgn.auto import run_auto
+
+            metrics = run_auto(cfg)
+        else:
+            metrics = train(cfg)
     except CheckpointError as err:  # one line, no traceback
         raise SystemExit(f"bgn.train: {err}") from None
     return metrics.get("val/nmse", float("nan"))  # the objective a sweeper would minimise

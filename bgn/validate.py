@@ -234,6 +234,8 @@ def validate_model(model: Any, scene: Scene, history: int) -> None:
     if name not in MODELS:
         raise ConfigError("model", name, f"choose one of {sorted(MODELS)}")
     params = {str(k): v for k, v in (model.items() if hasattr(model, "items") else {})}
+    if params.get("dynamics") == "auto":  # bgn.auto composes and checks each candidate; the
+        params["dynamics"] = "decoder"    # rest of the options are checked with the decoder
     try:
         cfg = config_from_params(MODELS[name].config_class, params, name)
     except (TypeError, ValueError) as err:  # messages start with the option: "hidden=0 ..."
@@ -268,6 +270,23 @@ def validate_optimization(optimizer: Any, scheduler: Any) -> None:
                        strict_low=False)
 
 
+def validate_auto(auto: Any) -> None:
+    """The ``auto`` keys of ``model.dynamics=auto`` (``bgn.auto``)."""
+    from bgn.model.registry import MODELS
+
+    if auto is None:
+        return
+    need_float(_get(auto, "share", 0.5), "auto.share", 0.0, 1.0, strict_high=True,
+               why=" (the budget's share spent on the candidates)")
+    need_int(_get(auto, "horizon", 50), "auto.horizon", 1, why=" (rollout steps)")
+    need_int(_get(auto, "val_sims"), "auto.val_sims", 1, optional=True,
+             why=" (validation simulations; null: all)")
+    for name in _get(auto, "references") or ():
+        if name not in MODELS or name == "bgn":
+            raise ConfigError("auto.references", name,
+                              f"model names among {sorted(set(MODELS) - {'bgn'})}")
+
+
 # ----------------------------------------------------------------------------- entry configs
 def validate_train(cfg: Any) -> DatasetSpec:
     """Everything ``bgn.train`` is given, before data or a model are made."""
@@ -284,6 +303,8 @@ def validate_train(cfg: Any) -> DatasetSpec:
     assert history is not None
     if _get(cfg, "model") is not None:
         validate_model(_get(cfg, "model"), spec.build_scene(), history)
+        if _get(_get(cfg, "model"), "dynamics") == "auto":
+            validate_auto(_get(cfg, "auto"))
     validate_optimization(_get(cfg, "optimizer"), _get(cfg, "scheduler"))
     return spec
 

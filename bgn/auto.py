@@ -1,0 +1,614 @@
+"""The structure chosen by evidence: ``python -m bgn.train model.dynamics=auto ...``.
+
+Model only what a scene needs (DESIGN section 1), found from the data where nobody wrote the
+answer down (DESIGN section 11). Every structure BGN has that the data admit is trained for a
+share of the budget (``auto.share`` of each of ``trainer.max_time``, ``max_steps`` and
+``max_epochs``, split evenly), each in ``<run>/auto/<candidate>/``:
+
+- the paper's decoder (Eq. 5): always; it writes no physics in, so it can express any;
+- the pair-force head (``bgn.model.newton``) with each way masses can enter (``mass_law``
+  inertial and source), where the scene has pairwise (or unknown) forces on a complete graph,
+  an acceleration target and a window of at least 3 velocities (``newton.check_scene``);
+- the contact-impulse head (``bgn.model.impulse``) on contact scenes whose discs have radii;
+- the baselines (``auto.references``: GNS, Cranmer et al.'s GN) as references: trained and
+  reported on the same protocol, never chosen.
+
+Each is composed from the real configs (``bgn.experiments.compose_train``: a scene's
+``conf/dataset_model/`` defaults apply) with the run's own overrides, then scored on the
+VALIDATION split (never the test split): every validation simulation (or ``auto.val_sims``
+of them, evenly spread) rolled out from the same start frame (``bgn.rollout.rollout_starts``),
+the mean position error after ``auto.horizon`` steps over all rollouts, a failed rollout
+counted at the cap from its failure on (``bgn.metrics.capped_step_errors``). The eligible
+candidate with the lowest error wins (ties: the error after 10 steps, then the order above,
+which puts the decoder first); it resumes from its ``last.ckpt`` for the rest of the budget and
+is tested as ``bgn.train`` tests. ``<run>/auto/report.md`` (with ``auto.csv``, ``auto.json``
+and figures) shows the evidence: the candidates' validation errors, the learned pair laws
+against distance and the fitted masses against the recorded ones.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import logging
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from datetime import timedelta
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from bgn.checkpoints import write_atomic
+from bgn.sim.scene import SceneMeta
+
+log = logging.getLogger("bgn.auto")
+
+SHORT_HORIZON = 10       # the error reported beside auto.horizon's
+MASS_FRAMES = 64         # validation frames the fitted masses are read from
+LAW_POINTS = 200         # distances the learned pair law is sampled at
+BUDGET_KEYS = ("max_time", "max_steps", "max_epochs")
+# overrides of the run that each candidate sets itself
+OWN_KEYS = ("model", "model.dynamics", "model.mass_law", "paths.output_dir", "ckpt_path", "test")
+REFERENCE_LABELS = {
+    "gns": "GNS (Sanchez-Gonzalez et al. 2020): encode-process-decode, no physics written in",
+    "cranmer_gn": "Cranmer et al. 2020 graph network: edge messages summed, no physics "
+                  "written in",
+}
+
+
+# ----------------------------------------------------------------------------- candidates
+@dataclass
+class Candidate:
+    """One structure: its overrides of the run's train config, whether the data admit it
+    (``reason`` if not) and whether it may win (references may not)."""
+
+    name: str
+    label: str                        # what it is given and what physics it writes in
+    overrides: list[str]
+    admitted: bool = True
+    reason: str = ""
+    eligible: bool = True
+    pair_force: bool = False          # carries the pair-force head (law and mass figures)
+
+
+def candidates(meta: SceneMeta, history: int, radii_given: bool,
+               references: Sequence[str] = ("gns", "cranmer_gn")) -> list[Candidate]:
+    """Every structure BGN has, each admitted or not (with the reason) by the scene's
+    metadata, the window (``history`` past velocities) and whether the discs' radii are
+    given; then the references."""
+    from bgn.model.newton import check_scene
+
+    out = [Candidate("decoder", "BGN + the paper's decoder (Eq. 5): the window in, the "
+                     "target out, no physics written in", ["model.dynamics=decoder"])]
+    for law, physics in (("inertial", "inertial masses, a_i = sum_j f(s_ij) u_ij / m_i "
+                                      "(spring-like)"),
+                         ("source", "masses at the source, a_i = sum_j m_j f(s_ij) u_ij "
+                                    "(gravity-like)")):
+        cand = Candidate(f"newton_{law}", "BGN + pair-force head (central, equal and opposite "
+                         f"forces f(s) learned, masses fitted to the window), {physics}",
+                         ["model.dynamics=newton", f"model.mass_law={law}"], pair_force=True)
+        if meta.interaction == "contact":
+            cand.admitted, cand.reason = False, "a contact scene: impulses, not forces"
+        else:
+            try:
+                check_scene(meta, history, "the pair-force head")
+            except ValueError as err:
+                cand.admitted, cand.reason = False, str(err).split(": use model=")[0]
+        out.append(cand)
+    impulse = Candidate("impulse", "BGN + contact-impulse head (equal and opposite impulses "
+                        "along the normal at the time of impact, masses learned from radii)",
+                        ["model.dynamics=newton"])
+    if meta.interaction != "contact":
+        impulse.admitted, impulse.reason = False, (f"{meta.interaction} interactions, not "
+                                                   "contacts")
+    elif meta.target != "velocity":
+        impulse.admitted, impulse.reason = False, "needs a next-velocity target"
+    elif not radii_given:
+        impulse.admitted, impulse.reason = False, "the discs' radii are not given"
+    elif meta.box is None:
+        impulse.admitted, impulse.reason = False, "needs the walls of a box"
+    out.append(impulse)
+    for name in references:
+        out.append(Candidate(name, REFERENCE_LABELS.get(name, name) + " (reference)",
+                             [f"model={name}"], eligible=False))
+    return out
+
+
+def radii_given(dataset: Any) -> bool:
+    """Whether every particle of the training file has a positive finite radius (imported
+    data without radii carry zeros)."""
+    radii = np.asarray(dataset.file.read("radii", ...), dtype=float)
+    return bool(radii.size and np.all(np.isfinite(radii)) and np.all(radii > 0))
+
+
+def masses_known(dataset: Any) -> bool:
+    """Whether the file's masses are recorded ones (imported data may have none: ones)."""
+    return bool(dataset.file.handle.attrs.get("masses_known", True))
+
+
+# ----------------------------------------------------------------------------- budget
+def seconds(max_time: Any) -> float | None:
+    """Lightning's ``max_time`` (``"DD:HH:MM:SS"``, a dict of timedelta fields, a timedelta
+    or None) in seconds."""
+    if max_time is None:
+        return None
+    if isinstance(max_time, timedelta):
+        return max_time.total_seconds()
+    if isinstance(max_time, Mapping):
+        return timedelta(**{str(k): float(v) for k, v in max_time.items()}).total_seconds()
+    days, hours, minutes, secs = (float(p) for p in str(max_time).split(":"))
+    return timedelta(days=days, hours=hours, minutes=minutes, seconds=secs).total_seconds()
+
+
+def clock(total: float) -> str:
+    """Whole seconds as Lightning's ``"DD:HH:MM:SS"``."""
+    s = int(total)
+    return f"{s // 86400:02d}:{s // 3600 % 24:02d}:{s // 60 % 60:02d}:{s % 60:02d}"
+
+
+def split_budget(trainer: Mapping[str, Any], share: float, n: int,
+                 ) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The trainer limits of each of ``n`` candidates (``share`` of each limit set, split
+    evenly) and the winner's after it resumes (its own share plus what the candidates left:
+    Lightning counts steps, epochs and, through its Timer, training time from the start)."""
+    limits = {}
+    if (t := seconds(trainer.get("max_time"))) is not None:
+        limits["max_time"] = t
+    for key in ("max_steps", "max_epochs"):
+        if trainer.get(key) is not None and int(trainer.get(key)) > 0:
+            limits[key] = int(trainer.get(key))
+    if "max_time" not in limits and "max_steps" not in limits:
+        raise ValueError("model.dynamics=auto splits the training budget: set trainer.max_time "
+                         "or trainer.max_steps")
+    each, winner = {}, {}
+    for key, total in limits.items():
+        part = max(1, math.floor(share * total / n))
+        each[key], winner[key] = part, part + max(0, total - n * part)
+    if "max_time" in limits:
+        each["max_time"], winner["max_time"] = clock(each["max_time"]), clock(winner["max_time"])
+    return each, winner
+
+
+# ----------------------------------------------------------------------------- scores
+@dataclass
+class Result:
+    """A candidate's validation evidence: the capped error after each horizon, the share of
+    failed rollouts, the mean capped error per step (``curve``), steps and wall time of its
+    training; ``error``: why it could not be trained or scored."""
+
+    candidate: Candidate
+    errors: dict[int, float] = field(default_factory=dict)
+    failed_share: float = float("nan")
+    curve: list[float] = field(default_factory=list)
+    steps: int = 0
+    wall_s: float = float("nan")
+    error: str = ""
+    law: dict[str, Any] | None = None
+    masses: dict[str, Any] | None = None
+
+    def score(self, horizon: int) -> float:
+        value = self.errors.get(horizon, float("nan"))
+        return value if math.isfinite(value) else float("inf")
+
+
+def rollout_scores(predicted: np.ndarray, true: np.ndarray, first_non_finite: np.ndarray,
+                   box: float | None, horizons: Sequence[int],
+                   ) -> tuple[dict[int, float], float, np.ndarray]:
+    """Errors after each horizon (the mean over R rollouts (R, T+2, N, D) of the capped
+    position error, ``bgn.metrics.capped_step_errors``, a failed rollout at the cap from the
+    step it failed), the share of rollouts that failed, and the mean error per step (T,)."""
+    from bgn.metrics import ESCAPE_FACTOR, capped_step_errors, rollout_failures, scene_scale
+
+    errors = capped_step_errors(predicted, true, box)
+    cap = ESCAPE_FACTOR * scene_scale(true, box)[1]
+    failed = rollout_failures(predicted, true, box, first_non_finite)
+    for r, step in enumerate(failed):
+        if step >= 1:
+            errors[r, step - 1:] = cap[r]
+    n_steps = errors.shape[1]
+    scores = {int(h): float(errors[:, h - 1].mean()) for h in horizons if 1 <= h <= n_steps}
+    return scores, float(np.mean(failed >= 0)), errors.mean(axis=0)
+
+
+def choose(results: Sequence[Result], horizon: int) -> tuple[Result, float]:
+    """The eligible, admitted candidate with the lowest error after ``horizon`` steps (ties:
+    the lower error after ``SHORT_HORIZON`` steps, then the order of ``results``), and the
+    margin: the runner-up's error over the winner's (nan without a runner-up)."""
+    pool = [(r.score(horizon), r.score(SHORT_HORIZON), i, r) for i, r in enumerate(results)
+            if r.candidate.eligible and r.candidate.admitted and not r.error]
+    if not pool:
+        raise ValueError("no candidate could be trained and scored; see the errors in the log")
+    pool.sort(key=lambda item: item[:3])
+    best = pool[0]
+    if len(pool) == 1:
+        return best[3], float("nan")
+    runner = pool[1][0]
+    margin = runner / best[0] if best[0] > 0 else (1.0 if runner == 0 else float("inf"))
+    return best[3], margin
+
+
+# ----------------------------------------------------------------------------- evidence
+def distance_range(dataset: Any, sims: int = 10, frames: int = 50) -> tuple[float, float]:
+    """The smallest and largest pair distance in ``frames`` evenly spaced frames of ``sims``
+    evenly spaced simulations of ``dataset`` (the training split)."""
+    from bgn.data.frames import evenly_spaced
+
+    lo, hi = math.inf, 0.0
+    for s in evenly_spaced(dataset.file.n_sims, sims):
+        for t in evenly_spaced(dataset.file.n_frames, frames):
+            x = dataset.file.read("positions", (s, t))
+            d = np.linalg.norm(x[:, None] - x[None], axis=-1)[~np.eye(len(x), dtype=bool)]
+            if d.size:
+                lo, hi = min(lo, float(d.min())), max(hi, float(d.max()))
+    return lo, hi
+
+
+def pair_law(head: Any, distances: np.ndarray, types: tuple[int, int] = (0, 0)) -> np.ndarray:
+    """The learned pair law ``f(s)`` of a pair-force head at ``distances`` (physical units)
+    between particles of ``types``: the force on one particle along the unit vector from the
+    other (> 0 repulsive), in the head's own scale (the window's mass fit absorbs it). The law
+    reads distances only, so the pair is laid out on a line."""
+    import torch
+
+    dtype = next(head.parameters()).dtype
+    positions = torch.zeros(2, len(distances), 1, dtype=dtype)   # (particle, "frame", D)
+    positions[1, :, 0] = torch.as_tensor(distances, dtype=dtype)
+    g = SimpleNamespace(edge_index=torch.tensor([[0], [1]]), types=torch.tensor(types))
+    with torch.no_grad():
+        return head.pair_terms(g, positions)[0, :, 0].double().numpy()
+
+
+def fitted_masses(head: Any, dataset: Any, frames: int = MASS_FRAMES, batch_size: int = 16,
+                  ) -> dict[str, Any]:
+    """The pair-force head's least-squares masses on ``frames`` evenly spaced windows of
+    ``dataset`` (the validation split) against the recorded ones: per particle and window the
+    fitted and true log-masses, and the R^2 of the relative log-masses ``log m_i - log m_j`` on
+    the windows' edges (the fit's scale is free). Also the median fit, whose sign orients the
+    law (a law and fit of the opposite sign make the same accelerations)."""
+    import torch
+
+    from bgn.data.frames import evenly_spaced
+    from bgn.evaluate import batches
+    from bgn.metrics import r2_score
+
+    fitted, true, rel_fit, rel_true, fits = [], [], [], [], []
+    with torch.no_grad():
+        for g in batches(dataset, evenly_spaced(len(dataset), frames), batch_size):
+            fit, _ = head.least_squares(g, head.window(g)[1])
+            log_fit = head.fitted_log_mass(g, fit).double()
+            log_true = torch.log(g.mass.double())
+            snd, rcv = g.edge_index
+            fitted.append(log_fit.numpy())
+            true.append(log_true.numpy())
+            rel_fit.append((log_fit[rcv] - log_fit[snd]).numpy())
+            rel_true.append((log_true[rcv] - log_true[snd]).numpy())
+            fits.append(fit.double().numpy())
+    fitted_a, true_a = np.concatenate(fitted), np.concatenate(true)
+    return {"fitted_log": fitted_a, "true_log": true_a,
+            "relative_r2": r2_score(np.concatenate(rel_fit), np.concatenate(rel_true)),
+            "median_fit": float(np.median(np.concatenate(fits)))}
+
+
+# ----------------------------------------------------------------------------- figures
+def _plt() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _log_axes(ax: Any, x: bool = True, y: bool = False) -> None:
+    """Log scales without minor tick labels (they overlap over a short range)."""
+    from matplotlib.ticker import NullFormatter
+
+    for on, axis, scale in ((x, ax.xaxis, ax.set_xscale), (y, ax.yaxis, ax.set_yscale)):
+        if on:
+            scale("log")
+            axis.set_minor_formatter(NullFormatter())
+
+
+def error_figure(results: Sequence[Result], path: Path) -> Path:
+    """The candidates' mean capped validation error against rollout steps."""
+    from bgn.figures import save
+
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for r in results:
+        if r.curve:
+            ax.plot(np.arange(1, len(r.curve) + 1), r.curve, label=r.candidate.name,
+                    ls="-" if r.candidate.eligible else "--")
+    ax.set_yscale("log")
+    ax.set_xlabel("rollout step")
+    ax.set_ylabel("mean position error (validation, capped)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return save(fig, path)
+
+
+def law_figure(results: Sequence[Result], path: Path) -> Path:
+    """The pair-force candidates' learned laws against distance, each scaled to a largest
+    magnitude of 1 and oriented by its fitted masses (scale and sign are the fit's)."""
+    from bgn.figures import save
+
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for r in results:
+        if not r.law:
+            continue
+        for pair, values in r.law["f"].items():
+            f = np.asarray(values)
+            f = f / max(np.abs(f).max(), 1e-30) * r.law["sign"]
+            label = r.candidate.name + ("" if len(r.law["f"]) == 1 else f" types {pair}")
+            ax.plot(r.law["s"], f, label=label)
+    ax.axhline(0, color="0.6", lw=0.8)
+    _log_axes(ax)
+    ax.set_xlabel("distance s (training split's range)")
+    ax.set_ylabel("learned f(s) / max |f|   (> 0 repulsive)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return save(fig, path)
+
+
+def mass_figure(result: Result, path: Path) -> Path:
+    """Fitted against recorded masses (log-log), the fit shifted by its mean log offset."""
+    from bgn.figures import save
+
+    plt = _plt()
+    m = result.masses or {}
+    true, fitted = np.asarray(m["true_log"]), np.asarray(m["fitted_log"])
+    fitted = fitted + np.mean(true - fitted)          # the fit's free scale
+    fig, ax = plt.subplots(figsize=(4.5, 4.5))
+    ax.scatter(np.exp(true), np.exp(fitted), s=6, alpha=0.4)
+    lo, hi = np.exp(min(true.min(), fitted.min())), np.exp(max(true.max(), fitted.max()))
+    ax.plot([lo, hi], [lo, hi], color="0.4", lw=0.8)
+    _log_axes(ax, y=True)
+    ax.set_xlabel("recorded mass")
+    ax.set_ylabel("fitted mass (scaled)")
+    ax.set_title(f"{result.candidate.name}: relative log-mass R^2 = {m['relative_r2']:.3f}",
+                 fontsize=9)
+    fig.tight_layout()
+    return save(fig, path)
+
+
+# ----------------------------------------------------------------------------- report
+def _fmt(value: float) -> str:
+    return "-" if value is None or (isinstance(value, float) and math.isnan(value)) \
+        else f"{value:.3g}"
+
+
+def write_report(auto_dir: Path, results: Sequence[Result], winner: Result, margin: float,
+                 protocol: dict[str, Any]) -> Path:
+    """``report.md``, ``auto.csv``, ``auto.json`` and the figures in ``auto_dir``."""
+    horizons = protocol["horizons"]
+    figures = auto_dir / "figures"
+    paths = {"errors": error_figure(results, figures / "validation_error.png")}
+    if any(r.law for r in results):
+        paths["law"] = law_figure(results, figures / "pair_law.png")
+    for r in results:
+        if r.masses and protocol["masses_known"]:
+            paths[f"masses_{r.candidate.name}"] = mass_figure(
+                r, figures / f"masses_{r.candidate.name}.png")
+    rows = []
+    for r in results:
+        c = r.candidate
+        rows.append({"candidate": c.name, "label": c.label, "admitted": c.admitted,
+                     "reason": c.reason, "eligible": c.eligible,
+                     **{f"val_err@{h}": r.errors.get(h, float("nan")) for h in horizons},
+                     "failed_share": r.failed_share, "steps": r.steps, "wall_s": r.wall_s,
+                     "mass_relative_r2": (r.masses or {}).get("relative_r2", float("nan")),
+                     "chosen": c.name == winner.candidate.name, "error": r.error})
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=list(rows[0]))
+    writer.writeheader()
+    writer.writerows(rows)
+    write_atomic(auto_dir / "auto.csv", buffer.getvalue())
+    record = {"choice": winner.candidate.name, "margin": margin, "protocol": protocol,
+              "candidates": [{**row, "overrides": r.candidate.overrides,
+                              "law": r.law, "curve": r.curve}
+                             for row, r in zip(rows, results)],
+              "figures": {k: str(v.relative_to(auto_dir)) for k, v in paths.items()}}
+    write_atomic(auto_dir / "auto.json", json.dumps(record, indent=2, default=float))
+    h = protocol["horizon"]
+    lines = ["# model.dynamics=auto: the structure chosen by evidence", "",
+             f"Validation split ({protocol['rollouts']} rollouts: simulations "
+             f"{protocol['sims']} from frame(s) {protocol['starts']}), mean position error "
+             f"after each horizon, a failed rollout counted at the cap "
+             f"(bgn.metrics.capped_step_errors). Each candidate trained for "
+             f"{protocol['budget_each']}; the winner then resumed to {protocol['budget_winner']}.",
+             "", "| candidate | what it is given, what it writes in | admitted | may win | "
+             + " | ".join(f"val err @{k}" for k in horizons)
+             + " | failed | steps | wall s | rel. mass R^2 |",
+             "|---|---|---|---|" + "---|" * len(horizons) + "---|---|---|---|"]
+    for row in rows:
+        name = f"**{row['candidate']}**" if row["chosen"] else row["candidate"]
+        admitted = "yes" if row["admitted"] else f"no: {row['reason']}"
+        lines.append(f"| {name} | {row['label']} | {admitted} | "
+                     f"{'yes' if row['eligible'] else 'reference'} | "
+                     + " | ".join(_fmt(row[f"val_err@{k}"]) for k in horizons)
+                     + f" | {_fmt(row['failed_share'])} | {row['steps']} | "
+                     f"{_fmt(row['wall_s'])} | {_fmt(row['mass_relative_r2'])} |")
+    lines += ["", f"Chosen: **{winner.candidate.name}** ({winner.candidate.label}), error "
+              f"{_fmt(winner.errors.get(h))} after {h} steps; the runner-up's is "
+              f"{_fmt(margin)} times that." if math.isfinite(margin) else
+              f"Chosen: **{winner.candidate.name}**, the one eligible candidate.", ""]
+    failures = [r for r in results if r.error]
+    for r in failures:
+        lines.append(f"- {r.candidate.name} could not be trained or scored: {r.error}")
+    lines += ["", f"![validation error]({paths['errors'].relative_to(auto_dir)})"]
+    if "law" in paths:
+        lines += ["", "Learned pair laws f(s) over the training split's distances (scale and "
+                  "sign are free: the window's mass fit absorbs them; each curve is scaled to "
+                  "a largest magnitude of 1 and oriented by its fitted masses):", "",
+                  f"![pair law]({paths['law'].relative_to(auto_dir)})"]
+    for key, path in paths.items():
+        if key.startswith("masses_"):
+            lines += ["", f"![{key}]({path.relative_to(auto_dir)})"]
+    if not protocol["masses_known"]:
+        lines += ["", "The file records no masses: the fitted masses are not scored."]
+    report = auto_dir / "report.md"
+    write_atomic(report, "\n".join(lines) + "\n")
+    return report
+
+
+# ----------------------------------------------------------------------------- the run
+def run_overrides(overrides: Sequence[str] | None = None) -> list[str]:
+    """The run's own train overrides: ``overrides``, else Hydra's command line."""
+    if overrides is not None:
+        return list(overrides)
+    from hydra.core.hydra_config import HydraConfig
+
+    if HydraConfig.initialized():
+        return list(HydraConfig.get().overrides.task)
+    raise ValueError("model.dynamics=auto composes its candidates from the run's overrides: "
+                     "call run_auto(cfg, overrides) outside python -m bgn.train")
+
+
+def _key(override: str) -> str:
+    return override.lstrip("~+").split("=", 1)[0]
+
+
+def compose_candidate(base: Sequence[str], cand: Candidate, out_dir: Path,
+                      limits: Mapping[str, Any], test: bool = False) -> DictConfig:
+    """The train config of one candidate: conf/train.yaml with the run's overrides (less
+    those the candidate sets, and less its model options for a reference, which has other
+    ones), the candidate's, its directory and budget. A dynamics loss weighted 0 (a scene
+    that trains its pair-force head on the law alone) is weighted 1 for a candidate without
+    that head: it would otherwise learn nothing."""
+    from bgn.experiments import compose_train
+
+    reference = any(_key(o) == "model" for o in cand.overrides)
+    kept = [o for o in base if _key(o) not in OWN_KEYS
+            and not (reference and _key(o).startswith("model."))]
+    own = [*cand.overrides, f"paths.output_dir={out_dir}", f"test={str(test).lower()}"]
+    cfg = compose_train([*kept, *own])
+    weights = cfg.model.get("loss_weights") or {}
+    if not cand.pair_force and not reference and weights.get("dynamics", 1.0) == 0:
+        cand.overrides.append("model.loss_weights.dynamics=1.0")
+        cfg = compose_train([*kept, "model.loss_weights.dynamics=1.0", *own])
+    with open_dict(cfg):
+        for key, value in limits.items():
+            cfg.trainer[key] = value
+    return cfg
+
+
+def train_candidate(cand: Candidate, cfg: DictConfig) -> Result:
+    """Train one candidate (``bgn.train.train``) in its own directory."""
+    from bgn.checkpoints import read
+    from bgn.train import train
+
+    out_dir = Path(cfg.paths.output_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_atomic(out_dir / "train_config.yaml", OmegaConf.to_yaml(cfg, resolve=False))
+    result = Result(cand)
+    start = time.perf_counter()
+    metrics = train(cfg)
+    result.wall_s = float(metrics.get("wall_time_s", time.perf_counter() - start))
+    last = out_dir / "checkpoints" / "last.ckpt"
+    result.steps = int(read(last).get("global_step", 0)) if last.exists() else 0
+    return result
+
+
+def score_candidate(result: Result, out_dir: Path, val: Any, train_split: Any,
+                    sims: list[int], starts: list[int], n_steps: int,
+                    horizons: Sequence[int]) -> None:
+    """The validation evidence of a trained candidate (its best checkpoint): rollout errors,
+    and for a pair-force head its law over the training split's distances and its fitted
+    masses on validation windows."""
+    from bgn.evaluate import load_model
+    from bgn.experiments import best_checkpoint
+    from bgn.model.newton import PairForceHead
+    from bgn.rollout import rollout_many
+
+    module = load_model(best_checkpoint(out_dir))
+    t = rollout_many(module.model, val, sims, starts, n_steps)
+    errors, failed, curve = rollout_scores(t.predicted, t.true, t.first_non_finite,
+                                           val.meta.box, horizons)
+    result.errors, result.failed_share, result.curve = errors, failed, curve.tolist()
+    head = getattr(module.model, "force_head", None)
+    if isinstance(head, PairForceHead):
+        masses = fitted_masses(head, val)
+        result.masses = {k: (v.tolist() if isinstance(v, np.ndarray) else v)
+                         for k, v in masses.items()}
+        lo, hi = distance_range(train_split)
+        s = np.geomspace(max(lo, hi * 1e-4), hi, LAW_POINTS)
+        n = head.types
+        pairs = [(a, b) for a in range(n) for b in range(a, n)] if n > 1 else [(0, 0)]
+        result.law = {"s": s.tolist(), "sign": 1.0 if masses["median_fit"] >= 0 else -1.0,
+                      "f": {f"{a}-{b}": pair_law(head, s, (a, b)).tolist() for a, b in pairs}}
+
+
+def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[str, float]:
+    """``model.dynamics=auto``: train the candidates, choose on validation rollouts, train the
+    winner for the rest of the budget and test it (module doc). ``overrides``: the run's
+    train overrides (default: Hydra's command line). Returns the winner's final metrics; the
+    run directory gets ``metrics.json`` (the winner's, with the choice) and ``auto/``."""
+    from bgn.data.frames import evenly_spaced
+    from bgn.rollout import rollout_starts
+    from bgn.train import data_module, info, train
+
+    base = run_overrides(overrides)
+    run_dir = Path(cfg.paths.output_dir)
+    auto_dir = run_dir / "auto"
+    auto = cfg.get("auto") or {}
+    share = float(auto.get("share", 0.5))
+    datamodule = data_module(cfg)
+    datamodule.prepare_data()
+    datamodule.setup()
+    val, train_split = datamodule.datasets["val"], datamodule.datasets["train"]
+    pool = candidates(datamodule.meta, datamodule.history, radii_given(train_split),
+                      list(auto.get("references", ["gns", "cranmer_gn"]) or []))
+    admitted = [c for c in pool if c.admitted]
+    each, winner_limits = split_budget(cfg.trainer, share, len(admitted))
+    n_steps = min(int(auto.get("horizon", 50)), val.file.n_frames - datamodule.history - 2)
+    horizons = sorted({min(SHORT_HORIZON, n_steps), n_steps})
+    sims = evenly_spaced(val.file.n_sims, auto.get("val_sims"))
+    starts = rollout_starts(val, n_steps)
+    info("model.dynamics=auto: " + ", ".join(
+        c.name if c.admitted else f"{c.name} (not admitted: {c.reason})" for c in pool)
+        + f"; each trained for {each}")
+    results = []
+    for cand in pool:
+        result = Result(cand)
+        if cand.admitted:
+            out_dir = auto_dir / cand.name
+            try:
+                result = train_candidate(cand, compose_candidate(base, cand, out_dir, each))
+                score_candidate(result, out_dir, val, train_split, sims, starts, n_steps,
+                                horizons)
+            except Exception as err:  # one candidate's failure is evidence, not the end
+                log.exception("candidate %s failed", cand.name)
+                result.error = " ".join(f"{type(err).__name__}: {err}".split())[:300]
+            info(f"auto: {cand.name} " + ", ".join(
+                f"val error @{h} {v:.4g}" for h, v in result.errors.items()))
+        results.append(result)
+    winner, margin = choose(results, n_steps)
+    protocol = {"horizon": n_steps, "horizons": horizons, "sims": sims, "starts": starts,
+                "rollouts": len(sims) * len(starts), "share": share,
+                "budget_each": each, "budget_winner": winner_limits,
+                "masses_known": masses_known(val)}
+    report = write_report(auto_dir, results, winner, margin, protocol)
+    info(f"auto: chose {winner.candidate.name} (runner-up / winner at {n_steps} steps: "
+         f"{margin:.3g}); report: {report}")
+    out_dir = auto_dir / winner.candidate.name
+    final = compose_candidate(base, winner.candidate, out_dir, winner_limits,
+                              test=bool(cfg.test))
+    last = out_dir / "checkpoints" / "last.ckpt"
+    if last.exists():
+        final.ckpt_path = str(last)
+    metrics = train(final)
+    record = json.loads((out_dir / "metrics.json").read_text())
+    record["auto"] = {"choice": winner.candidate.name, "label": winner.candidate.label,
+                      "margin": margin, "report": str(report),
+                      "val_errors": {r.candidate.name: r.errors for r in results}}
+    record["overrides"] = dict(o.split("=", 1) for o in base if "=" in o)
+    write_atomic(run_dir / "metrics.json", json.dumps(record, indent=2, sort_keys=True,
+                                                      default=float))
+    return metrics

@@ -1,0 +1,239 @@
+"""model.dynamics=auto (bgn/auto.py): which structures a scene admits, how the budget is split,
+how candidates are scored and chosen, and (slow tier) that on a tiny spring scene it picks the
+structure the scene was made with."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import math
+import subprocess
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+
+from bgn.auto import (
+    Candidate,
+    Result,
+    candidates,
+    choose,
+    compose_candidate,
+    pair_law,
+    rollout_scores,
+    split_budget,
+)
+from bgn.metrics import ESCAPE_FACTOR, capped_rollout_error
+from bgn.model.bgn import ModelConfig
+from bgn.model.newton import PairForceHead, build_head
+from bgn.sim import make_scene
+from bgn.sim.scene import SceneMeta
+from bgn.validate import ConfigError, validate_train
+from tests.conftest import SMALL, compose_config
+from tests.test_train import CLI_ENV, command_line
+
+REFS = ("gns", "cranmer_gn")
+
+
+def admitted(meta: SceneMeta, history: int = 5, radii: bool = True) -> list[str]:
+    return [c.name for c in candidates(meta, history, radii, REFS) if c.admitted]
+
+
+# ----------------------------------------------------------------------------- candidates
+def test_candidates_of_the_built_in_scenes():
+    spring = make_scene("spring").meta
+    assert admitted(spring) == ["decoder", "newton_inertial", "newton_source", *REFS]
+    assert admitted(make_scene("gravity_r2").meta) == admitted(spring)
+    collisions = make_scene("collisions").meta
+    assert admitted(collisions) == ["decoder", "impulse", *REFS]
+    pool = candidates(spring, 5, True, REFS)
+    assert [c.name for c in pool if c.eligible and c.admitted] == [
+        "decoder", "newton_inertial", "newton_source"]          # references never win
+    impulse = next(c for c in pool if c.name == "impulse")
+    assert "not contacts" in impulse.reason
+    assert "history=2" in next(c.reason for c in candidates(spring, 2, True, ())
+                               if c.name == "newton_source")
+
+
+def test_imported_scenes_without_radii_or_forces_get_the_decoder():
+    gas = SceneMeta("imported", 2, 30, 1, "unknown", "velocity", "radius", box=1.0)
+    assert admitted(gas, radii=False) == ["decoder", *REFS]
+    discs = SceneMeta("discs", 2, 30, 1, "contact", "velocity", "radius", box=1.0)
+    assert admitted(discs, radii=False) == ["decoder", *REFS]
+    assert admitted(discs, radii=True) == ["decoder", "impulse", *REFS]
+    bodies = SceneMeta("imported", 3, 5, 1, "unknown", "acceleration", "full")
+    assert admitted(bodies) == ["decoder", "newton_inertial", "newton_source", *REFS]
+
+
+@pytest.mark.parametrize("interaction,target,graph,box,history", itertools.product(
+    ("pairwise", "contact", "unknown"), ("acceleration", "velocity"), ("full", "radius"),
+    (None, 2.0), (2, 3)))
+def test_admitted_exactly_where_the_structured_head_builds(interaction, target, graph, box,
+                                                           history):
+    meta = SceneMeta("s", 2, 4, 1, interaction, target, graph, box=box)
+    normalizer = SimpleNamespace(rel_position_scale=torch.tensor(1.0))
+    try:
+        build_head(meta, normalizer, history, 8, 1, "silu", "inertial", "test")
+        builds = True
+    except ValueError:
+        builds = False
+    names = admitted(meta, history, radii=True)
+    assert "decoder" in names
+    structured = {"newton_inertial", "newton_source", "impulse"} & set(names)
+    assert bool(structured) == builds
+    assert not ({"newton_inertial", "newton_source"} & structured and "impulse" in structured)
+
+
+# ----------------------------------------------------------------------------- budget
+def test_budget_split_and_the_winners_rest():
+    each, winner = split_budget({"max_time": "00:00:08:00", "max_steps": 600,
+                                 "max_epochs": 300}, 0.5, 3)
+    assert each == {"max_time": "00:00:01:20", "max_steps": 100, "max_epochs": 50}
+    # the winner resumes (Lightning counts from the start): its share plus the rest
+    assert winner == {"max_time": "00:00:05:20", "max_steps": 400, "max_epochs": 200}
+    for n, share, total in itertools.product((1, 2, 5, 7), (0.1, 0.5, 0.9), (10, 999)):
+        each, winner = split_budget({"max_steps": total}, share, n)
+        assert n * each["max_steps"] + winner["max_steps"] - each["max_steps"] == max(
+            total, n * each["max_steps"])
+    each, _ = split_budget({"max_time": {"hours": 1}, "max_steps": -1}, 0.5, 2)
+    assert each == {"max_time": "00:00:15:00"}
+    with pytest.raises(ValueError, match="trainer.max_time or trainer.max_steps"):
+        split_budget({"max_epochs": 10}, 0.5, 2)
+
+
+# ----------------------------------------------------------------------------- scores
+def test_failed_rollouts_count_at_the_cap():
+    rng = np.random.default_rng(0)
+    true = rng.normal(size=(3, 22, 4, 2))
+    predicted = true + 0.01 * rng.normal(size=true.shape)
+    scale = np.linalg.norm(true - true.mean(axis=(1, 2))[:, None, None], axis=-1).max((1, 2))
+    predicted[1, 2 + 4:] = np.nan                             # fails at step 5
+    predicted[2, 2 + 7, 0] += 100 * scale[2]                  # escapes at step 8, comes back
+    first_bad = np.array([-1, 5, -1])
+    errors, failed, curve = rollout_scores(predicted, true, first_bad, None, (3, 10, 20))
+    cap = ESCAPE_FACTOR * scale
+    assert failed == pytest.approx(2 / 3)
+    step_err = np.linalg.norm(predicted - true, axis=-1).mean(-1)[:, 2:]
+    assert errors[3] == pytest.approx(step_err[:, 2].mean())     # none failed yet
+    assert errors[10] == pytest.approx((step_err[0, 9] + cap[1] + cap[2]) / 3)
+    assert errors[20] == pytest.approx((step_err[0, 19] + cap[1] + cap[2]) / 3)
+    assert 20 in errors and 21 not in errors and len(curve) == 20
+    clean = true + 0.01
+    assert rollout_scores(clean, true, np.full(3, -1), None, (1,))[2].mean() == pytest.approx(
+        capped_rollout_error(clean, true, None))
+
+
+def result(name: str, errors: dict[int, float], eligible: bool = True, error: str = "",
+           ) -> Result:
+    return Result(Candidate(name, name, [], eligible=eligible), errors=errors, error=error)
+
+
+def test_choice_on_given_scores():
+    decoder = result("decoder", {10: 0.1, 50: 2.0})
+    inertial = result("inertial", {10: 0.01, 50: 0.2})
+    reference = result("gns", {10: 0.001, 50: 0.01}, eligible=False)
+    crashed = result("source", {}, error="RuntimeError: boom")
+    winner, margin = choose([decoder, inertial, reference, crashed], 50)
+    assert winner is inertial and margin == pytest.approx(10.0)
+    # a failed rollout scores the cap, a non-finite score never wins
+    nan = result("nan", {10: float("nan"), 50: float("nan")})
+    assert choose([nan, decoder], 50)[0] is decoder
+    # ties: the shorter horizon, then the order given (the decoder first)
+    a, b = result("a", {10: 0.3, 50: 1.0}), result("b", {10: 0.2, 50: 1.0})
+    assert choose([a, b], 50) == (b, 1.0)
+    c = result("c", {10: 0.3, 50: 1.0})
+    assert choose([a, c], 50)[0] is a and choose([c, a], 50)[0] is c
+    alone, margin = choose([decoder, reference], 50)
+    assert alone is decoder and math.isnan(margin)
+    with pytest.raises(ValueError, match="no candidate"):
+        choose([reference, crashed], 50)
+
+
+# ----------------------------------------------------------------------------- evidence
+def test_pair_law_is_the_force_along_the_pair():
+    torch.manual_seed(0)
+    meta = SceneMeta("spring", 2, 2, 1, "pairwise", "acceleration", "full")
+    normalizer = SimpleNamespace(rel_position_scale=torch.tensor(0.7))
+    head = PairForceHead(meta, normalizer, 8, 1, "silu", "inertial")
+    s = np.array([0.3, 1.0, 2.5])
+    law = pair_law(head, s)
+    for d, f in zip(s, law):  # two particles at any orientation: F on 1 = f(s) u (0 -> 1)
+        u = torch.tensor([0.6, -0.8])
+        positions = torch.stack([torch.tensor([1.0, 2.0]), torch.tensor([1.0, 2.0]) + d * u])
+        g = SimpleNamespace(edge_index=torch.tensor([[0], [1]]), types=torch.zeros(2, dtype=int))
+        force = head.pair_terms(g, positions[:, None])[0, 0].detach()
+        assert torch.allclose(force, float(f) * u, atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- configs
+def test_candidates_compose_from_the_real_configs(tmp_path):
+    base = ["dataset=gravity_r2", "model.dynamics=auto", "model.hidden=16", "+trainer.max_steps=9"]
+    limits = {"max_steps": 3}
+    pool = {c.name: c for c in candidates(make_scene("gravity_r2").meta, 5, True, REFS)}
+    newton = compose_candidate(base, pool["newton_inertial"], tmp_path / "n", limits)
+    assert (newton.model.dynamics, newton.model.mass_law, newton.model.hidden) == (
+        "newton", "inertial", 16)
+    assert newton.model.loss_weights.dynamics == 0 and newton.model.loss_weights.law == 1
+    assert newton.trainer.max_steps == 3 and newton.test is False
+    assert newton.paths.output_dir == str(tmp_path / "n")
+    # gravity_r2 trains its pair-force head on the law alone: the decoder needs its dynamics
+    decoder = compose_candidate(base, pool["decoder"], tmp_path / "d", limits)
+    assert decoder.model.dynamics == "decoder" and decoder.model.loss_weights.dynamics == 1
+    assert decoder.model.target_prior == "none"              # the scene's defaults apply
+    gns = compose_candidate(base, pool["gns"], tmp_path / "g", limits, test=True)
+    assert gns.model.name == "gns" and "hidden" not in gns.model and gns.test is True
+    pool = {c.name: c for c in candidates(make_scene("collisions").meta, 5, True, REFS)}
+    impulse = compose_candidate(["dataset=collisions"], pool["impulse"], tmp_path / "i", limits)
+    assert impulse.model.dynamics == "newton" and impulse.optimizer.lr == 3.0e-3
+    assert compose_candidate(["dataset=collisions"], pool["gns"], tmp_path / "j",
+                             limits).optimizer.lr == 1.0e-3
+
+
+def test_auto_is_a_config_value_only(tmp_path):
+    cfg = compose_config("train", ["dataset=spring", *SMALL["spring"], "model.dynamics=auto",
+                                   f"paths.output_dir={tmp_path}"])
+    validate_train(cfg)
+    assert cfg.auto.share == 0.5 and cfg.auto.horizon == 50 and list(cfg.auto.references) == [
+        "gns", "cranmer_gn"]
+    with pytest.raises(ValueError, match="dynamics='auto'"):
+        ModelConfig(dynamics="auto")
+    for bad, key in (("auto.share=1.5", "auto.share"), ("auto.horizon=0", "auto.horizon"),
+                     ("auto.references=[bgn]", "auto.references")):
+        cfg = compose_config("train", ["dataset=spring", *SMALL["spring"], "model.dynamics=auto",
+                                       bad])
+        with pytest.raises(ConfigError, match=key):
+            validate_train(cfg)
+
+
+# ----------------------------------------------------------------------------- end to end
+@pytest.mark.slow
+def test_auto_picks_the_structure_spring_was_made_with(tmp_path, shared_data_dir):
+    """Tiny spring data (inertial pair forces): through the command line, each candidate a
+    few hundred steps, the baselines off."""
+    run = tmp_path / "run"
+    proc = subprocess.run(command_line(
+        "dataset=spring", *SMALL["spring"], f"paths.data_dir={shared_data_dir}",
+        f"hydra.run.dir={run}", "model.dynamics=auto", "model.hidden=16",
+        "model.decoder_hidden=16", "model.flow_hidden=16", "figures=false",
+        "val_rollout_steps=0", "animation_every=0", "callbacks.progress_bar=null",
+        "dataset.batch_size=16", "trainer.check_val_every_n_epoch=5", "trainer.max_epochs=-1",
+        "+trainer.max_steps=800", "auto.share=0.75", "auto.references=[]", "test=false"),
+        env=CLI_ENV, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    record = json.loads((run / "auto" / "auto.json").read_text())
+    assert record["choice"] == "newton_inertial"
+    rows = {c["candidate"]: c for c in record["candidates"]}
+    assert set(rows) == {"decoder", "newton_inertial", "newton_source", "impulse"}
+    assert not rows["impulse"]["admitted"]
+    assert all(rows[n]["steps"] == 200 for n in ("decoder", "newton_inertial", "newton_source"))
+    inertial = rows["newton_inertial"]["val_err@50"]
+    assert inertial < rows["newton_source"]["val_err@50"]
+    assert inertial < rows["decoder"]["val_err@50"]
+    assert rows["newton_inertial"]["mass_relative_r2"] > 0.9
+    for name in ("report.md", "auto.csv", "figures/pair_law.png",
+                 "figures/masses_newton_inertial.png", "figures/validation_error.png"):
+        assert (run / "auto" / name).exists(), name
+    top = json.loads((run / "metrics.json").read_text())
+    assert top["auto"]["choice"] == "newton_inertial"
+    print({n: (r["val_err@10"], r["val_err@50"]) for n, r in rows.items() if r["admitted"]})

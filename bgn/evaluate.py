@@ -435,10 +435,13 @@ def rollout_summary(metrics: dict[str, float], prefix: str = "test/") -> dict[st
 
 @torch.no_grad()
 def test_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 100,
-                  predictability_limit: bool = True) -> dict[str, float]:
-    """``bgn.train``'s test phase: ``evaluate_rollouts`` of ``model`` and the references on
-    every simulation of ``dataset`` (batched), as ``rollout_summary``'s ``test/...`` keys. The
-    model is rolled out in eval mode and left in the mode it was in."""
+                  predictability_limit: bool = False) -> dict[str, float]:
+    """``bgn.train``'s test phase: ``evaluate_rollouts`` of ``model`` and the no-learning
+    references on every simulation of ``dataset`` (batched), as ``rollout_summary``'s
+    ``test/...`` keys. The predictability limit is off by default: it runs the exact simulator
+    twice per simulation, one at a time, far slower than the batched rollouts (``python -m
+    bgn.evaluate`` reports it). The model is rolled out in eval mode and left in the mode it
+    was in."""
     training = getattr(model, "training", False)
     if isinstance(model, torch.nn.Module):
         model.eval()
@@ -692,13 +695,14 @@ def report_text(record: dict[str, Any], metrics: dict[str, Any], figures: list[s
              "rollout infinite. See bgn.metrics.rollout_metrics.", ""]
     rows = [{"source": label, **{c: metrics.get(f"{key}/{c}") for c in ROLLOUT_COLUMNS}}
             for key, label in ROLLOUT_SOURCES.items() if f"{key}/rollouts" in metrics]
-    lines += [markdown_table(["source", *ROLLOUT_COLUMNS], rows)]
+    columns = [c for c in ROLLOUT_COLUMNS if any(r[c] is not None for r in rows)]  # the scene's
+    lines += [markdown_table(["source", *columns], rows)]
     if "coverage50" in metrics:
         rows = [{"source": "model", **{c: metrics.get(c) for c in INVERSE_COLUMNS}}]
         rows += [{"source": label, **{c: metrics.get(f"{key}/{c}") for c in INVERSE_COLUMNS}}
                  for key, label in INVERSE_REFERENCES.items()]
         lines += ["## Inverse model", "",
-                  f"Masses of every particle of {metrics.get('mass_particles')} particle-frames "
+                  f"{metrics.get('mass_particles')} particle masses in evenly spaced frames "
                   f"(bgn.evaluate.evaluate_inverse); the flow recalibrated on the "
                   f"{record['calibration_split']} split first (scale at 50 % / 90 %: "
                   f"{metrics.get('mass_calibration_scale50', float('nan')):.3g} / "

@@ -430,10 +430,10 @@ def write_report(auto_dir: Path, results: Sequence[Result], winner: Result, marg
     for row in rows:
         name = f"**{row['candidate']}**" if row["chosen"] else row["candidate"]
         admitted = "yes" if row["admitted"] else f"no: {row['reason']}"
-        lines.append(f"| {name} | {row['label']} | {admitted} | "
-                     f"{'yes' if row['eligible'] else 'reference'} | "
+        may_win = ("-" if not row["admitted"] else "yes" if row["eligible"] else "reference")
+        lines.append(f"| {name} | {row['label']} | {admitted} | {may_win} | "
                      + " | ".join(_fmt(row[f"val_err@{k}"]) for k in horizons)
-                     + f" | {_fmt(row['failed_share'])} | {row['steps']} | "
+                     + f" | {_fmt(row['failed_share'])} | {row['steps'] or '-'} | "
                      f"{_fmt(row['wall_s'])} | {_fmt(row['mass_relative_r2'])} |")
     lines += ["", f"Chosen: **{winner.candidate.name}** ({winner.candidate.label}), error "
               f"{_fmt(winner.errors.get(h))} after {h} steps; the runner-up's is "

@@ -23,6 +23,7 @@ from bgn.auto import (
     pair_law,
     rollout_scores,
     split_budget,
+    write_report,
 )
 from bgn.metrics import ESCAPE_FACTOR, capped_rollout_error
 from bgn.model.bgn import ModelConfig
@@ -164,6 +165,32 @@ def test_pair_law_is_the_force_along_the_pair():
         g = SimpleNamespace(edge_index=torch.tensor([[0], [1]]), types=torch.zeros(2, dtype=int))
         force = head.pair_terms(g, positions[:, None])[0, 0].detach()
         assert torch.allclose(force, float(f) * u, atol=1e-6)
+
+
+def test_report_names_the_choice_and_shows_its_evidence(tmp_path):
+    rng = np.random.default_rng(0)
+    true_log = rng.normal(size=40)
+    s = np.geomspace(0.1, 3.0, 20)
+    pair = Result(Candidate("newton_inertial", "pair forces", [], pair_force=True),
+                  errors={10: 0.01, 50: 0.1}, failed_share=0.0, curve=[0.05] * 50, steps=30,
+                  wall_s=2.0, law={"s": s.tolist(), "sign": 1.0, "f": {"0-0": (1 - s).tolist()}},
+                  masses={"true_log": true_log.tolist(), "fitted_log": (true_log + 1).tolist(),
+                          "relative_r2": 1.0, "median_fit": 0.5})
+    decoder = Result(Candidate("decoder", "the decoder", []), errors={10: 0.02, 50: 0.4},
+                     failed_share=0.5, curve=[0.2] * 50, steps=30, wall_s=1.0)
+    absent = Result(Candidate("impulse", "impulses", [], admitted=False, reason="no contacts"))
+    protocol = {"horizon": 50, "horizons": [10, 50], "sims": [0, 1], "starts": [6],
+                "rollouts": 2, "share": 0.5, "budget_each": {"max_steps": 30},
+                "budget_winner": {"max_steps": 70}, "masses_known": True}
+    report = write_report(tmp_path, [decoder, pair, absent], pair, 4.0, protocol).read_text()
+    assert "**newton_inertial**" in report and "4 times that" in report
+    assert "no: no contacts" in report
+    record = json.loads((tmp_path / "auto.json").read_text())
+    assert record["choice"] == "newton_inertial" and record["margin"] == 4.0
+    rows = (tmp_path / "auto.csv").read_text().splitlines()
+    assert len(rows) == 4 and rows[2].endswith("True,")          # the chosen one, no error
+    for key in ("errors", "law", "masses_newton_inertial"):
+        assert (tmp_path / record["figures"][key]).stat().st_size > 0
 
 
 # ----------------------------------------------------------------------------- configs

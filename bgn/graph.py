@@ -31,6 +31,9 @@ class Graph:
     # (N, S, D) true velocities v[t+2] .. v[t+S+1] after the target's: unrolled training
     # (bgn.unroll); None unless the dataset was asked for them (dataset.unroll)
     future_vel: torch.Tensor | None = None
+    # (N,) bool: particles the source moves (imported data's kinematic types): inputs only,
+    # never scored (losses and metrics skip them) and set from the record in rollouts
+    kinematic: torch.Tensor | None = None
 
     @property
     def num_graphs(self) -> int:
@@ -66,7 +69,8 @@ def collate(graphs: list[Graph]) -> Graph:
 def window_graph(window: torch.Tensor, dt: float, edge_index: torch.Tensor,
                  masses: torch.Tensor, radii: torch.Tensor, types: torch.Tensor,
                  box: float | None, sims: torch.Tensor, frames: torch.Tensor,
-                 dtype: torch.dtype = torch.float32) -> Graph:
+                 dtype: torch.dtype = torch.float32,
+                 kinematic: torch.Tensor | None = None) -> Graph:
     """The graph of B frames from their position windows: what every model sees.
 
     ``window`` (B, k+2, N, D) holds frames t-k-1 .. t of B simulations (float64 keeps the
@@ -74,7 +78,8 @@ def window_graph(window: torch.Tensor, dt: float, edge_index: torch.Tensor,
     particles are nodes b*N .. b*N+N-1); ``masses``, ``radii``, ``types`` are (B, N);
     ``sims``, ``frames`` (B,). Inputs follow DESIGN section 2: backward-difference velocities
     ``v[t] = (x[t] - x[t-1]) / dt``, newest first. Targets and contact labels are zero (unknown
-    here); the data layer fills them for training samples.
+    here); the data layer fills them for training samples. ``kinematic`` (B, N) bool marks
+    particles moved by the source (None: none).
     """
     b, _, n, d = window.shape
     pos = window[:, -1]                                         # (B, N, D)
@@ -99,4 +104,5 @@ def window_graph(window: torch.Tensor, dt: float, edge_index: torch.Tensor,
         sim=sims.reshape(b).long(),
         frame=frames.reshape(b).long(),
         dt=torch.full((b,), dt, dtype=dtype, device=device),
+        kinematic=None if kinematic is None else kinematic.reshape(-1).to(device, torch.bool),
     )

@@ -144,11 +144,13 @@ class PhysicsModule(L.LightningModule):
 
     def _update_metrics(self, stage: str, g: Graph, out: Any) -> None:
         m = self.metrics[f"{stage}_"]
-        pred = self.model.denormalize_target(out.target, g)
-        m["mse"].update(pred, g.target)
+        pred, target = self.model.denormalize_target(out.target, g), g.target
+        if g.kinematic is not None:  # moved by the source: never scored
+            pred, target = pred[~g.kinematic], target[~g.kinematic]
+        m["mse"].update(pred, target)
         # robust error next to MSE: heavy tails make MSE a few-frame statistic (SIMS.md)
-        m["relative_error"].update((pred - g.target).norm(dim=-1)
-                                   / g.target.norm(dim=-1).clamp_min(1e-12))
+        m["relative_error"].update((pred - target).norm(dim=-1)
+                                   / target.norm(dim=-1).clamp_min(1e-12))
         if "type_accuracy" in m:
             m["type_accuracy"].update(out.type_logits, g.types)
             m["type_auroc"].update(out.type_logits.softmax(-1), g.types)

@@ -34,7 +34,8 @@ def particles(dataset: FrameDataset, sims: list[int]) -> Particles:
     def read(name: str) -> torch.Tensor:
         return torch.as_tensor(np.stack([dataset.file.read(name, s) for s in sims]))
 
-    return Particles(read("masses"), read("radii"), read("types"), torch.as_tensor(sims))
+    return Particles(read("masses"), read("radii"), read("types"), torch.as_tensor(sims),
+                     read("kinematic") if dataset.has_kinematic else None)
 
 
 def true_positions(dataset: FrameDataset, sims: list[int], first: int, last: int) -> np.ndarray:
@@ -59,7 +60,8 @@ def rollout(model: Predictor, dataset: FrameDataset, sim: int, start: int | None
         raise ValueError(f"rollout from frame {start} needs at least one later frame")
     truth = true_positions(dataset, [sim], start - k - 1, start + n_steps)
     result = simulator(model, dataset).rollout(torch.as_tensor(truth[:, :k + 2]),
-                                               particles(dataset, [sim]), n_steps, start)
+                                               particles(dataset, [sim]), n_steps, start,
+                                               driven=torch.as_tensor(truth[:, k + 2:]))
     first_bad = int(result.first_non_finite[0])
     predicted = result.positions[0].cpu().numpy()
     if first_bad >= 0:
@@ -116,7 +118,8 @@ def rollout_many(model: Predictor, dataset: FrameDataset, sims: list[int], start
     predicted, true, bad, seconds = [], [], [], []
     for start in starts:
         truth = true_positions(dataset, sims, start - k - 1, start + n_steps)
-        result = sim_.rollout(torch.as_tensor(truth[:, :k + 2]), parts, n_steps, start)
+        result = sim_.rollout(torch.as_tensor(truth[:, :k + 2]), parts, n_steps, start,
+                              driven=torch.as_tensor(truth[:, k + 2:]))
         predicted.append(np.concatenate([truth[:, k:k + 1], result.positions.cpu().numpy()], 1))
         true.append(truth[:, k:])
         bad.append(result.first_non_finite.numpy())

@@ -49,13 +49,16 @@ class Particles:
     radii: torch.Tensor
     types: torch.Tensor
     sims: torch.Tensor
+    kinematic: torch.Tensor | None = None  # (B, N) bool: moved by the source (imported data)
 
     def select(self, rows: torch.Tensor) -> Particles:
-        return Particles(self.masses[rows], self.radii[rows], self.types[rows], self.sims[rows])
+        return Particles(self.masses[rows], self.radii[rows], self.types[rows], self.sims[rows],
+                         None if self.kinematic is None else self.kinematic[rows])
 
     def to(self, device: torch.device | str) -> Particles:
         return Particles(self.masses.to(device), self.radii.to(device), self.types.to(device),
-                         self.sims.to(device))
+                         self.sims.to(device),
+                         None if self.kinematic is None else self.kinematic.to(device))
 
 
 @dataclass
@@ -120,7 +123,7 @@ class LearnedSimulator(nn.Module):
         frames = torch.as_tensor(frame, device=window.device).expand(window.shape[0])
         return window_graph(window, self.dt, self.edges(window[:, -1], particles.radii),
                             particles.masses, particles.radii, particles.types, self.meta.box,
-                            particles.sims, frames, self.dtype)
+                            particles.sims, frames, self.dtype, particles.kinematic)
 
     def _check_window(self, window: torch.Tensor, particles: Particles) -> None:
         if window.ndim != 4 or window.shape[1] != self.window_length \
@@ -144,12 +147,16 @@ class LearnedSimulator(nn.Module):
 
     @torch.no_grad()
     def rollout(self, window: torch.Tensor, particles: Particles, n_steps: int,
-                frame: int = 0) -> Rollout:
+                frame: int = 0, driven: torch.Tensor | None = None) -> Rollout:
         """Feed the model its own frames for ``n_steps`` from windows ending at ``frame``.
 
         A simulation whose frame becomes non-finite stops there (NaN from then on); the others
-        go on in the same batch.
+        go on in the same batch. ``driven`` (B, n_steps, N, D): the recorded positions of the
+        steps, which ``particles.kinematic`` particles take (the source moves them).
         """
+        kinematic = particles.kinematic if driven is not None else None
+        if kinematic is not None:
+            driven = driven.to(self.device, torch.float64)
         if n_steps < 1:
             raise ValueError(f"n_steps={n_steps} must be at least 1")
         device = self.device
@@ -164,6 +171,8 @@ class LearnedSimulator(nn.Module):
         start = time.perf_counter()
         for i in range(n_steps):
             nxt = self.next_frame(window, particles.select(alive), frame + i)
+            if kinematic is not None:
+                nxt = torch.where(kinematic[alive, :, None], driven[alive, i], nxt)
             finite = torch.isfinite(nxt).flatten(1).all(1)
             out[alive[finite], i + 1] = nxt[finite]
             first_bad[alive[~finite].cpu()] = i + 1

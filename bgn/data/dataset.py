@@ -55,6 +55,9 @@ class FrameDataset(Dataset):
         self._full_edges = (full_graph(self.meta.n_particles)
                             if self.meta.graph == "full" else None)  # built once
         self._contacts: dict[tuple[int, int], np.ndarray] | None = None
+        # imported data whose source has kinematic types: the particles it moves
+        self.has_kinematic = bool(getattr(self.scene, "kinematic_types", ())) \
+            and "kinematic" in self.file.handle
 
     def __len__(self) -> int:
         return len(self.sims) * self.frames_per_sim
@@ -104,14 +107,22 @@ class FrameDataset(Dataset):
                            radii=self.file.read("radii", sim),
                            types=self.file.read("types", sim), margin=self.margin,
                            sim=sim, frame=frame, next_position=next_position,
-                           contact_codes=contact_codes, edges=self._full_edges)
+                           contact_codes=contact_codes, edges=self._full_edges,
+                           kinematic=self.kinematic(sim))
+
+    def kinematic(self, sim: int) -> np.ndarray | None:
+        """(N,) bool: the particles of simulation ``sim`` that the source moves (imported
+        data with kinematic types), else None."""
+        if not self.has_kinematic:
+            return None
+        return self.file.read("kinematic", sim)
 
 
 def frame_graph(window: np.ndarray, dt: float, meta: SceneMeta, scene: Scene,
                 masses: np.ndarray, radii: np.ndarray, types: np.ndarray, margin: float,
                 sim: int = 0, frame: int = 0, next_position: np.ndarray | None = None,
                 contact_codes: np.ndarray | None = None, edges: np.ndarray | None = None,
-                ) -> Graph:
+                kinematic: np.ndarray | None = None) -> Graph:
     """Inputs, edges and targets of one frame (DESIGN sections 2 and 4). The inputs are
     ``bgn.graph.window_graph``'s, which the learned simulator builds in rollouts."""
     pos = window[-1]
@@ -121,7 +132,8 @@ def frame_graph(window: np.ndarray, dt: float, meta: SceneMeta, scene: Scene,
                      torch.as_tensor(edges, dtype=torch.long),
                      torch.as_tensor(masses)[None], torch.as_tensor(radii)[None],
                      torch.as_tensor(types)[None], meta.box, torch.tensor([sim]),
-                     torch.tensor([frame]))
+                     torch.tensor([frame]),
+                     kinematic=None if kinematic is None else torch.as_tensor(kinematic)[None])
     if next_position is not None:
         target = targets(np.concatenate([window[-2:], next_position[None]]), dt, meta.target)[0]
         g.target = torch.as_tensor(target, dtype=torch.float32)

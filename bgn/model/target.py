@@ -141,8 +141,11 @@ class TargetCoder(nn.Module):
         return (target - self.prior(g)) / self.residual_scale
 
     def loss(self, output: torch.Tensor, g: Graph) -> torch.Tensor:
-        """The dynamics loss ``L_Dec`` of the head's output against the graph's target."""
+        """The dynamics loss ``L_Dec`` of the head's output against the graph's target, over
+        the particles the model predicts (kinematic ones, moved by the source, are skipped)."""
         y = self.encode(g)
+        if g.kinematic is not None:
+            output, y = output[~g.kinematic], y[~g.kinematic]
         if self.loss_name == "huber":
             return F.huber_loss(output, y, delta=self.huber_delta)
         return F.mse_loss(output, y)

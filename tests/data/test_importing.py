@@ -265,3 +265,23 @@ def test_import_files_pass_the_checks_on_open(tmp_path):
         f["stats/velocity/std"][...] *= 1.5
     with pytest.raises(DatasetFileError, match="do not match.*from_arrays"):
         DatasetFile(paths["train"])
+
+
+def test_kinematic_particles_are_inputs_never_predicted_or_scored(tmp_path):
+    import_dataset(read_trajectories(_write("gns-npz", tmp_path)), "kin", tmp_path / "data")
+    datamodule, module = build(_train_cfg("kin", tmp_path / "data", tmp_path / "run", "gns"))
+    model, data = module.model, datamodule.datasets["train"]
+    g = data[0]
+    assert g.kinematic.tolist() == [True, True] + [False] * (N - 2)  # type 3: particles 0, 1
+    out = model(g)
+    moved = out.target.clone()
+    moved[g.kinematic] += 100.0  # what the model says of kinematic particles is not scored
+    assert torch.equal(model.loss_terms(g, out)["dynamics"],
+                       model.loss_terms(g, type(out)(moved))["dynamics"])
+    moved[~g.kinematic] = model.target_coder.encode(g)[~g.kinematic]  # exact where scored
+    assert model.loss_terms(g, type(out)(moved))["dynamics"] == 0.0
+    result = rollout(model, datamodule.datasets["test"], sim=0, n_steps=5)
+    kinematic = g.kinematic.numpy()
+    np.testing.assert_array_equal(result["predicted"][:, kinematic], result["true"][:, kinematic])
+    # the others are the model's own (not copied from the record)
+    assert (result["predicted"][1:, ~kinematic] != result["true"][1:, ~kinematic]).all()

@@ -138,7 +138,7 @@ class PhysicsModule(L.LightningModule):
                 metrics["contact_auroc"] = BinaryAUROC()
             else:
                 metrics["contact_r2"] = R2Score()
-        if "relmass" in heads:
+        if "relmass" in heads and self.meta.masses_known:  # unknown masses: nothing to score
             metrics["relmass_r2"] = R2Score()
         return MetricCollection(metrics)
 

@@ -166,7 +166,7 @@ def import_dataset(raw: RawTrajectories, name: str, data_dir: str | Path, histor
         box=walls(raw), connectivity_radius=None if radius is None else float(radius),
         periodic=() if raw.periodic is None else tuple(bool(p) for p in raw.periodic),
         bounds=() if raw.bounds is None else tuple(map(tuple, np.asarray(raw.bounds).tolist())),
-        kinematic_types=tuple(int(t) for t in raw.kinematic_types),
+        kinematic_types=tuple(int(t) for t in raw.kinematic_types), masses_known=masses_known,
         source=str(source.get("path", "")),  # "": from memory (from_arrays)
         data_sha256=data_hash(arrays, dt))
     params = {f.name: getattr(scene, f.name) for f in fields(scene)}

@@ -32,7 +32,8 @@ class ImportedScene:
     GNS's rule ``|x_i - x_j| <= R``); ``box`` is the side of reflecting walls ``[0, box]^dim``
     declared by the source, else None. ``periodic`` (per dimension) and ``bounds`` are the
     source's, recorded only: the imported positions are unwrapped. ``kinematic_types`` are
-    particle types moved by the source (inputs, never predicted or scored). ``source`` names
+    particle types moved by the source (inputs, never predicted or scored); ``masses_known``
+    False: the source gave no masses (ones stand in). ``source`` names
     the file or folder imported ("" from memory), ``data_sha256`` hashes the imported arrays
     of every split (so the checkpoints' provenance tells two imports under one name apart)."""
 
@@ -48,6 +49,7 @@ class ImportedScene:
     periodic: tuple[bool, ...] = ()
     bounds: tuple[tuple[float, float], ...] = ()
     kinematic_types: tuple[int, ...] = ()
+    masses_known: bool = True
     source: str = ""
     data_sha256: str = ""
     # no exact simulator: tools that re-simulate (the predictability limit, the stability
@@ -75,7 +77,8 @@ class ImportedScene:
         return SceneMeta(name=self.name, dim=int(self.dim), n_particles=int(self.n_particles),
                          n_types=int(self.n_types), interaction=self.interaction,  # type: ignore
                          target=self.target, graph=self.graph,  # type: ignore[arg-type]
-                         box=None if self.box is None else float(self.box))
+                         box=None if self.box is None else float(self.box),
+                         masses_known=bool(self.masses_known))
 
     @property
     def margin(self) -> float:

@@ -34,6 +34,9 @@ class SceneMeta:
     target: TargetKind
     graph: GraphKind
     box: float | None = None
+    # False for imported data whose source gives no masses (ones stand in): the inverse model
+    # still reports its posterior, but no metric scores it against them
+    masses_known: bool = True
 
     @property
     def has_walls(self) -> bool:

@@ -764,9 +764,9 @@ def evaluate_run(cfg: Any, paths: tuple[Path, Path, Path]) -> Path:
     datamodule = ParticleDataModule(run_cfg.dataset, run_cfg.fps, data_dir,
                                     generate_workers=run_cfg.dataset.get("generate_workers"),
                                     show_progress=bool(cfg.progress))
+    module = load_checked(ckpt, run_cfg, datamodule)  # before any data are generated
     datamodule.prepare_data()  # the run's data, generated again where they are missing
     datamodule.setup()
-    module = load_checked(ckpt, run_cfg, datamodule)
     dataset = datamodule.datasets[cfg.split]
     references = 2 if dataset.meta.target == "velocity" else 3
     stages = Stages(2 + references + bool(cfg.figures), bool(cfg.progress))

@@ -167,7 +167,8 @@ def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
     figure = Path(cfg.report_dir) / "figures" / f"mass_{cell.name}.png"
     if eval_path.exists() and eval_path.stat().st_mtime >= ckpt.stat().st_mtime:
         result = read_record(eval_path)  # None when damaged (named in a warning): redone
-        if result is not None and (not result.get("figure") or figure.exists()):
+        if result is not None and (not result.get("figure") or figure.exists()) \
+                and "rollout/rollout_cap" in result.get("metrics", {}):  # else: older metrics
             return result
     datamodule = cell_datamodule(run_dir, cfg.data_dir)
     e = cfg.preset.eval

@@ -29,13 +29,13 @@ vector from j to i (positive: repulsive). This module reads that law back:
    the markdown for an evaluation report.
 
 Libraries. PySR (symbolic regression, Cranmer's route) downloads and compiles Julia at run
-time: not possible without network. PySINDy (pip-installable) fits libraries linear in their
-coefficients only: the softening ``c`` of ``(r + c)^p`` would have to be a fixed grid of
-columns, nearly collinear, and its STLSQ/SR3 thresholds act on coefficient sizes, which for
-powers of r over two decades differ by orders of magnitude whatever the terms' relevance; it
-would also add scikit-learn. An exhaustive search over subsets of up to three terms is exact
-where a sparse relaxation is a heuristic, and costs a few seconds: numpy, scipy and sympy
-(already dependencies) suffice.
+time: not possible without network. PySINDy (installs from PyPI, with scikit-learn) fits
+libraries linear in their coefficients only: the softening ``c`` of ``(r + c)^p`` must be a
+fixed grid of columns, nearly collinear with each other and with the plain powers. Tried on
+this library (c on a grid) with the noisy laws of tests/test_laws.py, its STLSQ and SR3 kept
+tens of terms at any threshold tried, not the one or two of the law (docs/results.md). An
+exhaustive search over subsets of up to three terms is exact where a sparse relaxation is a
+heuristic, and takes seconds: numpy, scipy and sympy (already dependencies) suffice.
 """
 
 from __future__ import annotations
@@ -66,6 +66,7 @@ GRID_POINTS = 240                 # log-spaced distances per pair of types
 KDE_POINTS = 20_000               # distances the density of log r is estimated from
 BAND_QUANTILES = (0.0, 0.01, 0.1, 0.5, 0.9, 0.99, 1.0)  # bands of the error table
 C_GRID = 41                       # values of a nonlinear constant tried before refinement
+C_GRID_PAIR = 25                  # ... per constant, where a formula has two
 REFINE_PER_COMPLEXITY = 4         # candidates of each complexity refined jointly
 CALIBRATION_FRAMES = 256          # training frames that put a free scale in physical units
 MAX_DISTANCES = 2_000_000         # pair distances read from the train split (frames thinned)
@@ -115,9 +116,10 @@ class Term:
 
 
 def default_library() -> list[Term]:
-    """The candidate terms (see the module doc). Shifted powers 1, 2, 3 are left out: they
-    are polynomials the plain powers already span, and would only make c arbitrary."""
-    powers = (-3, -2.5, -2, -1.5, -1, -0.5, 0.5, 1, 1.5, 2, 3)
+    """The candidate terms (see the module doc): also the powers of Lennard-Jones' force (-13,
+    -7) and its potential (-12, -6). Shifted powers 1, 2, 3 are left out: they are polynomials
+    the plain powers already span, and would only make c arbitrary."""
+    powers = (-13, -12, -7, -6, -4, -3, -2.5, -2, -1.5, -1, -0.5, 0.5, 1, 1.5, 2, 3)
     return ([Term("const"), Term("log")] + [Term("power", p) for p in powers]
             + [Term("exp")] + [Term("shifted", p) for p in (-3, -2, -1.5, -1, -0.5, 0.5)]
             + [Term("plummer", p) for p in (-3, -2, -1)])
@@ -140,9 +142,10 @@ def law_scale(r: np.ndarray, y: np.ndarray, smooth: bool = True) -> np.ndarray:
 
 @dataclass
 class Formula:
-    """A fitted law ``sum_k a_k term_k(r; c)``; ``values`` holds the amplitudes, then the
-    nonlinear constant (if any); ``stderr`` from the Jacobian, ``boot_std`` from a bootstrap
-    over the points; ``loss`` the mean squared relative residual."""
+    """A fitted law ``sum_k a_k term_k(r; c_k)``; ``values`` holds the amplitudes, then one
+    constant c per nonlinear term (in the terms' order); ``stderr`` from the Jacobian,
+    ``boot_std`` from a bootstrap over the points; ``loss`` the weighted mean squared relative
+    residual; ``front`` the best formula of each complexity (number of constants)."""
 
     terms: list[Term]
     values: np.ndarray
@@ -150,24 +153,27 @@ class Formula:
     boot_std: np.ndarray
     loss: float
     complexity: int
-    front: list[dict[str, Any]] = field(default_factory=list)  # best model per complexity
+    front: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def cs(self) -> list[float]:
+        return [float(v) for v in self.values[len(self.terms):]]
 
     @property
     def names(self) -> list[str]:
-        amps = [f"a{k + 1}" for k in range(len(self.terms))]
-        return amps + (["c"] if any(t.nonlinear for t in self.terms) else [])
-
-    @property
-    def c(self) -> float:
-        return float(self.values[-1]) if any(t.nonlinear for t in self.terms) else 1.0
+        n = len(self.cs)
+        return ([f"a{k + 1}" for k in range(len(self.terms))]
+                + (["c"] if n == 1 else [f"c{k + 1}" for k in range(n)]))
 
     def __call__(self, r: np.ndarray) -> np.ndarray:
-        return design(self.terms, np.asarray(r, np.float64), self.c) @ self.values[:len(self.terms)]
+        return design(self.terms, np.asarray(r, np.float64), self.cs) @ self.values[
+            :len(self.terms)]
 
     def expr(self, digits: int = SIGNIFICANT) -> sympy.Expr:
         r = sympy.Symbol("r", positive=True)
-        c = sympy.Float(self.c, digits)
-        return sum((sympy.Float(a, digits) * t.expr(r, c)
+        cs = iter(self.cs)
+        return sum((sympy.Float(a, digits) * t.expr(r, sympy.Float(next(cs), digits)
+                                                    if t.nonlinear else None)
                     for a, t in zip(self.values, self.terms)), sympy.Integer(0))
 
     @property
@@ -175,18 +181,29 @@ class Formula:
         return sympy.sstr(self.expr())
 
     def constants(self) -> list[dict[str, Any]]:
-        """One row per constant: name, the term it multiplies (or "c"), value, errors."""
-        labels = [t.label for t in self.terms] + (["c"] if len(self.values) > len(self.terms)
-                                                  else [])
+        """One row per constant: name, the term it belongs to, value, errors."""
+        owners = [t.label for t in self.terms if t.nonlinear]
+        labels = [t.label for t in self.terms] + [f"c of {o}" for o in owners]
         return [{"name": n, "term": lab, "value": float(v), "stderr": float(s),
                  "bootstrap_std": float(b)}
                 for n, lab, v, s, b in zip(self.names, labels, self.values, self.stderr,
                                            self.boot_std)]
 
 
-def design(terms: list[Term], r: np.ndarray, c: float) -> np.ndarray:
-    """(n, K) the terms' values at r."""
-    return np.stack([t(r, c) for t in terms], axis=1)
+def design(terms: list[Term], r: np.ndarray, cs: list[float] | tuple[float, ...] = ()
+           ) -> np.ndarray:
+    """(n, K) the terms' values at r; ``cs``: the constants of the nonlinear terms, in order."""
+    it = iter(cs)
+    return np.stack([t(r, next(it)) if t.nonlinear else t(r) for t in terms], axis=1)
+
+
+def _residual(terms: list[Term], r: np.ndarray, y: np.ndarray, w: np.ndarray,
+              values: np.ndarray) -> np.ndarray:
+    """Weighted residual of ``values`` (amplitudes, then constants); huge where not finite."""
+    k = len(terms)
+    with np.errstate(all="ignore"):
+        out = (design(terms, r, values[k:]) @ values[:k] - y) * w
+    return np.where(np.isfinite(out), out, 1e6)
 
 
 def _solve(cols: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, float]:
@@ -212,40 +229,84 @@ def _subset_losses(cols: np.ndarray, b: np.ndarray, subsets: np.ndarray) -> np.n
 
 def _refine(terms: list[Term], r: np.ndarray, y: np.ndarray, w: np.ndarray, x0: np.ndarray,
             ) -> tuple[np.ndarray, np.ndarray | None]:
-    """Joint least squares of the amplitudes and log c from ``x0`` (amplitudes, c);
-    returns (values, jacobian in those values) or the start where the fit fails."""
+    """Joint least squares of the amplitudes and the log of each constant from ``x0``
+    (amplitudes, constants); (values, Jacobian in those values), or the start and None where
+    the fit fails."""
     k = len(terms)
-    nonlinear = len(x0) > k
 
     def residual(theta: np.ndarray) -> np.ndarray:
-        c = math.exp(theta[k]) if nonlinear else 1.0
-        with np.errstate(all="ignore"):
-            out = (design(terms, r, c) @ theta[:k] - y) * w
-        return np.where(np.isfinite(out), out, 1e6)
+        with np.errstate(over="ignore"):
+            return _residual(terms, r, y, w, np.concatenate([theta[:k], np.exp(theta[k:])]))
 
-    theta0 = np.array([*x0[:k], math.log(x0[k])] if nonlinear else x0, dtype=np.float64)
+    theta0 = np.concatenate([x0[:k], np.log(x0[k:])])
     try:
         sol = least_squares(residual, theta0, method="lm" if len(r) > len(theta0) else "trf",
                             x_scale="jac")
     except (ValueError, np.linalg.LinAlgError):
         return x0, None
-    values = sol.x.copy()
+    values = np.concatenate([sol.x[:k], np.exp(sol.x[k:])])
     jac = sol.jac.copy()
-    if nonlinear:
-        values[k] = math.exp(sol.x[k])
-        jac[:, k] = jac[:, k] / values[k]  # d/dc = d/dlog c / c
+    jac[:, k:] = jac[:, k:] / values[k:]  # d/dc = d/dlog c / c
     return values, jac
 
 
+def _candidates(r: np.ndarray, b: np.ndarray, w: np.ndarray, library: list[Term],
+                max_terms: int, max_constants: int,
+                ) -> dict[tuple[int, int], list[tuple[float, list[Term], np.ndarray]]]:
+    """The best few formulas of each complexity (constants: amplitudes and c's) and number
+    of nonlinear terms, by their weighted loss: every subset of up to ``max_terms`` terms
+    with at most ``max_constants`` nonlinear terms (two: the same term twice), each c on a
+    grid; (loss, terms, amplitudes then c's)."""
+    linear = [t for t in library if not t.nonlinear]
+    nonlinear = [t for t in library if t.nonlinear]
+    lin_cols = np.stack([t(r) * w for t in linear], 1)
+    n_lin = len(linear)
+    found: dict[tuple[int, int], list[tuple[float, list[Term], np.ndarray]]] = {}
+
+    def keep(n_nl: int, loss: float, terms: list[Term], cs: tuple[float, ...]) -> None:
+        if not np.isfinite(loss):
+            return
+        amps = _solve(design(terms, r, cs) * w[:, None], b)[0]
+        found.setdefault((len(terms) + len(cs), n_nl), []).append(
+            (loss, terms, np.concatenate([amps, cs])))
+
+    for n_nl in range(min(max_constants, max_terms) + 1):
+        grid = np.geomspace(r[0] * 1e-2, r[-1] * 2, C_GRID if n_nl < 2 else C_GRID_PAIR)
+        for k in range(max_terms - n_nl + 1):
+            if k + n_nl == 0:
+                continue
+            subsets = np.array([(*s, *range(n_lin, n_lin + n_nl))
+                                for s in itertools.combinations(range(n_lin), k)],
+                               dtype=np.intp).reshape(-1, k + n_nl)
+            for extra in itertools.combinations_with_replacement(nonlinear, n_nl):
+                if len(set(extra)) > 1:
+                    continue  # two constants: one term twice (Morse: two exponentials)
+                best = np.full(len(subsets), np.inf)
+                best_cs = np.zeros((len(subsets), n_nl))
+                for cs in itertools.combinations(grid, n_nl):
+                    with np.errstate(all="ignore"):
+                        cols = [t(r, c) * w for t, c in zip(extra, cs)]
+                    if not all(np.isfinite(col).all() for col in cols):
+                        continue
+                    losses = _subset_losses(np.column_stack([lin_cols, *cols]), b, subsets)
+                    better = losses < best
+                    best[better], best_cs[better] = losses[better], cs
+                for i in np.argsort(best)[:REFINE_PER_COMPLEXITY]:
+                    keep(n_nl, float(best[i]), [*(linear[j] for j in subsets[i][:k]), *extra],
+                         tuple(best_cs[i]))
+    return found
+
+
 def fit_formula(r: np.ndarray, y: np.ndarray, weight: np.ndarray | None = None,
-                max_terms: int = 3, tolerance: float = TOLERANCE, parsimony: float = 1.5,
-                library: list[Term] | None = None, scale: np.ndarray | None = None,
-                n_boot: int = 100, seed: int = 0) -> Formula:
+                max_terms: int = 3, max_constants: int = 2, tolerance: float = TOLERANCE,
+                parsimony: float = 1.5, library: list[Term] | None = None,
+                scale: np.ndarray | None = None, n_boot: int = 100, seed: int = 0) -> Formula:
     """The sparse formula of ``y(r)`` (see the module doc). ``r`` > 0; ``weight``: how much
-    each point counts (default alike); ``scale``: the size residuals are relative to (default
-    ``law_scale`` of the data). The loss is the weighted mean squared relative residual; the
-    formula chosen is the simplest whose RMS relative residual is within ``tolerance``, else
-    PySR's rule with ``parsimony``."""
+    each point counts (default alike); ``max_constants``: nonlinear terms (each with its c)
+    at most; ``scale``: the size residuals are relative to (default ``law_scale`` of the
+    data). The loss is the weighted mean squared relative residual; the formula chosen is the
+    simplest whose RMS relative residual is within ``tolerance``, else PySR's rule with
+    ``parsimony``."""
     order = np.argsort(r)
     r, y = np.asarray(r, np.float64)[order], np.asarray(y, np.float64)[order]
     if len(r) < 8 or not (r > 0).all() or not np.isfinite(y).all():
@@ -255,66 +316,25 @@ def fit_formula(r: np.ndarray, y: np.ndarray, weight: np.ndarray | None = None,
         raise ValueError("the weights of a formula's points must be finite, >= 0, not all 0")
     w = np.sqrt(share / share.mean()) / (law_scale(r, y) if scale is None
                                          else np.asarray(scale, np.float64)[order])
-    library = default_library() if library is None else library
-    linear = [t for t in library if not t.nonlinear]
-    nonlinear = [t for t in library if t.nonlinear]
     b = y * w
-    lin_cols = np.stack([t(r) * w for t in linear], 1)
-    c_grid = np.geomspace(r[0] * 1e-2, r[-1] * 2, C_GRID)
-    candidates: dict[int, list[tuple[float, list[Term], np.ndarray]]] = {}
-
-    def keep(complexity: int, loss: float, terms: list[Term], c: float | None) -> None:
-        cols = design(terms, r, 1.0 if c is None else c) * w[:, None]
-        amps = _solve(cols, b)[0]
-        candidates.setdefault(complexity, []).append(
-            (loss, terms, amps if c is None else np.append(amps, c)))
-
-    n_lin = len(linear)
-    for k in range(1, max_terms + 1):  # linear terms only
-        subsets = np.array(list(itertools.combinations(range(n_lin), k)))
-        losses = _subset_losses(lin_cols, b, subsets)
-        for i in np.argsort(losses)[:REFINE_PER_COMPLEXITY]:
-            keep(k, float(losses[i]), [linear[j] for j in subsets[i]], None)
-    for k in range(max_terms):  # k linear terms and one term with a constant c
-        subsets = np.array([(*s, n_lin) for s in itertools.combinations(range(n_lin), k)],
-                           dtype=np.intp).reshape(-1, k + 1)
-        for t in nonlinear:
-            best = np.full(len(subsets), np.inf)
-            best_c = np.zeros(len(subsets))
-            for c in c_grid:
-                with np.errstate(all="ignore"):
-                    col = t(r, c) * w
-                if not np.isfinite(col).all():
-                    continue
-                losses = _subset_losses(np.column_stack([lin_cols, col]), b, subsets)
-                better = losses < best
-                best[better], best_c[better] = losses[better], c
-            for i in np.argsort(best)[:REFINE_PER_COMPLEXITY]:
-                if np.isfinite(best[i]):
-                    keep(k + 2, float(best[i]), [*(linear[j] for j in subsets[i][:-1]), t],
-                         float(best_c[i]))
-    front: list[dict[str, Any]] = []
+    candidates = _candidates(r, b, w, default_library() if library is None else library,
+                             max_terms, max_constants)
     refined: dict[int, tuple[float, list[Term], np.ndarray, np.ndarray | None]] = {}
-    for complexity in sorted(candidates):
-        for loss0, terms, x0 in sorted(candidates[complexity], key=lambda e: e[0])[
-                :REFINE_PER_COMPLEXITY]:
-            c0 = x0[-1] if len(x0) > len(terms) else 1.0
-            res0 = (design(terms, r, c0) @ x0[:len(terms)] - y) * w
-            loss0 = float(np.mean(res0 * res0))
+    for (complexity, _), found in candidates.items():
+        for _, terms, x0 in sorted(found, key=lambda e: e[0])[:REFINE_PER_COMPLEXITY]:
+            loss0 = float(np.mean(_residual(terms, r, y, w, x0) ** 2))
             values, jac = _refine(terms, r, y, w, x0)
-            c = values[-1] if len(values) > len(terms) else 1.0
-            with np.errstate(all="ignore"):
-                res = (design(terms, r, c) @ values[:len(terms)] - y) * w
-            loss = float(np.mean(res * res)) if np.isfinite(res).all() else loss0
+            loss = float(np.mean(_residual(terms, r, y, w, values) ** 2))
             if loss > loss0:
                 values, jac, loss = x0, None, loss0
             if complexity not in refined or loss < refined[complexity][0]:
                 refined[complexity] = (loss, terms, values, jac)
-    # PySR's "best": the front of loss against complexity, the largest drop of log-loss per
-    # complexity among the models within `parsimony` times the lowest loss
+    # PySR's "best": on the front of loss against complexity, the largest drop of log-loss
+    # per constant among the models within `parsimony` times the lowest loss
     floor = 1e-300
     last_loss, last_c = float(np.mean(b * b)) + floor, 0  # the zero law
     best_loss = min(v[0] for v in refined.values())
+    front: list[dict[str, Any]] = []
     chosen, chosen_score = None, -np.inf
     for complexity in sorted(refined):
         loss, terms, values, jac = refined[complexity]
@@ -335,7 +355,12 @@ def fit_formula(r: np.ndarray, y: np.ndarray, weight: np.ndarray | None = None,
     n, p = len(r), len(values)
     stderr = np.full(p, np.nan)
     if jac is not None and n > p:
-        cov = np.linalg.pinv(jac.T @ jac) * loss * n / (n - p)
+        # columns scaled to unit norm first: constants of very different sizes (Morse's
+        # amplitudes and decay lengths) would otherwise fall below pinv's cut-off
+        norm = np.linalg.norm(jac, axis=0)
+        norm = np.where(norm > 0, norm, 1)
+        unit = jac / norm
+        cov = np.linalg.pinv(unit.T @ unit) / np.outer(norm, norm) * loss * n / (n - p)
         stderr = np.sqrt(np.clip(np.diag(cov), 0, None))
     rng = np.random.default_rng(seed)
     boots = []
@@ -591,8 +616,7 @@ def _in_form(formula: Formula, r: np.ndarray, density: np.ndarray, truth_f: Any,
     y = np.broadcast_to(np.asarray(truth_f(r), np.float64), r.shape)
     w = np.sqrt(density / density.mean()) / law_scale(r, y, smooth=False)
     values, _ = _refine(formula.terms, r, y, w, formula.values)
-    c = values[-1] if len(values) > len(formula.terms) else 1.0
-    res = (design(formula.terms, r, c) @ values[:len(formula.terms)] - y) * w
+    res = _residual(formula.terms, r, y, w, values)
     return {"values": [float(v) for v in values],
             "relative_difference": [float(abs(a - b) / abs(b)) if b else float("inf")
                                     for a, b in zip(formula.values, values)],
@@ -694,6 +718,8 @@ def law_section(module: Any, dataset: Any, level: int = 2) -> str:
 def law_figure(report: LawReport) -> Any:
     """Learned law, formula and truth against r, their relative errors, and the histogram of
     the training distances underneath; one column per pair of types."""
+    from matplotlib.ticker import FormatStrFormatter, FuncFormatter, NullFormatter
+
     from bgn.figures import plt
 
     n = len(report.pairs)
@@ -723,12 +749,21 @@ def law_figure(report: LawReport) -> Any:
         if pair.truth is not None:
             err_ax.plot(pair.r, _rel_error(pair.learned, pair.truth, pair.r),
                         label="learned vs truth")
+            err_ax.plot(pair.r, _rel_error(curves["formula"], pair.truth, pair.r), "--",
+                        label="formula vs truth")
         err_ax.set_yscale("log")
         err_ax.set_ylabel("relative error")
         err_ax.legend(fontsize=8)
         hist_ax.stairs(pair.hist_counts, pair.hist_edges, fill=True, color="0.6")
         hist_ax.set_yscale("log")
         hist_ax.set_xlabel("r (distance between the pair)")
+        hist_ax.xaxis.set_major_formatter(FormatStrFormatter("%g"))
+        # within two decades also 2 and 5 times a power of ten (else the decades alone)
+        if pair.r[-1] / pair.r[0] < 100:
+            hist_ax.xaxis.set_minor_formatter(FuncFormatter(
+                lambda x, _: f"{x:g}" if f"{x:.0e}"[0] in "25" else ""))
+        else:
+            hist_ax.xaxis.set_minor_formatter(NullFormatter())
         hist_ax.set_ylabel("training pairs")
     fig.tight_layout()
     return fig

@@ -12,16 +12,23 @@ vector from j to i (positive: repulsive). This module reads that law back:
    without the law loss) only the shape is learned, and ``calibrate_scale`` puts it in physical
    units by least squares against the recorded masses of training frames (said in the report).
 2. ``fit_formula``: sparse regression over a library of candidate terms (``default_library``:
-   powers ``r^p``, ``log r``, ``exp(-r/c)``, softened ``(r + c)^p`` and ``(r^2 + c^2)^(p/2)``,
-   a constant): every subset of up to ``max_terms`` terms with at most one nonlinear constant
-   ``c`` (a grid over c, linear amplitudes solved at each), the best few of each complexity
-   refined jointly by ``scipy.optimize.least_squares``, then PySR's rule for the "best" model
-   (Cranmer 2023, arXiv:2305.01582): on the front of loss against complexity, the largest drop
-   of log-loss per added constant among the models within ``parsimony`` times the lowest
-   loss. Residuals are relative (``law_scale``), so every distance weighs alike. Constants get
-   standard errors from the Jacobian (covariance scaled by the residual variance) and from a
-   bootstrap over the sampled points; both measure how well the grid pins them, not the
-   network's own error, which shows in the band table.
+   powers ``r^p`` (Lennard-Jones' among them), ``log r``, ``exp(-r/c)``, softened ``(r + c)^p``
+   and ``(r^2 + c^2)^(p/2)``, a constant): every subset of up to ``max_terms`` terms with at
+   most one nonlinear term, or one such term twice with two constants (Morse's force is two
+   exponentials), each c on a grid with the amplitudes solved by linear least squares; the
+   best few of each complexity (number of constants) refined jointly by
+   ``scipy.optimize.least_squares``. Residuals are relative (``law_scale``), each distance
+   weighted by the training data's density of log r: the loss is the mean squared relative
+   error over the training pairs, so sparsely visited distances (a close encounter) do not
+   steer the form, and the band table shows how the formula extrapolates there. The formula
+   chosen is the simplest whose RMS relative error is within ``tolerance`` of the learned law
+   (the discrepancy principle: the network's law is no more exact than that), else PySR's
+   rule for the "best" model (Cranmer 2023, arXiv:2305.01582): on the front of loss against
+   complexity, the largest drop of log-loss per added constant among the models within
+   ``parsimony`` times the lowest loss. Constants get standard errors from the Jacobian
+   (covariance scaled by the residual variance) and from a bootstrap over the sampled points;
+   both say how well the learned curve pins them, not how far the network's law is from the
+   truth, which the band table shows.
 3. ``read_law`` -> ``LawReport``: the formula, how masses enter (the head's ``mass_law``),
    relative errors in quantile bands of the data's distances (formula against the learned
    law, and both against the true law where the scene is a built-in one of ``bgn.sim``);
@@ -481,6 +488,17 @@ MASS_TEXT = {"inertial": "none: the force does not depend on the masses, a_i = s
              "other": "neither law of bgn.model.newton"}
 
 
+SCALE_TEXT = {
+    "physical": "physical: the head was trained with the recorded masses (the law loss); the "
+                "recorded masses reproduce the training targets with the law times {}",
+    "calibrated": "free in the model (the window's mass fit absorbs it): put in physical units "
+                  "by least squares against the recorded masses of training frames, factor {}",
+    "unit masses": "free in the model, and the data record no masses: put in the units of "
+                   "unit masses (physical where every mass is 1) by least squares against "
+                   "the training frames, factor {}",
+}
+
+
 @dataclass
 class PairLaw:
     """The law of one pair of types: the grid, the learned law (physical scale), the
@@ -506,7 +524,7 @@ class LawReport:
     scene: str
     model: str
     mass_law: str
-    scale: str                 # "physical" (trained with recorded masses) | "calibrated"
+    scale: str                 # "physical" | "calibrated" | "unit masses" (SCALE_TEXT)
     scale_factor: float        # applied to the raw law ("calibrated"), else the check's value
     calibration_error: float   # mean relative squared error with the recorded masses
     length_scale: float
@@ -564,8 +582,10 @@ def read_law(module_or_model: Any, dataset: Any, max_terms: int = 3,
     head = copy.deepcopy(head).double().eval()  # the law in float64: smooth to the last digit
     dim = dataset.meta.dim
     pinned = "law" in getattr(model, "heads", ())
+    scale = ("physical" if pinned else "calibrated" if dataset.meta.masses_known
+             else "unit masses")
     k, error = calibrate_scale(head, _as_double(dataset))
-    factor = 1.0 if pinned else k
+    factor = 1.0 if pinned else k  # the scale the head does not pin, from the data
     truth = true_law(dataset.scene)
     pairs = []
     for types, distances in pair_distances(dataset).items():
@@ -587,7 +607,7 @@ def read_law(module_or_model: Any, dataset: Any, max_terms: int = 3,
                    None if truth is None else truth[0]), len(distances), in_form))
     return LawReport(
         scene=dataset.meta.name, model=getattr(model, "name", type(model).__name__),
-        mass_law=head.mass_law, scale="physical" if pinned else "calibrated",
+        mass_law=head.mass_law, scale=scale,
         scale_factor=k, calibration_error=error, length_scale=float(head.length_scale),
         pairs=pairs, truth_text=None if truth is None else sympy.sstr(truth[0]),
         truth_masses=None if truth is None else truth[1])
@@ -640,12 +660,7 @@ def markdown(report: LawReport, figure: str | None = None, level: int = 2) -> st
     masses, scale, band errors and the truth where known."""
     h = "#" * level
     lines = [f"{h} The learned pair law ({report.model} on {report.scene})", ""]
-    scale = ("physical: the head was trained with the recorded masses (the law loss); "
-             f"the recorded masses reproduce the training targets with the law times "
-             f"{_g(report.scale_factor, 4)}" if report.scale == "physical" else
-             "free in the model (the window's mass fit absorbs it): put in physical units by "
-             f"least squares against the recorded masses of training frames, factor "
-             f"{_g(report.scale_factor, 4)}")
+    scale = SCALE_TEXT[report.scale].format(_g(report.scale_factor, 4))
     lines += [f"- Convention: the force on particle i from j is f(r) u_ij, u_ij the unit vector "
               "from j to i (f > 0: repulsive); r in the data's length units (the head reads r / "
               f"{_g(report.length_scale, 4)}); f is the force between unit masses.",

@@ -287,3 +287,23 @@ def test_kinematic_particles_are_inputs_never_predicted_or_scored(tmp_path):
     np.testing.assert_array_equal(result["predicted"][:, kinematic], result["true"][:, kinematic])
     # the others are the model's own (not copied from the record)
     assert (result["predicted"][1:, ~kinematic] != result["true"][1:, ~kinematic]).all()
+
+
+def test_checkpoints_record_the_import_and_its_data(tmp_path):
+    from bgn.train import data_module, run_provenance
+
+    rng = np.random.default_rng(4)
+    x = rng.normal(size=(10, 12, 3, 2)) * 0.01 + rng.normal(size=(1, 1, 3, 2))
+    cfg = _train_cfg("p", tmp_path, tmp_path / "run", "gns")
+    from_arrays(x, 0.1, name="p", data_dir=tmp_path)
+    first = run_provenance(cfg, data_module(cfg))
+    from_arrays(x * 1.01, 0.1, name="p", data_dir=tmp_path, overwrite=True)
+    second = run_provenance(cfg, data_module(cfg))
+    assert first["scene"] == second["scene"] == "imported" and first["fps"] == 10.0
+    assert first["scene_params"] != second["scene_params"]  # same name, other data
+
+
+def test_dataset_imported_needs_a_name(tmp_path):
+    cfg = compose_config("train", ["dataset=imported", f"paths.data_dir={tmp_path}"])
+    with pytest.raises(ConfigError, match="dataset.name is missing"):
+        validate_train(cfg)

@@ -69,6 +69,7 @@ from scipy.stats import gaussian_kde
 # relative residuals: |f| floored near a zero crossing by the change of f over this fraction
 # of r (a spring's law crosses zero at s = 1, where a plain relative error is undefined)
 ZERO_CROSSING_WIDTH = 0.1
+SIZE_FLOOR = 0.01                 # of the law's size at the median point (fit_formula)
 GRID_POINTS = 240                 # log-spaced distances per pair of types
 KDE_POINTS = 20_000               # distances the density of log r is estimated from
 BAND_QUANTILES = (0.0, 0.01, 0.1, 0.5, 0.9, 0.99, 1.0)  # bands of the error table
@@ -316,13 +317,25 @@ def fit_formula(r: np.ndarray, y: np.ndarray, weight: np.ndarray | None = None,
     ``parsimony``."""
     order = np.argsort(r)
     r, y = np.asarray(r, np.float64)[order], np.asarray(y, np.float64)[order]
-    if len(r) < 8 or not (r > 0).all() or not np.isfinite(y).all():
-        raise ValueError(f"a formula needs >= 8 finite points at r > 0; got {len(r)}")
     share = np.ones_like(r) if weight is None else np.asarray(weight, np.float64)[order]
     if not (np.isfinite(share).all() and (share >= 0).all() and share.sum() > 0):
         raise ValueError("the weights of a formula's points must be finite, >= 0, not all 0")
-    w = np.sqrt(share / share.mean()) / (law_scale(r, y) if scale is None
-                                         else np.asarray(scale, np.float64)[order])
+    if scale is not None:
+        scale = np.asarray(scale, np.float64)[order]
+    kept = share > 0  # points of weight 0 take no part, not even in the relative scale
+    r, y, share = r[kept], y[kept], share[kept]
+    scale = None if scale is None else scale[kept]
+    if len(r) < 8 or not (r > 0).all() or not np.isfinite(y).all():
+        raise ValueError(f"a formula needs >= 8 finite points at r > 0 of weight > 0; got "
+                         f"{len(r)} points, {int((r <= 0).sum())} at r <= 0, "
+                         f"{int((~np.isfinite(y)).sum())} not finite")
+    if scale is None:
+        scale = law_scale(r, y)
+        # a law far weaker than where most points are (beyond a cut-off) counts in absolute
+        # terms: its relative error there would be the network's noise over nothing
+        middle = scale[np.searchsorted(np.cumsum(share), share.sum() / 2)]
+        scale = np.maximum(scale, SIZE_FLOOR * middle)
+    w = np.sqrt(share / share.mean()) / scale
     b = y * w
     candidates = _candidates(r, b, w, default_library() if library is None else library,
                              max_terms, max_constants)
@@ -416,6 +429,8 @@ def pair_distances(dataset: Any) -> dict[tuple[int, int], np.ndarray]:
     """The distances of every pair of particles at the frames of ``dataset``'s simulations
     (a ``FrameDataset``; frames thinned evenly beyond ``MAX_DISTANCES``), per pair of types
     (sorted; all (0, 0) where the scene has one type)."""
+    from bgn.data.graphs import minimum_image
+
     file, sims = dataset.file, list(dataset.sims)
     n = dataset.meta.n_particles
     i, j = np.triu_indices(n, k=1)
@@ -423,13 +438,14 @@ def pair_distances(dataset: Any) -> dict[tuple[int, int], np.ndarray]:
     found: dict[tuple[int, int], list[np.ndarray]] = {}
     for s in sims:
         x = np.asarray(file.read("positions", (s, slice(None, None, stride))), np.float64)
-        r = np.sqrt(((x[:, i] - x[:, j]) ** 2).sum(-1))                         # (T, P)
+        r = np.sqrt((minimum_image(x[:, i] - x[:, j], dataset.meta.period) ** 2).sum(-1))
         types = (np.asarray(file.read("types", s)) if dataset.meta.n_types > 1
                  else np.zeros(n, dtype=np.int64))
         lo, hi = np.minimum(types[i], types[j]), np.maximum(types[i], types[j])
         for a, b in sorted(set(zip(lo.tolist(), hi.tolist()))):
             found.setdefault((a, b), []).append(r[:, (lo == a) & (hi == b)].ravel())
-    return {k: np.concatenate(v) for k, v in found.items()}
+    # coincident particles (r = 0) have no direction, and no place on a log-r grid
+    return {k: d[d > 0] for k, v in found.items() if (d := np.concatenate(v)).any()}
 
 
 @torch.no_grad()

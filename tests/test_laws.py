@@ -74,6 +74,23 @@ def test_the_fitter_recovers_known_laws_from_noisy_points(law, seed):
         formula.text, formula.stderr)
 
 
+def test_the_fit_is_relative_and_weighted():
+    """Scaling a law scales its amplitudes only; points of weight 0 do not count."""
+    r = np.geomspace(0.05, 5, 120)
+    y = 1 / (r + SOFTENING) ** 2 + 0.3 / r
+    base = fit_formula(r, y, n_boot=0)
+    scaled = fit_formula(r, -1e3 * y, n_boot=0)
+    assert scaled.terms == base.terms
+    k = len(base.terms)
+    np.testing.assert_allclose(scaled.values[:k], -1e3 * base.values[:k], rtol=1e-6)
+    np.testing.assert_allclose(scaled.values[k:], base.values[k:], rtol=1e-6)
+    inside = r < 1
+    alone = fit_formula(r[inside], y[inside], n_boot=0)
+    masked = fit_formula(r, np.where(inside, y, 1e4 * np.sin(r)), inside * 1.0, n_boot=0)
+    assert masked.terms == alone.terms
+    np.testing.assert_allclose(masked.values, alone.values, rtol=1e-4)
+
+
 def test_the_formula_prints_and_evaluates_as_sympy_reads_it():
     r = np.geomspace(0.05, 5, 100)
     formula = fit_formula(r, 3 / (r**2 + 0.2**2) ** 1.5 - 0.5 * np.log(r), n_boot=0)

@@ -50,6 +50,7 @@ from __future__ import annotations
 import argparse
 import copy
 import csv
+import io
 import itertools
 import json
 import math
@@ -84,6 +85,8 @@ TOLERANCE = 0.02
 
 # ----------------------------------------------------------------------------- library
 
+TERM_KINDS = ("const", "power", "log", "exp", "shifted", "plummer")
+
 
 @dataclass(frozen=True)
 class Term:
@@ -92,6 +95,10 @@ class Term:
 
     kind: str
     power: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.kind not in TERM_KINDS:
+            raise ValueError(f"term kind {self.kind!r}; choose one of {TERM_KINDS}")
 
     @property
     def nonlinear(self) -> bool:
@@ -830,19 +837,20 @@ def write_report(report: LawReport, out_dir: str | Path, title: str | None = Non
         for k, r in enumerate(pair.r):
             rows.append([*pair.types, f"{r:.9g}", f"{pair.learned[k]:.9g}", f"{fitted[k]:.9g}",
                          "" if pair.truth is None else f"{pair.truth[k]:.9g}"])
-    text = []
-
-    class Lines:
-        def write(self, s: str) -> None:
-            text.append(s)
-
-    csv.writer(Lines(), lineterminator="\n").writerows(rows)
-    write_atomic(out / "law.csv", "".join(text))
-    write_atomic(out / "law.json", json.dumps(_jsonable(report), indent=2))
-    tmp = save(law_figure(report), out / "law.tmp.png")
+    text = io.StringIO()
+    csv.writer(text, lineterminator="\n").writerows(rows)
+    record = json.dumps(_jsonable(report), indent=2)
+    body = (f"# {title}\n\n" if title else "") + markdown(report, "law.png", level=2) + "\n"
+    tmp = out / "law.tmp.png"
+    try:  # the figure first: the step most likely to fail, and nothing is written before it
+        save(law_figure(report), tmp)
+    except Exception:
+        tmp.unlink(missing_ok=True)
+        raise
+    write_atomic(out / "law.csv", text.getvalue())
+    write_atomic(out / "law.json", record)
+    write_atomic(out / "report.md", body)
     tmp.replace(out / "law.png")
-    body = markdown(report, figure="law.png", level=2)
-    write_atomic(out / "report.md", (f"# {title}\n\n" if title else "") + body + "\n")
     return out / "report.md"
 
 

@@ -169,6 +169,9 @@ def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
         result = read_record(eval_path)  # None when damaged (named in a warning): redone
         if result is not None and (not result.get("figure") or figure.exists()) \
                 and "rollout/rollout_cap" in result.get("metrics", {}):  # else: older metrics
+            if "model" not in result:  # an older record: what the model is, from its checkpoint
+                result["model"] = load_model(ckpt).model.describe()
+                write_atomic(eval_path, json.dumps(result, indent=2, sort_keys=True))
             return result
     datamodule = cell_datamodule(run_dir, cfg.data_dir)
     e = cfg.preset.eval
@@ -178,7 +181,9 @@ def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
         mass_frames=e.mass_frames, mass_samples=e.mass_samples, batch_size=e.batch_size,
         rollout_steps=e.rollout_steps, rollout_starts=e.rollout_starts,
         rollout_sims=e.rollout_sims)
-    result = {"checkpoint": str(ckpt), "metrics": metrics, "figure": None}
+    # the report labels each row by what the model is given and has written in (bgn.report)
+    result = {"checkpoint": str(ckpt), "metrics": metrics, "figure": None,
+              "model": module.model.describe()}
     if arrays:
         result["figure"] = str(mass_figure(arrays, figure))
     write_atomic(eval_path, json.dumps(result, indent=2, sort_keys=True))

@@ -59,34 +59,55 @@ def _main(cells: list[Cell]) -> list[Cell]:
     return [c for c in cells if "main" in c.groups]
 
 
+def variant(results: Results, cell: Cell) -> dict[str, str]:
+    """What a cell's model is (``PhysicsModel.describe``, recorded by ``bgn.experiments``):
+    its label, what it is given beyond the position window and the physics written into it;
+    the cell's model name alone where an older record lacks it."""
+    info = results[cell.name]["eval"].get("model") or {}
+    return {"model": info.get("label", cell.model),
+            "given": ", ".join(info.get("given", [])) or ("-" if info else ""),
+            "physics written in": info.get("physics", "")}
+
+
+# the columns that say what a model is (``variant``), beside its name in every model table
+VARIANT_COLUMNS = ["given", "physics written in"]
+# the paper's BGN is its decoder, its baselines read neither radii nor types: its value
+# stands beside a row of the same family given nothing and with no physics written in
+PAPER_SOURCE = {"bgn": "BGN", "cranmer_gn": "Cranmer et al.", "gns": "Sanchez-Gonzalez et al."}
+
+
 def table1(report_dir: Path, cells: list[Cell], results: Results) -> str:
-    """Table 1: one row per scene x fps of the main grid, MSE and NMSE per model, the
-    no-learning references and the paper's values beside them."""
-    main = _main(cells)
-    models = list(dict.fromkeys(c.model for c in main))
-    rows = []
+    """Table 1: one row per scene x fps x model of the main grid (its variant, what it is
+    given, the physics written in), MSE and NMSE, the no-learning references of the same
+    frames and the paper's value for the paper's variant."""
+    main, rows = _main(cells), []
     for scene, fps in dict.fromkeys((c.scene, c.fps) for c in main):
-        row: dict[str, Any] = {"scene": scene, "fps": fmt(fps)}
-        for c in main:
-            if (c.scene, c.fps) == (scene, fps):
-                m = evaluation(results, c)
-                row[f"{c.model} MSE"], row[f"{c.model} NMSE"] = m["mse"], m["nmse"]
-                for ref, column in REFERENCES.items():  # the same test frames for every model
-                    row[column] = m.get(f"nmse_{ref}_extrapolation")
-        for source in PAPER_COLUMNS:
-            row[f"{source} {PAPER_LABEL}"] = paper_value(source, scene, fps)
-        rows.append(row)
-    columns = ["scene", "fps", *[f"{m} {k}" for m in models for k in ("MSE", "NMSE")],
-               *REFERENCES.values(), *[f"{source} {PAPER_LABEL}" for source in PAPER_COLUMNS]]
+        for c in [c for c in main if (c.scene, c.fps) == (scene, fps)]:
+            m, about = evaluation(results, c), variant(results, c)
+            source = PAPER_SOURCE.get(c.model)
+            paper = (paper_value(source, scene, fps) if source and about["given"] == "-"
+                     and about["physics written in"] == "none" else None)
+            rows.append({"scene": scene, "fps": fmt(fps), **about, "MSE": m["mse"],
+                         "NMSE": m["nmse"],
+                         # the same test frames for every model of a scene x fps
+                         **{column: m.get(f"nmse_{ref}_extrapolation")
+                            for ref, column in REFERENCES.items()}, PAPER_LABEL: paper})
+    columns = ["scene", "fps", "model", *VARIANT_COLUMNS, "MSE", "NMSE", *REFERENCES.values(),
+               PAPER_LABEL]
     return write_table(
         report_dir, "table1", columns, rows, "Table 1: one-step error on the test split",
         "MSE of the forward target (next velocity for collisions, acceleration "
-        "otherwise) in physical units; NMSE = MSE / training target variance. The "
-        "paper's columns are its published Table 1 values (it does not say which "
-        "metric); the baselines are single values per scene in the paper. The "
-        "extrapolation columns learn nothing: they repeat the last observed target, or "
-        "extrapolate the last two linearly, from the input window (the floor a learned "
-        "model must beat; the models predict the change from the latter by default).",
+        "otherwise) in physical units; NMSE = MSE / training target variance. model: the "
+        "variant (BGN with the paper's decoder or a structured head; a baseline with the "
+        "node inputs it is given); given: what it reads beyond the position window "
+        "(radii, types, masses; - nothing); physics written in: the structure its "
+        "dynamics has by construction (none: a learned map). The paper column is the "
+        "published Table 1 value (it does not say which metric) of the paper's variant "
+        "only: its BGN is the decoder, its baselines read neither radii nor types (single "
+        "values per scene). The extrapolation columns learn nothing: they repeat the last "
+        "observed target, or extrapolate the last two linearly, from the input window "
+        "(the floor a learned model must beat; the models predict the change from the "
+        "latter by default).",
         empty=EMPTY)
 
 
@@ -211,19 +232,23 @@ def rollout_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
     rows = []
     for scene, fps in dict.fromkeys((c.scene, c.fps) for c in _main(cells)):
         group = [c for c in _main(cells) if (c.scene, c.fps) == (scene, fps)]
-        sources = [(c.model, evaluation(results, c), "rollout") for c in group]
-        sources += [(f"{ref} extrapolation", evaluation(results, group[0]), f"rollout_{ref}")
-                    for ref in REFERENCES]
-        sources.append(("predictability limit (simulator, 1e-6 off)",
+        sources = [(variant(results, c), evaluation(results, c), "rollout") for c in group]
+        nothing = {"given": "-", "physics written in": "none"}
+        sources += [({"model": f"{ref} extrapolation", **nothing}, evaluation(results, group[0]),
+                     f"rollout_{ref}") for ref in REFERENCES]
+        sources.append(({"model": "predictability limit (simulator, 1e-6 off)", "given": "-",
+                         "physics written in": "the exact simulator"},
                         evaluation(results, group[0]), "predictability"))
-        for label, m, key in sources:
+        for about, m, key in sources:
             values = {k: m.get(f"{key}/{k}") for k in ROLLOUT_COLUMNS}
             if any(v is not None for v in values.values()):
-                rows.append({"scene": scene, "fps": fmt(fps), "model": label, **values})
+                rows.append({"scene": scene, "fps": fmt(fps), **about, **values})
     return write_table(
-        report_dir, "rollouts", ["scene", "fps", "model", *ROLLOUT_COLUMNS], rows,
+        report_dir, "rollouts", ["scene", "fps", "model", *VARIANT_COLUMNS, *ROLLOUT_COLUMNS],
+        rows,
         "Rollouts on the test split",
-        "Each model fed its own frames from the same start frames of every test simulation "
+        "Each model (its variant, what it is given and the physics written in: as Table 1) "
+        "fed its own frames from the same start frames of every test simulation "
         "(frame 100 when the file is long enough), through the learned simulator. Every "
         "rollout counts, a failed one at the cap (rollout_cap: 10 scene scales, the mean "
         "over the rollouts). pos_err_mean@h: mean over all rollouts of the mean position "

@@ -178,7 +178,8 @@ def train(cfg: DictConfig) -> dict[str, float]:
         overrides = dict(o.split("=", 1) for o in HydraConfig.get().overrides.task if "=" in o)
     record = {"metrics": metrics, "overrides": overrides,
               "dataset": cfg.dataset.scene, "fps": float(cfg.fps),
-              "model": module.model.label}
+              "model": module.model.name,
+              "variant": module.model.describe()}  # label, given, physics written in
     write_atomic(output_dir / "metrics.json", json.dumps(record, indent=2, sort_keys=True))
     info("final metrics:\n" + json.dumps({k: round(v, 6) for k, v in sorted(metrics.items())
                                           if k.startswith(("test/", "val/nmse"))}, indent=1))

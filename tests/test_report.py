@@ -46,8 +46,17 @@ def record(cell: Cell) -> dict[str, Any]:
     for key, err in (("rollout", 0.01), ("rollout_last", 0.5), ("rollout_linear", 0.2),
                      ("predictability", 1e-6)):
         metrics.update({f"{key}/pos_err_mean@10": err, f"{key}/failed_share": 0.0})
-    return {"train": {"metrics": {"wall_time_s": 60.0, "test/contact_f1": 0.7}},
-            "eval": {"metrics": metrics, "figure": figure}}
+    out = {"train": {"metrics": {"wall_time_s": 60.0, "test/contact_f1": 0.7}},
+           "eval": {"metrics": metrics, "figure": figure}}
+    if cell.scene == "collisions":  # what bgn.experiments records (older records lack it)
+        out["eval"]["model"] = VARIANTS[cell.model]
+    return out
+
+
+VARIANTS = {  # PhysicsModel.describe of the collisions cells
+    "bgn": {"label": "BGN + impulse head (radii)", "given": ["radii"],
+            "physics": "impulses at the time of impact"},
+    "gns": {"label": "GNS + radii/types", "given": ["radii", "types"], "physics": "none"}}
 
 
 RESULTS = {c.name: record(c) for c in CELLS}
@@ -66,12 +75,16 @@ def test_rollout_table(tmp_path: Path) -> None:
     predictability limit, per scene x fps."""
     rollout_table(tmp_path, CELLS, RESULTS)
     rows = csv_rows(tmp_path / "rollouts.csv")
+    bgn, gns = VARIANTS["bgn"]["label"], VARIANTS["gns"]["label"]
     assert [(r["scene"], r["model"]) for r in rows] == [
-        ("collisions", "bgn"), ("collisions", "gns"), ("collisions", "last extrapolation"),
+        ("collisions", bgn), ("collisions", gns), ("collisions", "last extrapolation"),
         ("collisions", "linear extrapolation"), ("collisions", LIMIT), ("spring", "bgn"),
         ("spring", "last extrapolation"), ("spring", "linear extrapolation"), ("spring", LIMIT)]
     assert [float(r["pos_err_mean@10"]) for r in rows[:3]] == [0.01, 0.01, 0.5]
     assert rows[0]["pos_err_mean@100"] == ""  # not evaluated: blank, not zero
+    assert [(r["given"], r["physics written in"]) for r in rows[:3]] == [
+        ("radii", "impulses at the time of impact"), ("radii, types", "none"), ("-", "none")]
+    assert (rows[5]["given"], rows[5]["physics written in"]) == ("", "")  # an older record
 
 
 def test_paper_values() -> None:
@@ -82,13 +95,26 @@ def test_paper_values() -> None:
 
 
 def test_table1(tmp_path: Path) -> None:
-    table1(tmp_path, CELLS, RESULTS)
+    """One row per main cell: its variant, what it is given, the physics written in; the
+    paper's value beside the paper's variant only."""
+    plain = {"bgn": {"label": "BGN (paper decoder)", "given": [], "physics": "none"},
+             "gns": {"label": "GNS", "given": [], "physics": "none"}}
+    cells, results = [*CELLS], {**RESULTS}
+    for model, about in plain.items():
+        cells.append(Cell("spring", 10.0, model))
+        results[cells[-1].name] = {**record(cells[-1])}
+        results[cells[-1].name]["eval"]["model"] = about
+    table1(tmp_path, cells, results)
     rows = csv_rows(tmp_path / "table1.csv")
-    assert [(r["scene"], r["fps"]) for r in rows] == [("collisions", "10"), ("spring", "25")]
-    assert rows[0]["gns NMSE"] == "0.2" and rows[1]["gns NMSE"] == ""  # no gns spring cell
+    assert [(r["scene"], r["fps"], r["model"], r["given"]) for r in rows] == [
+        ("collisions", "10", "BGN + impulse head (radii)", "radii"),
+        ("collisions", "10", "GNS + radii/types", "radii, types"),
+        ("spring", "25", "bgn", ""),  # an older record: the cell's model name
+        ("spring", "10", "BGN (paper decoder)", "-"), ("spring", "10", "GNS", "-")]
+    assert rows[1]["NMSE"] == "0.2" and rows[1]["physics written in"] == "none"
     assert rows[0]["repeat-last NMSE"] == "1.5"
-    assert rows[0][f"BGN {PAPER_LABEL}"] == "0.003" and rows[1][f"BGN {PAPER_LABEL}"] == ""
-    assert rows[1][f"Sanchez-Gonzalez et al. {PAPER_LABEL}"] == "0.734"
+    # the paper's BGN is its decoder, its GNS reads no radii or types
+    assert [r[PAPER_LABEL] for r in rows] == ["", "", "", "0.0007", "0.734"]
 
 
 def test_inverse_table_lists_full_cells_with_a_figure(tmp_path: Path) -> None:

@@ -31,6 +31,8 @@ SMALL_MODELS = {  # test-sized versions of every model
             "model.message_passing_steps=2"],
     "newton": ["model.hidden=16"],
 }
+# the baselines given radii and types (conf/model/<name>_given.yaml), at the same sizes
+SMALL_MODELS.update({f"{name}_given": SMALL_MODELS[name] for name in ("cranmer_gn", "gns")})
 
 
 class SendSignal(Callback):
@@ -90,6 +92,17 @@ def test_every_model_runs_fast_dev_run(tiny_train_cfg, tmp_path, model):
     assert torch.isfinite(torch.tensor(metrics["train/loss"]))
     record = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert record["model"] == model
+
+
+@pytest.mark.parametrize("model", ["cranmer_gn_given", "gns_given"])
+def test_baselines_given_radii_and_types_run_fast_dev_run(tiny_train_cfg, tmp_path, model):
+    """model=<baseline>_given on collisions: trains, and its record says what it is given."""
+    metrics = train(tiny_train_cfg("collisions", "+trainer.fast_dev_run=true", model=model))
+    assert torch.isfinite(torch.tensor(metrics["train/loss"]))
+    record = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert record["model"] == model.removesuffix("_given")
+    assert record["variant"]["given"] == ["radii", "types"]
+    assert record["variant"]["label"].endswith(" + radii/types")
 
 
 @pytest.mark.parametrize("scene", ["gravity_r2", "collisions"])  # spring: its default

@@ -6,7 +6,9 @@ training split's statistics and the window length k (k+1 velocities, newest firs
 - runs all its heads on a graph (``forward`` -> ``ModelOutput``, in the head's units);
 - turns them into task losses (``loss_terms``) and their weighted sum (``total_loss``, Eq. 12);
 - predicts the forward target in physical units (``predict``), which is all a rollout needs;
-- says which heads it has (``heads``: the loss keys it produces) and how to label it;
+- says which heads it has (``heads``: the loss keys it produces), how to label it, what it is
+  given beyond the position window and what physics is written into it (``label``,
+  ``given``, ``physics``: derived from its config, so every table names the variant);
 - samples masses (``sample_mass``) when it has an inverse head.
 
 Subclasses implement ``build`` (their layers), ``forward`` and ``forward_target`` (the dynamics
@@ -37,6 +39,9 @@ from bgn.sim.scene import SceneMeta
 # "law": the structured force head's prediction with the recorded masses (bgn.model.newton)
 LOSS_KEYS = ("dynamics", "contact", "type", "mass_nll", "relmass", "unroll", "impulse_mass",
              "law")
+# What a model may be given beyond the position window (``PhysicsModel.given``): the
+# particles' radii, types or true masses, all hidden from a model that is not given them.
+GIVEN_FIELDS = ("radii", "types", "masses")
 
 
 @dataclass
@@ -160,8 +165,24 @@ class PhysicsModel(nn.Module, ABC):
 
     @property
     def label(self) -> str:
-        """How reports name this model (a variant may add to ``name``)."""
+        """How reports name this model: the variant, from its config (e.g. "BGN + impulse
+        head (radii)", "GNS + radii/types"); subclasses say theirs."""
         return self.name
+
+    @property
+    def given(self) -> tuple[str, ...]:
+        """What the model reads beyond the position window every model reads, among
+        ``GIVEN_FIELDS`` ("radii", "types", "masses"), from its config and scene."""
+        return ()
+
+    @property
+    def physics(self) -> str:
+        """The physics written into the model's dynamics ("none": a learned map only)."""
+        return "none"
+
+    def describe(self) -> dict[str, Any]:
+        """``label``, ``given`` and ``physics`` as one record (reports, metrics.json)."""
+        return {"label": self.label, "given": list(self.given), "physics": self.physics}
 
     @property
     def has_inverse(self) -> bool:

@@ -11,8 +11,13 @@
 
 Both see what BGN sees (``encoder.node_features``: the normalised velocity window and, where the
 scene has walls, the clipped wall distances; on edges the relative position and distance), never
-masses or types, unless ``oracle=True``, which appends the true normalised log-mass (and the
-one-hot type when the scene has several) to the node inputs and labels the model ``...+oracle``.
+masses, radii or types by default (the published GNS embeds particle types; this one reads them
+only when asked). ``node_inputs`` gives them what BGN's structured heads read, as extra node
+columns: "radius" (in the units of the relative positions on the edges, so that ``r_i + r_j``
+compares with the edge's distance) and "type" (one-hot over the scene's types, where it has
+several): "GNS + radii/types" beside "BGN + impulse head (radii)". ``oracle=True`` appends the
+true normalised log-mass (and the one-hot type when the scene has several) and labels the model
+"... (oracle)".
 Positions enter only as differences (translation invariance); every graph operation is a gather
 or an ``index_add_`` over the edge list (O(E)), run in blocks of edges on a CPU (``edge_block``:
 ``EdgeMLP.fused``, with the backward written out, for ReLU; ``EdgeMLP.blocks`` otherwise).
@@ -23,7 +28,7 @@ of all three models are in the same units.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import torch
@@ -38,14 +43,21 @@ from bgn.model.message_passing import checkpointed
 from bgn.model.noise import random_walk
 from bgn.model.ops import EdgeMLP, activation, mlp
 
+NODE_INPUTS = ("radius", "type")  # BaselineConfig.node_inputs
+LABELS = {"cranmer_gn": "Cranmer GN", "gns": "GNS"}
+
 
 # ----------------------------------------------------------------------------- configs
 @dataclass
 class BaselineConfig(DynamicsConfig):
     """Options both baselines share (see ``CranmerGNConfig``, ``GNSConfig``)."""
 
-    # also feed the true log-mass (and one-hot type) to the nodes -> "<name>+oracle"
+    # also feed the true log-mass (and one-hot type) to the nodes -> "<label> (oracle)"
     oracle: bool = False
+    # what the structured heads read, as node features: "radius" (divided by the training
+    # split's relative-position scale, the edges' unit) and/or "type" (one-hot; none on a
+    # one-type scene, where it says nothing): -> "GNS + radii/types". Never masses (oracle).
+    node_inputs: list[str] = field(default_factory=list)
     # the edge MLPs are most of a step: no recompute below a million edges (DynamicsConfig)
     checkpoint_edges: int | None = 1_000_000
     # On a CPU the edges run in blocks of this many (ops.EdgeMLP.fused with ReLU, else
@@ -60,6 +72,11 @@ class BaselineConfig(DynamicsConfig):
         super().__post_init__()
         if self.edge_block is not None and not self.edge_block >= 1:
             raise ValueError(f"edge_block={self.edge_block} must be >= 1 (or null: one block)")
+        unknown = [k for k in self.node_inputs if k not in NODE_INPUTS]
+        if unknown or len(set(self.node_inputs)) != len(self.node_inputs):
+            raise ValueError(f"node_inputs={list(self.node_inputs)}: each of {NODE_INPUTS} at "
+                             "most once (masses: oracle=true)")
+        self.node_inputs = [str(k) for k in self.node_inputs]
 
 
 @dataclass
@@ -123,15 +140,30 @@ class Baseline(PhysicsModel):
         meta, history = self.meta, self.history
         self.oracle = cfg.oracle
         # one-hot types only carry information when there is more than one type
-        self.oracle_types = self.oracle and meta.n_types > 1
+        several = meta.n_types > 1
+        self.oracle_types = self.oracle and several
+        self.radius_input = "radius" in cfg.node_inputs
+        self.type_input = "type" in cfg.node_inputs and several and not self.oracle_types
         self.node_in = (node_input_dim(meta.dim, history, meta.has_walls, False)
+                        + int(self.radius_input) + (meta.n_types if self.type_input else 0)
                         + (1 + (meta.n_types if self.oracle_types else 0) if self.oracle else 0))
         self.edge_in = meta.dim + 1
 
     @property
+    def given(self) -> tuple[str, ...]:
+        """"radii" and "types" of ``node_inputs`` (types where the scene has several), and
+        "masses" (and types) with ``oracle``."""
+        types = self.type_input or self.oracle_types
+        return tuple(k for k, read in (("radii", self.radius_input), ("types", types),
+                                       ("masses", self.oracle)) if read)
+
+    @property
     def label(self) -> str:
-        """``cranmer_gn`` / ``gns``, with ``+oracle`` when masses and types are inputs."""
-        return self.name + ("+oracle" if self.oracle else "")
+        """"GNS" / "Cranmer GN", then what it is given ("GNS + radii/types"), "(oracle)"
+        when the true masses are inputs."""
+        given = "/".join(self.given)
+        return (LABELS[self.name] + (f" + {given}" if given else "")
+                + (" (oracle)" if self.oracle else ""))
 
     # ------------------------------------------------------------------ inputs
     def velocity_noise(self, g: Graph) -> torch.Tensor | None:
@@ -139,17 +171,22 @@ class Baseline(PhysicsModel):
         return None
 
     def node_inputs(self, g: Graph, noisy: bool = False) -> torch.Tensor:
-        """(N, node_in): BGN's node features (velocity window, walls), then oracle columns."""
+        """(N, node_in): BGN's node features (velocity window, walls), then the ``node_inputs``
+        columns (radius, one-hot type), then the oracle's (log-mass, one-hot type)."""
         noise = self.velocity_noise(g) if noisy else None
         if noise is not None:  # physical noise = normalised noise x velocity scale
             g = replace(g, vel=g.vel + noise * self.normalizer.velocity_scale)
         x = node_features(g, self.normalizer, self.meta.has_walls)
+        feats = [x]
+        if self.radius_input:  # a fixed scale: the same disc reads the same in every frame
+            feats.append(self.normalizer.rel_position(g.radius)[:, None].to(x.dtype))
+        if self.type_input:
+            feats.append(F.one_hot(g.types, self.meta.n_types).to(x.dtype))
         if self.oracle:
-            feats = [x, self.normalizer.log_mass(torch.log(g.mass))[:, None].to(x.dtype)]
+            feats.append(self.normalizer.log_mass(torch.log(g.mass))[:, None].to(x.dtype))
             if self.oracle_types:
                 feats.append(F.one_hot(g.types, self.meta.n_types).to(x.dtype))
-            x = torch.cat(feats, dim=1)
-        return x
+        return torch.cat(feats, dim=1) if len(feats) > 1 else x
 
     def _target(self, x: torch.Tensor, e: torch.Tensor,
                 edge_index: torch.Tensor) -> torch.Tensor:

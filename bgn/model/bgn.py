@@ -41,6 +41,9 @@ from bgn.model.newton import (
     MASS_LAWS,
     PairForceHead,
     build_head,
+    head_given,
+    head_label,
+    head_physics,
     impulse_mass_loss,
     law_loss,
 )
@@ -251,6 +254,26 @@ class BGN(PhysicsModel):
             if cfg.contact:
                 heads.add("contact")            # the impulse head's gate
         self.heads = frozenset(heads)  # the loss keys this model produces
+
+    @property
+    def label(self) -> str:
+        """"BGN (paper decoder)" or "BGN + <structured head>" (``newton.head_label``)."""
+        if self.force_head is None:
+            return "BGN (paper decoder)"
+        return f"BGN + {head_label(self.force_head)}"
+
+    @property
+    def given(self) -> tuple[str, ...]:
+        """The structured head's inputs (``newton.head_given``); with the decoder, the radii
+        where the contact head reads the time-of-impact gap (``contact_gap``)."""
+        if self.force_head is not None:
+            return head_given(self.force_head)
+        gap = self.processor.contact is not None and self.contact_scene and self.cfg.contact_gap
+        return ("radii",) if gap else ()
+
+    @property
+    def physics(self) -> str:
+        return "none" if self.force_head is None else head_physics(self.force_head)
 
     def _conditioning(self, cfg: ModelConfig, history: int) -> str:
         """The flow's context as built: a one-velocity window holds no acceleration to pair

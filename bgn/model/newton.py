@@ -47,6 +47,7 @@ from bgn.model.base import (
 )
 from bgn.model.encoder import DIRECTION_EPS
 from bgn.model.impulse import ContactImpulseHead
+from bgn.model.message_passing import edge_vector
 from bgn.model.normalizer import Normalizer
 from bgn.model.ops import activation, mlp, scatter_sum
 from bgn.model.target import observed_targets
@@ -168,7 +169,7 @@ class PairForceHead(nn.Module):
         """(E, F, D) ``f(s_ij) u_ij`` on every edge j -> i at each of the F frames of
         ``positions`` (N, F, D); relative positions in normalised units (the scale is free)."""
         snd, rcv = g.edge_index
-        rel = (positions[rcv] - positions[snd]) / self.length_scale           # (E, F, D)
+        rel = edge_vector(positions, g) / self.length_scale                  # (E, F, D)
         dist = torch.sqrt((rel * rel).sum(-1, keepdim=True) + DIRECTION_EPS**2)
         # distance, its inverse and its log: a spring's linear law and gravity's 1/s^2 near
         # an encounter are then a few units of the MLP each, not a curve it must bend to
@@ -315,6 +316,36 @@ def build_head(meta: SceneMeta, normalizer: Normalizer, history: int, hidden: in
     return PairForceHead(meta, normalizer, hidden, layers, act, mass_law, substeps)
 
 
+def head_given(head: nn.Module) -> tuple[str, ...]:
+    """What a structured head reads beyond the position window (``PhysicsModel.given``): the
+    impulse head the radii (contact distances, masses per radius), the pair-force head the
+    types where the scene has several (its law per pair of types)."""
+    if isinstance(head, ContactImpulseHead):
+        return ("radii",)
+    return ("types",) if isinstance(head, PairForceHead) and head.types > 1 else ()
+
+
+def head_physics(head: nn.Module) -> str:
+    """The physics a structured head writes in (``PhysicsModel.physics``)."""
+    if isinstance(head, ContactImpulseHead):
+        return ("impulses along the normal at the time of impact, equal and opposite, in "
+                "event order (restitution learned, at most elastic); masses learned per radius")
+    assert isinstance(head, PairForceHead)
+    masses = {"inertial": "inertial masses fitted to the window, a = F / m",
+              "source": "masses at the source fitted per simulation, a_i = sum_j m_j F_ij"}
+    return (f"central pair forces, equal and opposite; {masses[head.mass_law]} "
+            f"(mass_law={head.mass_law})")
+
+
+def head_label(head: nn.Module) -> str:
+    """The head's part of a model's label: "impulse head (radii)", "pair-force head (masses
+    inertial)" ("(types, masses source)" where its law reads the types)."""
+    if isinstance(head, ContactImpulseHead):
+        return "impulse head (radii)"
+    assert isinstance(head, PairForceHead)
+    return f"pair-force head ({'types, ' if head.types > 1 else ''}masses {head.mass_law})"
+
+
 def law_loss(head: nn.Module, g: Graph) -> torch.Tensor | None:
     """The force head's prediction with the recorded masses in place of the window's fit,
     scored by its squared error relative to the target's own size (None for other heads). The
@@ -356,6 +387,18 @@ class Newton(PhysicsModel):
             self.heads = frozenset({"dynamics", "contact", "impulse_mass"})
             self.register_buffer("contact_pos_weight", torch.tensor(
                 contact_pos_weight(stats, "balanced")), persistent=False)
+
+    @property
+    def label(self) -> str:
+        return f"Newton {head_label(self.head)}"
+
+    @property
+    def given(self) -> tuple[str, ...]:
+        return head_given(self.head)
+
+    @property
+    def physics(self) -> str:
+        return head_physics(self.head)
 
     def forward(self, g: Graph) -> ModelOutput:
         self.check(g)

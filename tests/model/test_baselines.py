@@ -217,7 +217,11 @@ def test_oracle_inputs_and_label(meta, stats, graph, name, n_types, extra):
     plain = build(meta, stats, name, n_types=n_types)
     oracle = build(meta, stats, name, n_types=n_types, oracle=True)
     assert oracle.node_in == plain.node_in + extra
-    assert plain.label == oracle.name == name and oracle.label == f"{name}+oracle"
+    label = {"cranmer_gn": "Cranmer GN", "gns": "GNS"}[name]
+    types = ("types",) if n_types > 1 else ()
+    assert (plain.label, plain.given) == (label, ())
+    assert oracle.given == (*types, "masses")
+    assert oracle.label == f"{label} + {'/'.join(oracle.given)} (oracle)"
     g = sample(graph, n_types=n_types, seed=10)
     assert oracle.node_inputs(g).shape == (7, oracle.node_in)
     other = replace(g, mass=g.mass * torch.linspace(0.5, 2.0, 7, dtype=torch.float64),
@@ -226,6 +230,69 @@ def test_oracle_inputs_and_label(meta, stats, graph, name, n_types, extra):
     # without the oracle, masses and types are never inputs; with it they are
     torch.testing.assert_close(plain(g).target, plain(other).target)
     assert not torch.allclose(oracle(g).target, oracle(other).target)
+
+
+CONTACT = dict(interaction="contact", kind="radius", n_types=2, box=4.0)
+
+
+@pytest.mark.parametrize("name", NAMES)
+@pytest.mark.parametrize(("inputs", "extra", "given"), [
+    (["radius"], 1, ("radii",)), (["type"], 2, ("types",)),
+    (["radius", "type"], 3, ("radii", "types"))])
+def test_node_inputs_give_radii_and_types_never_masses(meta, stats, graph, name, inputs, extra,
+                                                       given):
+    """``node_inputs``: the radius and one-hot type as node columns, in the label and in
+    ``given``; the prediction follows them and never the masses."""
+    plain = build(meta, stats, name, **CONTACT).eval()
+    model = build(meta, stats, name, **CONTACT, node_inputs=inputs).eval()
+    assert model.node_in == plain.node_in + extra
+    assert model.given == given and model.physics == plain.physics == "none"
+    assert model.label == f"{plain.label} + {'/'.join(given)}"
+    g = sample(graph, n_types=2, kind="radius", box=4.0, seed=3)
+    g = replace(g, radius=torch.linspace(0.1, 0.2, 7, dtype=torch.float64))
+    masses = replace(g, mass=g.mass * torch.linspace(0.5, 2.0, 7, dtype=torch.float64))
+    radii = replace(g, radius=g.radius.flip(0))
+    types = replace(g, types=1 - g.types)
+    with torch.no_grad():
+        base = model.predict(g)
+        torch.testing.assert_close(model.predict(masses), base, rtol=0, atol=0)
+        for other, field in ((radii, "radius"), (types, "type")):
+            same = torch.equal(model.predict(other), base)
+            assert same == (field not in inputs), field
+            torch.testing.assert_close(plain.predict(other), plain.predict(g), rtol=0, atol=0)
+
+
+def test_type_inputs_are_dropped_on_a_one_type_scene(meta, stats):
+    """One type carries no information: no column, not in ``given`` or the label."""
+    model = build(meta, stats, "gns", node_inputs=["radius", "type"])
+    assert model.node_in == build(meta, stats, "gns").node_in + 1
+    assert (model.given, model.label) == (("radii",), "GNS + radii")
+
+
+@pytest.mark.parametrize("inputs", [["mass"], ["radius", "radius"]])
+def test_node_inputs_refuse_masses_and_repeats(meta, stats, inputs):
+    with pytest.raises(ValueError, match="node_inputs"):
+        build(meta, stats, "gns", node_inputs=inputs)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_a_baseline_given_radii_and_types_trains(meta, stats, graph, name):
+    """Sixty optimiser steps on a contact scene's batch at least halve the loss."""
+    torch.manual_seed(0)
+    params = {**SMALL[name], "node_inputs": ["radius", "type"], "target_prior": "none",
+              "dynamics_loss": "mse", **({"noise_std": 0.0} if name == "gns" else {})}
+    model = by_name(name, meta(7, 2, "contact", "radius", box=4.0), stats(), HISTORY, params)
+    g = collate([graph(7, history=HISTORY, kind="radius", n_types=2, contact=True, box=4.0,
+                       seed=s, dtype=torch.float32) for s in (21, 22)])
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(60):
+        opt.zero_grad()
+        loss = model.total_loss(model.loss_terms(g, model(g)))
+        loss.backward()
+        losses.append(loss.item())
+        opt.step()
+    assert all(np.isfinite(losses)) and losses[-1] < 0.5 * losses[0], (losses[0], losses[-1])
 
 
 # ----------------------------------------------------------------------------- learning

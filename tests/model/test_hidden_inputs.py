@@ -3,7 +3,7 @@ all heads' outputs but the likelihood of the truth, rollouts through the learned
 mass posteriors are bit for bit the same when the graph's hidden quantities are replaced by
 random values: true masses, relative log-masses on edges, recorded contacts or pair-force
 magnitudes, the target, and the types and radii where a model is not given them by design
-(``GIVEN`` says which model reads what, and why).
+(``GIVEN`` says which model reads what, and why, and each model's own ``given`` says the same).
 
 The models are built from the real configs (scene defaults of ``conf/dataset_model/``
 included), small, with every parameter perturbed from its initialisation so that no layer
@@ -35,12 +35,22 @@ MODELS = {  # small versions of every model the README trains
             "model.message_passing_steps=2"],
     "cranmer_gn": ["model=cranmer_gn", "model.hidden=8", "model.message_dim=4",
                    "model.hidden_layers=1"],
+    # the baselines given what the structured heads read (node_inputs=[radius, type])
+    "gns_given": ["model=gns_given", "model.latent=8", "model.mlp_hidden=8",
+                  "model.message_passing_steps=2"],
+    "cranmer_gn_given": ["model=cranmer_gn_given", "model.hidden=8", "model.message_dim=4",
+                         "model.hidden_layers=1"],
 }
 HIDDEN = ("mass", "edge_rel_log_mass", "edge_contact", "target", "types", "radius")
 # What a model reads by design, per (model, scene): those fields are kept, the rest scrambled.
 # (The pair-force head would also read types, its law per pair of types, on a force scene of
-# several types; these force scenes have one. No model reads types on collisions: they are
-# the classifier's target, not an input. The baselines read neither unless oracle=true.)
+# several types; these force scenes have one. BGN and Newton read no types on collisions: they
+# are the classifier's target, not an input. The baselines read neither unless given them,
+# node_inputs=[radius, type], or oracle=true.)
+GIVEN_BASELINE = {
+    "radius": "node_inputs: each particle's radius as a node feature (the force scenes' "
+              "radii: zeros, read all the same)",
+    "types": "node_inputs: the one-hot type as a node feature, on a scene of several types"}
 GIVEN = {
     ("bgn_newton", "collisions"): {
         "radius": "the impulse head: impacts at contact distance r_i + r_j, masses a learned "
@@ -48,7 +58,12 @@ GIVEN = {
     ("newton", "collisions"): {
         "radius": "the impulse head: impacts at contact distance r_i + r_j, masses a learned "
                   "function of the radius relative to the scene's largest"},
+    **{(name, scene): {k: v for k, v in GIVEN_BASELINE.items()
+                       if k == "radius" or scene == "collisions"}
+       for name in ("gns_given", "cranmer_gn_given") for scene in SCENES},
 }
+# PhysicsModel.given's names -> the graph's fields
+FIELDS = {"radii": "radius", "types": "types", "masses": "mass"}
 # What a rollout is given by the scene: the radius graph (r_i + r_j + margin) is built from
 # the radii on collisions, for every model.
 SCENE_GIVEN = {"collisions": {"radius": "the radius graph's rule"}}
@@ -88,10 +103,11 @@ def given(name: str, scene: str) -> set[str]:
     return set(GIVEN.get((name, scene), {}))
 
 
-def scrambled(g: Graph, keep: set[str], contact_scene: bool, seed: int = 7) -> Graph:
+def scrambled(g: Graph, keep: set[str], contact_scene: bool, seed: int = 7,
+              n_types: int | None = None) -> Graph:
     """``g`` with every hidden field not in ``keep`` replaced by random values. Types are
     drawn beyond the scene's types as well: a single-type scene's types change, and a model
-    that one-hot encodes them fails loudly."""
+    that one-hot encodes them fails loudly; with ``n_types``, other types of the scene."""
     gen = torch.Generator().manual_seed(seed)
     n, e = g.pos.shape[0], g.edge_index.shape[1]
 
@@ -102,7 +118,8 @@ def scrambled(g: Graph, keep: set[str], contact_scene: bool, seed: int = 7) -> G
                else torch.exp(3 * randn(e)))
     values = {"mass": torch.exp(2 * randn(n)), "edge_rel_log_mass": 3 * randn(e),
               "edge_contact": contact, "target": 10 * randn(*g.target.shape),
-              "types": torch.randint(0, 3, (n,), generator=gen) + g.types + 1,
+              "types": (torch.randint(0, 3, (n,), generator=gen) + g.types + 1
+                        if n_types is None else (g.types + 1) % n_types),
               "radius": g.radius * torch.exp(randn(n)) + 0.01}
     out = replace(g, **{k: v for k, v in values.items() if k not in keep})
     for k in HIDDEN:  # every scrambled field really changed
@@ -152,7 +169,8 @@ def rollouts(model: PhysicsModel, dm, keep: set[str]) -> tuple[torch.Tensor, tor
     other = Particles(
         masses=true.masses * torch.exp(2 * noise).to(true.masses.dtype),
         radii=true.radii if "radius" in keep else true.radii * torch.exp(noise) + 0.01,
-        types=true.types + 1 + torch.randint(0, 3, true.types.shape, generator=gen),
+        types=(true.types if "types" in keep
+               else true.types + 1 + torch.randint(0, 3, true.types.shape, generator=gen)),
         sims=true.sims)
     sim = simulator(model, ds)
     a = sim.rollout(window, true, ROLLOUT_STEPS, start)
@@ -198,9 +216,21 @@ def test_what_a_model_is_given_is_read(scenes, name: str, scene: str, field: str
     dm = scenes[scene]
     model = build(scene, MODELS[name], dm)
     g = frames(dm)
-    other = scrambled(g, set(HIDDEN) - {field}, dm.meta.interaction == "contact")
+    other = scrambled(g, set(HIDDEN) - {field}, dm.meta.interaction == "contact",
+                      n_types=dm.meta.n_types)  # types the model can read
     with torch.no_grad():
         assert not torch.equal(model.predict(g), model.predict(other))
+
+
+@pytest.mark.parametrize(("scene", "name"), CASES)
+def test_a_model_says_what_it_is_given(scenes, scene: str, name: str) -> None:
+    """``PhysicsModel.given`` (what the tables print) is ``GIVEN``: what the tests above keep
+    and find read; the baselines given radii and types say so in their label."""
+    dm = scenes[scene]
+    model = build(scene, MODELS[name], dm)
+    assert {FIELDS[k] for k in model.given} == given(name, scene)
+    if name.endswith("_given"):
+        assert model.label.endswith(" + " + "/".join(model.given)), model.label
 
 
 def test_the_check_can_fail(scenes) -> None:

@@ -1,0 +1,81 @@
+"""The model contract's description of a model (``PhysicsModel.label``, ``given``,
+``physics``): derived from the real configs (scene defaults of ``conf/dataset_model/``
+included), never written per table."""
+
+from __future__ import annotations
+
+import pytest
+from omegaconf import OmegaConf
+
+from bgn.model import build_model
+from bgn.model.base import GIVEN_FIELDS
+from tests.conftest import compose_config
+from tests.model.conftest import fake_stats, make_meta
+
+PAIR_FORCES = "central pair forces, equal and opposite"
+IMPULSES = "impulses along the normal at the time of impact, equal and opposite, in event order"
+SCENES = {  # a synthetic record of each kind of scene: (interaction, graph, n_types, box)
+    "spring": ("pairwise", "full", 1, None),
+    "gravity_r2": ("pairwise", "full", 1, None),
+    "collisions": ("contact", "radius", 2, 4.0),
+}
+# (scene, overrides) -> label, given, what the physics says (a part of it)
+CASES = {
+    ("spring", "model=bgn", "model.dynamics=decoder"): ("BGN (paper decoder)", (), "none"),
+    ("collisions", "model=bgn", "model.dynamics=decoder"): ("BGN (paper decoder)", (), "none"),
+    ("collisions", "model=bgn", "model.dynamics=decoder", "model.contact_gap=true"):
+        ("BGN (paper decoder)", ("radii",), "none"),
+    ("spring", "model=bgn"):  # the scene's default: the pair-force head, inertial masses
+        ("BGN + pair-force head (masses inertial)", (), f"{PAIR_FORCES}; inertial masses"),
+    ("spring", "model=bgn", "model.mass_law=source"):
+        ("BGN + pair-force head (masses source)", (), f"{PAIR_FORCES}; masses at the source"),
+    ("gravity_r2", "model=bgn"):
+        ("BGN + pair-force head (masses source)", (), "(mass_law=source)"),
+    ("collisions", "model=bgn"):  # the scene's default: the impulse head
+        ("BGN + impulse head (radii)", ("radii",), IMPULSES),
+    ("spring", "model=newton"):
+        ("Newton pair-force head (masses inertial)", (), "(mass_law=inertial)"),
+    ("collisions", "model=newton"): ("Newton impulse head (radii)", ("radii",), IMPULSES),
+    ("collisions", "model=gns"): ("GNS", (), "none"),
+    ("collisions", "model=gns_given"): ("GNS + radii/types", ("radii", "types"), "none"),
+    ("collisions", "model=gns", "model.node_inputs=[radius]"): ("GNS + radii", ("radii",),
+                                                                "none"),
+    ("spring", "model=gns_given"): ("GNS + radii", ("radii",), "none"),  # one type: no column
+    ("collisions", "model=gns", "model.oracle=true"):
+        ("GNS + types/masses (oracle)", ("types", "masses"), "none"),
+    ("collisions", "model=cranmer_gn"): ("Cranmer GN", (), "none"),
+    ("collisions", "model=cranmer_gn_given"):
+        ("Cranmer GN + radii/types", ("radii", "types"), "none"),
+}
+
+
+def built(scene: str, overrides: tuple[str, ...]):
+    cfg = compose_config("train", [f"dataset={scene}", *overrides])
+    interaction, graph, n_types, box = SCENES[scene]
+    meta = make_meta(6, n_types, interaction, graph, box=box)
+    return build_model(OmegaConf.to_container(cfg.model, resolve=True), meta, fake_stats(),
+                       cfg.dataset.history)
+
+
+@pytest.mark.parametrize(("scene", "overrides"), [(k[0], k[1:]) for k in CASES],
+                         ids=[" ".join(k) for k in CASES])
+def test_label_given_and_physics_follow_the_config(scene, overrides) -> None:
+    label, given, physics = CASES[(scene, *overrides)]
+    model = built(scene, overrides)
+    assert (model.label, model.given) == (label, given)
+    assert set(model.given) <= set(GIVEN_FIELDS)
+    if physics == "none":
+        assert model.physics == "none"
+    else:
+        assert physics in model.physics and model.physics != "none"
+    assert model.describe() == {"label": label, "given": list(given),
+                                "physics": model.physics}
+
+
+def test_the_pair_force_head_reads_types_on_a_scene_of_several() -> None:
+    """Its law is learned per pair of types there: given types, and the label says so."""
+    cfg = compose_config("train", ["dataset=spring", "model=bgn", "model.mass_law=source"])
+    model = build_model(OmegaConf.to_container(cfg.model, resolve=True),
+                        make_meta(6, 3), fake_stats(), cfg.dataset.history)
+    assert model.given == ("types",)
+    assert model.label == "BGN + pair-force head (types, masses source)"

@@ -22,7 +22,7 @@ from bgn.data.importing import import_dataset, path_override
 from bgn.data.raw import DataImportError
 from bgn.data.spec import DatasetSpec
 from bgn.rollout import rollout
-from bgn.train import build, train
+from bgn.train import build, data_module, train
 from bgn.validate import ConfigError, validate_train
 from tests.conftest import SMALL, compose_config
 from tests.data.layouts import (
@@ -290,7 +290,7 @@ def test_kinematic_particles_are_inputs_never_predicted_or_scored(tmp_path):
 
 
 def test_checkpoints_record_the_import_and_its_data(tmp_path):
-    from bgn.train import data_module, run_provenance
+    from bgn.train import run_provenance
 
     rng = np.random.default_rng(4)
     x = rng.normal(size=(10, 12, 3, 2)) * 0.01 + rng.normal(size=(1, 1, 3, 2))
@@ -307,3 +307,25 @@ def test_dataset_imported_needs_a_name(tmp_path):
     cfg = compose_config("train", ["dataset=imported", f"paths.data_dir={tmp_path}"])
     with pytest.raises(ConfigError, match="dataset.name is missing"):
         validate_train(cfg)
+
+
+def test_each_split_keeps_its_own_sizes(tmp_path):
+    from bgn.data.raw import RawTrajectories, SplitArrays
+
+    rng = np.random.default_rng(5)
+
+    def part(s, t):
+        return SplitArrays(rng.normal(size=(s, t, 3, 2)) * 0.01 + rng.normal(size=(1, 1, 3, 2)))
+
+    raw = RawTrajectories({"train": part(4, 20), "val": part(2, 12), "test": part(1, 9)}, 0.5)
+    import_dataset(raw, "sizes", tmp_path)
+    cfg = _train_cfg("sizes", tmp_path, tmp_path / "run", "gns")
+    datamodule = data_module(cfg)
+    datamodule.setup()
+    lengths = {s: (d.file.n_sims, d.file.n_frames, len(d)) for s, d in
+               datamodule.datasets.items()}
+    assert lengths == {"train": (4, 20, 4 * 13), "val": (2, 12, 2 * 5), "test": (1, 9, 2)}
+    assert datamodule.dt == 0.5
+    with pytest.raises(ConfigError, match="test split"):  # 9 frames: history 7 needs 10
+        validate_train(_train_cfg("sizes", tmp_path, tmp_path / "run", "gns",
+                                  "dataset.history=7"))

@@ -154,14 +154,14 @@ class LearnedSimulator(nn.Module):
         go on in the same batch. ``driven`` (B, n_steps, N, D): the recorded positions of the
         steps, which ``particles.kinematic`` particles take (the source moves them).
         """
-        kinematic = particles.kinematic if driven is not None else None
-        if kinematic is not None:
-            driven = driven.to(self.device, torch.float64)
         if n_steps < 1:
             raise ValueError(f"n_steps={n_steps} must be at least 1")
         device = self.device
         window = window.to(device, torch.float64)
         particles = particles.to(device)
+        kinematic = particles.kinematic if driven is not None else None
+        if kinematic is not None:
+            driven = driven.to(device, torch.float64)
         b = window.shape[0]
         out = torch.full((b, n_steps + 1, *window.shape[2:]), float("nan"),
                          dtype=torch.float64, device=device)

@@ -879,7 +879,12 @@ def parse(argv: list[str]) -> tuple[Path, dict[str, Any]]:
         try:
             options[key] = OPTIONS[key](value)
         except ValueError:
-            raise ValueError(f"{key}={value!r} must be a {OPTIONS[key].__name__}") from None
+            kind = {int: "an integer", float: "a number"}.get(OPTIONS[key], "a path")
+            raise ValueError(f"{key}={value!r} must be {kind}") from None
+    for key, low, high in (("max_terms", 1, 4), ("tolerance", 0, math.inf),
+                           ("parsimony", 1, math.inf)):
+        if key in options and not low <= options[key] <= high:
+            raise ValueError(f"{key}={options[key]} must be in [{low}, {high}]")
     return args.checkpoint, options
 
 

@@ -225,6 +225,13 @@ def test_a_model_without_a_pair_force_head_is_refused_in_one_line(tmp_path, shar
     assert len(done.stderr.strip().splitlines()) == 1, done.stderr
     assert "no pair-force head" in done.stderr and "model=newton" in done.stderr
     assert not (tmp_path / "laws").exists()
-    bad = laws_cli(str(ckpt), "colour=blue")
-    assert bad.returncode == 2 and "colour" in bad.stderr
-    assert len(bad.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("option", ["colour=blue", "max_terms=x", "max_terms=9",
+                                    "tolerance=-1", "parsimony=0.5"])
+def test_bad_options_are_refused_in_one_line(option, capsys, tmp_path):
+    with pytest.raises(SystemExit) as done:
+        main([str(tmp_path / "x.ckpt"), option])
+    assert done.value.code == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and option.split("=")[0] in err

@@ -177,7 +177,7 @@ def train(cfg: DictConfig) -> dict[str, float]:
     if HydraConfig.initialized():
         overrides = dict(o.split("=", 1) for o in HydraConfig.get().overrides.task if "=" in o)
     record = {"metrics": metrics, "overrides": overrides,
-              "dataset": cfg.dataset.scene, "fps": float(cfg.fps),
+              "dataset": cfg.dataset.scene, "fps": float(datamodule.spec.fps),
               "model": module.model.name,
               "variant": module.model.describe()}  # label, given, physics written in
     write_atomic(output_dir / "metrics.json", json.dumps(record, indent=2, sort_keys=True))

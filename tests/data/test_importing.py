@@ -115,6 +115,7 @@ def test_every_format_imports_trains_and_rolls_out(tmp_path, fmt):
             assert ("val/relmass_r2" in metrics) == fmt.startswith("arrays")
         record = json.loads((tmp_path / model / "metrics.json").read_text())
         assert record["dataset"] == "imported"
+        assert record["fps"] == pytest.approx(1 / DT)  # the files' rate, not the top-level fps
     datamodule, module = build(cfg)
     result = rollout(module.model, datamodule.datasets["test"], sim=0, n_steps=3)
     assert result["predicted"].shape == (4, N, D) and int(result["first_non_finite"]) == -1

@@ -47,6 +47,8 @@ def add_random_walk_noise(g: Graph, std: torch.Tensor | float, kind: str) -> Gra
         raise ValueError("training noise needs the frame spacing: the graph has no dt "
                          "(graphs from bgn.data.dataset carry it)")
     noise = random_walk(tuple(g.vel.shape), 1.0, g.vel) * std
+    if g.kinematic is not None:  # moved by the source: their frames are given, never noisy
+        noise = noise * (~g.kinematic).to(noise.dtype)[:, None, None]
     dt = g.dt.to(g.vel.dtype)[g.batch][:, None]                    # (N, 1)
     shift = dt * noise.sum(1)                                      # (N, D) moves x[t]
     target = g.target - noise[:, 0] / dt if kind == "acceleration" else g.target

@@ -21,6 +21,7 @@ from bgn.data.generate import ensure_splits
 from bgn.data.importing import import_dataset, path_override
 from bgn.data.raw import DataImportError
 from bgn.data.spec import DatasetSpec
+from bgn.model.noise import add_random_walk_noise
 from bgn.rollout import rollout
 from bgn.train import build, data_module, train
 from bgn.validate import ConfigError, validate_train
@@ -283,6 +284,10 @@ def test_kinematic_particles_are_inputs_never_predicted_or_scored(tmp_path):
                        model.loss_terms(g, type(out)(moved))["dynamics"])
     moved[~g.kinematic] = model.target_coder.encode(g)[~g.kinematic]  # exact where scored
     assert model.loss_terms(g, type(out)(moved))["dynamics"] == 0.0
+    noisy = add_random_walk_noise(g, 1.0, "acceleration")  # training noise: free particles
+    for key in ("pos", "vel", "target"):
+        assert torch.equal(getattr(noisy, key)[g.kinematic], getattr(g, key)[g.kinematic])
+        assert not torch.equal(getattr(noisy, key)[~g.kinematic], getattr(g, key)[~g.kinematic])
     result = rollout(model, datamodule.datasets["test"], sim=0, n_steps=5)
     kinematic = g.kinematic.numpy()
     np.testing.assert_array_equal(result["predicted"][:, kinematic], result["true"][:, kinematic])

@@ -84,7 +84,8 @@ def table1(report_dir: Path, cells: list[Cell], results: Results) -> str:
     for scene, fps in dict.fromkeys((c.scene, c.fps) for c in main):
         for c in [c for c in main if (c.scene, c.fps) == (scene, fps)]:
             m, about = evaluation(results, c), variant(results, c)
-            source = PAPER_SOURCE.get(c.model)
+            source = PAPER_SOURCE.get((results[c.name]["eval"].get("model") or {}).get(
+                "name", c.model))  # the registry name: model=bgn_decoder is a "bgn"
             paper = (paper_value(source, scene, fps) if source and about["given"] == "-"
                      and about["physics written in"] == "none" else None)
             rows.append({"scene": scene, "fps": fmt(fps), **about, "MSE": m["mse"],

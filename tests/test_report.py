@@ -97,10 +97,11 @@ def test_paper_values() -> None:
 def test_table1(tmp_path: Path) -> None:
     """One row per main cell: its variant, what it is given, the physics written in; the
     paper's value beside the paper's variant only."""
-    plain = {"bgn": {"label": "BGN (paper decoder)", "given": [], "physics": "none"},
+    plain = {"bgn_decoder": {"name": "bgn", "label": "BGN (paper decoder)", "given": [],
+                             "physics": "none"},
              "gns": {"label": "GNS", "given": [], "physics": "none"}}
     cells, results = [*CELLS], {**RESULTS}
-    for model, about in plain.items():
+    for model, about in plain.items():  # model=bgn_decoder: the paper's BGN by its name
         cells.append(Cell("spring", 10.0, model))
         results[cells[-1].name] = {**record(cells[-1])}
         results[cells[-1].name]["eval"]["model"] = about

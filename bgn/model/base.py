@@ -181,8 +181,10 @@ class PhysicsModel(nn.Module, ABC):
         return "none"
 
     def describe(self) -> dict[str, Any]:
-        """``label``, ``given`` and ``physics`` as one record (reports, metrics.json)."""
-        return {"label": self.label, "given": list(self.given), "physics": self.physics}
+        """``name``, ``label``, ``given`` and ``physics`` as one record (reports,
+        metrics.json)."""
+        return {"name": self.name, "label": self.label, "given": list(self.given),
+                "physics": self.physics}
 
     @property
     def has_inverse(self) -> bool:

@@ -25,6 +25,8 @@ CASES = {
     ("collisions", "model=bgn", "model.dynamics=decoder"): ("BGN (paper decoder)", (), "none"),
     ("collisions", "model=bgn", "model.dynamics=decoder", "model.contact_gap=true"):
         ("BGN (paper decoder)", ("radii",), "none"),
+    ("gravity_r2", "model=bgn_decoder"): ("BGN (paper decoder)", (), "none"),
+    ("collisions", "model=bgn_decoder"): ("BGN (paper decoder)", (), "none"),
     ("spring", "model=bgn"):  # the scene's default: the pair-force head, inertial masses
         ("BGN + pair-force head (masses inertial)", (), f"{PAIR_FORCES}; inertial masses"),
     ("spring", "model=bgn", "model.mass_law=source"):
@@ -68,7 +70,7 @@ def test_label_given_and_physics_follow_the_config(scene, overrides) -> None:
         assert model.physics == "none"
     else:
         assert physics in model.physics and model.physics != "none"
-    assert model.describe() == {"label": label, "given": list(given),
+    assert model.describe() == {"name": model.name, "label": label, "given": list(given),
                                 "physics": model.physics}
 
 
@@ -79,3 +81,17 @@ def test_the_pair_force_head_reads_types_on_a_scene_of_several() -> None:
                         make_meta(6, 3), fake_stats(), cfg.dataset.history)
     assert model.given == ("types",)
     assert model.label == "BGN + pair-force head (types, masses source)"
+
+
+@pytest.mark.parametrize("scene", ["spring", "gravity_r1", "gravity_r2", "collisions"])
+def test_bgn_decoder_is_the_scene_defaults_with_the_paper_decoder(scene) -> None:
+    """model=bgn_decoder (a study's "BGN (paper decoder)" cell): the scene's BGN defaults
+    and optimiser, the decoder, and the dynamics loss on (the law-only weights of the
+    pair-force head on gravity would leave a decoder untrained)."""
+    ours = compose_config("train", [f"dataset={scene}", "model=bgn_decoder"])
+    default = compose_config("train", [f"dataset={scene}", "model=bgn"])
+    model, reference = (OmegaConf.to_container(c.model) for c in (ours, default))
+    assert model["dynamics"] == "decoder" and model["loss_weights"]["dynamics"] == 1.0
+    assert model["loss_weights"]["law"] == 0.0
+    assert {k for k in model if model[k] != reference[k]} <= {"dynamics", "loss_weights"}
+    assert ours.optimizer == default.optimizer

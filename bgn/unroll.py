@@ -32,6 +32,8 @@ def advance(g: Graph, predicted: torch.Tensor, kind: str, s: int) -> Graph:
         raise ValueError("unrolled training needs graphs with future velocities and dt: set "
                          "dataset.unroll > 0")
     dt = g.dt.to(g.vel.dtype)[g.batch][:, None]
+    if g.kinematic is not None:  # moved by the source: their true step, never the model's
+        predicted = torch.where(g.kinematic[:, None], g.target.to(predicted.dtype), predicted)
     pos, vel = step(g.pos, g.vel[:, 0], predicted.to(g.vel.dtype), dt, kind)
     v_true = g.future_vel[:, s]
     target = v_true if kind == "velocity" else (v_true - vel) / dt

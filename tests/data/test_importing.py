@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -24,6 +25,7 @@ from bgn.data.spec import DatasetSpec
 from bgn.model.noise import add_random_walk_noise
 from bgn.rollout import rollout
 from bgn.train import build, data_module, train
+from bgn.unroll import advance
 from bgn.validate import ConfigError, validate_train
 from tests.conftest import SMALL, compose_config
 from tests.data.layouts import (
@@ -288,6 +290,11 @@ def test_kinematic_particles_are_inputs_never_predicted_or_scored(tmp_path):
     for key in ("pos", "vel", "target"):
         assert torch.equal(getattr(noisy, key)[g.kinematic], getattr(g, key)[g.kinematic])
         assert not torch.equal(getattr(noisy, key)[~g.kinematic], getattr(g, key)[~g.kinematic])
+    unrolled = dataclasses.replace(g, future_vel=torch.zeros(N, 1, D))  # unrolled training
+    ahead = advance(unrolled, torch.full_like(g.target, 100.0), "acceleration", 0)
+    x = datamodule.datasets["train"].file.read("positions", int(g.sim))
+    np.testing.assert_allclose(ahead.pos[g.kinematic].numpy(),
+                               x[int(g.frame) + 1][g.kinematic.numpy()], atol=1e-6)
     result = rollout(model, datamodule.datasets["test"], sim=0, n_steps=5)
     kinematic = g.kinematic.numpy()
     np.testing.assert_array_equal(result["predicted"][:, kinematic], result["true"][:, kinematic])

@@ -168,6 +168,8 @@ class EvaluateRolloutKeys:
     steps: int = 100                  # rollout length (capped by the files' length)
     starts_per_sim: int = 1           # start frames per simulation (frame 100 first)
     max_sims: int | None = None       # simulations rolled out (null: every one of the split)
+    sinkhorn_stride: int = 10         # LagrangeBench's Sinkhorn on every n-th step ...
+    sinkhorn_rollouts: int | None = 4  # ... of this many rollouts (null: all; it is the costly one)
 
 
 @dataclass

@@ -35,6 +35,7 @@ from bgn.metrics import (
     fit_radius_map,
     inverse_metrics,
     kde_modes,
+    lagrangebench_metrics,
     r2_score,
     recovered_modes,
     relative_mass_error,
@@ -352,11 +353,29 @@ def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: 
     return metrics, arrays
 
 
+def scene_period(dataset: FrameDataset) -> np.ndarray | None:
+    """(D,) the side of the source's periodic box along each periodic dimension, inf along
+    the others; None where nothing is periodic (imported data record it: ``ImportedScene``)."""
+    periodic = getattr(dataset.scene, "periodic", ()) or ()
+    bounds = getattr(dataset.scene, "bounds", ()) or ()
+    if not any(periodic) or len(bounds) != len(periodic):
+        return None
+    return np.array([hi - lo if p else np.inf for p, (lo, hi) in zip(periodic, bounds)])
+
+
+def lb_prefix(key: str) -> str:
+    """The key prefix of a rollout source's LagrangeBench metrics: ``lb`` for the model,
+    ``lb_last``, ``lb_linear``, ``lb_predictability`` for the references."""
+    return "lb" if key == "rollout" else "lb_" + key.removeprefix("rollout_")
+
+
 def evaluate_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 100,
                       starts_per_sim: int = 1, max_sims: int | None = None,
                       references: bool = True, predictability_limit: bool = True,
                       curves: dict[str, dict[str, np.ndarray]] | None = None,
-                      step: Callable[[str], None] | None = None) -> dict[str, float]:
+                      step: Callable[[str], None] | None = None,
+                      lagrangebench: bool = False, sinkhorn_stride: int = 10,
+                      sinkhorn_rollouts: int | None = 4) -> dict[str, float]:
     """Rollout metrics (``bgn.metrics.rollout_metrics``) of ``model`` from the same start
     frames of every test simulation (frame 100 first), keyed ``rollout/<metric>``, and of the
     no-learning references beside it (``rollout_last/...``, ``rollout_linear/...``) and, with
@@ -365,7 +384,11 @@ def evaluate_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 10
     by the file's length. Momentum is scored where the scene conserves it (no walls).
     ``curves``, when given, receives per source the per-step curves behind the figures
     (``pos_err_mean``, ``pos_err_median``, ``energy_err``, ``energy_err_truth``); ``step(name)``
-    is called before each source is rolled out (a progress bar)."""
+    is called before each source is rolled out (a progress bar). ``lagrangebench``: the
+    same rollouts in LagrangeBench's metrics as well (``bgn.metrics.lagrangebench_metrics``,
+    keyed ``lb/<metric>`` for the model, ``lb_last/...`` etc. for the references), the
+    Sinkhorn divergence on every ``sinkhorn_stride``-th step of ``sinkhorn_rollouts`` evenly
+    spaced rollouts (None: all)."""
     n_steps = min(n_steps, dataset.file.n_frames - dataset.history - 2)
     starts = rollout_starts(dataset, n_steps, starts_per_sim)
     sims = evenly_spaced(dataset.file.n_sims, max_sims)
@@ -391,9 +414,14 @@ def evaluate_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 10
                                            if dataset.meta.interaction == "contact" else None))
         values["seconds_per_step"] = t.seconds_per_step
         metrics.update({f"{key}/{name}": value for name, value in values.items()})
+        failed_at = rollout_failures(t.predicted, t.true, dataset.meta.box, t.first_non_finite)
+        if lagrangebench:
+            lb = lagrangebench_metrics(t.predicted, t.true, t.masses, dataset.dt, failed_at,
+                                       dataset.meta.box, scene_period(dataset),
+                                       sinkhorn_stride=sinkhorn_stride,
+                                       sinkhorn_rollouts=sinkhorn_rollouts)
+            metrics.update({f"{lb_prefix(key)}/{name}": value for name, value in lb.items()})
         if curves is not None:
-            failed_at = rollout_failures(t.predicted, t.true, dataset.meta.box,
-                                         t.first_non_finite)
             err, _, _ = capped_errors(t.predicted, t.true, dataset.meta.box, failed_at)
             e_err, e_floor = energy_errors(t.predicted, t.true, t.masses, dataset.dt,
                                            dataset.scene.energy)
@@ -460,13 +488,15 @@ def evaluate_split(module: PhysicsModule, dataset: FrameDataset,
                    seed: int = 0, rollout_steps: int = 100, rollout_starts: int = 1,
                    rollout_sims: int | None = None,
                    curves: dict[str, dict[str, np.ndarray]] | None = None,
-                   step: Callable[[str], None] | None = None,
+                   step: Callable[[str], None] | None = None, lagrangebench: bool = True,
+                   sinkhorn_stride: int = 10, sinkhorn_rollouts: int | None = 4,
                    ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Everything ``python -m bgn.evaluate`` and the study (``bgn.experiments``) score on one
     split: one-step, type and contact metrics and the inverse metrics with the flow
     recalibrated on ``calibration`` (``evaluate_model``), then the rollouts of the model, the
-    references and the predictability limit (``evaluate_rollouts``). Returns the metrics and
-    the mass figure's arrays."""
+    references and the predictability limit (``evaluate_rollouts``), in LagrangeBench's
+    metrics as well with ``lagrangebench``. Returns the metrics and the mass figure's
+    arrays."""
     if step is not None:
         step("one-step, type, contact and inverse metrics")
     metrics, arrays = evaluate_model(module, dataset, max_frames=max_frames,
@@ -474,7 +504,9 @@ def evaluate_split(module: PhysicsModule, dataset: FrameDataset,
                                      batch_size=batch_size, seed=seed, calibration=calibration)
     metrics.update(evaluate_rollouts(module.model, dataset, n_steps=rollout_steps,
                                      starts_per_sim=rollout_starts, max_sims=rollout_sims,
-                                     curves=curves, step=step))
+                                     curves=curves, step=step, lagrangebench=lagrangebench,
+                                     sinkhorn_stride=sinkhorn_stride,
+                                     sinkhorn_rollouts=sinkhorn_rollouts))
     return metrics, arrays
 
 
@@ -581,6 +613,9 @@ def validate_evaluate(cfg: Any) -> tuple[Path, Path, Path]:
     need_int(cfg.rollout.starts_per_sim, "rollout.starts_per_sim", 1)
     need_int(cfg.rollout.max_sims, "rollout.max_sims", 1, optional=True,
              why=" (null: every simulation of the split)")
+    need_int(cfg.rollout.sinkhorn_stride, "rollout.sinkhorn_stride", 1)
+    need_int(cfg.rollout.sinkhorn_rollouts, "rollout.sinkhorn_rollouts", 1, optional=True,
+             why=" (null: every rollout)")
     return resolve_run(str(cfg.ckpt), cfg.get("run_config"))
 
 
@@ -668,13 +703,77 @@ ONE_STEP_KEYS = ["mse", "nmse", "nmse_last_extrapolation", "nmse_linear_extrapol
                  "contact_rate", "contact_f1_head", "contact_f1_toi_rule", "relmass_r2"]
 
 
-def report_text(record: dict[str, Any], metrics: dict[str, Any], figures: list[str]) -> str:
-    """report.md: the provenance header, then one-step, rollout and inverse tables."""
+LB_COLUMNS = ["mse@5", "mse@10", "mse@20", "mse@50", "mse@100", "mse@all", "sinkhorn",
+              "e_kin_mse", "failed_share"]
+LAW_FIGURE = "law.png"
+
+
+def lagrangebench_text(metrics: dict[str, Any]) -> list[str]:
+    """The report's "LagrangeBench metrics" section: one row per rollout source."""
+    from bgn.tables import markdown_table
+
+    rows = [{"source": label, **{c: metrics.get(f"{lb_prefix(key)}/{c}") for c in LB_COLUMNS}}
+            for key, label in ROLLOUT_SOURCES.items() if f"{lb_prefix(key)}/rollouts" in metrics]
+    if not rows:
+        return []
+    columns = [c for c in LB_COLUMNS if any(r[c] is not None for r in rows)]
+    return ["## LagrangeBench metrics", "",
+            "The same rollouts in LagrangeBench's metrics (Toshev et al. 2023, "
+            "lagrangebench/evaluate/metrics.py; bgn.metrics.lagrangebench_metrics), each per "
+            "rollout then averaged over the rollouts as theirs (the standard deviations over "
+            "the rollouts: metrics.json, <name>_std). mse@h: the per-step position MSE (mean "
+            "over particles and coordinates of the squared error) averaged over steps 1..h, "
+            "their mse{h}; mse@all over the whole rollout (their loss); the MSE at step h alone "
+            "is pos_mse_mean@h (metrics.json). sinkhorn: the Sinkhorn divergence between the "
+            "predicted and true particle clouds, uniform weights, squared Euclidean cost, "
+            "entropic regularisation 0.05 x the mean cost (ott-jax's default, which "
+            "LagrangeBench uses), solved with POT in float64 instead of ott-jax in float32; "
+            f"on every {int(metrics.get('lb/sinkhorn_stride', 10))}-th step "
+            f"({int(metrics.get('lb/sinkhorn_frames', 0))} steps) of "
+            f"{int(metrics.get('lb/sinkhorn_rollouts', 0))} of the "
+            f"{int(metrics.get('lb/rollouts', 0))} rollouts, evenly spaced (LagrangeBench: "
+            "every step at inference). e_kin_mse: the MSE over the rollout of the kinetic "
+            "energy per frame, sum_i m_i |v_i|^2 with finite-difference velocities, no 1/2 "
+            "(LagrangeBench's, with m_i = dx^dim: where the source gave no masses bgn's unit "
+            "masses stand in, so multiply by dx^(2 dim) to compare). Every particle counts, "
+            "kinematic ones too (set to the truth in the rollout, as LagrangeBench does); "
+            "periodic dimensions by the minimum image. A failed rollout counts at the cap from "
+            "the step it failed on: MSE rollout_cap^2 / D, Sinkhorn rollout_cap^2, kinetic "
+            "energy 100 x the true mean (speeds 10 x the truth's); failed_share beside.", "",
+            markdown_table(["source", *columns], rows)]
+
+
+def law_text(module: PhysicsModule, dataset: FrameDataset, figure: str | None,
+             ) -> tuple[str, Any]:
+    """The report's section on the learned pair law (``bgn.laws``: its formula, constants
+    and errors over ``dataset``'s distances, the training split) and its figure (None
+    without ``figure``); a model without a pair-force head says it has no pair law."""
+    from bgn.laws import law_figure, markdown, pair_force_head, read_law
+
+    try:
+        pair_force_head(module)
+    except ValueError:
+        name = getattr(module.model, "name", type(module.model).__name__)
+        return (f"## The learned pair law\n\nThe {name} model has no pair-force head, so it "
+                "has no pair law to read (model=newton, or model=bgn model.dynamics=newton, "
+                "on a force or imported scene has one).\n", None)
+    report = read_law(module, dataset)
+    return markdown(report, figure, level=2), None if figure is None else law_figure(report)
+
+
+def report_text(record: dict[str, Any], metrics: dict[str, Any], figures: list[str],
+                law: str | None = None) -> str:
+    """report.md: the provenance header, then one-step, rollout (bgn's and LagrangeBench's)
+    and inverse tables, and ``law``, the section on the learned pair law (``law_text``)."""
     from bgn.report import INVERSE_COLUMNS, INVERSE_REFERENCES, ROLLOUT_COLUMNS
     from bgn.tables import markdown_table
 
     seeds = ", ".join(f"{k} {v}" for k, v in record["seeds"].items())
+    about = record.get("model") or {}
     lines = [f"# Evaluation on the {record['split']} split", "",
+             *([f"- model: {about['label']}; given: {', '.join(about['given']) or 'nothing'} "
+                f"beyond the position window; physics written in: {about['physics']}"]
+               if about else []),
              f"- command: `{record['command']}`",
              f"- checkpoint: `{record['checkpoint']}`",
              f"- run config: `{record['run_config']}` (hash {record['run_config_hash']})",
@@ -697,6 +796,7 @@ def report_text(record: dict[str, Any], metrics: dict[str, Any], figures: list[s
             for key, label in ROLLOUT_SOURCES.items() if f"{key}/rollouts" in metrics]
     columns = [c for c in ROLLOUT_COLUMNS if any(r[c] is not None for r in rows)]  # the scene's
     lines += [markdown_table(["source", *columns], rows)]
+    lines += lagrangebench_text(metrics)
     if "coverage50" in metrics:
         rows = [{"source": "model", **{c: metrics.get(c) for c in INVERSE_COLUMNS}}]
         rows += [{"source": label, **{c: metrics.get(f"{key}/{c}") for c in INVERSE_COLUMNS}}
@@ -708,6 +808,9 @@ def report_text(record: dict[str, Any], metrics: dict[str, Any], figures: list[s
                   f"{metrics.get('mass_calibration_scale50', float('nan')):.3g} / "
                   f"{metrics.get('mass_calibration_scale90', float('nan')):.3g}).", "",
                   markdown_table(["source", *INVERSE_COLUMNS], rows)]
+    if law is not None:
+        lines += [law]
+    figures = [f for f in figures if f != LAW_FIGURE or law is None or f not in law]
     if figures:
         lines += ["## Figures", ""] + [f"![{Path(f).stem}]({f})" for f in figures] + [""]
     lines += ["Every value: metrics.json (and metrics.csv, one row per key).", ""]
@@ -715,7 +818,7 @@ def report_text(record: dict[str, Any], metrics: dict[str, Any], figures: list[s
 
 
 def write_outputs(out_dir: Path, record: dict[str, Any], metrics: dict[str, Any],
-                  figures: dict[str, Any]) -> None:
+                  figures: dict[str, Any], law: str | None = None) -> None:
     """Write report.md, metrics.csv, metrics.json and the figures into ``out_dir``, each
     through a temporary file and a rename (nothing half-written)."""
     import csv
@@ -744,7 +847,7 @@ def write_outputs(out_dir: Path, record: dict[str, Any], metrics: dict[str, Any]
     write_atomic(out_dir / "metrics.csv", text.getvalue())
     write_atomic(out_dir / "metrics.json", json.dumps(
         {"provenance": record, "metrics": values}, indent=2, sort_keys=True))
-    write_atomic(out_dir / "report.md", report_text(record, values, names))
+    write_atomic(out_dir / "report.md", report_text(record, values, names, law))
 
 
 def evaluate_run(cfg: Any, paths: tuple[Path, Path, Path]) -> Path:
@@ -769,15 +872,21 @@ def evaluate_run(cfg: Any, paths: tuple[Path, Path, Path]) -> Path:
     datamodule.setup()
     dataset = datamodule.datasets[cfg.split]
     references = 2 if dataset.meta.target == "velocity" else 3
-    stages = Stages(2 + references + bool(cfg.figures), bool(cfg.progress))
+    stages = Stages(3 + references + bool(cfg.figures), bool(cfg.progress))
     curves: dict[str, dict[str, np.ndarray]] = {}
     try:
         metrics, arrays = evaluate_split(
             module, dataset, datamodule.datasets[cfg.calibration_split], cfg.max_frames,
             cfg.mass_frames, cfg.mass_samples, cfg.batch_size, int(cfg.seed),
             int(cfg.rollout.steps), int(cfg.rollout.starts_per_sim), cfg.rollout.max_sims,
-            curves=curves, step=stages)
+            curves=curves, step=stages, sinkhorn_stride=int(cfg.rollout.sinkhorn_stride),
+            sinkhorn_rollouts=cfg.rollout.sinkhorn_rollouts)
         figures: dict[str, Any] = {}
+        stages("the learned pair law")
+        law, figures["law"] = law_text(module, datamodule.datasets["train"],
+                                       LAW_FIGURE if cfg.figures else None)
+        if figures["law"] is None:
+            del figures["law"]
         if cfg.figures:
             stages("figures")
             labelled = {ROLLOUT_SOURCES[k]: c for k, c in curves.items()}
@@ -795,7 +904,8 @@ def evaluate_run(cfg: Any, paths: tuple[Path, Path, Path]) -> Path:
     out_dir = Path(cfg.out_dir) if cfg.out_dir else run_dir / "eval" / str(cfg.split)
     record = provenance_record(cfg, ckpt, config, run_cfg)
     record["wall_time_s"] = time.perf_counter() - start
-    write_outputs(out_dir, record, metrics, figures)
+    record["model"] = module.model.describe()  # the variant, given, physics written in
+    write_outputs(out_dir, record, metrics, figures, law)
     return out_dir
 
 

@@ -118,8 +118,15 @@ def test_the_command_writes_report_csv_json_and_figures(trained_run, tmp_path: P
                 "rollout/failed_share", "rollout/rollout_cap", "rollout/energy_err@10",
                 "rollout_last/pos_err_mean@10", "rollout_linear/pos_err_mean@10",
                 "predictability/pos_err_mean@10", "coverage50", "info_gain",
-                "mass_calibration_scale50", "prior/coverage50", "physical/mass_rel_err"):
+                "mass_calibration_scale50", "prior/coverage50", "physical/mass_rel_err",
+                "lb/mse@5", "lb/mse@10", "lb/mse@20", "lb/mse@all", "lb/mse_std@5",
+                "lb/sinkhorn", "lb/e_kin_mse", "lb/failed_share", "lb_last/mse@5",
+                "lb_linear/sinkhorn", "lb_predictability/e_kin_mse"):
         assert np.isfinite(metrics[key]), key
+    assert "lb/mse@50" not in metrics  # 20 steps (FAST_EVAL)
+    # over the whole rollout LagrangeBench's MSE is bgn's (the same rollouts, the same cap)
+    assert metrics["lb/mse@all"] == pytest.approx(metrics["rollout/pos_mse_mean@all"], rel=1e-9)
+    assert metrics["lb/sinkhorn_rollouts"] == min(4, metrics["lb/rollouts"])
     assert record["provenance"]["checkpoint"] == str((run / "checkpoints" / "best.ckpt").resolve())
     assert record["provenance"]["run_config"] == str((run / ".hydra" / "config.yaml").resolve())
     assert record["provenance"]["calibration_split"] == "val"
@@ -128,9 +135,12 @@ def test_the_command_writes_report_csv_json_and_figures(trained_run, tmp_path: P
     assert float(rows["nmse"]) == metrics["nmse"]
     report = (out / "report.md").read_text()
     for text in ("best.ckpt", record["provenance"]["run_config_hash"], "git commit",
-                 "torch threads", "## Rollouts", "## Inverse model", "rollout_error.png"):
-        assert text in report, text
-    for figure in ("rollout_error.png", "energy_drift.png", "mass.png"):
+                 "torch threads", "## Rollouts", "## Inverse model", "rollout_error.png",
+                 "## LagrangeBench metrics", "| mse@5 | mse@10 | mse@20 | mse@all | sinkhorn",
+                 "## The learned pair law (bgn on spring)", "f(r) = ",
+                 "![learned law, formula and truth](law.png)"):
+        assert text in report, text  # BGN's default on spring: the pair-force head
+    for figure in ("rollout_error.png", "energy_drift.png", "mass.png", "law.png"):
         assert (out / figure).stat().st_size > 0, figure
     assert not list(out.glob(".*tmp*"))  # nothing half-written
 
@@ -197,3 +207,47 @@ def test_the_command_line_refuses_a_missing_path(tmp_path: Path) -> None:
     assert done.returncode == 2
     assert len(done.stderr.strip().splitlines()) == 1 and "nope" in done.stderr
     assert not list(tmp_path.iterdir())  # nothing written
+
+
+@pytest.mark.parametrize("model", ["newton", "decoder"])
+def test_the_report_reads_the_pair_law_of_a_pair_force_head(model: str, tmp_path: Path,
+                                                            shared_data_dir: Path) -> None:
+    """model=newton has a pair-force head: its formula (bgn.laws) and figure go into the
+    report; BGN with the paper's decoder has none, and the report says so."""
+    from bgn.evaluate import law_text, report_text
+
+    overrides = (["model=newton", "model.hidden=8"] if model == "newton"
+                 else [*TINY_BGN, "model.dynamics=decoder"])
+    cfg = compose_config("train", ["dataset=spring", *SMALL["spring"], *overrides,
+                                   f"paths.data_dir={shared_data_dir}", "figures=false",
+                                   "val_rollout_steps=0"])
+    datamodule, module = build(cfg)
+    text, figure = law_text(module.eval(), datamodule.datasets["train"], "law.png")
+    record = {"split": "test", "command": "c", "checkpoint": "k", "run_config": "r",
+              "run_config_hash": "h", "git_commit": "g", "machine": "m", "cpu_count": 1,
+              "torch_threads": 1, "seeds": {}, "calibration_split": "val", "wall_time_s": 0.0}
+    report = report_text(record, {}, ["rollout_error.png", "law.png"], text)
+    if model == "newton":
+        assert "## The learned pair law (newton on spring)" in text and "f(r) = " in text
+        assert "![learned law, formula and truth](law.png)" in report
+        assert figure is not None and len(figure.axes) >= 3
+        assert "![law](law.png)" not in report           # shown once, in its section
+    else:
+        assert figure is None and "has no pair-force head" in report
+        assert "f(r) = " not in report
+
+
+def test_the_lagrangebench_metrics_take_the_source_periodic_box() -> None:
+    """Imported data record which dimensions are periodic and the box: the metrics' minimum
+    image reads that box's sides, inf along the others; built-in scenes have none."""
+    from types import SimpleNamespace
+
+    from bgn.evaluate import lb_prefix, scene_period
+    from bgn.sim.imported import ImportedScene
+
+    scene = ImportedScene(dim=2, periodic=(True, False), bounds=((0.0, 2.0), (-1.0, 1.0)))
+    assert scene_period(SimpleNamespace(scene=scene)).tolist() == [2.0, np.inf]
+    assert scene_period(SimpleNamespace(scene=ImportedScene(dim=2))) is None
+    assert scene_period(SimpleNamespace(scene=object())) is None
+    assert [lb_prefix(k) for k in ("rollout", "rollout_last", "predictability")] \
+        == ["lb", "lb_last", "lb_predictability"]

@@ -1,5 +1,6 @@
 """Metrics on synthetic arrays: calibrated, shifted and collapsed mass samples, KDE modes,
-R^2, type metrics and rollout metrics."""
+R^2, type metrics, rollout metrics and LagrangeBench's rollout metrics on hand-made particle
+clouds."""
 
 from __future__ import annotations
 
@@ -19,12 +20,16 @@ from bgn.metrics import (
     information_gain,
     inverse_metrics,
     kde_modes,
+    kinetic_energy,
+    lagrangebench_metrics,
+    minimum_image,
     r2_score,
     recovered_modes,
     relative_mass_error,
     rollout_failures,
     rollout_metrics,
     sbc_ranks,
+    sinkhorn_divergence,
     tarp,
     type_metrics,
 )
@@ -330,3 +335,101 @@ def test_aggregating_gaussians_gives_their_product() -> None:
     _, pooled, pooled_var = aggregate_gaussian(
         1.5 + np.sqrt(frames_var) * rng.standard_normal(400), frames_var, np.zeros(400))
     assert abs(pooled[0] - 1.5) < 4 * np.sqrt(pooled_var[0]) and pooled_var[0] < 0.01
+
+
+# ----------------------------------------------------------------------------- LagrangeBench
+def test_lagrangebench_metrics_of_the_truth_are_zero():
+    x, m, _, dt = free_flight(n=16)
+    out = lagrangebench_metrics(x, x.copy(), m, dt, np.full(3, -1), sinkhorn_stride=1)
+    for key in ("mse@5", "mse@10", "mse@all", "sinkhorn", "e_kin_mse", "failed_share"):
+        assert out[key] == pytest.approx(0.0, abs=1e-12), key
+    assert "mse@20" not in out and out["sinkhorn_frames"] == 11 and out["sinkhorn_rollouts"] == 3
+
+
+@pytest.mark.parametrize("shift", [(0.03, -0.04), (0.5, 0.0)])
+def test_a_translated_cloud_gives_its_squared_shift(shift):
+    """Every particle moved by c from step 1 on: the MSE per coordinate is |c|^2 / D at every
+    horizon, the Sinkhorn divergence |c|^2 (the cost's cross term is separable, so the plan
+    is the unshifted one's), the kinetic energy unchanged from step 2 on."""
+    x, m, _, dt = free_flight(n=32, seed=1)
+    c = np.asarray(shift)
+    pred = x.copy()
+    pred[:, 2:] += c
+    out = lagrangebench_metrics(pred, x, m, dt, np.full(3, -1), sinkhorn_stride=5,
+                                sinkhorn_rollouts=1)
+    for h in ("@5", "@10", "@all"):
+        assert out[f"mse{h}"] == pytest.approx(c @ c / 2, rel=1e-12)
+        assert out[f"mse_std{h}"] == pytest.approx(0.0, abs=1e-15)
+    assert out["sinkhorn"] == pytest.approx(c @ c, rel=1e-2)  # to ott-jax's tolerance
+    # converged far beyond ott-jax's tolerance: |c|^2 exactly
+    exact = sinkhorn_divergence(pred[0, 5], x[0, 5], max_iter=20_000, threshold=1e-12)
+    assert exact == pytest.approx(c @ c, rel=1e-4)
+    assert out["e_kin_mse"] == pytest.approx(0.0, abs=1e-20)
+
+
+def test_a_permuted_cloud_is_the_same_cloud_to_sinkhorn_but_not_to_the_mse():
+    rng = np.random.default_rng(2)
+    x, m, _, dt = free_flight(r=2, n=24, seed=2)
+    perm = rng.permutation(24)
+    pred = x.copy()
+    pred[:, 2:] = x[:, 2:, perm]              # the same cloud, particles relabelled
+    out = lagrangebench_metrics(pred, x, np.ones_like(m), dt, np.full(2, -1),
+                                sinkhorn_stride=1)
+    assert out["sinkhorn"] == pytest.approx(0.0, abs=1e-9)
+    assert out["mse@5"] > 0.1
+    assert out["e_kin_mse"] == pytest.approx(0.0, abs=1e-20)  # unit masses: the same energy
+    assert sinkhorn_divergence(x[0, 3], x[0, 3, perm]) == pytest.approx(0.0, abs=1e-12)
+    assert sinkhorn_divergence(x[0, 3], x[0, 3] + 0.1) > 0
+
+
+def test_the_kinetic_energy_mse_of_a_known_velocity_change():
+    """The prediction moves every particle at v' instead of v from the start: per frame
+    E = sum m |v|^2 (LagrangeBench's, no 1/2), so the MSE is (E' - E)^2; the position MSE
+    averaged over steps 1..h is the mean of (k dt |v' - v|)^2 / D."""
+    rng = np.random.default_rng(3)
+    r, n, steps, dt = 2, 8, 30, 0.05
+    m = rng.uniform(0.5, 2.0, (r, n))
+    x0, v = rng.normal(size=(r, 1, n, 2)), rng.normal(size=(r, 1, n, 2))
+    dv = rng.normal(size=(r, 1, n, 2))
+    k = np.arange(-1, steps + 1)[None, :, None, None]     # the frame before the start: -1
+    true = x0 + v * k * dt
+    pred = true + np.clip(k, 0, None) * dv * dt
+    out = lagrangebench_metrics(pred, true, m, dt, np.full(r, -1), sinkhorn_rollouts=1)
+    e_true = np.einsum("rn,rn->r", m, (v[:, 0] ** 2).sum(-1))
+    e_pred = np.einsum("rn,rn->r", m, ((v + dv)[:, 0] ** 2).sum(-1))
+    assert out["e_kin_mse"] == pytest.approx(np.mean((e_pred - e_true) ** 2), rel=1e-9)
+    np.testing.assert_allclose(kinetic_energy(true[0], m[0], dt), e_true[0], rtol=1e-9)
+    per_step = (np.arange(1, steps + 1)[None, :] * dt) ** 2 \
+        * (dv[:, 0] ** 2).sum(-1).mean(-1)[:, None] / 2                       # (R, T)
+    for h in (5, 10, 20):
+        assert out[f"mse@{h}"] == pytest.approx(per_step[:, :h].mean(), rel=1e-9)
+    assert out["mse@all"] == pytest.approx(per_step.mean(), rel=1e-9)
+    assert out["sinkhorn_rollouts"] == 1 and "mse@50" not in out
+
+
+def test_a_failed_rollout_counts_at_the_cap_in_the_lagrangebench_metrics():
+    x, m, _, dt = free_flight(n=16)
+    pred = x.copy()
+    pred[0, 5:] = np.nan                        # rollout 0 fails at step 4 (index 5)
+    out = lagrangebench_metrics(pred, x, m, dt, np.array([4, -1, -1]), sinkhorn_stride=1)
+    centre = x[0].mean(axis=(0, 1))
+    cap = 10 * np.linalg.norm(x[0] - centre, axis=-1).max()
+    assert out["failed_share"] == pytest.approx(1 / 3)
+    # rollout 0: steps 1-3 exact, 4.. at cap^2 / D; the others exact
+    assert out["mse@5"] == pytest.approx(2 / 5 * cap**2 / 2 / 3)
+    assert out["mse@all"] == pytest.approx(9 / 12 * cap**2 / 2 / 3)
+    assert out["sinkhorn"] == pytest.approx(8 / 11 * cap**2 / 3)   # steps 4..11 of 1..11
+    assert np.isfinite(out["e_kin_mse"]) and out["e_kin_mse"] > 0
+
+
+def test_periodic_dimensions_take_the_minimum_image():
+    d = np.array([[0.9, 0.9], [-0.6, 0.2]])
+    np.testing.assert_allclose(minimum_image(d, np.array([1.0, np.inf])),
+                               [[-0.1, 0.9], [0.4, 0.2]])
+    x, m, _, dt = free_flight(n=16)
+    pred = x.copy()
+    pred[:, 2:, :, 0] += 3.0                   # a whole period along x: the same state
+    out = lagrangebench_metrics(pred, x, m, dt, np.full(3, -1), period=np.array([3.0, np.inf]))
+    assert out["mse@all"] == pytest.approx(0.0, abs=1e-20)
+    assert out["sinkhorn"] == pytest.approx(0.0, abs=1e-12)
+    assert out["e_kin_mse"] == pytest.approx(0.0, abs=1e-20)

@@ -400,7 +400,8 @@ def evaluate_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 10
             predictors[f"rollout_{prior}"] = Extrapolation(dataset.meta, dataset.history, prior)
     runs = {key: partial(rollout_many, predictor, dataset, sims, starts, n_steps)
             for key, predictor in predictors.items()}
-    if references and predictability_limit:  # the true simulator 1e-6 off: the chaos floor
+    # the true simulator 1e-6 off: the chaos floor (imported data have no simulator to rerun)
+    if references and predictability_limit and getattr(dataset.scene, "has_simulator", True):
         runs["predictability"] = partial(predictability, dataset, sims, starts, n_steps)
     metrics: dict[str, float] = {}
     for key, run in runs.items():

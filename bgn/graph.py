@@ -1,7 +1,8 @@
 """The graph type every model consumes: one frame, or a disjoint union of frames.
 
 Edges are ``edge_index = (senders, receivers)``; relative quantities on an edge are
-receiver minus sender (``x_i - x_j`` for edge j -> i).
+receiver minus sender (``x_i - x_j`` for edge j -> i), by the minimum image in a scene with
+periodic boundaries (``Graph.period``; ``bgn.model.message_passing.edge_vector``).
 """
 
 from __future__ import annotations
@@ -34,6 +35,9 @@ class Graph:
     # (N,) bool: particles the source moves (imported data's kinematic types): inputs only,
     # never scored (losses and metrics skip them) and set from the record in rollouts
     kinematic: torch.Tensor | None = None
+    # (G, D) box length per periodic dimension of each graph (0: not periodic), or None for
+    # scenes without periodic boundaries (SceneMeta.period): edge vectors are minimum-image
+    period: torch.Tensor | None = None
 
     @property
     def num_graphs(self) -> int:
@@ -70,7 +74,8 @@ def window_graph(window: torch.Tensor, dt: float, edge_index: torch.Tensor,
                  masses: torch.Tensor, radii: torch.Tensor, types: torch.Tensor,
                  box: float | None, sims: torch.Tensor, frames: torch.Tensor,
                  dtype: torch.dtype = torch.float32,
-                 kinematic: torch.Tensor | None = None) -> Graph:
+                 kinematic: torch.Tensor | None = None,
+                 period: tuple[float, ...] | None = None) -> Graph:
     """The graph of B frames from their position windows: what every model sees.
 
     ``window`` (B, k+2, N, D) holds frames t-k-1 .. t of B simulations (float64 keeps the
@@ -79,7 +84,9 @@ def window_graph(window: torch.Tensor, dt: float, edge_index: torch.Tensor,
     ``sims``, ``frames`` (B,). Inputs follow DESIGN section 2: backward-difference velocities
     ``v[t] = (x[t] - x[t-1]) / dt``, newest first. Targets and contact labels are zero (unknown
     here); the data layer fills them for training samples. ``kinematic`` (B, N) bool marks
-    particles moved by the source (None: none).
+    particles moved by the source (None: none). ``period`` (D,): the box lengths of a
+    periodic scene (``SceneMeta.period``), carried as ``Graph.period``; positions stay as
+    given (unwrapped), edge vectors take the minimum image.
     """
     b, _, n, d = window.shape
     pos = window[:, -1]                                         # (B, N, D)
@@ -105,4 +112,6 @@ def window_graph(window: torch.Tensor, dt: float, edge_index: torch.Tensor,
         frame=frames.reshape(b).long(),
         dt=torch.full((b,), dt, dtype=dtype, device=device),
         kinematic=None if kinematic is None else kinematic.reshape(-1).to(device, torch.bool),
+        period=None if period is None else torch.tensor(
+            period, dtype=dtype, device=device).expand(b, d).clone(),
     )

@@ -3,7 +3,8 @@
 The role ``LearnedSimulator`` plays in DeepMind's learning_to_simulate: any model that predicts
 the forward target (``PhysicsModel.predict``) becomes a simulator that advances B simulations
 at once, in torch, on the model's device. Each step rebuilds the graph with the scene's own
-rule (the complete graph, or the radius graph found with a KD-tree, ``bgn.data.graphs``) and
+rule (the complete graph, or the radius graph found with a KD-tree, ``bgn.data.graphs``, on
+the torus where the scene has periodic boundaries) and
 integrates the predicted target with the rule that inverts the training targets
 (``bgn.data.targets.step``), so a model fed the true targets reproduces the recorded frames.
 
@@ -113,7 +114,8 @@ class LearnedSimulator(nn.Module):
             return self._full[(b, n)].to(pos.device)
         # the radius rule runs on the CPU (KD-tree, linear in N)
         x, r = pos.detach().cpu().double().numpy(), radii.detach().cpu().double().numpy()
-        lists = [scene_edges(self.meta.graph, x[i], r[i], self.margin) for i in range(b)]
+        lists = [scene_edges(self.meta.graph, x[i], r[i], self.margin, self.meta.period)
+                 for i in range(b)]
         return torch.as_tensor(batch_edges(lists, [n] * b)).to(pos.device)
 
     def graph(self, window: torch.Tensor, particles: Particles, frame: int | torch.Tensor = 0,
@@ -123,7 +125,8 @@ class LearnedSimulator(nn.Module):
         frames = torch.as_tensor(frame, device=window.device).expand(window.shape[0])
         return window_graph(window, self.dt, self.edges(window[:, -1], particles.radii),
                             particles.masses, particles.radii, particles.types, self.meta.box,
-                            particles.sims, frames, self.dtype, particles.kinematic)
+                            particles.sims, frames, self.dtype, particles.kinematic,
+                            self.meta.period)
 
     def _check_window(self, window: torch.Tensor, particles: Particles) -> None:
         if window.ndim != 4 or window.shape[1] != self.window_length \

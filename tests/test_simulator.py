@@ -162,3 +162,108 @@ def test_rollout_metrics_of_an_oracle_are_zero_and_a_poisoned_model_fails(datase
                                  references=False)
     assert poisoned["rollout/failed_share"] == 0.5
     assert "rollout_last/pos_err_mean@1" not in poisoned
+
+
+# ----------------------------------------------------------------------------- periodic boxes
+BOX, REACH, STIFFNESS = 4.0, 1.0, 40.0
+
+
+def soft_repulsion(dx: np.ndarray | torch.Tensor, masses, receivers, n: int):
+    """Accelerations of a soft repulsion ``k (R - r) u`` within R from minimum-image edge
+    vectors ``dx`` (E, D), summed at the receivers (numpy or torch alike)."""
+    r = (dx**2).sum(-1) ** 0.5
+    f = STIFFNESS * (REACH - r) * (r < REACH) / r
+    pull = f[:, None] * dx
+    if isinstance(dx, torch.Tensor):
+        return torch.zeros(n, dx.shape[1], dtype=dx.dtype).index_add(0, receivers, pull) \
+            / masses[:, None]
+    out = np.zeros((n, dx.shape[1]))
+    np.add.at(out, receivers, pull)
+    return out / masses[:, None]
+
+
+class PairLaw(torch.nn.Module):
+    """The scene's own law on the graph the simulator builds: edge vectors by the minimum
+    image, neighbours within the reach (on the torus when the meta says so)."""
+
+    def __init__(self, meta, history: int) -> None:
+        super().__init__()
+        self.meta, self.history = meta, history
+
+    def predict(self, g):
+        from bgn.model.message_passing import edge_vector
+        return soft_repulsion(edge_vector(g.pos, g), g.mass, g.edge_index[1], len(g.pos))
+
+
+@pytest.fixture(scope="module")
+def torus(tmp_path_factory):
+    """A soft-disc gas on a periodic box simulated here (Stormer-Verlet at the frame spacing,
+    so the finite-difference acceleration is the law's exactly), recorded wrapped into the box
+    as an engine writes it, imported with bgn.data.from_arrays."""
+    from bgn.data import from_arrays
+    from bgn.data.dataset import FrameDataset
+    from bgn.data.files import DatasetFile
+    from bgn.data.graphs import minimum_image, radius_graph
+
+    rng = np.random.default_rng(0)
+    s, t, n, dt = 3, 30, 16, 0.02
+    period = np.array([BOX, BOX])
+    x = np.empty((s, t, n, 2))
+    masses = rng.uniform(0.5, 2.0, (s, n))
+    for i in range(s):
+        grid = np.stack(np.meshgrid(np.arange(4), np.arange(4)), -1).reshape(-1, 2)
+        x[i, 0] = (grid + 0.5 + rng.uniform(-0.2, 0.2, (n, 2))) * BOX / 4
+        x[i, 1] = x[i, 0] + dt * rng.normal(0, 2.0, (n, 2))
+        for k in range(1, t - 1):
+            snd, rcv = radius_graph(x[i, k], cutoff=REACH, period=period)
+            dx = minimum_image(x[i, k][rcv] - x[i, k][snd], period)
+            x[i, k + 1] = 2 * x[i, k] - x[i, k - 1] + dt**2 * soft_repulsion(
+                dx, masses[i], rcv, n)
+    paths = from_arrays(x % BOX, dt, masses=masses, box=BOX, periodic=True, name="torus",
+                        data_dir=tmp_path_factory.mktemp("torus"), connectivity_radius=REACH,
+                        splits={"train": [0], "val": [1], "test": [2]}, history=3)
+    return FrameDataset(DatasetFile(paths["val"]), history=3), x[1], DatasetFile(paths["train"])
+
+
+def test_a_periodic_import_rolls_out_its_recorded_frames_with_its_own_law(torus):
+    """The learned simulator, the scene's law as its model, rebuilds the torus's radius graph
+    every step and gives back the recorded frames; the same law on a graph that ignores the
+    boundary does not (pairs across it interact here)."""
+    from dataclasses import replace
+
+    from bgn.simulator import LearnedSimulator
+
+    ds, unwrapped, _ = torus
+    assert ds.meta.period == (BOX, BOX) and ds.meta.graph == "radius"
+    start = ds.history + 1
+    n_steps = ds.file.n_frames - 1 - start
+    truth = true_positions(ds, [0], start, start + n_steps)
+    turns = (truth[0] - unwrapped[start:]) / BOX                  # the importer's unwrapping
+    np.testing.assert_allclose(turns, np.rint(turns), atol=1e-9)
+
+    def roll(meta):
+        sim = LearnedSimulator(PairLaw(meta, ds.history), ds.dt, ds.margin, torch.float64)
+        return sim.rollout(start_windows(ds, [0], start), particles(ds, [0]), n_steps,
+                           start).positions.numpy()
+
+    np.testing.assert_allclose(roll(ds.meta), truth, rtol=0, atol=1e-9 * BOX)
+    assert np.abs(roll(replace(ds.meta, period=None)) - truth).max() > 1e-3 * BOX
+
+
+def test_periodic_graphs_are_the_training_graphs(torus):
+    ds, _, train = torus
+    # the normalisation's edge vectors are minimum images too: none longer than the reach
+    stats = train.stats()["rel_position"]
+    assert (stats["max"] <= REACH).all() and (stats["min"] >= -REACH).all()
+    assert (stats["max"] > 0.9 * REACH).all()
+    for index in (0, len(ds) // 2, len(ds) - 1):
+        sim, t = ds.locate(index)
+        g = simulator(PairLaw(ds.meta, ds.history), ds).graph(start_windows(ds, [sim], t),
+                                                              particles(ds, [sim]), t)
+        ref = ds[index]
+        for name in ("pos", "vel", "edge_index", "period"):
+            torch.testing.assert_close(getattr(g, name), getattr(ref, name), rtol=0, atol=0,
+                                       msg=name)
+        # the recorded target is the law's acceleration on these edges
+        torch.testing.assert_close(PairLaw(ds.meta, ds.history).predict(ref.to("cpu")).float(),
+                                   ref.target, rtol=1e-4, atol=1e-4)

@@ -44,6 +44,11 @@ class FrameDataset(Dataset):
         self.file = file
         self.meta = file.meta
         self.scene = scene_from_file(file)
+        if getattr(self.scene.meta, "period", None) != self.meta.period:
+            # a file imported before SceneMeta recorded periodic boundaries
+            raise ValueError(f"{file.path}: the source's periodic boundaries "
+                             f"{self.scene.meta.period} are missing from the file's scene "
+                             "record; import the data again (python -m bgn.data.import ...)")
         self.history, self.unroll = history, unroll
         self.sims = list(range(file.n_sims)) if sims is None else list(sims)
         if not self.sims or max(self.sims) >= file.n_sims or min(self.sims) < 0:
@@ -127,13 +132,14 @@ def frame_graph(window: np.ndarray, dt: float, meta: SceneMeta, scene: Scene,
     ``bgn.graph.window_graph``'s, which the learned simulator builds in rollouts."""
     pos = window[-1]
     if edges is None:
-        edges = scene_edges(meta.graph, pos, radii, margin)
+        edges = scene_edges(meta.graph, pos, radii, margin, meta.period)
     g = window_graph(torch.as_tensor(window, dtype=torch.float64)[None], dt,
                      torch.as_tensor(edges, dtype=torch.long),
                      torch.as_tensor(masses)[None], torch.as_tensor(radii)[None],
                      torch.as_tensor(types)[None], meta.box, torch.tensor([sim]),
                      torch.tensor([frame]),
-                     kinematic=None if kinematic is None else torch.as_tensor(kinematic)[None])
+                     kinematic=None if kinematic is None else torch.as_tensor(kinematic)[None],
+                     period=meta.period)
     if next_position is not None:
         target = targets(np.concatenate([window[-2:], next_position[None]]), dt, meta.target)[0]
         g.target = torch.as_tensor(target, dtype=torch.float32)

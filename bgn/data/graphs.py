@@ -8,6 +8,9 @@ The dense matrices of the paper are the special case :func:`full_graph` (DESIGN.
 Neighbour search uses :class:`scipy.spatial.cKDTree`, so it costs ``O(N log N + E)`` and never
 builds an ``N x N`` distance matrix, caps neighbours, or drops one. Membership is decided by one
 float64 formula, :func:`pair_distance`, so the same pair is always in or out whoever asks.
+A scene with periodic boundaries (``SceneMeta.period``) passes its box lengths: neighbours are
+then found on the torus (``cKDTree(boxsize=...)``) and distances follow the minimum image
+(:func:`minimum_image`), as the engine that made the data saw them.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ __all__ = [
     "batch_edges",
     "contact_margin",
     "full_graph",
+    "minimum_image",
     "pair_distance",
     "radius_graph",
 ]
@@ -66,8 +70,34 @@ def full_graph(n: int) -> np.ndarray:
     return np.stack([senders.reshape(-1), receivers])
 
 
-def pair_distance(positions: np.ndarray, senders: np.ndarray, receivers: np.ndarray) -> np.ndarray:
-    """Euclidean distance ``|x_receiver - x_sender|`` for each pair, in float64.
+def _as_period(period: Sequence[float] | np.ndarray | None, dim: int) -> np.ndarray | None:
+    """(D,) float64 box lengths (0: not periodic), or None where no dimension is periodic."""
+    if period is None:
+        return None
+    p = np.asarray(period, dtype=np.float64).reshape(-1)
+    if p.shape != (dim,) or not (np.isfinite(p).all() and (p >= 0).all()):
+        raise ValueError(f"period must be one finite length >= 0 per dimension (0: not "
+                         f"periodic), shape ({dim},); got {np.asarray(period).tolist()}")
+    return p if p.any() else None
+
+
+def minimum_image(dx: np.ndarray, period: Sequence[float] | np.ndarray | None) -> np.ndarray:
+    """Differences ``dx`` (..., D) moved by whole box lengths to their nearest image in each
+    periodic dimension (``period`` (D,), 0: not periodic; None: unchanged). The numpy twin of
+    ``bgn.model.message_passing.minimum_image``."""
+    dx = np.asarray(dx, dtype=np.float64)
+    p = _as_period(period, dx.shape[-1])
+    if p is None:
+        return dx
+    safe = np.where(p > 0, p, 1.0)
+    return np.where(p > 0, dx - p * np.rint(dx / safe), dx)
+
+
+def pair_distance(positions: np.ndarray, senders: np.ndarray, receivers: np.ndarray,
+                  period: Sequence[float] | np.ndarray | None = None) -> np.ndarray:
+    """Euclidean distance ``|x_receiver - x_sender|`` for each pair, in float64; with
+    ``period`` (D,) the minimum-image distance (each periodic coordinate difference moved by
+    whole box lengths into ``[-L/2, L/2]``).
 
     This is the one distance formula of the package: the square root of the squared coordinate
     differences summed in coordinate order. Every neighbour decision (and every test oracle) uses
@@ -84,11 +114,14 @@ def pair_distance(positions: np.ndarray, senders: np.ndarray, receivers: np.ndar
         raise ValueError(
             f"senders and receivers must be 1-D and of equal length, got {s.shape} and {r.shape}"
         )
+    p = _as_period(period, pos.shape[1])
     total = np.zeros(s.shape[0], dtype=np.float64)
     # One column at a time: gathers from contiguous columns are several times faster than
     # gathering rows and reducing, and the summation order is fixed (no pairwise summation).
-    for column in np.ascontiguousarray(pos.T):
+    for d, column in enumerate(np.ascontiguousarray(pos.T)):
         diff = column[r] - column[s]
+        if p is not None and p[d] > 0:
+            diff -= p[d] * np.rint(diff / p[d])
         diff *= diff
         total += diff
     return np.sqrt(total, out=total)
@@ -125,6 +158,7 @@ def radius_graph(
     radii: np.ndarray | None = None,
     margin: float = 0.0,
     cutoff: float | None = None,
+    period: Sequence[float] | np.ndarray | None = None,
 ) -> np.ndarray:
     """All pairs of distinct points within a distance, both directions, sorted by receiver.
 
@@ -144,6 +178,10 @@ def radius_graph(
         radii: per-point radii, or None for cutoff mode.
         margin: added to ``r_i + r_j`` in radii mode (see :func:`contact_margin`), finite, >= 0.
         cutoff: a single distance threshold, or None for radii mode.
+        period: ``(D,)`` box lengths of periodic boundaries (0: that dimension is not
+            periodic), or None. Distances are then minimum-image ones; the points may lie
+            anywhere (unwrapped), and the largest pair threshold must be below half of every
+            periodic length (a pair then meets within it through one image at most).
 
     Returns:
         ``int64`` array of shape ``(2, E)``: senders, receivers. ``(2, 0)`` when ``N < 2``.
@@ -169,17 +207,32 @@ def radius_graph(
             raise ValueError("margin applies only with radii; fold it into cutoff instead")
         reach = cut
 
+    box = _as_period(period, pos.shape[1])
+    if box is not None and reach >= 0.5 * box[box > 0].min():
+        raise ValueError(f"the radius graph's reach {reach:g} must be below half the periodic "
+                         f"box length {box[box > 0].min():g}: a pair would meet within it "
+                         "through two images; use a smaller connectivity radius or a larger box")
     if n < 2:
         return _empty_edges()
 
     query_radius = reach * (1.0 + _QUERY_RELATIVE_SLACK) + _QUERY_ABSOLUTE_SLACK
-    pairs = cKDTree(pos).query_pairs(query_radius, output_type="ndarray")
+    if box is None:
+        tree = cKDTree(pos)
+    else:  # the tree's torus wants coordinates in [0, L) (any origin: a torus has none)
+        wrapped = np.array(pos, dtype=np.float64)
+        periodic = box > 0
+        wrapped[:, periodic] = np.mod(wrapped[:, periodic], box[periodic])
+        # mod of a tiny negative value rounds to L itself
+        wrapped[:, periodic] = np.where(wrapped[:, periodic] >= box[periodic], 0.0,
+                                        wrapped[:, periodic])
+        tree = cKDTree(wrapped, boxsize=box)
+    pairs = tree.query_pairs(query_radius, output_type="ndarray")
     if pairs.size == 0:
         return _empty_edges()
     i = pairs[:, 0].astype(np.int64, copy=False)
     j = pairs[:, 1].astype(np.int64, copy=False)
 
-    distance = pair_distance(pos, i, j)
+    distance = pair_distance(pos, i, j, box)
     if rad is not None:
         keep = distance <= (rad[i] + rad[j]) + margin
     else:
@@ -256,14 +309,15 @@ def batch_edges(edge_lists: Sequence[np.ndarray], n_nodes: Sequence[int]) -> np.
     return np.concatenate(pieces, axis=1)
 
 
-def scene_edges(graph: str, positions: np.ndarray, radii: np.ndarray, margin: float
-                ) -> np.ndarray:
+def scene_edges(graph: str, positions: np.ndarray, radii: np.ndarray, margin: float,
+                period: Sequence[float] | None = None) -> np.ndarray:
     """The edges a scene asks for (``SceneMeta.graph``): complete, or pairs closer than
-    ``r_i + r_j + margin``."""
+    ``r_i + r_j + margin`` (minimum-image distances where ``period``, ``SceneMeta.period``,
+    is given)."""
     if graph == "full":
         return full_graph(len(positions))
     if graph == "radius":
-        return radius_graph(positions, radii=radii, margin=margin)
+        return radius_graph(positions, radii=radii, margin=margin, period=period)
     raise ValueError(f"unknown graph kind {graph!r}; use 'full' or 'radius'")
 
 

@@ -325,7 +325,9 @@ def describe(paths: Mapping[str, Path], seconds: float) -> str:
                                    "not given (ones; the mass posterior is reported, unscored)"),
                      f"graph: {scene['graph']}" + (f" (radius {scene['connectivity_radius']:g})"
                                                    if scene["graph"] == "radius" else ""),
-                     f"walls: box {scene['box']:g}" if scene["box"] else "walls: none"]
+                     f"walls: box {scene['box']:g}" if scene["box"] else "walls: none",
+                     "periodic: " + (" x ".join(f"{p:g}" if p else "-" for p in f.meta.period)
+                                     + " (minimum-image edges)" if f.meta.period else "no")]
         f.close()
     name = paths["train"].parent.name
     data_dir = paths["train"].parent.parent.parent

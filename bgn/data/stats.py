@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from bgn.data.frames import evenly_spaced
-from bgn.data.graphs import pair_codes, scene_edges
+from bgn.data.graphs import minimum_image, pair_codes, scene_edges
 from bgn.data.targets import backward_velocities, targets
 from bgn.sim import Scene
 
@@ -69,8 +69,8 @@ def compute_stats(scene: Scene, arrays: dict[str, np.ndarray], dt: float,
     for s in range(n_sims):
         for t in frames:
             x = positions[s, t]
-            snd, rcv = scene_edges(meta.graph, x, arrays["radii"][s], margin)
-            rel_pos.append(x[rcv] - x[snd])
+            snd, rcv = scene_edges(meta.graph, x, arrays["radii"][s], margin, meta.period)
+            rel_pos.append(minimum_image(x[rcv] - x[snd], meta.period))
             rel_vel.append((x[rcv] - positions[s, t - 1][rcv])
                            - (x[snd] - positions[s, t - 1][snd]))
             rel_logm.append(log_mass[s, rcv] - log_mass[s, snd])

@@ -5,8 +5,9 @@
   1x1 convolution over the ``N x (k+1) x |V| x |V|`` relative tensor) gives one weight per edge;
   weighted raw-residual GCN layers then give ``H_E``.
 
-Positions enter only as differences ``x_i - x_j`` (receiver minus sender), so both encoders are
-translation invariant unless ``use_absolute_position`` is set.
+Positions enter only as differences ``x_i - x_j`` (receiver minus sender; by the minimum image
+in a periodic scene, ``message_passing.edge_vector``), so both encoders are translation
+invariant (on the torus too) unless ``use_absolute_position`` is set.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import torch
 from torch import nn
 
 from bgn.graph import Graph
-from bgn.model.message_passing import edge_difference
+from bgn.model.message_passing import edge_difference, edge_vector
 from bgn.model.normalizer import Normalizer
 from bgn.model.ops import activation, gcn_aggregate, pad_features
 
@@ -50,6 +51,9 @@ def node_features(g: Graph, norm: Normalizer, walls: bool, absolute_position: bo
             raise ValueError("the scene has walls but the graph carries no wall distances")
         feats.append(torch.clamp(norm.rel_position(g.wall), max=WALL_CLIP))
     if absolute_position:
+        if g.period is not None:  # a torus has no origin: a coordinate jumps at the seam
+            raise ValueError("model.use_absolute_position=true is undefined on a scene with "
+                             "periodic boundaries; set model.use_absolute_position=false")
         feats.append(g.pos / box if box is not None else norm.rel_position(g.pos))
     return torch.cat(feats, dim=1)
 
@@ -58,7 +62,7 @@ def edge_geometry(g: Graph, norm: Normalizer) -> torch.Tensor:
     """(E, D+1): ``[x_i - x_j, |x_i - x_j|]`` (receiver minus sender) in relative-position
     units; the distance is ``sqrt(r^2 + eps^2)``: no NaN (value or gradient) for coincident
     particles. The first columns of ``edge_features``, and the baselines' edge features."""
-    rel = norm.rel_position(edge_difference(g.pos, g.edge_index))
+    rel = norm.rel_position(edge_vector(g.pos, g))
     return torch.cat([rel, torch.sqrt((rel * rel).sum(-1, keepdim=True) + DIRECTION_EPS**2)],
                      dim=1)
 
@@ -86,7 +90,7 @@ def approach_gap(g: Graph) -> torch.Tensor:
     if g.dt is None:
         raise ValueError("the approach gap needs the frame spacing: the graph has no dt")
     snd, rcv = g.edge_index[0], g.edge_index[1]
-    dx = edge_difference(g.pos, g.edge_index)
+    dx = edge_vector(g.pos, g)
     dv = edge_difference(g.vel[:, 0], g.edge_index)
     dt = g.dt.to(dx.dtype)[g.batch[rcv]]
     speed2 = (dv * dv).sum(-1)

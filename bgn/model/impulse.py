@@ -48,6 +48,9 @@ from bgn.model.message_passing import (
     checkpointed,
     edge_chunks,
     edge_difference,
+    edge_period,
+    edge_vector,
+    minimum_image,
 )
 from bgn.model.ops import mlp
 from bgn.sim.scene import SceneMeta
@@ -296,7 +299,7 @@ class ContactImpulseHead(nn.Module):
         (E, D), the approach speed along it (E,; < 0 when closing), the gap between the
         discs (E,) and the gate's features (E, 4)."""
         snd, rcv = g.edge_index
-        dx, dv = edge_difference(x, g.edge_index), edge_difference(v, g.edge_index)
+        dx, dv = edge_vector(x, g), edge_difference(v, g.edge_index)
         reach = g.radius[rcv] + g.radius[snd]
         frac, hit = time_of_impact(dx, dv, reach, dt[rcv])
         at_impact = dx + dv * (frac * dt[rcv])[:, None]
@@ -352,7 +355,7 @@ class ContactImpulseHead(nn.Module):
                                              hit.index_select(0, chosen))
             logits = frac.new_full(frac.shape, -RULE_LOGIT).index_copy(0, chosen, chosen_logits)
         else:
-            gap = (torch.sqrt((edge_difference(x, g.edge_index) ** 2).sum(-1) + TINY)
+            gap = (torch.sqrt((edge_vector(x, g) ** 2).sum(-1) + TINY)
                    - g.radius[rcv] - g.radius[snd])
         # the pairs that may meet within the frame, even after a kick (REACH_FRAMES): the
         # impacts' work is on these alone (a few % of a gas's edges), round after round
@@ -410,7 +413,8 @@ class ContactImpulseHead(nn.Module):
         snd, rcv = g.edge_index.index_select(1, edges)
         at_rcv, at_snd = _pick(rcv), _pick(snd)
         start = torch.maximum(at_rcv(flight.tau), at_snd(flight.tau))
-        dx = flight.at(rcv, start, dt) - flight.at(snd, start, dt)
+        dx = minimum_image(flight.at(rcv, start, dt) - flight.at(snd, start, dt),
+                           edge_period(g, rcv))
         dv = at_rcv(flight.v) - at_snd(flight.v)
         reach = at_rcv(g.radius) + at_snd(g.radius)
         rest = (1 - start) * at_rcv(dt)                  # what is left of the frame

@@ -48,7 +48,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from bgn.graph import Graph
-from bgn.model.message_passing import CheckpointEdges, edge_chunks, edge_sums
+from bgn.model.message_passing import CheckpointEdges, edge_chunks, edge_sums, edge_vector
 from bgn.model.ops import Linear, activation, linear
 
 FLOWS = ("nsf", "naf")
@@ -86,7 +86,7 @@ def pair_features(g: Graph, frames: int = 1) -> torch.Tensor:
     snd, rcv = g.edge_index[0], g.edge_index[1]
     acc = window_accelerations(g, frames)
     prev = g.pos[:, None] - g.dt[g.batch][:, None, None] * torch.cumsum(g.vel[:, :frames], 1)
-    rel = prev[rcv] - prev[snd]
+    rel = edge_vector(prev, g)
     r = torch.sqrt((rel * rel).sum(-1) + _EPS)
     a_norm = torch.sqrt((acc * acc).sum(-1) + _EPS)
     unit, a_unit = rel / r[..., None], acc / a_norm[..., None]

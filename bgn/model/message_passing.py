@@ -31,6 +31,8 @@ from typing import NamedTuple
 import torch
 from torch.utils.checkpoint import checkpoint
 
+from bgn.graph import Graph
+
 
 @dataclass(frozen=True)
 class Adjacency:
@@ -167,6 +169,42 @@ def edge_difference(x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
     rather than ``x[index]``: its backward is ``index_add_``, not the slower accumulating
     ``index_put_``."""
     return x.index_select(0, edge_index[1]) - x.index_select(0, edge_index[0])
+
+
+def minimum_image(dx: torch.Tensor, period: torch.Tensor | None) -> torch.Tensor:
+    """Differences ``dx`` (..., D) moved by whole box lengths to their nearest image in each
+    periodic dimension; ``period`` broadcasts against ``dx`` (0: not periodic; None: ``dx``
+    unchanged). The shift is piecewise constant, so the gradient in ``dx`` is the identity.
+    The numpy twin is ``bgn.data.graphs.minimum_image``."""
+    if period is None:
+        return dx
+    period = period.to(dx.dtype)
+    periodic = period > 0
+    safe = torch.where(periodic, period, torch.ones_like(period))
+    return torch.where(periodic, dx - period * torch.round(dx / safe), dx)
+
+
+def edge_period(g: Graph, receivers: torch.Tensor | None = None) -> torch.Tensor | None:
+    """(E, D) the box lengths of the graph each edge's receiver belongs to (``Graph.period``;
+    ``receivers`` (E,): those of a subset of edges), or None for a graph without periodic
+    boundaries (or a stand-in without the field, e.g. ``bgn.laws.sample_law``'s two
+    particles)."""
+    period = getattr(g, "period", None)
+    if period is None:
+        return None
+    rcv = g.edge_index[1] if receivers is None else receivers
+    return period.index_select(0, g.batch.index_select(0, rcv))
+
+
+def edge_vector(x: torch.Tensor, g: Graph) -> torch.Tensor:
+    """The relative position ``x_i - x_j`` on every edge j -> i of ``g`` (E, ..., D) from
+    positions ``x`` (N, ..., D) of its nodes: ``edge_difference``, by the minimum image in a
+    periodic scene. Every relative position a model makes on an edge goes through here."""
+    dx = edge_difference(x, g.edge_index)
+    period = edge_period(g)
+    if period is None:
+        return dx
+    return minimum_image(dx, period.reshape(period.shape[0], *[1] * (dx.ndim - 2), -1))
 
 
 class CheckpointEdges(NamedTuple):

@@ -31,7 +31,8 @@ class ImportedScene:
     ``r_i + r_j + connectivity_radius`` (radii are zero unless the source gives them: then
     GNS's rule ``|x_i - x_j| <= R``); ``box`` is the side of reflecting walls ``[0, box]^dim``
     declared by the source, else None. ``periodic`` (per dimension) and ``bounds`` are the
-    source's, recorded only: the imported positions are unwrapped. ``kinematic_types`` are
+    source's: the imported positions are unwrapped, and the periodic dimensions' box lengths
+    become ``SceneMeta.period`` (minimum-image edges and edge vectors). ``kinematic_types`` are
     particle types moved by the source (inputs, never predicted or scored); ``masses_known``
     False: the source gave no masses (ones stand in). ``source`` names
     the file or folder imported ("" from memory), ``data_sha256`` hashes the imported arrays
@@ -71,6 +72,10 @@ class ImportedScene:
         object.__setattr__(self, "bounds", tuple(tuple(float(v) for v in b)
                                                  for b in self.bounds))
         object.__setattr__(self, "kinematic_types", tuple(int(t) for t in self.kinematic_types))
+        if any(self.periodic) and (len(self.periodic) != self.dim
+                                   or len(self.bounds) != self.dim):
+            raise ValueError(f"periodic={self.periodic} needs one flag and one (low, high) bound "
+                             f"per dimension (dim={self.dim}); got bounds={self.bounds}")
 
     @property
     def meta(self) -> SceneMeta:
@@ -78,7 +83,15 @@ class ImportedScene:
                          n_types=int(self.n_types), interaction=self.interaction,  # type: ignore
                          target=self.target, graph=self.graph,  # type: ignore[arg-type]
                          box=None if self.box is None else float(self.box),
-                         masses_known=bool(self.masses_known))
+                         masses_known=bool(self.masses_known), period=self.period)
+
+    @property
+    def period(self) -> tuple[float, ...] | None:
+        """The box length of each periodic dimension (0 elsewhere) from the source's bounds, or
+        None when no dimension is periodic (``SceneMeta.period``)."""
+        if not any(self.periodic):
+            return None
+        return tuple(hi - lo if p else 0.0 for p, (lo, hi) in zip(self.periodic, self.bounds))
 
     @property
     def margin(self) -> float:

@@ -22,8 +22,10 @@ class SceneMeta:
     """What the rest of the code needs to know about a scene (DESIGN section 1).
 
     ``box`` is the side length of the reflecting box ``[0, box]^dim`` when the scene has walls,
-    else ``None``. ``graph == "radius"`` means edges join pairs closer than
-    ``r_i + r_j + margin``; ``"full"`` means every ordered pair ``i != j``.
+    else ``None``. ``period`` holds the box length of each dimension with periodic boundaries
+    (0 for a non-periodic one), or is ``None`` for a scene without any: edges, edge vectors
+    and distances then follow the minimum image. ``graph == "radius"`` means edges join pairs
+    closer than ``r_i + r_j + margin``; ``"full"`` means every ordered pair ``i != j``.
     """
 
     name: str
@@ -37,10 +39,26 @@ class SceneMeta:
     # False for imported data whose source gives no masses (ones stand in): the inverse model
     # still reports its posterior, but no metric scores it against them
     masses_known: bool = True
+    period: tuple[float, ...] | None = None
+
+    def __post_init__(self) -> None:
+        if self.period is None:
+            return
+        # lists from JSON (dataset files, checkpoints) -> a tuple: the record stays hashable
+        period = tuple(float(p) for p in self.period)
+        if len(period) != self.dim or not all(np.isfinite(p) and p >= 0 for p in period):
+            raise ValueError(f"SceneMeta.period={self.period}: give one finite length >= 0 per "
+                             f"dimension (dim={self.dim}; 0: not periodic), or None")
+        object.__setattr__(self, "period", period if any(period) else None)
 
     @property
     def has_walls(self) -> bool:
         return self.box is not None
+
+    @property
+    def periodic(self) -> bool:
+        """Whether any dimension has periodic boundaries."""
+        return self.period is not None
 
 
 @dataclass

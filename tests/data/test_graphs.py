@@ -12,8 +12,10 @@ from bgn.data.graphs import (
     batch_edges,
     contact_margin,
     full_graph,
+    minimum_image,
     pair_distance,
     radius_graph,
+    scene_edges,
 )
 
 PROPERTY = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -414,3 +416,82 @@ def test_radius_graph_validation(positions, kwargs, match) -> None:
 def test_integer_positions_accepted() -> None:
     positions = np.array([[0, 0], [1, 0], [3, 0]])
     np.testing.assert_array_equal(radius_graph(positions, cutoff=1), np.array([[1, 0], [0, 1]]))
+
+
+# ----------------------------------------------------------------------------- periodic boxes
+
+
+def torus_pairs(positions: np.ndarray, period: np.ndarray, cutoff: float) -> set[tuple]:
+    """O(N^2 3^D) oracle: ordered pairs whose nearest image (of every shift by -1, 0, +1 box
+    lengths in each periodic dimension) lies within ``cutoff``; no rounding formula shared
+    with the code under test."""
+    pos = np.asarray(positions, dtype=np.float64)
+    n, d = pos.shape
+    shifts = np.array(np.meshgrid(*[[-1, 0, 1] if p > 0 else [0] for p in period],
+                                  indexing="ij")).reshape(d, -1).T * period       # (K, D)
+    out = set()
+    for i in range(n):
+        for j in range(n):
+            if i == j:
+                continue
+            dx = (pos[i] - pos[j]) % np.where(period > 0, period, np.inf)
+            dx = np.where(period > 0, dx, pos[i] - pos[j])   # in [0, L): one shift suffices
+            if np.sqrt(((dx + shifts) ** 2).sum(1)).min() <= cutoff:
+                out.add((j, i))
+    return out
+
+
+@PROPERTY
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(0, 40), dim=st.integers(1, 3),
+       mixed=st.booleans())
+def test_periodic_radius_graph_is_the_minimum_image_brute_force(seed, n, dim, mixed):
+    """Random clouds crowded near the box's faces, each particle moved by its own whole number
+    of box lengths (unwrapped data): the torus's neighbours, each pair once per direction."""
+    rng = np.random.default_rng(seed)
+    period = rng.uniform(2.0, 5.0, dim)
+    if mixed and dim > 1:
+        period[rng.integers(dim)] = 0.0  # one dimension not periodic
+    cutoff = rng.uniform(0.1, 0.49) * period[period > 0].min() if period.any() else 0.5
+    near_face = rng.uniform(-0.6, 0.6, (n, dim)) * cutoff % np.where(period > 0, period, 1)
+    inside = rng.uniform(0, 1, (n, dim)) * np.where(period > 0, period, 3.0)
+    pos = np.where(rng.random((n, 1)) < 0.6, near_face, inside)
+    pos = pos + rng.integers(-3, 4, (n, dim)) * period                        # unwrapped
+    edges = radius_graph(pos, cutoff=cutoff, period=period)
+    assert set(zip(*edges.tolist())) == torus_pairs(pos, period, cutoff)
+    assert edges.shape[1] == len(torus_pairs(pos, period, cutoff))           # no duplicates
+    order = np.lexsort((edges[0], edges[1]))
+    np.testing.assert_array_equal(order, np.arange(edges.shape[1]))
+    # the same graph through the radii rule (zero radii, margin = cutoff), as scenes build it
+    np.testing.assert_array_equal(
+        scene_edges("radius", pos, np.zeros(n), cutoff, tuple(period)), edges)
+
+
+@PROPERTY
+@given(seed=st.integers(0, 2**32 - 1))
+def test_minimum_image_is_the_nearest_image(seed):
+    rng = np.random.default_rng(seed)
+    period = np.array([rng.uniform(0.5, 4.0), 0.0, rng.uniform(0.5, 4.0)])
+    dx = rng.normal(0, 10, (50, 3))
+    out = minimum_image(dx, period)
+    periodic = period > 0
+    assert (np.abs(out[:, periodic]) <= period[periodic] / 2 * (1 + 1e-12)).all()
+    turns = (dx[:, periodic] - out[:, periodic]) / period[periodic]
+    np.testing.assert_allclose(turns, np.rint(turns), atol=1e-9)          # whole box lengths
+    np.testing.assert_array_equal(out[:, ~periodic], dx[:, ~periodic])
+    np.testing.assert_array_equal(minimum_image(dx, None), dx)
+    i, j = np.arange(25), np.arange(25, 50)
+    x = np.concatenate([dx[:25], np.zeros((25, 3))])
+    np.testing.assert_allclose(pair_distance(x, j, i, period),
+                               np.linalg.norm(minimum_image(dx[:25], period), axis=1))
+
+
+def test_a_periodic_reach_of_half_the_box_or_more_is_refused():
+    pos = np.zeros((3, 2))
+    with pytest.raises(ValueError, match="below half the periodic box length"):
+        radius_graph(pos, cutoff=1.0, period=(2.0, 0.0))
+    with pytest.raises(ValueError, match="one finite length >= 0 per dimension"):
+        radius_graph(pos, cutoff=0.5, period=(2.0,))
+    # a zero period in every dimension is no periodic boundary at all
+    np.testing.assert_array_equal(radius_graph(pos + [[0], [3], [6]], cutoff=2.0,
+                                               period=(0.0, 0.0)),
+                                  radius_graph(pos + [[0], [3], [6]], cutoff=2.0))

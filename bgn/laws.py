@@ -259,7 +259,10 @@ def _refine(terms: list[Term], r: np.ndarray, y: np.ndarray, w: np.ndarray, x0: 
                             x_scale="jac")
     except (ValueError, np.linalg.LinAlgError):
         return x0, None
-    values = np.concatenate([sol.x[:k], np.exp(sol.x[k:])])
+    with np.errstate(over="ignore"):
+        values = np.concatenate([sol.x[:k], np.exp(sol.x[k:])])
+    if not np.isfinite(values).all() or (values[k:] <= 0).any():
+        return x0, None  # a constant ran off to 0 or infinity: keep the start
     jac = sol.jac.copy()
     jac[:, k:] = jac[:, k:] / values[k:]  # d/dc = d/dlog c / c
     return values, jac

@@ -280,7 +280,7 @@ def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: 
     estimate). Arrays for the figure: true and sampled masses and the coverage curves of the
     model and the prior."""
     model = module.model
-    prior = MassPrior.of_scene(dataset.scene)
+    prior = MassPrior.of_scene(dataset.scene, module.hparams.stats.get("log_mass"))
     rng = np.random.default_rng(seed)
     indices = evenly_spaced(len(dataset), mass_frames)
     true_log, sampled, log_post, physical, particles, edges, edge_rel = ([] for _ in range(7))

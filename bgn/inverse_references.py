@@ -25,6 +25,7 @@ gets NaN (the caller falls back to the prior).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.sparse.csgraph import connected_components
@@ -48,15 +49,24 @@ class MassPrior:
     stds: np.ndarray
 
     @classmethod
-    def of_scene(cls, scene: Scene) -> MassPrior:
+    def of_scene(cls, scene: Scene, log_mass: dict[str, Any] | None = None) -> MassPrior:
         """The law a scene draws masses from: log-normal per type (collisions) or one
-        log-normal (n-body). A fixed mass (std 0) gets a narrow 1e-3 so it has a density."""
+        log-normal (n-body). A scene without a mass law (imported data) takes the log-normal
+        of its training split's masses, ``log_mass`` (the statistics' mean and std). A fixed
+        mass (std 0) gets a narrow 1e-3 so it has a density."""
         if isinstance(scene, CollisionScene):
             weights = [t.fraction for t in scene.types]
             means = [np.log(t.mass_mode) for t in scene.types]
             stds = [t.mass_log_std for t in scene.types]
-        else:
+        elif hasattr(scene, "mass_log_mean"):
             weights, means, stds = [1.0], [scene.mass_log_mean], [scene.mass_log_std]
+        elif log_mass is not None:
+            weights = [1.0]
+            means = [float(np.ravel(log_mass["mean"])[0])]
+            stds = [float(np.ravel(log_mass["std"])[0])]
+        else:
+            raise ValueError(f"{type(scene).__name__} has no mass law: pass the training "
+                             "split's log-mass statistics")
         return cls(np.asarray(weights, float), np.asarray(means, float),
                    np.maximum(np.asarray(stds, float), 1e-3))
 
@@ -200,6 +210,9 @@ def physical_log_mass(scene: Scene, prior: MassPrior, windows: np.ndarray, dt: f
         if contacts is None:
             raise ValueError("collisions: the estimator needs the windows' contacts")
         return impact_log_mass(prior, windows, dt, contacts)
-    if scene.potential == "spring":
+    potential = getattr(scene, "potential", None)
+    if potential is None:  # no force law written down (imported data): nothing to estimate
+        return np.full(windows.shape[2], np.nan)
+    if potential == "spring":
         return spring_log_mass(scene, windows, dt)
     return gravity_log_mass(scene, windows, dt)

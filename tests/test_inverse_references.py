@@ -64,3 +64,17 @@ def test_mass_prior_of_each_scene() -> None:
     draws = gas.sample((20000,), rng)
     assert np.mean(np.abs(draws - np.log(0.001)) < 0.5) == pytest.approx(0.5, abs=0.02)
     assert gas.mean == pytest.approx(0.5 * (np.log(0.001) + np.log(0.4)))
+
+
+def test_a_scene_without_a_mass_law_takes_the_training_masses_and_estimates_nothing() -> None:
+    """Imported data have no mass law and no force law: the prior is the log-normal of the
+    training split's masses, and the physical estimator says nothing (NaN) rather than guess."""
+    from bgn.sim.imported import ImportedScene
+
+    scene = ImportedScene(n_particles=3, dim=2)
+    prior = MassPrior.of_scene(scene, {"mean": np.array([0.7]), "std": np.array([0.2])})
+    assert prior.means.tolist() == [0.7] and prior.stds.tolist() == [0.2]
+    with pytest.raises(ValueError, match="no mass law"):
+        MassPrior.of_scene(scene)
+    windows = np.random.default_rng(0).normal(size=(1, 7, 3, 2))
+    assert np.isnan(physical_log_mass(scene, prior, windows, 0.01)).all()

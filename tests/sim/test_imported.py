@@ -56,3 +56,15 @@ def test_the_pair_force_head_is_a_candidate_for_imported_data():
     check_scene(ImportedScene(n_particles=3).meta, 3, "model=newton")  # accepted
     with pytest.raises(ValueError, match="acceleration target"):
         check_scene(ImportedScene(n_particles=3, target="velocity").meta, 3, "model=newton")
+
+
+def test_periodic_dimensions_become_the_metas_period():
+    """The box length of each periodic dimension from the source's bounds (any origin), 0 for
+    the others; no periodic dimension: no period (as every built-in scene)."""
+    scene = ImportedScene(dim=2, periodic=[True, False], bounds=[[-1.0, 3.0], [0.0, 5.0]])
+    assert scene.meta.period == (4.0, 0.0) and scene.meta.periodic
+    assert ImportedScene(dim=2, periodic=[False, False], bounds=[[0, 1], [0, 1]]).meta.period \
+        is None
+    assert all(make_scene(name).meta.period is None for name in SCENES if name != "imported")
+    with pytest.raises(ValueError, match="one flag and one \\(low, high\\) bound per dimension"):
+        ImportedScene(dim=2, periodic=[True, True], bounds=[[0.0, 1.0]])

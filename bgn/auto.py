@@ -1,9 +1,9 @@
 """The structure chosen by evidence: ``python -m bgn.train model.dynamics=auto ...``.
 
-Model only what a scene needs (DESIGN section 1), found from the data where nobody wrote the
-answer down (DESIGN section 11). Every structure BGN has that the data admit is trained for a
-share of the budget (``auto.share`` of each of ``trainer.max_time``, ``max_steps`` and
-``max_epochs``, split evenly), each in ``<run>/auto/<candidate>/``:
+Model only what a scene needs (docs/design.md#the-scene-record), found from the data where
+nobody wrote the answer down (docs/design.md#choosing-a-structure). Every structure BGN has that the
+data admit is trained for a share of the budget (``auto.share`` of each of ``trainer.max_time``,
+``max_steps`` and ``max_epochs``, split evenly), each in ``<run>/auto/<candidate>/``:
 
 - the paper's decoder (Eq. 5): always; it writes no physics in, so it can express any;
 - the pair-force head (``bgn.model.newton``) with each way masses can enter (``mass_law``

@@ -203,9 +203,10 @@ def _point_metrics(estimate: np.ndarray, true_log: np.ndarray, particles: np.nda
     ``mass_rel_err`` (median ``|m_hat/m - 1|``), ``relmass_r2_estimate`` (R^2 of the relative
     log-mass ``estimate_i - estimate_j`` on the frames' edges) and ``sim_mass_rel_err``: the
     estimates of one particle pooled over the evaluated frames of its simulation, as masses
-    do not change over time (DESIGN section 10): the product of per-frame Gaussians of the
-    posterior's mean and ``variance`` (``bgn.metrics.aggregate_gaussian``; sharp frames weigh
-    more: spring 1.5 % against 2.7 % for the plain mean in log), a plain mean without it."""
+    do not change over time (docs/design.md#identifiability): the product of per-frame Gaussians of
+    the posterior's mean and ``variance`` (``bgn.metrics.aggregate_gaussian``; sharp frames weigh
+    more, docs/results.md, "Recalibration, pooling over frames and the fitted masses"), a plain
+    mean without it."""
     _, index = np.unique(particles, return_inverse=True)
     _, pooled, _ = aggregate_gaussian(estimate, np.ones_like(estimate) if variance is None
                                       else variance, particles)

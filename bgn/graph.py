@@ -81,12 +81,12 @@ def window_graph(window: torch.Tensor, dt: float, edge_index: torch.Tensor,
     ``window`` (B, k+2, N, D) holds frames t-k-1 .. t of B simulations (float64 keeps the
     finite differences exact); ``edge_index`` (2, E) indexes the B x N nodes (simulation b's
     particles are nodes b*N .. b*N+N-1); ``masses``, ``radii``, ``types`` are (B, N);
-    ``sims``, ``frames`` (B,). Inputs follow DESIGN section 2: backward-difference velocities
-    ``v[t] = (x[t] - x[t-1]) / dt``, newest first. Targets and contact labels are zero (unknown
-    here); the data layer fills them for training samples. ``kinematic`` (B, N) bool marks
-    particles moved by the source (None: none). ``period`` (D,): the box lengths of a
-    periodic scene (``SceneMeta.period``), carried as ``Graph.period``; positions stay as
-    given (unwrapped), edge vectors take the minimum image.
+    ``sims``, ``frames`` (B,). Inputs follow docs/design.md#frames-and-targets: backward-difference
+    velocities ``v[t] = (x[t] - x[t-1]) / dt``, newest first. Targets and contact labels are zero
+    (unknown here); the data layer fills them for training samples. ``kinematic`` (B, N) bool marks
+    particles moved by the source (None: none). ``period`` (D,): the box lengths of a periodic scene
+    (``SceneMeta.period``), carried as ``Graph.period``; positions stay as given (unwrapped), edge
+    vectors take the minimum image.
     """
     b, _, n, d = window.shape
     pos = window[:, -1]                                         # (B, N, D)

@@ -1,4 +1,5 @@
-"""The two references the inverse model is judged against (DESIGN sections 8 and 10).
+"""The two references the inverse model is judged against (docs/design.md#inverse-metrics,
+docs/design.md#identifiability).
 
 - ``MassPrior``: the scene's own law of log-masses (what training draws from). Sampling it
   ignores the data: calibrated by construction, zero information gain. A posterior that does

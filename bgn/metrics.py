@@ -3,7 +3,7 @@ the evaluation of checkpoints (``bgn.evaluate``), the benchmarks and the tests.
 
 R^2; inverse metrics of mass samples (Welch t-test, Wasserstein-1, recovered KDE modes) and
 the calibration and information checks of simulation-based inference (expected coverage at
-every level, SBC ranks, TARP, information gain over the prior: DESIGN section 8);
+every level, SBC ranks, TARP, information gain over the prior: docs/design.md#inverse-metrics);
 type-classification accuracy and AUROC; rollout errors, energy and momentum drift and failures.
 """
 
@@ -173,7 +173,7 @@ def calibration_metrics(true_log: np.ndarray, sampled_log: np.ndarray,
                         log_posterior: np.ndarray | None = None,
                         log_prior: np.ndarray | None = None,
                         groups: np.ndarray | None = None, seed: int = 0) -> dict[str, float]:
-    """The calibration and information checks of one posterior (DESIGN section 8):
+    """The calibration and information checks of one posterior (docs/design.md#inverse-metrics):
     ``coverage_max_dev`` (the largest |coverage - level| over ``COVERAGE_LEVELS``), ``sbc_p``,
     ``tarp_atc``, ``tarp_ks_p`` and, given the log prior at the truths, ``info_gain`` with
     ``log_posterior`` (exact) or a KDE of the samples. Coverage at 50 % and 90 % is in
@@ -380,8 +380,8 @@ def rollout_metrics(predicted: np.ndarray, true: np.ndarray, masses: np.ndarray,
                     momentum: bool = False, horizons: tuple[int, ...] = ROLLOUT_HORIZONS,
                     contacts: tuple[np.ndarray, np.ndarray] | None = None,
                     ) -> dict[str, float]:
-    """Rollout metrics (DESIGN section 8) of R rollouts: ``predicted``, ``true`` (R, T+2, N, D)
-    hold the frame before the start, the start and T steps; ``energy(x, v, m)`` is the scene's
+    """Rollout metrics (docs/design.md#rollouts) of R rollouts: ``predicted``, ``true`` (R, T+2, N,
+    D) hold the frame before the start, the start and T steps; ``energy(x, v, m)`` is the scene's
     energy of (T, N, D) arrays.
 
     Every rollout counts, a failed one at a stated cap (``capped_errors``: 10 scene scales,

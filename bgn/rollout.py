@@ -17,7 +17,8 @@ from bgn.metrics import capped_rollout_error
 from bgn.sim.scene import State
 from bgn.simulator import LearnedSimulator, Particles, Predictor
 
-REFERENCE_START = 100  # frame 100 of every test simulation: the reference protocol (DESIGN 8)
+# frame 100 of every test simulation: the reference protocol (docs/design.md#rollouts)
+REFERENCE_START = 100
 
 
 def simulator(model: Predictor, dataset: FrameDataset) -> LearnedSimulator:
@@ -133,8 +134,8 @@ def rollout_many(model: Predictor, dataset: FrameDataset, sims: list[int], start
 
 def predictability(dataset: FrameDataset, sims: list[int], starts: list[int], n_steps: int,
                    eps: float = 1e-6, seed: int = 0) -> Trajectories:
-    """The scene's predictability limit on the rollouts' protocol (DESIGN section 8): the exact
-    simulator run twice from the recorded state one frame before each start, once as recorded
+    """The scene's predictability limit on the rollouts' protocol (docs/design.md#rollouts): the
+    exact simulator run twice from the recorded state one frame before each start, once as recorded
     and once with every position moved by ``eps`` in a random direction. ``true`` is the
     first, ``predicted`` the second: their distance is what chaos alone does to an error of
     ``eps``; a model's rollout error above it is the model's."""

@@ -128,8 +128,9 @@ def frame_graph(window: np.ndarray, dt: float, meta: SceneMeta, scene: Scene,
                 sim: int = 0, frame: int = 0, next_position: np.ndarray | None = None,
                 contact_codes: np.ndarray | None = None, edges: np.ndarray | None = None,
                 kinematic: np.ndarray | None = None) -> Graph:
-    """Inputs, edges and targets of one frame (DESIGN sections 2 and 4). The inputs are
-    ``bgn.graph.window_graph``'s, which the learned simulator builds in rollouts."""
+    """Inputs, edges and targets of one frame (docs/design.md#frames-and-targets,
+    docs/design.md#graphs). The inputs are ``bgn.graph.window_graph``'s, which the learned simulator
+    builds in rollouts."""
     pos = window[-1]
     if edges is None:
         edges = scene_edges(meta.graph, pos, radii, margin, meta.period)

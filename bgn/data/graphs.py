@@ -3,7 +3,7 @@
 An edge list is an ``int64`` array of shape ``(2, E)``: row 0 holds senders, row 1 receivers.
 Every builder here returns both directions of every pair, no self-loops, sorted by
 ``(receiver, sender)`` so that the output is deterministic whatever the search order was.
-The dense matrices of the paper are the special case :func:`full_graph` (DESIGN.md section 4).
+The dense matrices of the paper are the special case :func:`full_graph` (docs/design.md#graphs).
 
 Neighbour search uses :class:`scipy.spatial.cKDTree`, so it costs ``O(N log N + E)`` and never
 builds an ``N x N`` distance matrix, caps neighbours, or drops one. Membership is decided by one
@@ -165,7 +165,8 @@ def radius_graph(
     Edges are sorted by (receiver, sender). Exactly one mode:
 
     - ``radii`` given (shape ``(N,)``, finite, >= 0): pairs with
-      ``|x_i - x_j| <= (r_i + r_j) + margin``, the collision candidates of DESIGN.md section 4.
+      ``|x_i - x_j| <= (r_i + r_j) + margin``, the collision candidates of
+      docs/design.md#graphs.
     - ``cutoff`` given (finite, >= 0): pairs with ``|x_i - x_j| <= cutoff``; ``margin`` must be 0.
 
     Distances come from :func:`pair_distance`; the comparison is inclusive, so points exactly at

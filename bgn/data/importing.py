@@ -1,4 +1,5 @@
-"""Trajectories from outside bgn -> bgn's validated dataset files (DESIGN section 11).
+"""Trajectories from outside bgn -> bgn's validated dataset files
+(docs/design.md#imported-files).
 
 ``python -m bgn.data.import <path> name=<name>`` reads a file or directory in any layout
 ``bgn.data.formats`` knows (detected from the files), checks it, and writes

@@ -1,7 +1,7 @@
 """Finite-difference inputs and targets, and the step that turns a target back into a frame.
 
-DESIGN section 2: the input velocities are backward differences ``v[t] = (x[t] - x[t-1]) / dt``
-and the targets are defined so that a rollout reproduces the recorded frames:
+docs/design.md#frames-and-targets: the input velocities are backward differences ``v[t] = (x[t] -
+x[t-1]) / dt`` and the targets are defined so that a rollout reproduces the recorded frames:
 
 - velocity scenes (collisions): target ``v[t+1] = (x[t+1] - x[t]) / dt``;
 - acceleration scenes (forces): target ``a[t] = (v[t+1] - v[t]) / dt``.

@@ -1,5 +1,6 @@
 """Model layer: BGN, the baselines and the contract they share (``PhysicsModel``). Uses torch,
-zuko, the graph type and scene metadata only; no files, Lightning or Hydra (DESIGN section 0)."""
+zuko, the graph type and scene metadata only; no files, Lightning or Hydra
+(docs/design.md#layers)."""
 
 from bgn.model.base import LOSS_KEYS, ModelOutput, PhysicsModel
 from bgn.model.bgn import BGN, ModelConfig

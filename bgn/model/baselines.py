@@ -1,4 +1,5 @@
-"""The two baselines of Table 1 (DESIGN section 6), built like BGN from ``(meta, stats, history)``.
+"""The two baselines of Table 1 (docs/design.md#baselines), built like BGN from
+``(meta, stats, history)``.
 
 - BS1 ``CranmerGN``: the graph network of Cranmer et al. 2020, "Discovering symbolic models from
   deep learning with inductive biases" (NeurIPS): an edge (message) MLP on both endpoints'
@@ -211,8 +212,8 @@ class CranmerGN(Baseline):
     learning with inductive biases"), their standard (unregularised) variant.
 
     ``m_ij = phi_e([x_i, x_j, x_i - x_j, |x_i - x_j|])``, ``y_i = phi_v([x_i, sum_j m_ij])``.
-    Their nodes carry absolute positions; here positions enter only as the relative position
-    on the edge (translation invariance, DESIGN section 2), the same inputs BGN gets.
+    Their nodes carry absolute positions; here positions enter only as the relative position on the
+    edge (translation invariance, docs/design.md#frames-and-targets), the same inputs BGN gets.
     """
 
     name = "cranmer_gn"

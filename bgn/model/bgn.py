@@ -3,8 +3,8 @@
 Encode (Eq. 1) -> process (Eq. 2-4) -> decode the forward target (Eq. 5) and, from the same
 node features, infer mass (Eq. 6-10). The loss is the weighted sum of the task losses (Eq. 12).
 
-Model only what the scene needs (DESIGN section 1): no classifier when the scene has one
-particle type, no contact head without ``cfg.contact``, no flow without ``cfg.inverse``.
+Model only what the scene needs (docs/design.md#the-scene-record): no classifier when the scene has
+one particle type, no contact head without ``cfg.contact``, no flow without ``cfg.inverse``.
 All tensors are in normalised units except where a method says "physical".
 """
 
@@ -54,9 +54,9 @@ DYNAMICS = ("decoder", "newton")
 
 @dataclass
 class ModelConfig(DynamicsConfig):
-    """BGN's options and their defaults (the schema of ``conf/model/bgn.yaml``, DESIGN section
-    5); the shared ``target_prior``, ``dynamics_loss`` and ``huber_delta`` come from
-    ``DynamicsConfig``. Heads a scene does not need are never built."""
+    """BGN's options and their defaults (the schema of ``conf/model/bgn.yaml``,
+    docs/design.md#model); the shared ``target_prior``, ``dynamics_loss`` and ``huber_delta`` come
+    from ``DynamicsConfig``. Heads a scene does not need are never built."""
 
     hidden: int = 128
     node_layers: int = 2               # raw-residual GCN layers of the node encoder (Eq. 1)

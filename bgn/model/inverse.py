@@ -11,17 +11,18 @@
 
 Both flows support ``rsample``: NSF inverts its splines in closed form; NAF inverts its monotone
 network by bisection (about 25 network evaluations) and zuko differentiates that inverse
-implicitly, which is why NAF is much slower to sample (DESIGN section 9).
+implicitly, which is why NAF is much slower to sample
+(docs/design.md#departures-from-the-paper).
 
 What the flow is conditioned on (``context``): the paper's ``H̃_V`` alone, or with
 ``pairs`` (not in the paper) also pair terms of the observed accelerations, the quantities
-that carry mass (DESIGN section 10). On spring ``m_i a_i`` is the mass-free spring force, so
-``log m_i`` is a function of the pair geometry seen from ``a_i`` minus ``log |a_i|``; under
-gravity ``a_i = sum_j m_j f(s_ij) u_ji`` holds ``m_j`` in the *neighbour's* acceleration, so a
-particle needs messages from the edges where it is the sender. GCN layers that average
-normalised features do not form such log-ratios of magnitudes from a few hundred training
-masses; per edge, the log-distance, the log-magnitudes of both accelerations and their
-cosines with the pair direction make them a smooth function an MLP learns.
+that carry mass (docs/design.md#identifiability). On spring ``m_i a_i`` is the mass-free spring
+force, so ``log m_i`` is a function of the pair geometry seen from ``a_i`` minus ``log |a_i|``;
+under gravity ``a_i = sum_j m_j f(s_ij) u_ji`` holds ``m_j`` in the *neighbour's* acceleration, so a
+particle needs messages from the edges where it is the sender. GCN layers that average normalised
+features do not form such log-ratios of magnitudes from a few hundred training masses; per edge, the
+log-distance, the log-magnitudes of both accelerations and their cosines with the pair direction
+make them a smooth function an MLP learns.
 ``fit`` adds to ``pairs`` the log-mass that the structured force head (``model.dynamics=newton``,
 ``bgn.model.newton``) fits to the window's accelerations with its learned force law: under
 gravity a joint least-squares fit of every particle's mass from its neighbours' accelerations,

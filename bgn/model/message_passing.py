@@ -1,4 +1,5 @@
-"""Message passing as sparse matrix products on edges sorted by receiver (DESIGN sections 4, 9).
+"""Message passing as sparse matrix products on edges sorted by receiver
+(docs/design.md#graphs, docs/design.md#performance-choices).
 
 An edge list ``(senders, receivers)`` of N nodes is the sparse N x N matrix ``A`` with
 ``A[i, j] = w_ji`` for each edge j -> i. The two operations the models need without a wide

@@ -139,7 +139,8 @@ def shoot(accel: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, back: 
 
 def check_scene(meta: SceneMeta, history: int, option: str) -> None:
     """One clear error when a scene or window cannot carry the structured force head."""
-    # "unknown": imported data, whose law the head is a candidate for (DESIGN section 11)
+    # "unknown": imported data, whose law the head is a candidate for
+    # (docs/design.md#imported-scenes)
     if meta.interaction not in ("pairwise", "unknown") or meta.target != "acceleration" \
             or meta.graph != "full":
         raise ValueError(f"{option} needs pairwise forces on a complete graph with an "

@@ -1,4 +1,4 @@
-"""Sparse graph operations on edge lists (DESIGN section 4): O(E) time and memory.
+"""Sparse graph operations on edge lists (docs/design.md#graphs): O(E) time and memory.
 
 Edges are ``edge_index = (senders, receivers)``; a receiver aggregates its senders' features.
 The paper's dense matrix products ``Â H`` are the special case of a complete edge list.
@@ -179,9 +179,9 @@ class EdgeMLP(nn.Module):
     ``factored=True`` applies the first layer's node blocks per node and gathers the products,
     ``W [e, x_i, x_j] = W_e e + (W_r x + b)[i] + (W_s x)[j]``: the same function as the plain
     concatenation (``factored=False``), with fewer FLOPs and no (E, 2F) concatenated copy when
-    the node features are wide (faster forward and backward: DESIGN section 9). The hidden
-    layers run at widths padded with zero weights to a multiple of ``PAD_WIDTH`` (exactly the
-    same function; faster matrix products), the output at its own width.
+    the node features are wide (faster forward and backward: docs/design.md#performance-choices).
+    The hidden layers run at widths padded with zero weights to a multiple of ``PAD_WIDTH`` (exactly
+    the same function; faster matrix products), the output at its own width.
 
     ``edge_chunk`` and ``checkpoint_edges`` (set by ``PhysicsModel`` from its config): on
     graphs with more edges, the edges run in chunks with activation checkpointing

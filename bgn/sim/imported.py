@@ -1,4 +1,5 @@
-"""A scene bgn did not simulate: trajectories imported from another engine (DESIGN section 11).
+"""A scene bgn did not simulate: trajectories imported from another engine
+(docs/design.md#imported-scenes).
 
 ``ImportedScene`` carries what the rest of bgn needs to know of the imported data (sizes, types,
 graph rule, target, box) and nothing of their physics: there is no simulator to draw or

@@ -19,7 +19,7 @@ GraphKind = Literal["full", "radius"]
 
 @dataclass(frozen=True)
 class SceneMeta:
-    """What the rest of the code needs to know about a scene (DESIGN section 1).
+    """What the rest of the code needs to know about a scene (docs/design.md#the-scene-record).
 
     ``box`` is the side length of the reflecting box ``[0, box]^dim`` when the scene has walls,
     else ``None``. ``period`` holds the box length of each dimension with periodic boundaries

@@ -214,8 +214,8 @@ def main(argv: list[str] | None = None) -> int:
         result["train_s"] = timed(lambda: train_step(model, opt, g))
         result["train_peak_bytes"] = max(peak() - base, 0)
         # the timings out first: the FLOP count's dispatch keeps more alive than a plain
-        # step (BGN at 20 000: a peak of 1.27 GB against 0.77-0.90 GB; GNS at 200 000 went
-        # from 17 GB past the machine's 23), and a process killed there keeps its timings
+        # step (docs/results.md, "The baselines' edge MLPs with their backward written out"), and a
+        # process killed there keeps its timings
         json.dump(result, sys.stdout)
         print(flush=True)
         counter = FlopCounterMode(display=False,

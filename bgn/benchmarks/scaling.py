@@ -3,9 +3,10 @@ step, peak memory, fitted exponents, and the fraction of the machine's matmul ra
 
 Collisions-like frames at the scene's density (200 discs per 10 x 10 box, two types of radius
 0.1 and 0.2, equipartition speeds), edges from ``bgn.data.graphs.radius_graph`` with a contact
-margin of ``--margin`` (1.25 gives about 15 edges per disc, the density of the measurements in
-DESIGN section 9). Each model is its checkout's own config composed with ``dataset=collisions``
-(``conf/``), so BGN runs with the collisions defaults (vector contact message)::
+margin of ``--margin`` (1.25 gives the edge density of the measurements in docs/results.md,
+"Measurements behind the defaults"). Each model is its checkout's own config composed with
+``dataset=collisions`` (``conf/``), so BGN runs with the collisions defaults (vector contact
+message)::
 
     python -m bgn.benchmarks.scaling [--models bgn gns cranmer_gn]
         [--sizes 200 2000 20000 200000] [--threads 2] [--against 8abf3d9]

@@ -34,8 +34,8 @@ from bgn.sim.nbody import NYQUIST_TURN, pair_turns
 
 SPLIT_IDS = {name: i for i, name in enumerate(SPLITS)}
 # share of a force scene's frames beyond the frame rate's Nyquist limit above which generation
-# warns (the default gravity_r2 training split: 0.9 % at fps 50, 4.7 % at fps 10; the
-# stability suite's gravity_r2_fps10 draw: 17 %)
+# warns; the default gravity_r2 training split stays below it at fps 10 and 50 (docs/results.md,
+# "Frames that alias")
 ALIASED_WARN = 0.05
 
 

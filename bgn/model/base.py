@@ -85,14 +85,14 @@ class DynamicsConfig:
     # graphs with more than ``checkpoint_edges`` edges (and more than ``edge_chunk``) run in
     # chunks of ``edge_chunk`` edges and recompute their hidden layers in the backward pass.
     # The default never triggers in training on the paper's scenes (a few thousand edges per
-    # batch); at 20 000 discs (300 000 edges) it halved BGN's peak memory (docs/results.md,
+    # batch); on large radius graphs it cuts BGN's peak memory (docs/results.md,
     # "Measurements behind the defaults"). The baselines, whose edge MLPs are most of their
     # time, checkpoint only above a million edges. null: never.
     edge_chunk: int | None = 65_536
     checkpoint_edges: int | None = 65_536
     # The same threshold where the model runs on a GPU: there memory is ample and a step is
-    # bound by kernel launches, so recomputing costs more than it saves (an H100, 300 000
-    # edges: BGN's step 108 ms with checkpointing, 66-69 ms without, for 0.38 -> 1.02 GB).
+    # bound by kernel launches, so recomputing costs more than it saves (docs/results.md,
+    # "On a GPU: one H100").
     checkpoint_edges_gpu: int | None = 2_097_152
 
     def __post_init__(self) -> None:

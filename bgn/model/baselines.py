@@ -62,10 +62,9 @@ class BaselineConfig(DynamicsConfig):
     # the edge MLPs are most of a step: no recompute below a million edges (DynamicsConfig)
     checkpoint_edges: int | None = 1_000_000
     # On a CPU the edges run in blocks of this many (ops.EdgeMLP.fused with ReLU, else
-    # EdgeMLP.blocks): no per-edge tensor of the whole graph. GNS's training step at 20 000
-    # discs (289 476 edges, 2 threads, one process): fused blocks of 4 096, 8 192 and 16 384
-    # 1.14x, 1.15x and 1.07x faster than autograd's blocks of 16 384, which were 1.23x faster
-    # than one block; cranmer_gn's alike either way (docs/results.md, "Edge blocks").
+    # EdgeMLP.blocks): no per-edge tensor of the whole graph. 8 192 was the fastest block size
+    # for GNS's training step on large scenes (docs/results.md, "The baselines' edge MLPs with
+    # their backward written out" and "Edge blocks for the baselines").
     # null: one block.
     edge_block: int | None = 8192
 

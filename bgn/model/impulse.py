@@ -58,9 +58,8 @@ from bgn.sim.scene import SceneMeta
 TINY = 1e-20         # keeps roots, divisions and norms (and their gradients) finite
 # frames of the window replayed to recover the velocity at frame t (at most history - 1): a
 # replay starts from a backward difference, which is wrong when that frame held an impact, and
-# each frame further back dilutes the error. On the dense gas (18 draws, 100 steps of the
-# model's own frames) the energy error's median is 41 % / 4.4 % / 2.8 % with 2 / 3 / 4 frames
-# replayed (docs/results.md, "The replay without gradients, and four frames replayed")
+# each frame further back dilutes the error: four gave the smallest energy error on the dense
+# gas (docs/results.md, "The replay without gradients, and four frames replayed")
 REPLAY_FRAMES = 4
 LOG_MASS_RANGE = 5.0  # e-folds of mass per unit of the mass MLP's output
 RULE_LOGIT = 4.0      # the gates start at the time-of-impact rule: +-4 (probability 0.98)
@@ -314,9 +313,9 @@ class ContactImpulseHead(nn.Module):
         """(E,) the edges whose contact the gate's MLP decides: a time of impact within the
         frame, or a gap that the two discs' speeds could close within ``NEAR_FRAMES`` frames
         (an impact with a third disc can turn one towards the other). Elsewhere no contact is
-        possible within the frame, and the MLP on every edge was 40 % of a training step at
-        20 000 discs (docs/results.md): on the default collisions data 6 % of the edges are
-        candidates, and 0.7 % of the recorded contacts lie outside them."""
+        possible within the frame, and the MLP on every edge was a large share of a training step
+        on big scenes, while few edges are candidates and few recorded contacts lie outside them
+        (docs/results.md, "BGN's bars met")."""
         snd, rcv = g.edge_index
         speed = torch.sqrt((v * v).sum(-1) + TINY)
         return hit | (gap < NEAR_FRAMES * (speed[rcv] + speed[snd]) * dt[rcv])
@@ -497,8 +496,8 @@ class ContactImpulseHead(nn.Module):
 
         Without gradients: the replays only correct the input velocity. The gates, masses and
         restitution learn from the predicted frame and the contact loss; the replays' backward
-        was 12 % of a default training step, and the default job trained without it is as
-        accurate (docs/results.md, "The replay without gradients")."""
+        was a sizeable share of a default training step, and the default job trained without it is
+        as accurate (docs/results.md, "The replay without gradients")."""
         depth, dt, x, v = self._replay_start(g)
         frames = []
         with torch.no_grad():

@@ -189,8 +189,8 @@ class InverseModel(nn.Module):
         ``noise`` (N,) is the base-distribution (standard normal) draw; pass it to make the
         sample reproducible (tests), else it is drawn here while training, and is 0 in eval
         mode: the posterior's median, so that Eq. 9-10 decode a point estimate of the relative
-        masses (a random draw adds the posterior's width to their error: gravity_r2's
-        relative-mass R^2 0.78 -> 0.81, docs/results.md). Returns ``(nll (N,), z (N,))``.
+        masses (a random draw adds the posterior's width to their error: docs/results.md,
+        "Measurements behind the defaults"). Returns ``(nll (N,), z (N,))``.
         """
         dist = self.flow(context)  # the context network runs once for both uses
         nll = -dist.log_prob(log_mass[:, None])

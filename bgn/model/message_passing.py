@@ -12,8 +12,8 @@ Each one's backward is the other (the gradient of ``A H`` with respect to the we
 sampled product, and the gradient of the sampled product is a product with ``A``), so neither
 direction gathers an (E, F) tensor, multiplies it and scatters it back, and neither goes
 through the accumulating ``index_put_`` behind ``x[index]``. Both run as CSR kernels
-(``torch.sparse.mm``, ``torch.sparse.sampled_addmm``): about 5-10x faster than a gather and
-``index_add_`` at 300 000 edges x 128 features on this machine, with no (E, F) memory.
+(``torch.sparse.mm``, ``torch.sparse.sampled_addmm``): faster than a gather and ``index_add_``
+on large graphs, with no (E, F) memory (docs/results.md, "Measurements behind the defaults").
 
 CSR needs the edges sorted by receiver, which every graph builder here already returns
 (``bgn.data.graphs``) and a batch keeps (``bgn.graph.collate``); other orders are sorted once
@@ -249,7 +249,7 @@ def edge_chunks(fn: Callable[..., torch.Tensor], chunk: int | None,
 
 # At most this many blocks per graph, larger blocks beyond: the backward of each block's
 # gathers makes node-sized gradients (N, F) of its own, so a fixed block size would cost
-# O(N E / block), quadratic in N (cranmer_gn at 200 000 discs: 178 blocks, exponent 1.23).
+# O(N E / block), quadratic in N (docs/results.md, "Edge blocks for the baselines").
 MAX_EDGE_BLOCKS = 32
 
 

@@ -38,8 +38,8 @@ ACTIVATIONS: dict[str, type[nn.Module]] = {
 # of every (E, F) activation, no memory saved).
 IN_PLACE = frozenset({"relu"})
 # Hidden widths of the edge MLPs are padded with zero weights to a multiple of this inside the
-# matrix products: MKL's float32 kernels run about 1.5x faster on 304 output columns than on
-# 300 (cranmer_gn's width) on this machine; the padded channels stay exactly zero.
+# matrix products: MKL's float32 kernels run faster on such widths than on cranmer_gn's 300
+# (docs/results.md, "Earlier runs"); the padded channels stay exactly zero.
 PAD_WIDTH = 16
 
 
@@ -103,8 +103,8 @@ def pad_features(x: torch.Tensor, width: int) -> torch.Tensor:
 
 
 # Below this many input features a Linear layer's weight gradient is computed as
-# ``(xᵀ g)ᵀ`` instead of autograd's ``gᵀ x``: MKL's single-thread kernel for the latter is about
-# 10x slower when x is that narrow (65 536 x 4 inputs, 128 outputs: 0.18 s against 0.016 s).
+# ``(xᵀ g)ᵀ`` instead of autograd's ``gᵀ x``: MKL's single-thread kernel for the latter is far
+# slower when x is that narrow (docs/results.md, "Earlier runs").
 NARROW_INPUT = 16
 
 

@@ -857,10 +857,191 @@ def write_report(report: LawReport, out_dir: str | Path, title: str | None = Non
     return out / "report.md"
 
 
+# ------------------------------------------------------------------- the formula as the law
+
+FINETUNE_STEPS = 200      # Adam steps on the formula's constants
+FINETUNE_SUBSTEPS = 8     # model.substeps while fine-tuning (and in the written checkpoint)
+FINETUNE_LR = 1e-2        # relative: amplitudes are scaled to 1, constants are log c
+FINETUNE_BATCH = 64       # training frames per step
+FINETUNE_HORIZON = 50     # validation rollout steps (as auto.horizon)
+
+
+def formula_spec(report: LawReport) -> str:
+    """The report's formulas as ``model.law_formula`` (``bgn.model.formula_law``'s format: a
+    JSON list of pairs of types, each with its terms: kind, power, amplitude a, constant c),
+    in physical units: the head with ``model.law=formula`` evaluates this law."""
+    pairs = []
+    for pair in report.pairs:
+        f, cs = pair.formula, iter(pair.formula.cs)
+        pairs.append({"types": [int(t) for t in pair.types], "terms": [
+            {"kind": t.kind, "power": float(t.power), "a": float(a),
+             "c": next(cs) if t.nonlinear else None}
+            for t, a in zip(f.terms, f.values[:len(f.terms)])]})
+    return json.dumps(pairs)
+
+
+def formula_module(checkpoint: Path, spec: str, substeps: int) -> Any:
+    """The checkpoint's model rebuilt with ``law=formula`` (``spec``) and ``substeps``, every
+    weight but the law's copied from the checkpoint; (module, its hyperparameters)."""
+    import inspect
+
+    from bgn.checkpoints import read
+    from bgn.module import PhysicsModule
+
+    hp = dict(read(checkpoint).get("hyper_parameters") or {})
+    hp["model_config"] = {**hp["model_config"], "law": "formula", "law_formula": spec,
+                          "substeps": int(substeps)}
+    keep = inspect.signature(PhysicsModule.__init__).parameters
+    module = PhysicsModule(**{k: v for k, v in hp.items() if k in keep})
+    old = read(checkpoint)["state_dict"]
+    missing, unexpected = module.load_state_dict(
+        {k: v for k, v in old.items() if ".force_law." not in k}, strict=False)
+    if [k for k in missing if ".force_law." not in k] or unexpected:
+        raise ValueError(f"checkpoint {checkpoint}: its weights do not fit the same model with "
+                         f"law=formula (missing {missing[:3]}, unexpected {unexpected[:3]})")
+    return module, hp
+
+
+def validation_errors(model: Any, val: Any, history: int, horizon: int = FINETUNE_HORIZON,
+                      val_sims: int | None = None) -> dict[str, Any]:
+    """bgn.auto's scoring: every validation simulation (or ``val_sims`` of them) rolled out
+    from the shared start frames, the mean capped error after 10 and ``horizon`` steps, a
+    failed rollout at the cap, and the share that failed."""
+    from bgn.auto import SHORT_HORIZON, rollout_scores
+    from bgn.data.frames import evenly_spaced
+    from bgn.rollout import rollout_many, rollout_starts
+
+    n_steps = min(horizon, val.file.n_frames - history - 2)
+    horizons = sorted({min(SHORT_HORIZON, n_steps), n_steps})
+    sims, starts = evenly_spaced(val.file.n_sims, val_sims), rollout_starts(val, n_steps)
+    with torch.no_grad():
+        t = rollout_many(model.eval(), val, sims, starts, n_steps)
+    errors, failed, _ = rollout_scores(t.predicted, t.true, t.first_non_finite, val.meta.box,
+                                       horizons)
+    return {"errors": errors, "failed_share": failed, "horizon": n_steps,
+            "rollouts": len(sims) * len(starts)}
+
+
+def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
+                     report: LawReport | None = None, steps: int = FINETUNE_STEPS,
+                     substeps: int = FINETUNE_SUBSTEPS, lr: float = FINETUNE_LR,
+                     batch_size: int = FINETUNE_BATCH, horizon: int = FINETUNE_HORIZON,
+                     val_sims: int | None = None, out_dir: Path | None = None,
+                     seed: int = 0) -> dict[str, Any]:
+    """The fitted formula as the model's law, its constants fine-tuned end to end: the
+    checkpoint's model with ``law=formula`` (``formula_module``), the law's constants alone
+    trained with the head's own loss on the training split, through ``substeps`` (a frame's
+    finite-difference target averages the force over the frame, as the substeps integrate
+    it). Only the law is trained: the rest of the model is the checkpoint's, validated with
+    the network law, and a handful of constants cannot overfit a split. Both laws are then
+    scored on the validation rollouts (``validation_errors``); the lower error after the
+    horizon is chosen. ``out_dir``: writes ``formula.ckpt`` (loadable as any checkpoint) and
+    ``formula.json``. Returns the record (specs before and after, errors, choice)."""
+    from bgn.checkpoints import read, write_atomic
+    from bgn.evaluate import load_model
+    from bgn.graph import collate
+
+    network = load_model(checkpoint)
+    if report is None:
+        report = read_law(network, train_split)
+    start_spec = formula_spec(report)
+    module, hp = formula_module(checkpoint, start_spec, substeps)
+    model, head = pair_force_head(module)
+    model.requires_grad_(False)
+    head.force_law.requires_grad_(True)
+    opt = torch.optim.Adam(head.force_law.parameters(), lr=lr)
+    rng = np.random.default_rng(seed)
+    losses = []
+    model.train()
+    for _ in range(steps):
+        idx = rng.choice(len(train_split), min(batch_size, len(train_split)), replace=False)
+        g = collate([train_split[int(i)] for i in idx])
+        opt.zero_grad()
+        loss = model.total_loss(model.loss_terms(g, model(g)))
+        if not torch.isfinite(loss):
+            raise ValueError(f"fine-tuning the formula of {checkpoint}: the loss is not finite "
+                             f"at step {len(losses)}; try a smaller finetune.lr")
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    spec = head.force_law.spec()
+    hp["model_config"] = {**hp["model_config"], "law_formula": spec}
+    history = int(hp["history"])
+    scores = {"network": validation_errors(network.model, val, history, horizon, val_sims),
+              "formula": validation_errors(model, val, history, horizon, val_sims)}
+    n = scores["network"]["horizon"]
+    choice = min(scores, key=lambda k: (scores[k]["errors"].get(n, math.inf), k != "network"))
+    record = {"checkpoint": str(checkpoint), "substeps": substeps, "steps": steps, "lr": lr,
+              "start": json.loads(start_spec), "tuned": json.loads(spec),
+              "loss_first": losses[0] if losses else None,
+              "loss_last": losses[-1] if losses else None, "validation": scores,
+              "choice": choice}
+    if out_dir is not None:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        ckpt = read(checkpoint)
+        ckpt = {k: v for k, v in ckpt.items() if k not in ("optimizer_states", "lr_schedulers")}
+        ckpt["hyper_parameters"], ckpt["state_dict"] = hp, module.state_dict()
+        tmp = out / ".formula.ckpt.tmp"  # then a rename: never a half-written checkpoint
+        torch.save(ckpt, tmp)
+        tmp.replace(out / "formula.ckpt")
+        write_atomic(out / "formula.json", json.dumps(record, indent=2, default=float))
+        record["path"] = str(out / "formula.ckpt")
+    return record
+
+
+def finetune_markdown(record: dict[str, Any], level: int = 2) -> str:
+    """The comparison table of ``finetune_formula``'s record."""
+    h = "#" * level
+    v = record["validation"]
+    horizons = sorted(v["network"]["errors"])
+    lines = [f"{h} The formula as the law, fine-tuned",
+             "",
+             f"The fitted formula as the model's pair law (model.law=formula), its constants "
+             f"fine-tuned for {record['steps']} steps with model.substeps="
+             f"{record['substeps']}, the rest of the model the checkpoint's; both scored on "
+             f"the validation split's rollouts ({v['network']['rollouts']} rollouts, a failed "
+             "one at the cap; bgn.auto's protocol).",
+             "",
+             "| law | formula | " + " | ".join(f"error @{k}" for k in horizons)
+             + " | failed |",
+             "|---|---|" + "---|" * len(horizons) + "---|"]
+    for name, text in (("network", "(MLP)"), ("formula", _spec_text(record["tuned"]))):
+        s = v[name]
+        lines.append(f"| {name} | `{text}` | " + " | ".join(
+            _g(s["errors"][k]) for k in horizons) + f" | {s['failed_share']:.0%} |")
+    lines += ["", f"Fitted before fine-tuning: `{_spec_text(record['start'])}`.", "",
+              f"Chosen: **{record['choice']}** (the lower validation rollout error after "
+              f"{horizons[-1]} steps)."]
+    if record.get("path"):
+        lines += ["", f"Checkpoint with the formula law: `{record['path']}`."]
+    return "\n".join(lines) + "\n"
+
+
+def _spec_text(pairs: list[dict[str, Any]]) -> str:
+    r = sympy.Symbol("r", positive=True)
+    out = []
+    for p in pairs:
+        expr = sum((sympy.Float(t["a"], SIGNIFICANT) * Term(t["kind"], t["power"]).expr(
+            r, None if t["c"] is None else sympy.Float(t["c"], SIGNIFICANT))
+            for t in p["terms"]), sympy.Integer(0))
+        out.append((f"{p['types'][0]}-{p['types'][1]}: " if len(pairs) > 1 else "")
+                   + sympy.sstr(expr))
+    return "; ".join(out)
+
+
 # ----------------------------------------------------------------------------- command line
 
+def _flag(value: str) -> bool:
+    if value.lower() not in ("true", "false"):
+        raise ValueError(value)
+    return value.lower() == "true"
+
+
 OPTIONS = {"out_dir": str, "config": str, "data_dir": str, "max_terms": int,
-           "tolerance": float, "parsimony": float}
+           "tolerance": float, "parsimony": float, "finetune": _flag, "finetune.steps": int,
+           "finetune.substeps": int, "finetune.lr": float, "finetune.horizon": int,
+           "finetune.val_sims": int}
 
 
 def parse(argv: list[str]) -> tuple[Path, dict[str, Any]]:
@@ -882,17 +1063,22 @@ def parse(argv: list[str]) -> tuple[Path, dict[str, Any]]:
         try:
             options[key] = OPTIONS[key](value)
         except ValueError:
-            kind = {int: "an integer", float: "a number"}.get(OPTIONS[key], "a path")
+            kind = {int: "an integer", float: "a number",
+                    _flag: "true or false"}.get(OPTIONS[key], "a path")
             raise ValueError(f"{key}={value!r} must be {kind}") from None
     for key, low, high in (("max_terms", 1, 4), ("tolerance", 0, math.inf),
-                           ("parsimony", 1, math.inf)):
+                           ("parsimony", 1, math.inf), ("finetune.steps", 1, math.inf),
+                           ("finetune.substeps", 1, 64), ("finetune.lr", 1e-12, 1),
+                           ("finetune.horizon", 1, math.inf), ("finetune.val_sims", 1, math.inf)):
         if key in options and not low <= options[key] <= high:
             raise ValueError(f"{key}={options[key]} must be in [{low}, {high}]")
     return args.checkpoint, options
 
 
 def run(checkpoint: Path, options: dict[str, Any]) -> Path:
-    """Read the law of ``checkpoint`` over its training split and write the report."""
+    """Read the law of ``checkpoint`` over its training split and write the report; with
+    ``finetune=true`` also the fitted formula as the law, fine-tuned (``finetune_formula``):
+    ``formula.ckpt``, ``formula.json`` and a section of report.md in the same folder."""
     from omegaconf import OmegaConf
 
     from bgn.data.datamodule import ParticleDataModule
@@ -912,7 +1098,17 @@ def run(checkpoint: Path, options: dict[str, Any]) -> Path:
                       **{k: options[k] for k in ("max_terms", "tolerance", "parsimony")
                          if k in options})
     out = Path(options.get("out_dir") or checkpoint.resolve().parent.parent / "laws")
-    return write_report(report, out, title=f"Learned law of {checkpoint}")
+    path = write_report(report, out, title=f"Learned law of {checkpoint}")
+    if options.get("finetune"):
+        from bgn.checkpoints import write_atomic
+
+        tuned = {k.split(".", 1)[1]: v for k, v in options.items() if k.startswith("finetune.")}
+        record = finetune_formula(checkpoint, datamodule.datasets["train"],
+                                  datamodule.datasets["val"], report, out_dir=out, **tuned)
+        section = finetune_markdown(record)
+        print(section)
+        write_atomic(path, path.read_text() + "\n" + section)
+    return path
 
 
 def main(argv: list[str] | None = None) -> Path:

@@ -1,0 +1,119 @@
+"""The formula law (bgn.model.formula_law): the torch twin of bgn.laws' Formula, and the
+pair-force head with ``law=formula`` on the true law of spring frames."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import fields, replace
+
+import numpy as np
+import pytest
+import torch
+
+from bgn.data.datamodule import ParticleDataModule
+from bgn.graph import collate
+from bgn.laws import Formula, Term, default_library
+from bgn.model import build_model
+from bgn.model.formula_law import FormulaLaw, check_law
+from bgn.model.references import FrameOracle
+
+
+def spec_of(terms: list[Term], amplitudes, cs) -> str:
+    cs = iter(cs)
+    return json.dumps([{"types": [0, 0], "terms": [
+        {"kind": t.kind, "power": t.power, "a": float(a),
+         "c": float(next(cs)) if t.nonlinear else None} for t, a in zip(terms, amplitudes)]}])
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_the_formula_law_evaluates_the_fitted_formula(seed):
+    """Any three terms of the library with random amplitudes and constants: the module gives
+    the Formula's numpy values to float64 precision, down to r = 1e-6."""
+    rng = np.random.default_rng(seed)
+    library = default_library()
+    terms = [library[k] for k in rng.choice(len(library), 3, replace=False)]
+    amplitudes = rng.normal(size=3)
+    cs = np.exp(rng.uniform(-4, 1, sum(t.nonlinear for t in terms)))
+    formula = Formula(terms, np.concatenate([amplitudes, cs]), np.zeros(1), np.zeros(1), 0.0, 1)
+    r = np.geomspace(1e-6, 10, 200)
+    law = FormulaLaw(spec_of(terms, amplitudes, cs))
+    got = law(torch.tensor(r)[:, None])[:, 0].detach().numpy()
+    np.testing.assert_allclose(got, formula(r), rtol=1e-12, atol=0)
+    # float32 in, float32 out, the float64 values rounded once
+    got32 = law(torch.tensor(r, dtype=torch.float32)[:, None])
+    assert got32.dtype == torch.float32
+    # the spec it writes back is the one it was built from
+    again = FormulaLaw(law.spec())(torch.tensor(r)[:, None])[:, 0].detach().numpy()
+    np.testing.assert_allclose(again, got, rtol=1e-14)
+
+
+def test_its_gradients_are_finite_at_small_distances():
+    library = default_library()
+    spec = spec_of(library, np.ones(len(library)),
+                   np.full(sum(t.nonlinear for t in library), 0.01))
+    law = FormulaLaw(spec)
+    # every term of the library at once (r^-13 included), in float64 distances
+    r = torch.tensor([1e-6, 1e-4, 1e-2, 1.0], dtype=torch.float64, requires_grad=True)
+    law(r[:, None]).sum().backward()
+    grads = [law.amplitude.grad, law.log_c.grad, r.grad]
+    assert all(torch.isfinite(g).all() for g in grads), grads
+    # float32 distances: the softened terms alone (the plain powers overflow float32 there)
+    soft = [t for t in library if t.kind in ("shifted", "plummer", "exp", "log", "const")]
+    law = FormulaLaw(spec_of(soft, np.ones(len(soft)),
+                             np.full(sum(t.nonlinear for t in soft), 0.01)))
+    r = torch.tensor([1e-6, 1e-4, 1e-2, 1.0], requires_grad=True)
+    law(r[:, None]).sum().backward()
+    grads = [law.amplitude.grad, law.log_c.grad, r.grad]
+    assert all(torch.isfinite(g).all() for g in grads), grads
+    # constants stay positive whatever their parameter
+    with torch.no_grad():
+        law.log_c.fill_(-50.0)
+    assert json.loads(law.spec())[0]["terms"][-1]["c"] > 0
+
+
+@pytest.mark.parametrize("bad", ["", "[]", "{", '[{"types": [0, 0], "terms": []}]',
+                                 '[{"types": [0, 0], "terms": [{"kind": "sin", "a": 1}]}]',
+                                 '[{"types": [0, 0], "terms": [{"kind": "exp", "a": 1}]}]'])
+def test_a_bad_spec_is_refused_in_one_line(bad):
+    with pytest.raises(ValueError, match="law_formula") as err:
+        check_law("formula", bad)
+    assert "\n" not in str(err.value)
+
+
+def test_the_law_option_is_checked():
+    with pytest.raises(ValueError, match="law="):
+        check_law("spline", "")
+    with pytest.raises(ValueError, match="law=formula"):
+        check_law("mlp", '[{"types": [0, 0], "terms": [{"kind": "const", "a": 1}]}]')
+
+
+# the spring's law, f = -2 (s - 1) with s = r + 0.01 (bgn.laws.TRUE_LAWS)
+SPRING = json.dumps([{"types": [0, 0], "terms": [{"kind": "const", "power": 0, "a": 1.98},
+                                                  {"kind": "power", "power": 1, "a": -2.0}]}])
+
+
+@pytest.mark.parametrize("config", [{"name": "newton"}, {"name": "bgn", "dynamics": "newton"}])
+def test_a_head_with_the_true_formula_predicts_the_frame_oracles_targets(small_cfg, config):
+    """Same law, same masses, same substeps: the head with law=formula and the FrameOracle
+    (the true law and masses) predict the same accelerations of recorded spring frames."""
+    cfg = small_cfg("spring", "dataset.history=4")
+    dm = ParticleDataModule(cfg.dataset, 50.0, cfg.paths.data_dir, generate_workers=1,
+                            show_progress=False)
+    dm.prepare_data()
+    dm.setup()
+    ds = dm.datasets["train"]
+    g = collate([ds[i] for i in range(0, len(ds), 5)])
+    g = replace(g, **{f.name: getattr(g, f.name).double() for f in fields(g)
+                      if torch.is_tensor(getattr(g, f.name))
+                      and getattr(g, f.name).is_floating_point()})
+    model = build_model({**config, "mass_law": "inertial", "law": "formula",
+                         "law_formula": SPRING, "substeps": 8}, ds.meta, ds.file.stats(),
+                        ds.history).double()
+    head = model.head if config["name"] == "newton" else model.force_head
+    assert isinstance(head.force_law, FormulaLaw)
+    oracle = FrameOracle(ds.scene, ds.history, substeps=8).predict(g)
+    known = head(g, known_masses=True)[0]
+    assert float(((known - oracle).norm(dim=1) / oracle.norm(dim=1)).max()) < 1e-9
+    # the window's own mass fit: the recorded targets within the frame rate's error
+    relative = (model.predict(g) - g.target).norm(dim=1) / g.target.norm(dim=1)
+    assert float(relative.median()) < 1e-3

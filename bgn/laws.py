@@ -927,7 +927,7 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
                      substeps: int = FINETUNE_SUBSTEPS, lr: float = FINETUNE_LR,
                      batch_size: int = FINETUNE_BATCH, horizon: int = FINETUNE_HORIZON,
                      val_sims: int | None = None, out_dir: Path | None = None,
-                     seed: int = 0) -> dict[str, Any]:
+                     seed: int = 0, start: str | None = None) -> dict[str, Any]:
     """The fitted formula as the model's law, its constants fine-tuned end to end: the
     checkpoint's model with ``law=formula`` (``formula_module``), the law's constants alone
     trained with the head's own loss on the training split, through ``substeps`` (a frame's
@@ -936,15 +936,16 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     the network law, and a handful of constants cannot overfit a split. Both laws are then
     scored on the validation rollouts (``validation_errors``); the lower error after the
     horizon is chosen. ``out_dir``: writes ``formula.ckpt`` (loadable as any checkpoint) and
-    ``formula.json``. Returns the record (specs before and after, errors, choice)."""
+    ``formula.json``. ``start``: a spec to start from in place of the law read back (tests).
+    Returns the record (specs before and after, errors, choice)."""
     from bgn.checkpoints import read, write_atomic
     from bgn.evaluate import load_model
     from bgn.graph import collate
 
     network = load_model(checkpoint)
-    if report is None:
+    if start is None and report is None:
         report = read_law(network, train_split)
-    start_spec = formula_spec(report)
+    start_spec = start if start is not None else formula_spec(report)
     module, hp = formula_module(checkpoint, start_spec, substeps)
     model, head = pair_force_head(module)
     model.requires_grad_(False)

@@ -981,7 +981,14 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         ckpt = read(checkpoint)
-        ckpt = {k: v for k, v in ckpt.items() if k not in ("optimizer_states", "lr_schedulers")}
+        # the run's optimiser settings kept for bgn.train ckpt_path, its moments dropped: they
+        # belonged to the network law's weights
+        n_params = len(list(module.parameters()))
+        for state in ckpt.get("optimizer_states", []):
+            if len(state.get("param_groups", ())) != 1:
+                raise ValueError(f"checkpoint {checkpoint}: an optimiser with several parameter "
+                                 "groups; fine-tuning keeps one")
+            state["state"], state["param_groups"][0]["params"] = {}, list(range(n_params))
         ckpt["hyper_parameters"], ckpt["state_dict"] = hp, module.state_dict()
         tmp = out / ".formula.ckpt.tmp"  # then a rename: never a half-written checkpoint
         torch.save(ckpt, tmp)

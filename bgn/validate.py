@@ -240,6 +240,16 @@ def validate_model(model: Any, scene: Scene, history: int) -> None:
         cfg = config_from_params(MODELS[name].config_class, params, name)
     except (TypeError, ValueError) as err:  # messages start with the option: "hidden=0 ..."
         raise ConfigError("model", message=f"model.{err}") from None
+    weights = getattr(cfg, "loss_weights", None) or {}
+    # a scene's defaults may train the pair-force law alone (conf/dataset_model/gravity_*):
+    # with the decoder, which the law loss does not reach, nothing would train the dynamics
+    # (auto sets each candidate's weights itself)
+    if (_get(model, "dynamics") not in (None, "auto") and weights.get("dynamics", 1.0) == 0
+            and not (getattr(cfg, "dynamics", None) == "newton" and weights.get("law", 0.0))):
+        raise ConfigError("model.loss_weights.dynamics", message=(
+            f"model.loss_weights.dynamics=0 with model.dynamics={cfg.dynamics}: nothing trains "
+            "the dynamics head (the law loss is the pair-force head's); use model=bgn_decoder, "
+            "or model.loss_weights.dynamics=1"))
     prior, needed, available = resolve_prior(cfg.target_prior, scene.meta.target, history)
     if available < needed:
         raise ConfigError("model.target_prior", message=prior_hint(

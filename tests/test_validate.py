@@ -69,6 +69,22 @@ def test_history_zero_suggests_what_works():
         "train", "dataset.history=1", "model.target_prior=linear")
 
 
+@pytest.mark.parametrize("scene", ["gravity_r1", "gravity_r2"])
+def test_a_decoder_whose_dynamics_loss_weighs_nothing_is_refused(scene):
+    """The gravity scenes train the pair-force law alone (dynamics weight 0): with the decoder
+    that trap trains no dynamics at all; the message names the fixes, which pass."""
+    base = [f"dataset={scene}", "model=bgn"]
+    message = refused("train", *base, "model.dynamics=decoder")
+    assert "model.loss_weights.dynamics=0" in message and "model=bgn_decoder" in message
+    assert "model.loss_weights.dynamics=1" in message
+    for fixed in (["model=bgn_decoder"], [*base, "model.dynamics=decoder",
+                                          "model.loss_weights.dynamics=1"],
+                  base, [*base, "model.dynamics=auto"]):   # the head's law loss, auto's own
+        validate_train(compose_config("train", [f"dataset={scene}", *fixed]))
+    assert "model.loss_weights.dynamics=0" in refused(
+        "train", "model.loss_weights.dynamics=0")                 # spring, the decoder
+
+
 def test_generate_config_refused():
     assert "workers=0" in refused("generate", "workers=0")
     assert "dataset.n_frames=4" in refused("generate", "dataset.n_frames=4")

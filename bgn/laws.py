@@ -438,11 +438,15 @@ def sample_law(head: Any, r: np.ndarray, dim: int, types: tuple[int, int] = (0, 
 def pair_distances(dataset: Any) -> dict[tuple[int, int], np.ndarray]:
     """The distances of every pair of particles at the frames of ``dataset``'s simulations
     (a ``FrameDataset``; frames thinned evenly beyond ``MAX_DISTANCES``), per pair of types
-    (sorted; all (0, 0) where the scene has one type)."""
+    (sorted; all (0, 0) where the scene has one type). On a radius graph only the pairs within
+    its reach: beyond it a pair has no edge, and the law no force to learn."""
     from bgn.data.graphs import minimum_image
 
     file, sims = dataset.file, list(dataset.sims)
     n = dataset.meta.n_particles
+    reach = np.inf
+    if dataset.meta.graph == "radius":
+        reach = float(dataset.margin) + 2 * float(np.max(file.read("radii", ...), initial=0.0))
     i, j = np.triu_indices(n, k=1)
     stride = max(1, math.ceil(len(sims) * file.n_frames * len(i) / MAX_DISTANCES))
     found: dict[tuple[int, int], list[np.ndarray]] = {}
@@ -455,7 +459,8 @@ def pair_distances(dataset: Any) -> dict[tuple[int, int], np.ndarray]:
         for a, b in sorted(set(zip(lo.tolist(), hi.tolist()))):
             found.setdefault((a, b), []).append(r[:, (lo == a) & (hi == b)].ravel())
     # coincident particles (r = 0) have no direction, and no place on a log-r grid
-    return {k: d[d > 0] for k, v in found.items() if (d := np.concatenate(v)).any()}
+    kept = {k: d[(d > 0) & (d <= reach)] for k, v in found.items() if (d := np.concatenate(v)).size}
+    return {k: d for k, d in kept.items() if d.size}
 
 
 @torch.no_grad()

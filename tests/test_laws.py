@@ -182,6 +182,26 @@ def test_distances_are_the_training_pairs(trained_spring):
     assert distances[0] == pytest.approx(np.linalg.norm(x[0] - x[1]))
 
 
+def test_distances_on_a_radius_graph_are_those_within_its_reach(tmp_path):
+    """Imported with a connectivity radius, a pair beyond it has no edge: the law is read
+    only where it acts."""
+    from bgn.data import from_arrays
+    from bgn.data.dataset import FrameDataset
+    from bgn.data.files import DatasetFile
+
+    rng = np.random.default_rng(0)
+    start, velocity = rng.uniform(0, 3, size=(3, 1, 12, 2)), rng.normal(size=(3, 1, 12, 2))
+    x = start + 0.1 * np.arange(9)[:, None, None] * velocity                # (S, T, N, D)
+    paths = from_arrays(x, 0.1, connectivity_radius=0.8, name="gas", data_dir=tmp_path,
+                        splits={"train": [0], "val": [1], "test": [2]})
+    data = FrameDataset(DatasetFile(paths["train"]), history=3)
+    distances = pair_distances(data)[(0, 0)]
+    i, j = np.triu_indices(12, 1)
+    brute = np.linalg.norm(x[0][:, i] - x[0][:, j], axis=-1)
+    assert 0 < distances.max() <= 0.8
+    np.testing.assert_allclose(np.sort(distances), np.sort(brute[brute <= 0.8]))
+
+
 # ----------------------------------------------------------------------------- command line
 
 CLI_ENV = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}

@@ -299,7 +299,8 @@ def test_fine_tuning_moves_a_perturbed_constant_back_and_writes_a_checkpoint(
     # the checkpoint: the tuned law, loaded as any checkpoint, rolls out as scored
     module = load_model(out / "formula.ckpt")
     law = module.model.head.force_law
-    assert isinstance(law, FormulaLaw) and module.model.head.substeps == 4
+    assert isinstance(law, FormulaLaw)
+    assert module.model.head.substeps == record["rollout_substeps"] in (1, 4)
     np.testing.assert_allclose([t["a"] for t in json.loads(law.spec())[0]["terms"]],
                                [t["a"] for t in record["tuned"][0]["terms"]], rtol=1e-12)
     again = validation_errors(module.model, dm.datasets["val"], dm.history, 20)

@@ -9,6 +9,7 @@ rollout metrics of the model and the no-learning references through the learned 
 
 from __future__ import annotations
 
+import json
 import re
 from collections.abc import Callable
 from functools import partial
@@ -570,6 +571,9 @@ def resolve_run(path: str, run_config: str | None = None) -> tuple[Path, Path, P
         raise ConfigError("ckpt", path, "no such file or directory: give a checkpoint (.ckpt) "
                           "or a run directory of python -m bgn.train")
     if given.is_dir():
+        choice = given / "auto" / "auto.json"  # a model.dynamics=auto run: its chosen structure
+        if not (given / "checkpoints").is_dir() and choice.is_file():
+            given = given / "auto" / str(json.loads(choice.read_text())["choice"])
         run_dir = given
         try:
             ckpt = best_checkpoint(given)

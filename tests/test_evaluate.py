@@ -251,3 +251,18 @@ def test_the_lagrangebench_metrics_take_the_source_periodic_box() -> None:
     assert scene_period(SimpleNamespace(scene=object())) is None
     assert [lb_prefix(k) for k in ("rollout", "rollout_last", "predictability")] \
         == ["lb", "lb_last", "lb_predictability"]
+
+
+def test_an_auto_run_resolves_to_its_chosen_structure(tmp_path: Path) -> None:
+    """``python -m bgn.evaluate <run>`` on a model.dynamics=auto run scores the structure
+    that auto chose (``auto/auto.json``), with that candidate's own run config."""
+    from bgn.evaluate import resolve_run
+
+    for name in ("decoder", "newton_source"):
+        (tmp_path / "auto" / name / "checkpoints").mkdir(parents=True)
+        (tmp_path / "auto" / name / "checkpoints" / "best.ckpt").write_bytes(b"")
+        (tmp_path / "auto" / name / "train_config.yaml").write_text("{}")
+    (tmp_path / "auto" / "auto.json").write_text(json.dumps({"choice": "newton_source"}))
+    ckpt, run_dir, config = resolve_run(str(tmp_path))
+    assert ckpt == tmp_path / "auto" / "newton_source" / "checkpoints" / "best.ckpt"
+    assert config == tmp_path / "auto" / "newton_source" / "train_config.yaml"

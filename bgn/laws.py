@@ -1128,7 +1128,9 @@ def run(checkpoint: Path, options: dict[str, Any]) -> Path:
     out = Path(options.get("out_dir") or checkpoint.resolve().parent.parent / "laws")
     path = write_report(report, out, title=f"Learned law of {checkpoint}")
     if options.get("finetune"):
-        from bgn.checkpoints import write_atomic
+        from omegaconf import open_dict
+
+        from bgn.checkpoints import read, write_atomic
 
         tuned = {k.split(".", 1)[1]: v for k, v in options.items() if k.startswith("finetune.")}
         record = finetune_formula(checkpoint, datamodule.datasets["train"],
@@ -1136,6 +1138,14 @@ def run(checkpoint: Path, options: dict[str, Any]) -> Path:
         section = finetune_markdown(record)
         print(section)
         write_atomic(path, path.read_text() + "\n" + section)
+        # the run's config with the formula model's options beside formula.ckpt: bgn.evaluate
+        # takes the folder of a checkpoint outside checkpoints/ for its run
+        tuned_cfg = OmegaConf.load(config)
+        hp = read(record["path"])["hyper_parameters"]["model_config"]
+        with open_dict(tuned_cfg):
+            for key in ("law", "law_formula", "substeps"):
+                tuned_cfg.model[key] = hp[key]
+        write_atomic(out / "train_config.yaml", OmegaConf.to_yaml(tuned_cfg))
     return path
 
 

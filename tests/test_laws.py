@@ -313,8 +313,12 @@ def test_the_command_fine_tunes_with_finetune_true(tmp_path, shared_data_dir):
     out = tmp_path / "laws"
     main([str(ckpt), f"out_dir={out}", "finetune=true", "finetune.steps=3",
           "finetune.substeps=2", "finetune.horizon=10"])
-    assert {"formula.ckpt", "formula.json", "report.md"} <= {p.name for p in out.iterdir()}
+    assert {"formula.ckpt", "formula.json", "report.md", "train_config.yaml"} <= {
+        p.name for p in out.iterdir()}
     record = json.loads((out / "formula.json").read_text())
+    # beside the checkpoint, the run's config with the formula model's options (bgn.evaluate)
+    model = OmegaConf.load(out / "train_config.yaml").model
+    assert model.law == "formula" and json.loads(model.law_formula) == record["tuned"]
     text = (out / "report.md").read_text()
     assert "The formula as the law, fine-tuned" in text and f"**{record['choice']}**" in text
 

@@ -34,6 +34,12 @@ vector from j to i (positive: repulsive). This module reads that law back:
    law, and both against the true law where the scene is a built-in one of ``bgn.sim``);
    ``write_report`` writes report.md, law.csv, law.json and law.png; ``law_section`` gives
    the markdown for an evaluation report.
+4. ``finetune=true`` (``finetune_formula``): the formula as the model's law (``model.law=formula``,
+   ``model.law_formula``: ``formula_spec``'s JSON, ``bgn.model.formula_law``), its constants
+   fine-tuned end to end with the head's loss through ``model.substeps`` (a frame's
+   finite-difference target averages the force over the frame), then the network law and the
+   formula scored on the validation rollouts (``bgn.auto``'s protocol) and the better chosen;
+   ``<run>/laws/formula.ckpt`` (with its ``train_config.yaml``) loads as any checkpoint.
 
 Libraries. PySR (symbolic regression, Cranmer's route) downloads and compiles Julia at run
 time: not possible without network. PySINDy (installs from PyPI, with scikit-learn) fits

@@ -7,8 +7,9 @@ data admit is trained for a share of the budget (``auto.share`` of each of ``tra
 
 - the paper's decoder (Eq. 5): always; it writes no physics in, so it can express any;
 - the pair-force head (``bgn.model.newton``) with each way masses can enter (``mass_law``
-  inertial and source), where the scene has pairwise (or unknown) forces on a complete graph,
-  an acceleration target and a window of at least 3 velocities (``newton.check_scene``);
+  inertial and source), where the scene has pairwise (or unknown) forces on a complete or
+  radius graph (short-range data: a pair beyond the radius has no edge and no force), an
+  acceleration target and a window of at least 3 velocities (``newton.check_scene``);
 - the contact-impulse head (``bgn.model.impulse``) on contact scenes whose discs have radii;
 - the baselines (``auto.references``: GNS, Cranmer et al.'s GN) as references: trained and
   reported on the same protocol, never chosen.
@@ -545,6 +546,40 @@ def score_candidate(result: Result, out_dir: Path, val: Any, train_split: Any,
                       "f": {f"{a}-{b}": pair_law(head, s, (a, b)).tolist() for a, b in pairs}}
 
 
+def formula_candidate(results: Sequence[Result], auto_dir: Path, val: Any, train_split: Any,
+                      sims: list[int], starts: list[int], n_steps: int,
+                      horizons: Sequence[int], each: Mapping[str, Any]) -> Result | None:
+    """The best pair-force candidate's law read back as a formula (``bgn.laws``), its
+    constants fine-tuned through substeps (``bgn.laws.finetune_formula``: half its
+    ``max_steps``, else the default steps) and scored as the others; eligible to win, and its
+    best checkpoint the one the winner resumes from. None without a scored pair-force
+    candidate."""
+    from bgn.experiments import best_checkpoint
+    from bgn.laws import FINETUNE_STEPS, FINETUNE_SUBSTEPS, _spec_text, finetune_formula
+
+    scored = [r for r in results if r.candidate.pair_force and not r.error and r.errors]
+    if not scored:
+        return None
+    best = min(scored, key=lambda r: r.score(n_steps))
+    steps = max(1, int(each["max_steps"]) // 2) if "max_steps" in each else FINETUNE_STEPS
+    out_dir = auto_dir / f"formula_{best.candidate.name}"
+    start = time.perf_counter()
+    record = finetune_formula(best_checkpoint(auto_dir / best.candidate.name), train_split,
+                              val, steps=steps, substeps=FINETUNE_SUBSTEPS, out_dir=out_dir)
+    spec = json.dumps(record["tuned"])
+    cand = Candidate(out_dir.name, f"{best.candidate.label}; its law the formula "
+                     f"{_spec_text(record['tuned'])}, constants fine-tuned",
+                     [*best.candidate.overrides, "model.law=formula",
+                      f"model.law_formula='{spec}'",
+                      f"model.substeps={record['rollout_substeps']}"],
+                     pair_force=True)
+    (out_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
+    (out_dir / "formula.ckpt").replace(out_dir / "checkpoints" / "last.ckpt")
+    result = Result(cand, steps=best.steps, wall_s=time.perf_counter() - start)
+    score_candidate(result, out_dir, val, train_split, sims, starts, n_steps, horizons)
+    return result
+
+
 def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[str, float]:
     """``model.dynamics=auto``: train the candidates, choose on validation rollouts, train the
     winner for the rest of the budget and test it (module doc). ``overrides``: the run's
@@ -589,6 +624,17 @@ def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[st
             info(f"auto: {cand.name} " + ", ".join(
                 f"val error @{h} {v:.4g}" for h, v in result.errors.items()))
         results.append(result)
+    try:  # the best pair-force law as a formula, fine-tuned: a candidate of its own
+        formula = formula_candidate(results, auto_dir, val, train_split, sims, starts,
+                                    n_steps, horizons, each)
+    except Exception as err:
+        log.exception("the formula candidate failed")
+        formula = Result(Candidate("formula", "the best pair-force law as a formula", []),
+                         error=" ".join(f"{type(err).__name__}: {err}".split())[:300])
+    if formula is not None:
+        info(f"auto: {formula.candidate.name} " + ", ".join(
+            f"val error @{h} {v:.4g}" for h, v in formula.errors.items()))
+        results.append(formula)
     winner, margin = choose(results, n_steps)
     protocol = {"horizon": n_steps, "horizons": horizons, "sims": sims, "starts": starts,
                 "rollouts": len(sims) * len(starts), "share": share,

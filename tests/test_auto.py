@@ -8,6 +8,7 @@ import itertools
 import json
 import math
 import subprocess
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -65,6 +66,19 @@ def test_imported_scenes_without_radii_or_forces_get_the_decoder():
     assert admitted(discs, radii=True) == ["decoder", "impulse", *REFS]
     bodies = SceneMeta("imported", 3, 5, 1, "unknown", "acceleration", "full")
     assert admitted(bodies) == ["decoder", "newton_inertial", "newton_source", *REFS]
+
+
+def test_an_imported_short_range_gas_on_a_radius_graph_admits_the_pair_force_head():
+    """A gas imported with a connectivity radius: forces summed over the radius graph's
+    edges, the law learns to vanish at the cut-off (the ASE Morse gas)."""
+    gas = SceneMeta("imported", 2, 64, 1, "unknown", "acceleration", "radius",
+                    masses_known=False, period=(10.0, 10.0))
+    assert admitted(gas, radii=False) == ["decoder", "newton_inertial", "newton_source", *REFS]
+    refused = {c.name: c.reason for c in candidates(replace(gas, target="velocity"), 5, False,
+                                                    REFS) if not c.admitted}
+    assert "velocity target" in refused["newton_inertial"]
+    assert "history=2" in next(c.reason for c in candidates(gas, 2, False, ())
+                               if c.name == "newton_inertial")
 
 
 @pytest.mark.parametrize("interaction,target,graph,box,history", itertools.product(
@@ -249,9 +263,11 @@ def test_auto_picks_the_structure_spring_was_made_with(tmp_path, shared_data_dir
         env=CLI_ENV, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
     record = json.loads((run / "auto" / "auto.json").read_text())
-    assert record["choice"] == "newton_inertial"
+    # the pair-force head, or its law as a formula (fine-tuned from it)
+    assert record["choice"] in ("newton_inertial", "formula_newton_inertial")
     rows = {c["candidate"]: c for c in record["candidates"]}
-    assert set(rows) == {"decoder", "newton_inertial", "newton_source", "impulse"}
+    assert set(rows) == {"decoder", "newton_inertial", "newton_source", "impulse",
+                         "formula_newton_inertial"}
     assert not rows["impulse"]["admitted"]
     assert all(rows[n]["steps"] == 200 for n in ("decoder", "newton_inertial", "newton_source"))
     inertial = rows["newton_inertial"]["val_err@50"]
@@ -262,5 +278,46 @@ def test_auto_picks_the_structure_spring_was_made_with(tmp_path, shared_data_dir
                  "figures/masses_newton_inertial.png", "figures/validation_error.png"):
         assert (run / "auto" / name).exists(), name
     top = json.loads((run / "metrics.json").read_text())
-    assert top["auto"]["choice"] == "newton_inertial"
+    assert top["auto"]["choice"] == record["choice"]
     print({n: (r["val_err@10"], r["val_err@50"]) for n, r in rows.items() if r["admitted"]})
+
+
+def test_the_best_pair_force_law_becomes_a_formula_candidate(tmp_path, shared_data_dir):
+    """A tiny BGN pair-force run stands for the best candidate: its law read back, fine-tuned
+    and scored as a candidate of its own, eligible, its formula in its label, and its
+    checkpoint the one the winner would resume from (the composed config fits it)."""
+    from omegaconf import OmegaConf
+
+    from bgn.auto import formula_candidate
+    from bgn.checkpoints import check_compatible
+    from bgn.data.datamodule import ParticleDataModule
+    from bgn.rollout import rollout_starts
+    from bgn.train import train
+
+    auto_dir = tmp_path / "auto"
+    base = ["dataset=spring", *SMALL["spring"], f"paths.data_dir={shared_data_dir}",
+            "model.hidden=16", "model.decoder_hidden=16", "model.flow_hidden=16",
+            "figures=false", "val_rollout_steps=0", "callbacks.progress_bar=null",
+            "trainer.max_epochs=1", "+trainer.limit_train_batches=2",
+            "trainer.limit_val_batches=1"]
+    best = Candidate("newton_inertial", "pair-force head",
+                     ["model.dynamics=newton", "model.mass_law=inertial"], pair_force=True)
+    train(compose_candidate(base, best, auto_dir / best.name, {}))
+    cfg = compose_config("train", base)
+    dm = ParticleDataModule(cfg.dataset, cfg.fps, shared_data_dir, show_progress=False)
+    dm.prepare_data()
+    dm.setup()
+    val = dm.datasets["val"]
+    n_steps = 10
+    result = formula_candidate([Result(best, errors={n_steps: 1.0}, steps=2)], auto_dir, val,
+                               dm.datasets["train"], [0], rollout_starts(val, n_steps),
+                               n_steps, [n_steps], {"max_steps": 6})
+    assert result.candidate.eligible and result.candidate.pair_force and not result.error
+    assert result.candidate.name == "formula_newton_inertial"
+    assert math.isfinite(result.errors[n_steps]) and result.law is not None
+    tuned = json.loads((auto_dir / result.candidate.name / "formula.json").read_text())
+    assert tuned["steps"] == 3 and "constants fine-tuned" in result.candidate.label
+    final = compose_candidate(base, result.candidate, auto_dir / result.candidate.name, {})
+    assert final.model.law == "formula" and json.loads(final.model.law_formula) == tuned["tuned"]
+    check_compatible(auto_dir / result.candidate.name / "checkpoints" / "last.ckpt", {},
+                     OmegaConf.to_container(final.model, resolve=True))

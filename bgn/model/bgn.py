@@ -36,6 +36,7 @@ from bgn.model.encoder import (
     node_features,
     node_input_dim,
 )
+from bgn.model.formula_law import check_law
 from bgn.model.inverse import CONTEXTS, FLOWS, InverseModel
 from bgn.model.newton import (
     MASS_LAWS,
@@ -109,6 +110,8 @@ class ModelConfig(DynamicsConfig):
     dynamics: str = "decoder"
     mass_law: str = "inertial"
     substeps: int = 1  # > 1: the newton head integrates each frame in substeps (newton.shoot)
+    law: str = "mlp"  # the newton head's pair law: mlp | formula (law_formula, bgn.laws)
+    law_formula: str = ""
     # D^-1/2 Â D^-1/2 in every GCN layer. The paper's plain sums grow like (degree+1)^layers,
     # so contact logits explode at initialisation on large radius graphs and the flows do not
     # train (docs/results.md, "Measurements behind the defaults").
@@ -130,8 +133,9 @@ class ModelConfig(DynamicsConfig):
     # Force scenes: the contact target is |F_ij| / robust scale, compressed by log1p so that
     # the heavy tail of close encounters does not dominate (SIMS.md); "linear" = paper MSE.
     force_transform: str = "log1p"     # "log1p" | "linear"
-    # Contact scenes: weight of the positive class in the contact BCE. About 1 % of candidate
-    # edges touch; unweighted, the head learns to say "no contact" everywhere (F1 0).
+    # Contact scenes: weight of the positive class in the contact BCE. Few candidate edges
+    # touch; unweighted, the head learns to say "no contact" everywhere (docs/results.md,
+    # "Measurements behind the defaults").
     # "balanced" = (1 - p) / p with p the training split's contact fraction; a number sets it;
     # 1 = the paper's plain BCE. Typed Any for Hydra (OmegaConf's Union[str, float] refuses
     # the int that `model.contact_pos_weight=1` parses to); __post_init__ checks it.
@@ -151,6 +155,7 @@ class ModelConfig(DynamicsConfig):
             raise ValueError(f"dynamics={self.dynamics!r}; choose one of {DYNAMICS}")
         if self.mass_law not in MASS_LAWS:
             raise ValueError(f"mass_law={self.mass_law!r}; choose one of {MASS_LAWS}")
+        check_law(self.law, self.law_formula)
         if self.flow not in FLOWS:
             raise ValueError(f"flow={self.flow!r}; choose one of {FLOWS}")
         if self.mass_context not in CONTEXTS:
@@ -223,7 +228,8 @@ class BGN(PhysicsModel):
         if cfg.dynamics == "newton":  # the structured head replaces Eq. 5's decoder
             self.force_head: nn.Module | None = build_head(
                 meta, self.normalizer, history, cfg.decoder_hidden, 2, cfg.activation,
-                cfg.mass_law, "model.dynamics=newton", cfg.substeps)
+                cfg.mass_law, "model.dynamics=newton", cfg.substeps,
+                cfg.law_formula if cfg.law == "formula" else "")
             self.decoder = None
         else:
             self.force_head = None
@@ -293,7 +299,8 @@ class BGN(PhysicsModel):
                           self.cfg.use_absolute_position, self.meta.box,
                           self.cfg.velocity_increments)
         # the edge features feed the edge encoder and the contact head only (not BGN's
-        # structured head on collisions, where they were 5 % of a step at 200 000 discs)
+        # structured head on collisions, where they cost a share of every step on large scenes:
+        # docs/results.md, "Measurements behind the defaults")
         e = (edge_features(g, self.normalizer)
              if self.edge_encoder is not None or self.processor.contact is not None else None)
         h_v = self.node_encoder(x, g.edge_index)               # Eq. 1

@@ -20,7 +20,12 @@ A window made by the model itself is consistent with the masses that made it, so
 returns them: masses stay put in a rollout. The scale of ``f`` is free (the fitted masses
 absorb it); only the shape of the force law is learned. The finite-difference target is
 written with Numerov's weights (``numerov``; implicit at frame t, one fixed-point step). The
-head needs a complete graph of pairwise forces, an acceleration target and history >= 3.
+head needs pairwise forces, an acceleration target and history >= 3. The forces are summed over
+the graph's edges: a complete graph, or a radius graph (imported short-range data), where a pair
+beyond the radius has no edge and so no force, and the law learns to vanish at the cut-off. The
+edge set of frame t serves the whole window and the positions moved within the frame (the
+implicit step, ``shoot``'s substeps): exact where the law vanishes at the radius or the graph's
+margin covers a frame's motion, as a connectivity radius at the law's cut-off does.
 
 ``build_head`` gives a scene its structured head: this one for force scenes, pair impulses at
 the time of impact (``bgn.model.impulse``) for contact scenes. BGN uses it with
@@ -46,6 +51,7 @@ from bgn.model.base import (
     contact_pos_weight,
 )
 from bgn.model.encoder import DIRECTION_EPS
+from bgn.model.formula_law import FormulaLaw, check_law
 from bgn.model.impulse import ContactImpulseHead
 from bgn.model.message_passing import edge_vector
 from bgn.model.normalizer import Normalizer
@@ -72,6 +78,8 @@ class NewtonConfig(DynamicsConfig):
     activation: str = "silu"
     mass_law: str = "inertial"         # inertial: a = F / m (spring) | source: a = sum m_j F_ij
     substeps: int = 1                  # 1: Numerov's weights; > 1: integrate the frame (above)
+    law: str = "mlp"                   # mlp: f(s) a network | formula: law_formula's formula
+    law_formula: str = ""              # the formula's JSON spec (bgn.laws.formula_spec)
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -79,6 +87,7 @@ class NewtonConfig(DynamicsConfig):
         activation(self.activation)
         if self.mass_law not in MASS_LAWS:
             raise ValueError(f"mass_law={self.mass_law!r}; choose one of {MASS_LAWS}")
+        check_law(self.law, self.law_formula)
 
 
 def past_positions(g: Graph) -> torch.Tensor:
@@ -95,8 +104,9 @@ def numerov(f: torch.Tensor) -> torch.Tensor:
     t-1, .., t-F+1 (newest first): Numerov's weights ``(f[t+1] + 10 f[t] + f[t-1]) / 12``,
     exact to O(dt^4), at frames t-1 .. t-F+2; at frame t, whose f[t+1] is not known yet, with
     f[t+1] extrapolated quadratically, ``(13 f[t] - 2 f[t-1] + f[t-2]) / 12``. Returns
-    (., F-1, D), frames t .. t-F+2. On 4-body spring data with the true force law and masses,
-    this lowers the median relative error of the target from 5e-4 to 9e-5 (docs/results.md)."""
+    (., F-1, D), frames t .. t-F+2. With the true force law and masses this brings the
+    instantaneous force closer to the recorded target (docs/results.md, "Measurements behind the
+    defaults")."""
     now = (13 * f[:, 0] - 2 * f[:, 1] + f[:, 2]) / 12
     centred = (f[:, :-2] + 10 * f[:, 1:-1] + f[:, 2:]) / 12
     return torch.cat([now[:, None], centred], dim=1)
@@ -126,8 +136,8 @@ def shoot(accel: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, back: 
     correct the velocity by the miss at x[t-1], a Newton step with the Jacobian -dt I), then
     the frame ahead is integrated from it. ``back``: (N, D) ``(x[t] - x[t-1]) / dt``; ``dt``:
     (N, 1). A close encounter within a frame, which one force evaluation per frame cannot
-    follow, is integrated in substeps: with gravity_r2's true law and masses, 16 substeps
-    bring the median relative error of the recorded targets from 1e-4 to 6e-7 (results.md)."""
+    follow, is integrated in substeps, which reproduce the recorded targets far more closely
+    (docs/results.md, "Gravity_r2: what frames allow")."""
     h = dt / steps
     v = back + 0.5 * dt * accel(x)
     for _ in range(iterations):
@@ -141,10 +151,11 @@ def check_scene(meta: SceneMeta, history: int, option: str) -> None:
     """One clear error when a scene or window cannot carry the structured force head."""
     # "unknown": imported data, whose law the head is a candidate for
     # (docs/design.md#imported-scenes)
+    # a radius graph is fine: a pair beyond it has no edge and no force (the module doc)
     if meta.interaction not in ("pairwise", "unknown") or meta.target != "acceleration" \
-            or meta.graph != "full":
-        raise ValueError(f"{option} needs pairwise forces on a complete graph with an "
-                         f"acceleration target; {meta.name} is {meta.interaction}, "
+            or meta.graph not in ("full", "radius"):
+        raise ValueError(f"{option} needs pairwise forces on a complete or radius graph with "
+                         f"an acceleration target; {meta.name} is {meta.interaction}, "
                          f"{meta.graph} graph, {meta.target} target: use model=bgn with "
                          "model.dynamics=decoder")
     if history < 3:
@@ -157,14 +168,17 @@ class PairForceHead(nn.Module):
     of a graph -> its acceleration at frame t in physical units, (N, D)."""
 
     def __init__(self, meta: SceneMeta, normalizer: Normalizer, hidden: int, layers: int,
-                 act: str, mass_law: str, substeps: int = 1) -> None:
+                 act: str, mass_law: str, substeps: int = 1, law_formula: str = "") -> None:
         super().__init__()  # mass_law: checked by the model configs (NewtonConfig, BGN's)
         self.mass_law, self.types, self.substeps = mass_law, meta.n_types, substeps
         # lengths in the units the model normalises relative positions by (a copy: the
         # normaliser belongs to the model)
         self.register_buffer("length_scale", normalizer.rel_position_scale.detach().clone())
-        self.force_law = mlp([3 + (meta.n_types if meta.n_types > 1 else 0),
-                              *[hidden] * layers, 1], act)
+        # law_formula: the law a formula of the physical distance (bgn.model.formula_law),
+        # its constants trainable; else an MLP
+        self.force_law = (FormulaLaw(law_formula, meta.n_types) if law_formula else
+                          mlp([3 + (meta.n_types if meta.n_types > 1 else 0),
+                               *[hidden] * layers, 1], act))
 
     def pair_terms(self, g: Graph, positions: torch.Tensor) -> torch.Tensor:
         """(E, F, D) ``f(s_ij) u_ij`` on every edge j -> i at each of the F frames of
@@ -172,6 +186,12 @@ class PairForceHead(nn.Module):
         snd, rcv = g.edge_index
         rel = edge_vector(positions, g) / self.length_scale                  # (E, F, D)
         dist = torch.sqrt((rel * rel).sum(-1, keepdim=True) + DIRECTION_EPS**2)
+        if isinstance(self.force_law, FormulaLaw):  # physical distances, physical law
+            pair = None
+            if self.types > 1:
+                lo = torch.minimum(g.types[snd], g.types[rcv])
+                pair = lo * self.types + torch.maximum(g.types[snd], g.types[rcv])
+            return self.force_law(dist * self.length_scale, pair) * rel / dist
         # distance, its inverse and its log: a spring's linear law and gravity's 1/s^2 near
         # an encounter are then a few units of the MLP each, not a curve it must bend to
         feats = [dist, 1 / dist, torch.log(dist)]
@@ -264,24 +284,32 @@ class PairForceHead(nn.Module):
                       with_error: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
         """(N,) one mass per particle such that ``a_i = sum_j m_j f(s_ij) u_ij`` fits the
         window's accelerations best, by least squares jointly per simulation (ridge-regularised
-        normal equations, differentiable; every graph of a batch has the same N, the n-body
-        scenes). ``past``: (E, F, D) pair terms at the F frames of ``seen`` (N, F, D).
-        ``with_error``: also their standard errors (N,), the residuals' variance times the
-        inverse normal matrix (else None)."""
+        normal equations, differentiable). ``past``: (E, F, D) pair terms at the F frames of
+        ``seen`` (N, F, D). ``with_error``: also their standard errors (N,), the residuals'
+        variance times the inverse normal matrix (else None). The system is dense per graph
+        (N x N particles, the pairs without an edge zero: a radius graph's far pairs); graphs
+        of fewer particles than the batch's largest are padded with particles that feel and
+        exert nothing, which the ridge pins at mass 0 and the result drops."""
         n_graphs, n_frames, dim = g.num_graphs, past.shape[1], past.shape[2]
-        n = g.pos.shape[0] // n_graphs
+        counts = g.num_nodes.to(g.batch.device)
+        n = int(counts.max())
+        local = torch.arange(g.pos.shape[0], device=counts.device) \
+            - (torch.cumsum(counts, 0) - counts)[g.batch]             # index within its graph
         snd, rcv = g.edge_index
-        local_rcv, local_snd = rcv - g.batch[rcv] * n, snd - g.batch[snd] * n
         # design[b, i, frame, d, j]: the term of particle j in particle i's acceleration
         design = past.new_zeros(n_graphs, n, n_frames, dim, n)
-        design[g.batch[rcv], local_rcv, :, :, local_snd] = past
+        design[g.batch[rcv], local[rcv], :, :, local[snd]] = past
         # in float64: the normal equations square the condition number
         design = design.reshape(n_graphs, -1, n).double()
-        target = seen.reshape(n_graphs, -1, 1).double()
+        padded = seen.new_zeros(n_graphs, n, n_frames, dim)
+        padded[g.batch, local] = seen
+        target = padded.reshape(n_graphs, -1, 1).double()
+        real = (g.batch, local)  # the rows of (B, n) that hold a particle
         # Relative errors, then a robust reweighting (Cauchy, scale ROBUST_SCALE): the frames
         # of a close encounter are the least resolved by the frame rate, and one of them would
         # otherwise set every mass of its simulation.
-        weight = 1 / (target.abs() + target.abs().mean(1, keepdim=True) * 1e-3 + FIT_EPS)
+        size = target.abs().sum(1, keepdim=True) / (counts * n_frames * dim)[:, None, None]
+        weight = 1 / (target.abs() + size * 1e-3 + FIT_EPS)  # size: the mean over real rows
         for step in range(ROBUST_STEPS + 1):
             wd = design * weight
             gram = wd.transpose(1, 2) @ wd
@@ -289,22 +317,24 @@ class PairForceHead(nn.Module):
             # within the window gets a finite mass, not a singular system. (A ridge relative
             # to the mean of the diagonal shrank the columns of heavy particles, whose pull
             # shows in the light ones' small, down-weighted rows: masses 1, 1e-3, 1e-3, 1e-3
-            # with the true law fitted 2.2 e-folds off, now 0.006; tested)
+            # came out far off, now close: docs/results.md, "Gravity's mass fit"; tested)
             ridge = torch.diag_embed(1e-6 * gram.diagonal(dim1=1, dim2=2) + FIT_EPS)
             masses = torch.linalg.solve(gram + ridge, wd.transpose(1, 2) @ (target * weight))
             residual = (design @ masses - target) * weight
             if step < ROBUST_STEPS:
                 weight = weight / (1 + (residual / ROBUST_SCALE) ** 2).sqrt()
+        fitted = masses[..., 0][real].to(past.dtype)
         if not with_error:
-            return masses.reshape(-1).to(past.dtype), None
-        variance = (residual**2).sum(1) / max(design.shape[1] - n, 1)            # (B, 1)
+            return fitted, None
+        rows = (counts * n_frames * dim - counts).clamp_min(1)[:, None]  # dof per graph
+        variance = (residual**2).sum(1) / rows.to(residual.dtype)               # (B, 1)
         error = (variance * torch.linalg.inv(gram + ridge).diagonal(dim1=1, dim2=2)).sqrt()
-        return masses.reshape(-1).to(past.dtype), error.reshape(-1).to(past.dtype)
+        return fitted, error[real].to(past.dtype)
 
 
 def build_head(meta: SceneMeta, normalizer: Normalizer, history: int, hidden: int, layers: int,
-               act: str, mass_law: str, option: str,
-               substeps: int = 1) -> PairForceHead | ContactImpulseHead:
+               act: str, mass_law: str, option: str, substeps: int = 1,
+               law_formula: str = "") -> PairForceHead | ContactImpulseHead:
     """The structured dynamics head of a scene: pair forces (``PairForceHead``) or pair
     impulses at the time of impact (``bgn.model.impulse``); ``head(g)`` gives the physical
     target and the contact gate's logits (None for forces). ``option`` names the setting in
@@ -314,7 +344,7 @@ def build_head(meta: SceneMeta, normalizer: Normalizer, history: int, hidden: in
             raise ValueError(f"{option} on a contact scene needs a next-velocity target")
         return ContactImpulseHead(meta, hidden, act)
     check_scene(meta, history, option)
-    return PairForceHead(meta, normalizer, hidden, layers, act, mass_law, substeps)
+    return PairForceHead(meta, normalizer, hidden, layers, act, mass_law, substeps, law_formula)
 
 
 def head_given(head: nn.Module) -> tuple[str, ...]:
@@ -351,10 +381,11 @@ def law_loss(head: nn.Module, g: Graph) -> torch.Tensor | None:
     """The force head's prediction with the recorded masses in place of the window's fit,
     scored by its squared error relative to the target's own size (None for other heads). The
     fit absorbs any law's scale, and over the few frames of a window almost any shape: trained
-    through the fit alone, gravity_r2's law came out nowhere near 1/s^2 (learned / true from
-    -0.03 at s = 0.01 to 27 at s = 8) while the one-step error stayed small. With the true
+    through the fit alone, gravity_r2's law came out nowhere near 1/s^2 while the one-step error
+    stayed small (docs/results.md, "Gravity_r2: what frames allow"). With the true
     masses the law is identified; relative errors weigh every distance alike, where a squared
-    error is set by the few close encounters (an MSE law term gave 0.13 at s = 0.01)."""
+    error is set by the few close encounters (docs/results.md, "Measurements behind the
+    defaults")."""
     if not isinstance(head, PairForceHead):
         return None
     predicted, target = head(g, known_masses=True)[0], g.target.to(g.pos.dtype)
@@ -383,7 +414,8 @@ class Newton(PhysicsModel):
 
     def build(self, cfg: NewtonConfig, stats: Mapping[str, Any]) -> None:
         self.head = build_head(self.meta, self.normalizer, self.history, cfg.hidden, cfg.layers,
-                               cfg.activation, cfg.mass_law, "model=newton", cfg.substeps)
+                               cfg.activation, cfg.mass_law, "model=newton", cfg.substeps,
+                               cfg.law_formula if cfg.law == "formula" else "")
         if self.meta.interaction == "contact":
             self.heads = frozenset({"dynamics", "contact", "impulse_mass"})
             self.register_buffer("contact_pos_weight", torch.tensor(

@@ -2,6 +2,7 @@
 the masses and the targets of real frames, and its forces are equal and opposite."""
 
 from dataclasses import fields, replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -9,14 +10,27 @@ import torch
 from scipy import stats
 from torch import nn
 
+from bgn.data import from_arrays
 from bgn.data.datamodule import ParticleDataModule
+from bgn.data.files import DatasetFile
 from bgn.data.graphs import batch_edges, full_graph
-from bgn.graph import collate, window_graph
+from bgn.graph import Graph, collate, window_graph
 from bgn.model import build_model
-from bgn.model.newton import law_loss, numerov, past_positions, shoot
+from bgn.model.newton import (
+    MASS_LAWS,
+    PairForceHead,
+    law_loss,
+    numerov,
+    past_positions,
+    shoot,
+)
 from bgn.model.ops import scatter_sum
+from bgn.sim.scene import SceneMeta
 from bgn.stability import build as build_case
 from bgn.stability import load_case
+from bgn.train import train
+from tests.conftest import compose_config
+from tests.test_train import SMALL_MODELS
 
 # the scenes' pair laws f(s) u_ij (SIMS.md; s = r + 0.01), the masses left to the fit
 LAWS = {"spring": ("inertial", lambda s: -2 * (s - 1)),
@@ -173,9 +187,13 @@ def test_scenes_without_pairwise_forces_and_short_windows_are_refused(small_cfg)
     ds, _ = frames(small_cfg, "spring")
     with pytest.raises(ValueError, match="history"):
         build_model({"name": "newton"}, ds.meta, ds.file.stats(), 2)
-    radius = replace(ds.meta, graph="radius")
+    velocity = replace(ds.meta, target="velocity")
     with pytest.raises(ValueError, match="model.dynamics=newton needs pairwise"):
-        build_model({"name": "bgn", "dynamics": "newton"}, radius, ds.file.stats(), ds.history)
+        build_model({"name": "bgn", "dynamics": "newton"}, velocity, ds.file.stats(),
+                    ds.history)
+    # a radius graph carries the head (a pair beyond it has no edge and no force)
+    build_model({"name": "bgn", "dynamics": "newton"}, replace(ds.meta, graph="radius"),
+                ds.file.stats(), ds.history)
     with pytest.raises(ValueError, match="mass_law"):
         build_model({"name": "bgn", "mass_law": "magic"}, ds.meta, ds.file.stats(), ds.history)
     # without the pair-force head there is no fit: the flow reads the pair terms alone
@@ -256,3 +274,146 @@ def test_the_law_loss_vanishes_for_the_true_law_and_is_only_built_when_weighted(
     terms = model.loss_terms(g, model(g))
     assert float(terms["law"]) < 1e-3 * untrained
     assert float(model.total_loss(terms)) >= float(terms["law"])   # the fit's term weighs 0
+
+
+# ----------------------------------------------------------------- radius graphs (short range)
+CUTOFF, BOX = 1.2, 4.0  # a compactly supported law in a periodic box
+
+
+def compact_law(s: torch.Tensor) -> torch.Tensor:
+    """A smooth short-range pair law, repulsive close in, attractive further out, exactly zero
+    from CUTOFF on: what a pair beyond a radius graph's reach must feel."""
+    return torch.where(s < CUTOFF, 10 * (CUTOFF - s) ** 2 * (0.8 - s), torch.zeros_like(s))
+
+
+def short_range_head(mass_law: str) -> PairForceHead:
+    meta = SceneMeta("short", 2, 10, 1, "unknown", "acceleration", "radius", period=(BOX, BOX))
+    head = PairForceHead(meta, SimpleNamespace(rel_position_scale=torch.tensor(1.0)), 8, 1,
+                         "silu", mass_law).double()
+    head.force_law = TrueLaw(lambda s: compact_law(s - 0.01), 1.0)  # TrueLaw adds 0.01
+    return head
+
+
+def short_range_window(masses: np.ndarray, frames: int = 6, dt: float = 0.05,
+                       seed: int = 0) -> np.ndarray:
+    """(frames, N, 2) a trajectory of the compact law in the periodic box with ``masses``
+    (a_i = sum_j F_ij / m_i), Verlet with 200 substeps a frame in float64, unwrapped."""
+    rng = np.random.default_rng(seed)
+    n = len(masses)
+    grid = np.stack(np.meshgrid(np.arange(4), np.arange(3)), -1).reshape(-1, 2)[:n]
+    x = (grid + 0.5) * [BOX / 4, BOX / 3] + rng.normal(scale=0.1, size=(n, 2))
+    v = rng.normal(scale=0.5, size=(n, 2))
+
+    def accel(p: np.ndarray) -> np.ndarray:
+        d = p[:, None] - p[None]
+        d -= BOX * np.round(d / BOX)                                # minimum image, i - j
+        r = np.sqrt((d**2).sum(-1)) + np.eye(n)
+        f = compact_law(torch.as_tensor(r)).numpy() * (1 - np.eye(n))
+        return (f[..., None] * d / r[..., None]).sum(1) / masses[:, None]
+
+    out, h = [x.copy()], dt / 200
+    for _ in range(frames - 1):
+        for _ in range(200):
+            v = v + 0.5 * h * accel(x)
+            x = x + h * v
+            v = v + 0.5 * h * accel(x)
+        out.append(x.copy())
+    return np.stack(out)
+
+
+def short_range_graph(window: np.ndarray, masses: np.ndarray, edges: str) -> Graph:
+    """The graph of the window's last frame: radius edges (CUTOFF plus a margin that covers
+    the window's motion) or the complete graph."""
+    from bgn.data.graphs import radius_graph
+
+    n = window.shape[1]
+    reach = CUTOFF + 2 * float(np.abs(window - window[-1]).max()) + 0.05
+    e = (radius_graph(window[-1], cutoff=reach, period=(BOX, BOX)) if edges == "radius"
+         else full_graph(n))
+    return window_graph(torch.as_tensor(window)[None], 0.05, torch.as_tensor(e),
+                        torch.as_tensor(masses)[None], torch.zeros(1, n), torch.zeros(1, n),
+                        None, torch.zeros(1), torch.zeros(1), dtype=torch.float64,
+                        period=(BOX, BOX))
+
+
+def test_radius_graph_forces_equal_the_complete_graphs_for_a_law_that_vanishes_beyond_it():
+    masses = np.random.default_rng(1).uniform(0.5, 2.0, 10)
+    window = short_range_window(masses, frames=6)
+    radius, full = (short_range_graph(window, masses, e) for e in ("radius", "full"))
+    assert radius.edge_index.shape[1] < full.edge_index.shape[1]   # far pairs have no edge
+    head = short_range_head("inertial")
+    # brute force: every pair, the minimum image, the law (zero beyond CUTOFF)
+    x = torch.as_tensor(window[::-1].copy()).transpose(0, 1)       # (N, F, D), newest first
+    d = x[:, None] - x[None]
+    d = d - BOX * torch.round(d / BOX)
+    r = torch.sqrt((d**2).sum(-1, keepdim=True) + 1e-24)
+    f = compact_law(r) * d / r * (1 - torch.eye(10, dtype=d.dtype))[..., None, None]
+    brute = f.sum(1)[:, :-1]                  # past_positions: frames t .. t-k of the k+2
+    for g in (radius, full):
+        forces = scatter_sum(head.pair_terms(g, past_positions(g)), g.edge_index[1], 10)
+        torch.testing.assert_close(forces, brute, rtol=1e-9, atol=1e-12)
+    for law in MASS_LAWS:
+        head = short_range_head(law)
+        torch.testing.assert_close(head(radius)[0], head(full)[0], rtol=1e-9, atol=1e-12)
+        torch.testing.assert_close(head.fit(radius, head.window(radius)[1]),
+                                   head.fit(full, head.window(full)[1]), rtol=1e-6, atol=1e-9)
+
+
+def test_pair_forces_are_equal_and_opposite_on_a_radius_graph():
+    masses = np.ones(10)
+    g = short_range_graph(short_range_window(masses, frames=6), masses, "radius")
+    torch.manual_seed(0)
+    head = PairForceHead(SceneMeta("short", 2, 10, 1, "unknown", "acceleration", "radius"),
+                         SimpleNamespace(rel_position_scale=torch.tensor(1.0)), 16, 2, "silu",
+                         "inertial").double()                      # an untrained law
+    with torch.no_grad():
+        terms = head.pair_terms(g, past_positions(g))
+    assert float(terms.abs().max()) > 0
+    assert float(terms.sum(0).abs().max()) < 1e-10 * float(terms.abs().max())
+
+
+def test_the_inertial_fit_recovers_masses_on_a_short_range_radius_graph():
+    masses = np.random.default_rng(2).uniform(0.5, 2.0, 10)
+    window = short_range_window(masses, frames=6, seed=3)
+    g = short_range_graph(window, masses, "radius")
+    head = short_range_head("inertial")
+    fitted = 1 / head.fit(g, head.window(g)[1])
+    felt = scatter_sum(head.pair_terms(g, past_positions(g)), g.edge_index[1], 10).norm(dim=-1)
+    pinned = felt.min(1).values > 0.05 * felt.max()       # pushed on at every frame
+    assert int(pinned.sum()) >= 5
+    assert float((fitted / g.mass - 1)[pinned].abs().max()) < 2e-3
+    assert float((fitted / g.mass - 1).abs().median()) < 1e-3
+
+
+def test_the_source_fit_takes_graphs_of_different_sizes():
+    """The joint fit pads a smaller graph of the batch: the same masses as alone."""
+    head = short_range_head("source")
+    graphs = []
+    for seed, n in ((4, 10), (5, 7)):
+        masses = np.random.default_rng(seed).uniform(0.5, 2.0, n)
+        graphs.append(short_range_graph(short_range_window(masses, seed=seed)[:, :n], masses,
+                                        "full"))
+    alone = torch.cat([head.fit(g, head.window(g)[1]) for g in graphs])
+    batch = collate(graphs)
+    torch.testing.assert_close(head.fit(batch, head.window(batch)[1]), alone, rtol=1e-6,
+                               atol=1e-9)
+
+
+@pytest.mark.parametrize("mass_law", MASS_LAWS)
+def test_bgn_with_the_pair_force_head_trains_on_an_imported_radius_graph_gas(tmp_path,
+                                                                            mass_law):
+    """fast_dev_run of model.dynamics=newton on short-range trajectories imported with a
+    connectivity radius (a periodic gas, masses unknown): the scene's graph is a radius one."""
+    x = np.stack([short_range_window(np.ones(10), frames=12, seed=s) for s in range(5)])
+    paths = from_arrays(x, 0.05, box=BOX, periodic=True, connectivity_radius=1.5, name="short",
+                        data_dir=tmp_path / "data", splits={"train": [0, 1, 2], "val": [3],
+                                                            "test": [4]})
+    assert DatasetFile(paths["train"]).meta.graph == "radius"
+    cfg = compose_config("train", [
+        "dataset=imported", "dataset.name=short", f"paths.data_dir={tmp_path / 'data'}",
+        f"paths.output_dir={tmp_path / 'out'}", "model=bgn", *SMALL_MODELS["bgn"],
+        "model.dynamics=newton", f"model.mass_law={mass_law}", "rollout_steps=3",
+        "val_rollout_steps=4", "val_rollout_sims=1", "dataset.batch_size=4",
+        "+trainer.fast_dev_run=true", "test=false"])
+    metrics = train(cfg)
+    assert np.isfinite(metrics["train/loss"])

@@ -132,6 +132,9 @@ def train(cfg: DictConfig) -> dict[str, float]:
 
     from bgn.signals import SignalCheckpoint, interrupted
 
+    if cfg.model.get("dynamics") == "auto":  # candidates are composed from the overrides
+        raise ValueError("model.dynamics=auto is a study of several trainings: run it with "
+                         "python -m bgn.train, or bgn.auto.run_auto(cfg, overrides)")
     start = time.perf_counter()
     L.seed_everything(int(cfg.seed), workers=True)
     output_dir = Path(cfg.paths.output_dir)

@@ -321,3 +321,15 @@ def test_the_best_pair_force_law_becomes_a_formula_candidate(tmp_path, shared_da
     assert final.model.law == "formula" and json.loads(final.model.law_formula) == tuned["tuned"]
     check_compatible(auto_dir / result.candidate.name / "checkpoints" / "last.ckpt", {},
                      OmegaConf.to_container(final.model, resolve=True))
+
+
+def test_imported_data_choose_their_structure_by_default(tmp_path) -> None:
+    """dataset=imported composes with model.dynamics=auto (conf/dataset_model/imported_bgn.yaml),
+    and train() alone refuses it with the way to run it (auto needs the run's overrides)."""
+    from bgn.train import train
+
+    cfg = compose_config("train", ["dataset=imported", "dataset.name=any",
+                                   f"paths.output_dir={tmp_path}"])
+    assert cfg.model.dynamics == "auto"
+    with pytest.raises(ValueError, match="python -m bgn.train"):
+        train(cfg)

@@ -92,7 +92,9 @@ def _train_cfg(name: str | list[str], data_dir: Path, out: Path, model: str, *ov
         *dataset, f"paths.data_dir={data_dir}",
         f"paths.output_dir={out}", f"model={model}", *SMALL_MODELS[model], "rollout_steps=3",
         "val_rollout_steps=4", "val_rollout_sims=1", "dataset.batch_size=8",
-        "+trainer.fast_dev_run=true", "test=false", *overrides])
+        "+trainer.fast_dev_run=true", "test=false",
+        # imported data default to model.dynamics=auto (a study of its own, bgn/auto.py)
+        *(["model.dynamics=decoder"] if model == "bgn" else []), *overrides])
 
 
 FORMATS = ["gns-npz", "lagrangebench-h5", "arrays-npz", "arrays-h5", "tfrecord"]

@@ -377,7 +377,8 @@ def evaluate_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 10
                       curves: dict[str, dict[str, np.ndarray]] | None = None,
                       step: Callable[[str], None] | None = None,
                       lagrangebench: bool = False, sinkhorn_stride: int = 10,
-                      sinkhorn_rollouts: int | None = 4) -> dict[str, float]:
+                      sinkhorn_rollouts: int | None = 4,
+                      positions: dict[str, np.ndarray] | None = None) -> dict[str, float]:
     """Rollout metrics (``bgn.metrics.rollout_metrics``) of ``model`` from the same start
     frames of every test simulation (frame 100 first), keyed ``rollout/<metric>``, and of the
     no-learning references beside it (``rollout_last/...``, ``rollout_linear/...``) and, with
@@ -390,7 +391,9 @@ def evaluate_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 10
     same rollouts in LagrangeBench's metrics as well (``bgn.metrics.lagrangebench_metrics``,
     keyed ``lb/<metric>`` for the model, ``lb_last/...`` etc. for the references), the
     Sinkhorn divergence on every ``sinkhorn_stride``-th step of ``sinkhorn_rollouts`` evenly
-    spaced rollouts (None: all)."""
+    spaced rollouts (None: all). ``positions``, when given, receives the model's rollouts:
+    ``predicted`` and ``true`` (R, n_steps + 2, N, D), ``sims`` and ``starts`` (R,), so that
+    quantities bgn cannot compute (an engine's own energy) can be measured on them."""
     n_steps = min(n_steps, dataset.file.n_frames - dataset.history - 2)
     starts = rollout_starts(dataset, n_steps, starts_per_sim)
     sims = evenly_spaced(dataset.file.n_sims, max_sims)
@@ -410,6 +413,10 @@ def evaluate_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 10
         if step is not None:
             step(f"rollouts: {key}")
         t = run()
+        if positions is not None and key == "rollout":
+            positions.update(predicted=t.predicted, true=t.true,
+                             sims=np.tile(np.asarray(sims), len(starts)),
+                             starts=np.repeat(np.asarray(starts), len(sims)))
         values = rollout_metrics(t.predicted, t.true, t.masses, dataset.dt, dataset.scene.energy,
                                  t.first_non_finite, dataset.meta.box,
                                  momentum=dataset.meta.box is None,
@@ -493,6 +500,7 @@ def evaluate_split(module: PhysicsModule, dataset: FrameDataset,
                    curves: dict[str, dict[str, np.ndarray]] | None = None,
                    step: Callable[[str], None] | None = None, lagrangebench: bool = True,
                    sinkhorn_stride: int = 10, sinkhorn_rollouts: int | None = 4,
+                   positions: dict[str, np.ndarray] | None = None,
                    ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Everything ``python -m bgn.evaluate`` and the study (``bgn.experiments``) score on one
     split: one-step, type and contact metrics and the inverse metrics with the flow
@@ -509,7 +517,8 @@ def evaluate_split(module: PhysicsModule, dataset: FrameDataset,
                                      starts_per_sim=rollout_starts, max_sims=rollout_sims,
                                      curves=curves, step=step, lagrangebench=lagrangebench,
                                      sinkhorn_stride=sinkhorn_stride,
-                                     sinkhorn_rollouts=sinkhorn_rollouts))
+                                     sinkhorn_rollouts=sinkhorn_rollouts,
+                                     positions=positions))
     return metrics, arrays
 
 
@@ -880,13 +889,14 @@ def evaluate_run(cfg: Any, paths: tuple[Path, Path, Path]) -> Path:
     references = 2 if dataset.meta.target == "velocity" else 3
     stages = Stages(3 + references + bool(cfg.figures), bool(cfg.progress))
     curves: dict[str, dict[str, np.ndarray]] = {}
+    positions: dict[str, np.ndarray] = {}  # the model's rollouts, written as rollouts.npz
     try:
         metrics, arrays = evaluate_split(
             module, dataset, datamodule.datasets[cfg.calibration_split], cfg.max_frames,
             cfg.mass_frames, cfg.mass_samples, cfg.batch_size, int(cfg.seed),
             int(cfg.rollout.steps), int(cfg.rollout.starts_per_sim), cfg.rollout.max_sims,
             curves=curves, step=stages, sinkhorn_stride=int(cfg.rollout.sinkhorn_stride),
-            sinkhorn_rollouts=cfg.rollout.sinkhorn_rollouts)
+            sinkhorn_rollouts=cfg.rollout.sinkhorn_rollouts, positions=positions)
         figures: dict[str, Any] = {}
         stages("the learned pair law")
         law, figures["law"] = law_text(module, datamodule.datasets["train"],
@@ -912,7 +922,23 @@ def evaluate_run(cfg: Any, paths: tuple[Path, Path, Path]) -> Path:
     record["wall_time_s"] = time.perf_counter() - start
     record["model"] = module.model.describe()  # the variant, given, physics written in
     write_outputs(out_dir, record, metrics, figures, law)
+    write_rollouts(out_dir / "rollouts.npz", positions, dataset.dt)
     return out_dir
+
+
+def write_rollouts(path: Path, positions: dict[str, np.ndarray], dt: float) -> None:
+    """The model's rollouts (``predicted``, ``true`` (R, steps + 2, N, D): the frame before the
+    start, the start, the steps; ``sims``, ``starts`` (R,); ``dt``), written whole through a
+    temporary file, so an engine's own energy can be computed on them
+    (examples/engines/engine_energy.py --positions)."""
+    import os
+
+    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}.npz")
+    try:
+        np.savez_compressed(tmp, dt=np.asarray(dt), **positions)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 @cli("evaluate")  # Hydra app; bad input: one line, exit 2 (bgn.validate)

@@ -133,6 +133,14 @@ def test_the_command_writes_report_csv_json_and_figures(trained_run, tmp_path: P
     with open(out / "metrics.csv", newline="") as fh:
         rows = {r["metric"]: r["value"] for r in csv.DictReader(fh)}
     assert float(rows["nmse"]) == metrics["nmse"]
+    # the model's rollouts, for what bgn cannot score itself (an engine's own energy): the
+    # recorded start frames are the truth's, and their errors are the report's
+    with np.load(out / "rollouts.npz") as saved:
+        predicted, true = saved["predicted"], saved["true"]
+        assert predicted.shape == true.shape and len(saved["sims"]) == len(predicted)
+        np.testing.assert_array_equal(predicted[:, :2], true[:, :2])
+        err = np.linalg.norm(predicted[:, 11] - true[:, 11], axis=-1).mean()
+        assert err == pytest.approx(metrics["rollout/pos_err_mean@10"], rel=1e-6)
     report = (out / "report.md").read_text()
     for text in ("best.ckpt", record["provenance"]["run_config_hash"], "git commit",
                  "torch threads", "## Rollouts", "## Inverse model", "rollout_error.png",

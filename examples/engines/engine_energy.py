@@ -4,7 +4,8 @@ model's rollout, so its drift is measured by the engine that made the data.
     python examples/engines/engine_energy.py data/external/rebound_nbody \
         --positions rollout.npz --split test
 
-``rollout.npz`` holds ``positions`` (S, T, N, D) and, optionally, ``velocities``; without them
+``rollout.npz`` holds ``positions`` (S, T, N, D) (or ``predicted``, as ``python -m bgn.evaluate``'s
+``rollouts.npz`` does) and, optionally, ``velocities``; without them
 velocities are finite differences of the positions (``frame_velocities``: five-point stencil,
 minimum image where periodic), so compare a rollout with the truth passed through the same
 differences (``--positions`` omitted: the dataset's own split). Prints the relative energy change
@@ -153,6 +154,8 @@ def main() -> None:
     ap.add_argument("data_dir", type=Path)
     ap.add_argument("--positions", type=Path, help="npz with positions (S,T,N,D) [velocities]")
     ap.add_argument("--split", default="test", choices=["train", "val", "test"])
+    ap.add_argument("--key", help="the array of --positions to read (default: positions, else "
+                    "predicted; 'true' gives the recorded frames of the same rollouts)")
     args = ap.parse_args()
     engine = json.loads((args.data_dir / "engine.json").read_text())["engine"]
     if engine not in ("rebound", "ase"):
@@ -162,8 +165,9 @@ def main() -> None:
     if args.positions is None:
         positions = _split_positions(args.data_dir, args.split)
     else:
-        with np.load(args.positions) as f:
-            positions = f["positions"]
+        with np.load(args.positions) as f:  # bgn.evaluate's rollouts.npz: "predicted"
+            key = args.key or ("positions" if "positions" in f else "predicted")
+            positions = f[key]
             velocities = f["velocities"] if "velocities" in f else None
     for s, e in enumerate(dataset_energy(args.data_dir, positions, velocities, args.split)):
         energy = e["energy"]

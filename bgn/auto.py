@@ -565,7 +565,8 @@ def formula_candidate(results: Sequence[Result], auto_dir: Path, val: Any, train
     out_dir = auto_dir / f"formula_{best.candidate.name}"
     start = time.perf_counter()
     record = finetune_formula(best_checkpoint(auto_dir / best.candidate.name), train_split,
-                              val, steps=steps, substeps=FINETUNE_SUBSTEPS, out_dir=out_dir)
+                              val, steps=steps, substeps=FINETUNE_SUBSTEPS, out_dir=out_dir,
+                              max_seconds=seconds(each.get("max_time")))
     spec = json.dumps(record["tuned"])
     cand = Candidate(out_dir.name, f"{best.candidate.label}; its law the formula "
                      f"{_spec_text(record['tuned'])}, constants fine-tuned",

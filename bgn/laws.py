@@ -938,7 +938,8 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
                      substeps: int = FINETUNE_SUBSTEPS, lr: float = FINETUNE_LR,
                      batch_size: int = FINETUNE_BATCH, horizon: int = FINETUNE_HORIZON,
                      val_sims: int | None = None, out_dir: Path | None = None,
-                     seed: int = 0, start: str | None = None) -> dict[str, Any]:
+                     seed: int = 0, start: str | None = None,
+                     max_seconds: float | None = None) -> dict[str, Any]:
     """The fitted formula as the model's law, its constants fine-tuned end to end: the
     checkpoint's model with ``law=formula`` (``formula_module``), the law's constants alone
     trained with the head's own loss on the training split, through ``substeps`` (a frame's
@@ -948,7 +949,10 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     scored on the validation rollouts (``validation_errors``); the lower error after the
     horizon is chosen. ``out_dir``: writes ``formula.ckpt`` (loadable as any checkpoint) and
     ``formula.json``. ``start``: a spec to start from in place of the law read back (tests).
+    ``max_seconds``: the training stops there too (a time budget: ``bgn.auto``'s share).
     Returns the record (specs before and after, errors, choice)."""
+    import time
+
     from bgn.checkpoints import read, write_atomic
     from bgn.evaluate import load_model
     from bgn.graph import collate
@@ -965,7 +969,10 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     rng = np.random.default_rng(seed)
     losses = []
     model.train()
+    began = time.perf_counter()
     for _ in range(steps):
+        if max_seconds is not None and time.perf_counter() - began > max_seconds:
+            break
         idx = rng.choice(len(train_split), min(batch_size, len(train_split)), replace=False)
         g = collate([train_split[int(i)] for i in idx])
         opt.zero_grad()
@@ -993,7 +1000,8 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     hp["model_config"] = {**hp["model_config"], "substeps": rollout_substeps}
     scores["formula"] = by_substeps[rollout_substeps]
     choice = min(scores, key=lambda k: (scores[k]["errors"].get(n, math.inf), k != "network"))
-    record = {"checkpoint": str(checkpoint), "substeps": substeps, "steps": steps, "lr": lr,
+    record = {"checkpoint": str(checkpoint), "substeps": substeps, "steps": len(losses),
+              "lr": lr,
               "rollout_substeps": rollout_substeps,
               "formula_by_substeps": {str(k): v for k, v in by_substeps.items()},
               "start": json.loads(start_spec), "tuned": json.loads(spec),

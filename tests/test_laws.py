@@ -292,6 +292,11 @@ def test_fine_tuning_moves_a_perturbed_constant_back_and_writes_a_checkpoint(
     after = abs(zero_crossing(record["tuned"]) - 0.99)
     # measured on this data (seed 0): 0.24 -> 0.009, a factor 27
     assert before / after > 20, (before, after)
+    # a time budget stops the training (auto's share): none left, no step taken
+    timed = finetune_formula(ckpt, dm.datasets["train"], dm.datasets["val"],
+                             start=spring_spec(1.5, -2.0), steps=40, substeps=4, horizon=20,
+                             max_seconds=0.0)
+    assert timed["steps"] == 0 and timed["tuned"] == timed["start"]
     scores = record["validation"]
     assert record["choice"] in scores and all(
         np.isfinite(list(s["errors"].values())).all() for s in scores.values())

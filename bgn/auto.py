@@ -46,11 +46,11 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from bgn.checkpoints import write_atomic
+from bgn.metrics import SHORT_HORIZON, rollout_scores
 from bgn.sim.scene import SceneMeta
 
 log = logging.getLogger("bgn.auto")
 
-SHORT_HORIZON = 10       # the error reported beside auto.horizon's
 MASS_FRAMES = 64         # validation frames the fitted masses are read from
 LAW_POINTS = 200         # distances the learned pair law is sampled at
 BUDGET_KEYS = ("max_time", "max_steps", "max_epochs")
@@ -196,25 +196,6 @@ class Result:
     def score(self, horizon: int) -> float:
         value = self.errors.get(horizon, float("nan"))
         return value if math.isfinite(value) else float("inf")
-
-
-def rollout_scores(predicted: np.ndarray, true: np.ndarray, first_non_finite: np.ndarray,
-                   box: float | None, horizons: Sequence[int],
-                   ) -> tuple[dict[int, float], float, np.ndarray]:
-    """Errors after each horizon (the mean over R rollouts (R, T+2, N, D) of the capped
-    position error, ``bgn.metrics.capped_step_errors``, a failed rollout at the cap from the
-    step it failed), the share of rollouts that failed, and the mean error per step (T,)."""
-    from bgn.metrics import ESCAPE_FACTOR, capped_step_errors, rollout_failures, scene_scale
-
-    errors = capped_step_errors(predicted, true, box)
-    cap = ESCAPE_FACTOR * scene_scale(true, box)[1]
-    failed = rollout_failures(predicted, true, box, first_non_finite)
-    for r, step in enumerate(failed):
-        if step >= 1:
-            errors[r, step - 1:] = cap[r]
-    n_steps = errors.shape[1]
-    scores = {int(h): float(errors[:, h - 1].mean()) for h in horizons if 1 <= h <= n_steps}
-    return scores, float(np.mean(failed >= 0)), errors.mean(axis=0)
 
 
 def choose(results: Sequence[Result], horizon: int) -> tuple[Result, float]:

@@ -918,8 +918,8 @@ def validation_errors(model: Any, val: Any, history: int, horizon: int = FINETUN
     """bgn.auto's scoring: every validation simulation (or ``val_sims`` of them) rolled out
     from the shared start frames, the mean capped error after 10 and ``horizon`` steps, a
     failed rollout at the cap, and the share that failed."""
-    from bgn.auto import SHORT_HORIZON, rollout_scores
     from bgn.data.frames import evenly_spaced
+    from bgn.metrics import SHORT_HORIZON, rollout_scores
     from bgn.rollout import rollout_many, rollout_starts
 
     n_steps = min(horizon, val.file.n_frames - history - 2)

@@ -10,7 +10,7 @@ type-classification accuracy and AUROC; rollout errors, energy and momentum drif
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import torch
@@ -642,3 +642,23 @@ def lagrangebench_metrics(predicted: np.ndarray, true: np.ndarray, masses: np.nd
     out["sinkhorn_rollouts"], out["sinkhorn_frames"] = float(len(chosen)), float(len(frames))
     out["sinkhorn_stride"] = float(sinkhorn_stride)
     return out
+
+
+SHORT_HORIZON = 10  # the short-horizon error reported beside a rollout score's horizon
+
+
+def rollout_scores(predicted: np.ndarray, true: np.ndarray, first_non_finite: np.ndarray,
+                   box: float | None, horizons: Sequence[int],
+                   ) -> tuple[dict[int, float], float, np.ndarray]:
+    """Errors after each horizon (the mean over R rollouts (R, T+2, N, D) of the capped
+    position error, ``bgn.metrics.capped_step_errors``, a failed rollout at the cap from the
+    step it failed), the share of rollouts that failed, and the mean error per step (T,)."""
+    errors = capped_step_errors(predicted, true, box)
+    cap = ESCAPE_FACTOR * scene_scale(true, box)[1]
+    failed = rollout_failures(predicted, true, box, first_non_finite)
+    for r, step in enumerate(failed):
+        if step >= 1:
+            errors[r, step - 1:] = cap[r]
+    n_steps = errors.shape[1]
+    scores = {int(h): float(errors[:, h - 1].mean()) for h in horizons if 1 <= h <= n_steps}
+    return scores, float(np.mean(failed >= 0)), errors.mean(axis=0)

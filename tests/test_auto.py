@@ -22,11 +22,10 @@ from bgn.auto import (
     choose,
     compose_candidate,
     pair_law,
-    rollout_scores,
     split_budget,
     write_report,
 )
-from bgn.metrics import ESCAPE_FACTOR, capped_rollout_error
+from bgn.metrics import ESCAPE_FACTOR, capped_rollout_error, rollout_scores
 from bgn.model.bgn import ModelConfig
 from bgn.model.newton import PairForceHead, build_head
 from bgn.sim import make_scene

@@ -4,18 +4,16 @@ pair-force head with ``law=formula`` on the true law of spring frames."""
 from __future__ import annotations
 
 import json
-from dataclasses import fields, replace
 
 import numpy as np
 import pytest
 import torch
 
-from bgn.data.datamodule import ParticleDataModule
-from bgn.graph import collate
 from bgn.laws import Formula, Term, default_library
 from bgn.model import build_model
 from bgn.model.formula_law import FormulaLaw, check_law
 from bgn.model.references import FrameOracle
+from tests.model.test_newton import frames
 
 
 def spec_of(terms: list[Term], amplitudes, cs) -> str:
@@ -96,16 +94,7 @@ SPRING = json.dumps([{"types": [0, 0], "terms": [{"kind": "const", "power": 0, "
 def test_a_head_with_the_true_formula_predicts_the_frame_oracles_targets(small_cfg, config):
     """Same law, same masses, same substeps: the head with law=formula and the FrameOracle
     (the true law and masses) predict the same accelerations of recorded spring frames."""
-    cfg = small_cfg("spring", "dataset.history=4")
-    dm = ParticleDataModule(cfg.dataset, 50.0, cfg.paths.data_dir, generate_workers=1,
-                            show_progress=False)
-    dm.prepare_data()
-    dm.setup()
-    ds = dm.datasets["train"]
-    g = collate([ds[i] for i in range(0, len(ds), 5)])
-    g = replace(g, **{f.name: getattr(g, f.name).double() for f in fields(g)
-                      if torch.is_tensor(getattr(g, f.name))
-                      and getattr(g, f.name).is_floating_point()})
+    ds, g = frames(small_cfg, "spring")  # recorded frames in float64
     model = build_model({**config, "mass_law": "inertial", "law": "formula",
                          "law_formula": SPRING, "substeps": 8}, ds.meta, ds.file.stats(),
                         ds.history).double()

@@ -175,10 +175,14 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
             if contacts[name]:
                 metrics[f"contact_f1_{name}"] = binary_f1(torch.cat(contacts[name]).numpy(),
                                                           true_contacts)
-    if rel_pred:
+    masses_known = getattr(module.meta, "masses_known", True)
+    if rel_pred and masses_known:
         metrics["relmass_r2"] = r2_score(torch.cat(rel_pred).numpy(), torch.cat(rel_true).numpy())
     arrays: dict[str, np.ndarray] = {}
-    if model.has_inverse and inverse:
+    if model.has_inverse and inverse and not masses_known:  # nothing to score it against
+        metrics.update(posterior_summary(module, dataset, mass_frames, mass_samples,
+                                         batch_size, seed))
+    elif model.has_inverse and inverse:
         if calibration is not None:
             metrics.update(calibrate_mass_posterior(module, calibration, mass_frames,
                                                     batch_size))
@@ -186,6 +190,28 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
                                                   batch_size, seed)
         metrics.update(inverse_values)
     return metrics, arrays
+
+
+def posterior_summary(module: PhysicsModule, dataset: FrameDataset, mass_frames: int = 32,
+                      mass_samples: int = 32, batch_size: int = 16, seed: int = 0,
+                      ) -> dict[str, float]:
+    """Data without recorded masses (imported): the inverse model's posterior reported, not
+    scored. Per particle of ``mass_frames`` evenly spaced frames, the median and the central
+    90 % interval of its sampled log-mass; keys ``posterior/...``: particles, the spread (std)
+    of the medians over particles, and the mean interval width (nats)."""
+    torch.manual_seed(seed)
+    indices = evenly_spaced(len(dataset), mass_frames)
+    medians, widths = [], []
+    for s in range(0, len(indices), batch_size):
+        g = collate([dataset[i] for i in indices[s:s + batch_size]])
+        samples, _ = module.model.mass_posterior(g, mass_samples)      # (samples, particles)
+        low, mid, high = np.quantile(samples.double().numpy(), [0.05, 0.5, 0.95], axis=0)
+        medians.append(mid)
+        widths.append(high - low)
+    mid, width = np.concatenate(medians), np.concatenate(widths)
+    return {"posterior/particles": float(len(mid)),
+            "posterior/log_mass_median_std": float(mid.std()),
+            "posterior/interval90_width": float(width.mean())}
 
 
 def _posterior_metrics(true_log: np.ndarray, sampled_log: np.ndarray,
@@ -823,6 +849,15 @@ def report_text(record: dict[str, Any], metrics: dict[str, Any], figures: list[s
                   f"{metrics.get('mass_calibration_scale50', float('nan')):.3g} / "
                   f"{metrics.get('mass_calibration_scale90', float('nan')):.3g}).", "",
                   markdown_table(["source", *INVERSE_COLUMNS], rows)]
+    if "posterior/particles" in metrics:
+        lines += ["## Inverse model (no recorded masses)", "",
+                  "The data carry no masses, so the posterior is reported, not scored "
+                  f"(bgn.evaluate.posterior_summary): over "
+                  f"{int(metrics['posterior/particles'])} particles of evenly spaced frames, "
+                  "the medians of the sampled log-masses spread by "
+                  f"{metrics['posterior/log_mass_median_std']:.3g} (std), and the central 90 % "
+                  f"intervals are {metrics['posterior/interval90_width']:.3g} wide on average "
+                  "(nats).", ""]
     if law is not None:
         lines += [law]
     figures = [f for f in figures if f != LAW_FIGURE or law is None or f not in law]

@@ -274,3 +274,27 @@ def test_an_auto_run_resolves_to_its_chosen_structure(tmp_path: Path) -> None:
     ckpt, run_dir, config = resolve_run(str(tmp_path))
     assert ckpt == tmp_path / "auto" / "newton_source" / "checkpoints" / "best.ckpt"
     assert config == tmp_path / "auto" / "newton_source" / "train_config.yaml"
+
+
+def test_data_without_masses_report_the_posterior_unscored(tmp_path: Path) -> None:
+    """Imported data without masses: the evaluation reports the inverse model's posterior
+    (medians and interval widths) and scores nothing against the stand-in unit masses."""
+    from bgn.data import from_arrays
+    from bgn.evaluate import evaluate_model
+    from tests.test_train import SMALL_MODELS
+
+    rng = np.random.default_rng(0)
+    walk = np.cumsum(rng.normal(scale=0.01, size=(5, 30, 4, 2)), axis=1)
+    x = walk + rng.normal(size=(5, 1, 4, 2))
+    from_arrays(x, 0.02, name="nomass", data_dir=tmp_path / "data",
+                splits={"train": [0, 1, 2], "val": [3], "test": [4]})
+    cfg = compose_config("train", [
+        "dataset=imported", "dataset.name=nomass", f"paths.data_dir={tmp_path / 'data'}",
+        f"paths.output_dir={tmp_path / 'out'}", "model=bgn", *SMALL_MODELS["bgn"],
+        "model.dynamics=decoder", "rollout_steps=3", "val_rollout_steps=0"])
+    datamodule, module = build(cfg)
+    metrics, arrays = evaluate_model(module, datamodule.datasets["test"], max_frames=8,
+                                     mass_frames=4, mass_samples=16, batch_size=2)
+    assert metrics["posterior/particles"] == 16 and metrics["posterior/interval90_width"] > 0
+    assert np.isfinite(metrics["posterior/log_mass_median_std"])
+    assert not arrays and "coverage50" not in metrics and "relmass_r2" not in metrics

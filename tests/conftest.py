@@ -46,3 +46,20 @@ def small_cfg(tmp_path: Path):
 def shared_data_dir(tmp_path_factory) -> Path:
     """One data cache for the whole session: training tests reuse the small datasets."""
     return tmp_path_factory.mktemp("data")
+
+
+@pytest.fixture(scope="session")
+def small_datamodules(shared_data_dir: Path) -> dict:
+    """The small DataModule of every scene in ``SMALL``, data generated and set up once per
+    session (shared by the tests that read every scene)."""
+    from bgn.train import data_module
+
+    out = {}
+    for scene in SMALL:
+        cfg = compose_config("train", [f"dataset={scene}", *SMALL[scene],
+                                       f"paths.data_dir={shared_data_dir}"])
+        dm = data_module(cfg)
+        dm.prepare_data()
+        dm.setup()
+        out[scene] = dm
+    return out

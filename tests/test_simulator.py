@@ -7,26 +7,20 @@ import numpy as np
 import pytest
 import torch
 
-from bgn.data.datamodule import ParticleDataModule
 from bgn.data.targets import targets
 from bgn.evaluate import evaluate_rollouts
 from bgn.model import build_model
 from bgn.rollout import particles, rollout, simulator, true_positions
-from tests.conftest import SMALL, compose_config
 
 SCENES = ["spring", "gravity_r1", "gravity_r2", "collisions"]
 
 
 @pytest.fixture(scope="module")
-def datasets(shared_data_dir):
+def datasets(small_datamodules):
     """The small val split of every scene (generated once per session)."""
     out = {}
     for scene in SCENES:
-        cfg = compose_config("train", [f"dataset={scene}", *SMALL[scene],
-                                       f"paths.data_dir={shared_data_dir}"])
-        dm = ParticleDataModule(cfg.dataset, cfg.fps, cfg.paths.data_dir)
-        dm.prepare_data()
-        dm.setup()
+        dm = small_datamodules[scene]
         out[scene] = dm.datasets["val"]
         out[scene].train_stats = dm.stats()
     return out

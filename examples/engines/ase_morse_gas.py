@@ -26,7 +26,14 @@ import numpy as np
 from ase import Atoms
 from ase.md.verlet import VelocityVerlet
 from engine_energy import fast_neighbour_list, morse_calculator
-from layouts import assign_splits, engine_record, output_dir, write_json, write_lagrangebench
+from layouts import (
+    assign_splits,
+    engine_record,
+    output_dir,
+    write_energy,
+    write_json,
+    write_lagrangebench,
+)
 
 CELL_Z = 10.0  # the non-periodic third cell edge; atoms stay at z = 0 (no force along z)
 
@@ -98,9 +105,6 @@ def main() -> None:
             for s in range(args.sims)]
     split = assign_splits(args.sims, args.seed)
     seconds = time.perf_counter() - start
-    index = np.empty(args.sims, dtype=np.int64)  # group number within its split's file
-    for name in ("train", "val", "test"):
-        index[split == name] = np.arange((split == name).sum())
     metadata = {
         "case": "MORSE2D", "solver": f"ase {ase.__version__} VelocityVerlet, MorsePotential",
         "dim": 2, "dx": box / np.ceil(np.sqrt(args.atoms)), "dt": args.md_dt,
@@ -117,8 +121,7 @@ def main() -> None:
     with output_dir(args.out, args.overwrite) as out:
         write_lagrangebench(out, [p for p, _ in runs],
                             [np.zeros(args.atoms, dtype=np.int64)] * args.sims, split, metadata)
-        np.savez(out / "energy.npz", split=split.astype("U5"), index=index,
-                 **{k: np.stack([e[k] for _, e in runs]) for k in runs[0][1]})
+        write_energy(out, split, [e for _, e in runs])
         write_json(out / "engine.json",
                    engine_record("ase", ase.__version__, params, args.seed, seconds))
     print(f"wrote {args.out}: {args.sims} x {args.frames} frames, {args.atoms} atoms, "

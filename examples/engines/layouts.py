@@ -75,6 +75,17 @@ def frame_statistics(trajectories: list[np.ndarray], box: np.ndarray | None = No
             "acc_mean": a.mean(0).tolist(), "acc_std": a.std(0).tolist()}
 
 
+def write_energy(out: Path, split: np.ndarray, series: list[dict[str, np.ndarray]]) -> None:
+    """``energy.npz``: the engine's own per-frame series (energy, momenta...) of every
+    trajectory, its split and ``index``, its number within its split's file (the layouts
+    with one file per split)."""
+    index = np.empty(len(split), dtype=np.int64)
+    for name in ("train", "val", "test"):
+        index[split == name] = np.arange((split == name).sum())
+    np.savez(out / "energy.npz", split=split.astype("U5"), index=index,
+             **{k: np.stack([e[k] for e in series]) for k in series[0]})
+
+
 def write_json(path: Path, obj: dict[str, Any]) -> None:
     path.write_text(json.dumps(obj, indent=2) + "\n")
 

@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 import pymunk
-from layouts import assign_splits, engine_record, output_dir, write_gns, write_json
+from layouts import assign_splits, engine_record, output_dir, write_energy, write_gns, write_json
 
 BOX = 1.0
 
@@ -116,9 +116,6 @@ def main() -> None:
     runs = [simulate(np.random.default_rng([args.seed, s]), args) for s in range(args.sims)]
     split = assign_splits(args.sims, args.seed)
     seconds = time.perf_counter() - start
-    index = np.empty(args.sims, dtype=np.int64)  # trajectory number within its split's file
-    for name in ("train", "val", "test"):
-        index[split == name] = np.arange((split == name).sum())
     metadata = {
         "bounds": [[0.0, BOX], [0.0, BOX]], "dim": 2, "dt": args.frame_dt,
         # a contact needs centres within two large radii; the margin covers a frame of motion
@@ -130,8 +127,7 @@ def main() -> None:
                              for r in (args.radius_small, args.radius_large)])
     with output_dir(args.out, args.overwrite) as out:
         write_gns(out, [r[0] for r in runs], [r[1] for r in runs], split, metadata)
-        np.savez(out / "energy.npz", split=split.astype("U5"), index=index,
-                 **{k: np.stack([r[2][k] for r in runs]) for k in runs[0][2]})
+        write_energy(out, split, [r[2] for r in runs])
         write_json(out / "engine.json",
                    engine_record("pymunk", pymunk.version, params, args.seed, seconds))
     print(f"wrote {args.out}: {args.sims} x {args.frames} frames, {args.discs} discs, "

@@ -15,7 +15,14 @@ import time
 import numpy as np
 import rebound
 from engine_energy import rebound_energy
-from layouts import assign_splits, engine_record, output_dir, write_json, write_plain_npz
+from layouts import (
+    assign_splits,
+    engine_record,
+    output_dir,
+    write_energy,
+    write_json,
+    write_plain_npz,
+)
 
 
 def simulate(rng: np.random.Generator, args: argparse.Namespace) -> tuple[np.ndarray, ...]:
@@ -78,8 +85,7 @@ def main() -> None:
     with output_dir(args.out, args.overwrite) as out:
         write_plain_npz(out / "nbody.npz", positions=pos, velocities=vel, masses=masses,
                         dt=args.frame_dt, split=split)
-        np.savez(out / "energy.npz", split=split.astype("U5"),
-                 **{k: np.stack([e[k] for e in energy]) for k in energy[0]})
+        write_energy(out, split, energy)
         write_json(out / "engine.json",
                    engine_record("rebound", rebound.__version__, params, args.seed, seconds))
     print(f"wrote {args.out}: {args.sims} x {args.frames} frames, {args.bodies} bodies, "

@@ -21,7 +21,7 @@ from bgn.graph import Graph, collate
 from bgn.model.base import ModelOutput, PhysicsModel
 from bgn.rollout import particles, simulator, true_positions
 from bgn.simulator import Particles
-from bgn.train import build_module, data_module, plain_stats
+from bgn.train import build_module, plain_stats
 from tests.conftest import SMALL, compose_config
 
 SCENES = ["spring", "gravity_r1", "gravity_r2", "collisions"]
@@ -73,17 +73,9 @@ ROLLOUT_STEPS = 3
 
 
 @pytest.fixture(scope="module")
-def scenes(shared_data_dir):
+def scenes(small_datamodules):
     """The small datamodule of every scene (generated once per session)."""
-    out = {}
-    for scene in SCENES:
-        cfg = compose_config("train", [f"dataset={scene}", *SMALL[scene],
-                                       f"paths.data_dir={shared_data_dir}"])
-        dm = data_module(cfg)
-        dm.prepare_data()
-        dm.setup()
-        out[scene] = dm
-    return out
+    return {scene: small_datamodules[scene] for scene in SCENES}
 
 
 def build(scene: str, model: list[str], dm) -> PhysicsModel:

@@ -15,8 +15,13 @@ it, a hand edit) is named in a warning and its cell trained or evaluated again.
 from __future__ import annotations
 
 import json
+import os
+import shlex
+import subprocess
+import sys
 import time
-from dataclasses import asdict, dataclass, field
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -42,24 +47,38 @@ class Cell:
     groups: tuple[str, ...] = field(default=("main",), compare=False)
     tag: str = ""                          # names the ``extra`` overrides (bgn.pareto's sizes)
     extra: tuple[str, ...] = ()            # train overrides of this cell alone, applied last
+    seed: int = 0                          # the training seed (train override seed=<s>)
+    seeded: bool = False                   # one of several seeds: the name ends in _s<seed>
 
     @property
     def name(self) -> str:
         fps = f"{self.fps:g}".replace(".", "p")
         sims = f"_sims{self.train_sims}" if self.train_sims is not None else ""
         tag = f"_{self.tag}" if self.tag else ""
-        return f"{self.scene}_fps{fps}_{self.model}_{self.ablation}{sims}{tag}"
+        seed = f"_s{self.seed}" if self.seeded else ""
+        return f"{self.scene}_fps{fps}_{self.model}_{self.ablation}{sims}{tag}{seed}"
+
+
+def preset_seeds(preset: DictConfig) -> list[int]:
+    """The preset's training seeds (``seeds``, default [0]), each once."""
+    from bgn.validate import ConfigError
+
+    seeds = [int(s) for s in (preset.get("seeds") or [0])]
+    if len(set(seeds)) != len(seeds):
+        raise ConfigError("preset.seeds", seeds, "each seed once")
+    return seeds
 
 
 def plan_cells(preset: DictConfig) -> list[Cell]:
-    """Every cell of a preset, each once (an ablation=full cell is the main grid's BGN cell)."""
+    """Every cell of a preset, each once (an ablation=full cell is the main grid's BGN cell),
+    per seed of ``preset.seeds`` (the first seed's cells first: an interrupted study has whole
+    tables of the first seeds)."""
     cells: dict[str, Cell] = {}
 
     def add(cell: Cell, group: str) -> None:
         old = cells.get(cell.name)
         groups = (old.groups if old else ()) + (group,)
-        cells[cell.name] = Cell(cell.scene, cell.fps, cell.model, cell.ablation,
-                                cell.train_sims, tuple(dict.fromkeys(groups)))
+        cells[cell.name] = replace(cell, groups=tuple(dict.fromkeys(groups)))
 
     for scene in preset.scenes:
         for fps in preset.fps:
@@ -74,7 +93,8 @@ def plan_cells(preset: DictConfig) -> list[Cell]:
         for model in se.get("models", preset.models):
             for n in se.train_sims:
                 add(Cell(scene, float(se.fps), model, "full", int(n)), "sample_efficiency")
-    return list(cells.values())
+    seeds = preset_seeds(preset)
+    return [replace(c, seed=s, seeded=len(seeds) > 1) for s in seeds for c in cells.values()]
 
 
 def cell_overrides(cell: Cell, cfg: DictConfig) -> list[str]:
@@ -92,6 +112,8 @@ def cell_overrides(cell: Cell, cfg: DictConfig) -> list[str]:
         # n_sims is per split and must hold the largest train_sims; val/test use them all
         out += [f"dataset.n_sims={max(int(n) for n in se.train_sims)}",
                 f"++dataset.train_sims={cell.train_sims}", *se.get("overrides", [])]
+    if cell.seeded or cell.seed != 0:  # seed 0 is train.yaml's: one-seed cells as before
+        out.append(f"seed={cell.seed}")
     out += [*cell.extra,
             f"paths.data_dir={cfg.data_dir}",
             f"paths.output_dir={Path(cfg.cells_dir) / cell.name}"]
@@ -190,21 +212,192 @@ def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
     return result
 
 
+# ----------------------------------------------------------------------------- workers
+_ARGV: list[str] = []  # the command line as typed (set under ``__main__``), for provenance
+_WORKER = ("import sys; from bgn.experiments import worker_main; "
+           "sys.exit(worker_main(sys.argv[1]))")
+
+
+class CellsFailed(RuntimeError):
+    """Some cells failed (named); the others were trained, evaluated and reported."""
+
+    def __init__(self, report: Path, failed: list[str]) -> None:
+        self.report, self.failed = report, failed
+        super().__init__(f"{len(failed)} cell(s) failed: {', '.join(failed)} (their "
+                         f"worker.log or the output above says why); report of the others: "
+                         f"{report}")
+
+
+def set_threads(threads: int | None) -> None:
+    """torch's intra-op threads of this process (None: torch's default)."""
+    if threads:
+        import torch
+
+        torch.set_num_threads(int(threads))
+
+
+def cell_from_record(record: dict[str, Any]) -> Cell:
+    """A Cell from ``asdict(cell)`` (its JSON form: tuples as lists)."""
+    return Cell(**{**record, "groups": tuple(record["groups"]),
+                   "extra": tuple(record["extra"])})
+
+
+def worker_main(job_path: str) -> int:
+    """One cell in its own process (``run`` with workers > 1): trained unless its
+    metrics.json exists, then evaluated (eval.json, cached); an error exits non-zero with its
+    traceback in the cell's worker.log."""
+    job = json.loads(Path(job_path).read_text())
+    set_threads(job.get("threads"))
+    cfg, cell = OmegaConf.create(job["cfg"]), cell_from_record(job["cell"])
+    train_cell(cell, cfg)
+    evaluate_cell(cell, cfg)
+    return 0
+
+
+def cell_process(cell: Cell, cfg: DictConfig, threads: int | None) -> tuple[bool, Path]:
+    """Train and evaluate a cell in a fresh Python process (``worker_main``) with ``threads``
+    torch threads (OMP_NUM_THREADS too, so the OpenMP pool is that size from the start);
+    returns (succeeded, its log)."""
+    run_dir = Path(cfg.cells_dir) / cell.name
+    run_dir.mkdir(parents=True, exist_ok=True)
+    job = run_dir / "job.json"
+    write_atomic(job, json.dumps({"cell": asdict(cell), "threads": threads,
+                                  "cfg": OmegaConf.to_container(cfg, resolve=True)}, indent=2))
+    env = dict(os.environ)
+    if threads:
+        env.update(OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
+    log = run_dir / "worker.log"
+    with open(log, "a") as fh:
+        code = subprocess.run([sys.executable, "-c", _WORKER, str(job)], stdout=fh,
+                              stderr=subprocess.STDOUT, env=env).returncode
+    return code == 0, log
+
+
+def prepare_datasets(cells: list[Cell], cfg: DictConfig) -> None:
+    """Generate every dataset the cells read, once each, before parallel cells start (each
+    with every core; the cells would otherwise wait on one another's file locks)."""
+    from bgn.train import data_module
+
+    seen: set[Path] = set()
+    for cell in cells:
+        datamodule = data_module(compose_train(cell_overrides(cell, cfg)))
+        path = datamodule.spec.with_split("train").path(datamodule.data_dir)
+        if path not in seen:
+            seen.add(path)
+            datamodule.prepare_data()
+
+
+def train_all(cells: list[Cell], cfg: DictConfig, workers: int,
+              threads: int | None) -> list[str]:
+    """Train every cell (what is missing): in this process one after the other, or in
+    ``workers`` parallel processes (each also evaluates its cell); returns the failed cells'
+    names (the others continue)."""
+    import threading
+    import traceback
+
+    failed: list[str] = []
+    lock = threading.Lock()
+    if workers <= 1:
+        set_threads(threads)
+        for i, cell in enumerate(cells, 1):
+            print(f"[{i}/{len(cells)}] {cell.name}", flush=True)
+            try:
+                _, trained = train_cell(cell, cfg)
+            except Exception:  # named, the others go on; an interruption stops the study
+                traceback.print_exc()
+                print(f"  FAILED: {cell.name}", flush=True)
+                failed.append(cell.name)
+                continue
+            print(f"  {'trained' if trained else 'already trained (metrics.json)'}", flush=True)
+        return failed
+
+    prepare_datasets(cells, cfg)
+
+    def one(i: int, cell: Cell) -> None:
+        done = (Path(cfg.cells_dir) / cell.name / "metrics.json").exists()
+        ok, log = cell_process(cell, cfg, threads)
+        state = ("already trained (metrics.json)" if done else "trained") if ok \
+            else f"FAILED (log: {log})"
+        with lock:
+            print(f"[{i}/{len(cells)}] {cell.name}\n  {state}", flush=True)
+            if not ok:
+                failed.append(cell.name)
+
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        for future in [pool.submit(one, i, c) for i, c in enumerate(cells, 1)]:
+            future.result()
+    return [c.name for c in cells if c.name in failed]  # in the study's order
+
+
+def study_provenance(cfg: DictConfig, workers: int, threads: int | None, wall_s: float,
+                     failed: list[str]) -> dict[str, Any]:
+    """What regenerates the report: the command, the preset and a hash of its composed
+    config, the code's commit (and whether the tree had changes), the machine, threads,
+    workers, seeds and wall time."""
+    import hashlib
+    import platform
+
+    import torch
+
+    from bgn.evaluate import git_commit
+
+    if _ARGV:
+        command = " ".join(["python -m bgn.experiments", *map(shlex.quote, _ARGV[1:])])
+    else:  # run() called from Python: the command that composes the same preset
+        command = f"python -m bgn.experiments preset={cfg.preset.name}"
+    preset = OmegaConf.to_container(cfg.preset, resolve=True)
+    try:
+        status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                                cwd=CONF_DIR.parent, capture_output=True, text=True,
+                                timeout=10)
+        dirty: bool | None = bool(status.stdout.strip()) if status.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):
+        dirty = None
+    device = (f"cuda ({torch.cuda.get_device_name(0)})" if torch.cuda.is_available()
+              else "cpu")
+    return {"command": command, "preset": str(cfg.preset.name),
+            "config_hash": hashlib.sha256(json.dumps(preset, sort_keys=True).encode())
+            .hexdigest()[:12],
+            "git_commit": git_commit(), "git_dirty": dirty,
+            "machine": f"{platform.platform()}, {platform.processor() or platform.machine()}",
+            "cpu_count": os.cpu_count(), "torch": torch.__version__, "device": device,
+            "workers": workers, "threads_per_worker": threads or torch.get_num_threads(),
+            "seeds": preset_seeds(cfg.preset), "wall_time_s": round(wall_s, 1),
+            "failed_cells": failed, "preset_config": preset}
+
+
 # ----------------------------------------------------------------------------- command
 def run(cfg: DictConfig) -> Path:
-    """Train (what is missing), evaluate and report every cell of ``cfg.preset``."""
+    """Train (what is missing), evaluate and report every cell of ``cfg.preset``: ``workers``
+    cells at a time, each with ``threads_per_worker`` torch threads. A failed cell is named
+    and left out of the report; then ``CellsFailed`` is raised after the report is written."""
+    import traceback
+
     cells = plan_cells(cfg.preset)
     start = time.perf_counter()
+    workers = max(1, int(cfg.get("workers") or 1))
+    threads = cfg.get("threads_per_worker")
+    threads = int(threads) if threads else (1 if workers > 1 else None)
+    failed = train_all(cells, cfg, workers, threads)
     results: dict[str, dict[str, Any]] = {}
-    for i, cell in enumerate(cells, 1):
-        print(f"[{i}/{len(cells)}] {cell.name}", flush=True)
-        record, trained = train_cell(cell, cfg)
-        print(f"  {'trained' if trained else 'already trained (metrics.json)'}", flush=True)
-        results[cell.name] = {"train": record}
     for cell in cells:
-        results[cell.name]["eval"] = evaluate_cell(cell, cfg)
-    report = write_report(cfg.report_dir, cfg.preset.name, cfg.cells_dir, cells, results)
+        if cell.name in failed:
+            continue
+        try:  # cached in eval.json where a worker evaluated the cell
+            record = read_record(Path(cfg.cells_dir) / cell.name / "metrics.json")
+            if record is None:
+                raise FileNotFoundError(f"{cell.name}: no readable metrics.json")
+            results[cell.name] = {"train": record, "eval": evaluate_cell(cell, cfg)}
+        except Exception:
+            traceback.print_exc()
+            print(f"  FAILED (evaluation): {cell.name}", flush=True)
+            failed.append(cell.name)
+    provenance = study_provenance(cfg, workers, threads, time.perf_counter() - start, failed)
+    report = write_report(cfg.report_dir, cfg.preset.name, cfg.cells_dir, cells, results,
+                          provenance, cfg.get("results_md"))
     print(f"report: {report} ({time.perf_counter() - start:.0f} s)")
+    if failed:
+        raise CellsFailed(report, failed)
     return report
 
 
@@ -234,9 +427,13 @@ def main(cfg: DictConfig) -> None:
         from bgn import pareto
 
         pareto.run(cfg)
-    else:
+        return
+    try:
         run(cfg)
+    except CellsFailed as err:  # the report of the others is written; the command fails
+        raise SystemExit(f"bgn.experiments: {err}") from None
 
 
 if __name__ == "__main__":
+    _ARGV[:] = sys.argv
     main()

@@ -8,10 +8,12 @@ Table 1 values below, the only ones typed by hand. ``results`` maps a cell's nam
 
 from __future__ import annotations
 
+import math
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from bgn.tables import fmt, write_table
+from bgn.tables import fmt, write_csv, write_table
 
 if TYPE_CHECKING:
     from bgn.experiments import Cell
@@ -35,6 +37,85 @@ PAPER_COLUMNS = {"BGN": PAPER_BGN, "Cranmer et al.": PAPER_CRANMER,
 # no-learning references in Table 1 (bgn.evaluate): metric suffix -> column
 REFERENCES = {"last": "repeat-last NMSE", "linear": "linear-extrapolation NMSE"}
 EMPTY = "(no cells of this kind in the preset)"
+
+
+# ----------------------------------------------------------------------------- seeds
+SEED = "seed"          # the training seed of a per-seed row (bgn.experiments' Cell.seed)
+SEEDS = "seeds"        # how many seeds an aggregated row holds
+STATS = ("std", "min", "max", "n")  # the spread columns beside each mean in the CSV
+SEEDS_NOTE = ("Seeds: each row is the mean over its `seeds` training seeds, ± the sample "
+              "standard deviation, with (min–max) after it; never the best seed. A value "
+              "absent in some seeds is averaged over those that have it (n in the CSV). "
+              "Per-seed values: {stem}_per_seed.csv.")
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def aggregate_rows(rows: list[dict[str, Any]], keys: list[str]) -> list[dict[str, Any]]:
+    """One row per distinct ``keys`` (in order of first appearance) from per-seed rows: each
+    numeric column becomes its mean over the seeds that have a value, with ``<col>_std``
+    (sample standard deviation; 0 with one value), ``<col>_min``, ``<col>_max`` and
+    ``<col>_n``; a non-numeric column keeps its first seed's value; ``seeds`` counts the rows.
+    A non-finite value is kept (its mean is NaN): a diverged seed is not hidden."""
+    groups: dict[tuple[Any, ...], list[dict[str, Any]]] = {}
+    for row in rows:
+        groups.setdefault(tuple(row.get(k) for k in keys), []).append(row)
+    out = []
+    for members in groups.values():
+        row: dict[str, Any] = {k: members[0].get(k) for k in keys}
+        row[SEEDS] = len(members)
+        columns = dict.fromkeys(c for r in members for c in r if c not in keys and c != SEED)
+        for column in columns:
+            values = [r[column] for r in members if r.get(column) is not None]
+            if values and all(_is_number(v) for v in values):
+                values = [float(v) for v in values]
+                mean = sum(values) / len(values)
+                var = (sum((v - mean) ** 2 for v in values) / (len(values) - 1)
+                       if len(values) > 1 else 0.0)
+                row.update({column: mean, f"{column}_std": math.sqrt(var),
+                            f"{column}_min": min(values), f"{column}_max": max(values),
+                            f"{column}_n": len(values)})
+            else:
+                row[column] = values[0] if values else None
+        out.append(row)
+    return out
+
+
+def spread(row: dict[str, Any], column: str) -> str:
+    """A table cell of an aggregated row: ``mean ± std (min–max)``, the plain value where
+    the seeds agree (or one seed has it)."""
+    if f"{column}_std" not in row:
+        return fmt(row.get(column))
+    low, high = row[f"{column}_min"], row[f"{column}_max"]
+    if row[f"{column}_n"] < 2 or low == high:
+        return fmt(row[column])
+    return f"{fmt(row[column])} ± {fmt(row[f'{column}_std'])} ({fmt(low)}–{fmt(high)})"
+
+
+def write_seeded_table(report_dir: Path, stem: str, columns: list[str], keys: list[str],
+                       rows: list[dict[str, Any]], title: str, notes: str, empty: str = EMPTY,
+                       csv_too: bool = True, images: tuple[str, ...] = ()) -> str:
+    """``write_table`` of per-seed ``rows`` (each with a ``seed``): with one seed exactly
+    as before; with several, one row per ``keys`` (``aggregate_rows``) showing mean ± std
+    (min–max) and the number of seeds, ``<stem>.csv`` with the mean, std, min, max and n of
+    every value column, and ``<stem>_per_seed.csv`` with every seed's row."""
+    if len({r.get(SEED) for r in rows}) <= 1:
+        return write_table(report_dir, stem, columns, rows, title, notes, empty=empty,
+                           csv_too=csv_too, images=images)
+    aggregated = aggregate_rows(rows, keys)
+    values = [c for c in columns if c not in keys]
+    first = next((i for i, c in enumerate(columns) if c not in keys), len(columns))
+    shown = [{**r, **{c: spread(r, c) for c in values}} for r in aggregated]
+    text = write_table(report_dir, stem, [*columns[:first], SEEDS, *columns[first:]], shown,
+                       title, f"{notes} {SEEDS_NOTE.format(stem=stem)}".strip(), empty=empty,
+                       csv_too=False, images=images)
+    write_csv(report_dir / f"{stem}.csv",
+              [*[c for c in columns if c in keys], SEEDS,
+               *[f"{c}_{s}" if s else c for c in values for s in ("", *STATS)]], aggregated)
+    write_csv(report_dir / f"{stem}_per_seed.csv", [SEED, *columns], rows)
+    return text
 
 
 def paper_value(source: str, scene: str, fps: float) -> float | None:
@@ -88,15 +169,18 @@ def table1(report_dir: Path, cells: list[Cell], results: Results) -> str:
                 "name", c.model))  # the registry name: model=bgn_decoder is a "bgn"
             paper = (paper_value(source, scene, fps) if source and about["given"] == "-"
                      and about["physics written in"] == "none" else None)
-            rows.append({"scene": scene, "fps": fmt(fps), **about, "MSE": m["mse"],
+            rows.append({SEED: c.seed, "scene": scene, "fps": fmt(fps), **about,
+                         "MSE": m["mse"],
                          "NMSE": m["nmse"],
                          # the same test frames for every model of a scene x fps
                          **{column: m.get(f"nmse_{ref}_extrapolation")
                             for ref, column in REFERENCES.items()}, PAPER_LABEL: paper})
     columns = ["scene", "fps", "model", *VARIANT_COLUMNS, "MSE", "NMSE", *REFERENCES.values(),
                PAPER_LABEL]
-    return write_table(
-        report_dir, "table1", columns, rows, "Table 1: one-step error on the test split",
+    return write_seeded_table(
+        report_dir, "table1", columns, ["scene", "fps", "model", *VARIANT_COLUMNS,
+                                        PAPER_LABEL], rows,
+        "Table 1: one-step error on the test split",
         "MSE of the forward target (next velocity for collisions, acceleration "
         "otherwise) in physical units; NMSE = MSE / training target variance. model: the "
         "variant (BGN with the paper's decoder or a structured head; a baseline with the "
@@ -133,15 +217,16 @@ def inverse_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
         figure = results[c.name]["eval"].get("figure")
         if c.ablation == "full" and c.train_sims is None and figure:
             m = evaluation(results, c)
-            rows.append({"scene": c.scene, "fps": fmt(c.fps), "model": c.model, **m,
-                         "figure": f"figures/{Path(figure).name}"})
+            rows.append({SEED: c.seed, "scene": c.scene, "fps": fmt(c.fps),
+                         "model": c.model, **m, "figure": f"figures/{Path(figure).name}"})
             for key, label in INVERSE_REFERENCES.items():
                 values = {k: m.get(f"{key}/{k}") for k in INVERSE_COLUMNS}
                 if any(v is not None for v in values.values()):
-                    rows.append({"scene": c.scene, "fps": fmt(c.fps), "model": label,
-                                 **values})
-    return write_table(
-        report_dir, "inverse", columns, rows, "Inverse model: sampled vs true masses",
+                    rows.append({SEED: c.seed, "scene": c.scene, "fps": fmt(c.fps),
+                                 "model": label, **values})
+    return write_seeded_table(
+        report_dir, "inverse", columns, ["scene", "fps", "model"], rows,
+        "Inverse model: sampled vs true masses",
         "Log-masses (natural log) of every particle of a subset of test frames, the flow "
         "recalibrated first on as many validation frames (a monotone map of its base radius; "
         "mass_calibration_scale50/90: the map's scale at those levels, > 1 where the trained "
@@ -169,19 +254,21 @@ def inverse_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
         "zero information) and the physical estimator (the known force law on the "
         "window's finite differences; collisions: momentum exchange at impacts, which one "
         "window rarely holds; its per-simulation value pools the windows of a simulation).",
-        empty=EMPTY, images=("figure",))
+        images=("figure",))
 
 
 def types_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
     """Particle types: accuracy and AUROC of every full-model cell with a type head."""
-    rows = [{"scene": c.scene, "fps": fmt(c.fps), "model": c.model, **evaluation(results, c)}
+    rows = [{SEED: c.seed, "scene": c.scene, "fps": fmt(c.fps), "model": c.model,
+             **evaluation(results, c)}
             for c in cells if c.ablation == "full" and c.train_sims is None
             and "type_accuracy" in evaluation(results, c)]
-    return write_table(
-        report_dir, "types", ["scene", "fps", "model", "type_accuracy", "type_auroc"], rows,
+    keys = ["scene", "fps", "model"]
+    return write_seeded_table(
+        report_dir, "types", [*keys, "type_accuracy", "type_auroc"], keys, rows,
         "Particle-type classification (test split)",
         "Accuracy and one-vs-rest AUROC of the type classifier (collisions).",
-        empty=EMPTY, csv_too=False)
+        csv_too=False)
 
 
 def ablations_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
@@ -193,15 +280,17 @@ def ablations_table(report_dir: Path, cells: list[Cell], results: Results) -> st
             m = {**evaluation(results, c)}
             for k in ("contact_f1", "contact_auroc", "contact_r2"):
                 m[k] = training(results, c).get(f"test/{k}")
-            rows.append({"scene": c.scene, "fps": fmt(c.fps), "ablation": c.ablation, **m})
-    return write_table(
+            rows.append({SEED: c.seed, "scene": c.scene, "fps": fmt(c.fps),
+                         "ablation": c.ablation, **m})
+    return write_seeded_table(
         report_dir, "ablations",
         ["scene", "fps", "ablation", "nmse", "mse", "median_relative_error", "type_accuracy",
          "type_auroc", "contact_f1", "contact_auroc", "contact_r2", "relmass_r2",
-         "wasserstein1", "coverage50", "coverage90"], rows, "Ablations of BGN",
+         "wasserstein1", "coverage50", "coverage90"], ["scene", "fps", "ablation"], rows,
+        "Ablations of BGN",
         "Blank: the head is absent in that variant (or the scene has no such head). "
         "Contact metrics come from the training run's test of its best checkpoint.",
-        empty=EMPTY, csv_too=False)
+        csv_too=False)
 
 
 def sample_efficiency_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
@@ -209,16 +298,18 @@ def sample_efficiency_table(report_dir: Path, cells: list[Cell], results: Result
     and as a log-log plot (``sample_efficiency.png``)."""
     from bgn.figures import sample_efficiency, save
 
-    rows = [{"scene": c.scene, "fps": fmt(c.fps), "model": c.model,
+    rows = [{SEED: c.seed, "scene": c.scene, "fps": fmt(c.fps), "model": c.model,
              "train_sims": c.train_sims, **evaluation(results, c)}
             for c in cells if "sample_efficiency" in c.groups]
-    save(sample_efficiency(rows), report_dir / "sample_efficiency.png")
-    return write_table(
+    keys = ["scene", "fps", "model", "train_sims"]
+    save(sample_efficiency(aggregate_rows(rows, keys)),  # the mean over seeds
+         report_dir / "sample_efficiency.png")
+    return write_seeded_table(
         report_dir, "sample_efficiency",
-        ["scene", "fps", "model", "train_sims", "nmse", "mse", "median_relative_error"], rows,
+        [*keys, "nmse", "mse", "median_relative_error"], keys, rows,
         "Sample efficiency",
         "Test error against the number of training simulations (val and test use every "
-        "simulation of their splits).", empty=EMPTY)
+        "simulation of their splits).")
 
 
 ROLLOUT_COLUMNS = ["pos_err_mean@1", "pos_err_mean@10", "pos_err_mean@50", "pos_err_mean@100",
@@ -234,20 +325,21 @@ def rollout_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
     rows = []
     for scene, fps in dict.fromkeys((c.scene, c.fps) for c in _main(cells)):
         group = [c for c in _main(cells) if (c.scene, c.fps) == (scene, fps)]
-        sources = [(variant(results, c), evaluation(results, c), "rollout") for c in group]
+        sources = [(variant(results, c), c, "rollout") for c in group]
+        # the references learn nothing: one seed's cell holds them (the same test frames)
         nothing = {"given": "-", "physics written in": "none"}
-        sources += [({"model": f"{ref} extrapolation", **nothing}, evaluation(results, group[0]),
+        sources += [({"model": f"{ref} extrapolation", **nothing}, group[0],
                      f"rollout_{ref}") for ref in REFERENCES]
         sources.append(({"model": "predictability limit (simulator, 1e-6 off)", "given": "-",
                          "physics written in": "the exact simulator"},
-                        evaluation(results, group[0]), "predictability"))
-        for about, m, key in sources:
-            values = {k: m.get(f"{key}/{k}") for k in ROLLOUT_COLUMNS}
+                        group[0], "predictability"))
+        for about, c, key in sources:
+            values = {k: evaluation(results, c).get(f"{key}/{k}") for k in ROLLOUT_COLUMNS}
             if any(v is not None for v in values.values()):
-                rows.append({"scene": scene, "fps": fmt(fps), **about, **values})
-    return write_table(
-        report_dir, "rollouts", ["scene", "fps", "model", *VARIANT_COLUMNS, *ROLLOUT_COLUMNS],
-        rows,
+                rows.append({SEED: c.seed, "scene": scene, "fps": fmt(fps), **about, **values})
+    keys = ["scene", "fps", "model", *VARIANT_COLUMNS]
+    return write_seeded_table(
+        report_dir, "rollouts", [*keys, *ROLLOUT_COLUMNS], keys, rows,
         "Rollouts on the test split",
         "Each model (its variant, what it is given and the physics written in: as Table 1) "
         "fed its own frames from the same start frames of every test simulation "
@@ -269,8 +361,7 @@ def rollout_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
         "extrapolation rows learn nothing (repeat the last observed target, or "
         "extrapolate the last two). The predictability row is the exact simulator "
         "started with every position 1e-6 off: chaos alone; a rollout error above it is "
-        "the model's.",
-        empty=EMPTY)
+        "the model's.")
 
 
 TABLES = {"table1": table1, "rollouts": rollout_table, "inverse": inverse_table,
@@ -278,13 +369,45 @@ TABLES = {"table1": table1, "rollouts": rollout_table, "inverse": inverse_table,
           "ablations": ablations_table, "sample_efficiency": sample_efficiency_table}
 
 
+# provenance.json's fields shown in report.md's header, in this order
+PROVENANCE_FIELDS = {
+    "command": "command", "preset": "preset", "config_hash": "composed preset config (sha256)",
+    "git_commit": "git commit", "git_dirty": "uncommitted changes in the tree",
+    "machine": "machine", "cpu_count": "CPUs", "torch": "torch", "device": "device",
+    "workers": "workers (parallel cells)", "threads_per_worker": "torch threads per cell",
+    "seeds": "training seeds", "wall_time_s": "wall time of this command (s)",
+    "failed_cells": "failed cells (not in the tables)"}
+
+
+def provenance_lines(provenance: dict[str, Any]) -> list[str]:
+    """The provenance as a markdown list (report.md's header, the results_md block)."""
+    return [f"- {label}: `{fmt(provenance.get(key))}`" if key == "command"
+            else f"- {label}: {fmt(provenance.get(key))}"
+            for key, label in PROVENANCE_FIELDS.items() if key in provenance]
+
+
+def regenerate_line(provenance: dict[str, Any] | None) -> list[str]:
+    """The line under each table naming the command that writes it."""
+    if not provenance:
+        return []
+    return [f"Regenerated by `{provenance['command']}` (commit "
+            f"{str(provenance.get('git_commit'))[:10]}, config hash "
+            f"{provenance.get('config_hash')}, seeds {fmt(provenance.get('seeds'))}).", ""]
+
+
 def report_md(report_dir: Path, preset: str, cells_dir: str | Path, cells: list[Cell],
-              results: Results, tables: dict[str, str]) -> Path:
-    """report.md: links to every file, every table inline (one heading level down), the
-    plot, and one line per cell (training time, test NMSE)."""
+              results: Results, tables: dict[str, str],
+              provenance: dict[str, Any] | None = None) -> Path:
+    """report.md: the provenance, links to every file, every table inline (one heading level
+    down, each with the command that regenerates it), the plot, and one line per cell
+    (training time, test NMSE)."""
+    cells = [c for c in cells if c.name in results]  # a failed cell has no record
     total = sum(training(results, c).get("wall_time_s", 0.0) for c in cells)
-    lines = [f"# Experiments report: preset `{preset}`", "",
-             f"{len(cells)} cells trained under `{cells_dir}` "
+    lines = [f"# Experiments report: preset `{preset}`", ""]
+    if provenance:
+        lines += ["## Provenance", "", *provenance_lines(provenance),
+                  "", "(also in [provenance.json](provenance.json))", ""]
+    lines += [f"{len(cells)} cells trained under `{cells_dir}` "
              f"(total training wall time {total / 60:.1f} min). Every number comes from "
              "the checkpoints of these cells, evaluated on the test split, except the "
              "paper's published values (labelled).", "",
@@ -299,7 +422,7 @@ def report_md(report_dir: Path, preset: str, cells_dir: str | Path, cells: list[
              "- [Sample efficiency](sample_efficiency.md) ([csv](sample_efficiency.csv), "
              "[plot](sample_efficiency.png))", ""]
     for text in tables.values():
-        lines += ["#" + text.rstrip("\n"), ""]
+        lines += ["#" + text.rstrip("\n"), "", *regenerate_line(provenance)]
     lines += ["![sample efficiency](sample_efficiency.png)", "",
               "## Cells", "", "| cell | groups | trained in (s) | test NMSE |", "|---|---|---|---|"]
     lines += [f"| {c.name} | {', '.join(c.groups)} | "
@@ -311,9 +434,59 @@ def report_md(report_dir: Path, preset: str, cells_dir: str | Path, cells: list[
 
 
 def write_report(report_dir: str | Path, preset: str, cells_dir: str | Path,
-                 cells: list[Cell], results: Results) -> Path:
-    """Every report file under ``report_dir``; returns report.md."""
+                 cells: list[Cell], results: Results,
+                 provenance: dict[str, Any] | None = None,
+                 results_md: str | Path | None = None) -> Path:
+    """Every report file under ``report_dir`` (with ``provenance``: provenance.json too, and
+    its header in report.md); with ``results_md``, that file's generated block of this preset
+    rewritten (``replace_block``). Cells without a record (failed) are left out. Returns
+    report.md."""
+    import json
+
     report_dir = Path(report_dir)
     (report_dir / "figures").mkdir(parents=True, exist_ok=True)
+    cells = [c for c in cells if c.name in results]
     tables = {name: table(report_dir, cells, results) for name, table in TABLES.items()}
-    return report_md(report_dir, preset, cells_dir, cells, results, tables)
+    if provenance:
+        (report_dir / "provenance.json").write_text(
+            json.dumps(provenance, indent=2, sort_keys=True) + "\n")
+    report = report_md(report_dir, preset, cells_dir, cells, results, tables, provenance)
+    if results_md:
+        write_results_block(Path(results_md), preset, report_dir, tables, provenance)
+    return report
+
+
+# ----------------------------------------------------------------------------- results_md
+def block_markers(preset: str) -> tuple[str, str]:
+    """The markers around a preset's generated block in a results file."""
+    return (f"<!-- generated:{preset}:begin -->", f"<!-- generated:{preset}:end -->")
+
+
+def replace_block(text: str, preset: str, body: str) -> str:
+    """``text`` with the block between ``preset``'s markers replaced by ``body`` (the
+    markers kept); the block appended at the end where the markers are missing."""
+    begin, end = block_markers(preset)
+    block = f"{begin}\n{body.strip()}\n{end}"
+    start, stop = text.find(begin), text.find(end)
+    if start >= 0 and stop > start:
+        return text[:start] + block + text[stop + len(end):]
+    return (text.rstrip("\n") + "\n\n" if text.strip() else "") + block + "\n"
+
+
+def write_results_block(path: Path, preset: str, report_dir: Path, tables: dict[str, str],
+                        provenance: dict[str, Any] | None) -> None:
+    """Write the report's tables and provenance into ``path``'s generated block of
+    ``preset`` (docs/results.md: its headline tables are written by the command); headings
+    two levels down, figure links made relative to ``path``."""
+    rel = Path(os.path.relpath(report_dir.resolve(), path.resolve().parent)).as_posix()
+    body = ["_Written by the command below; do not edit by hand._", ""]
+    if provenance:
+        body += [*provenance_lines(provenance), ""]
+    for text in tables.values():
+        if EMPTY in text:  # a kind of cell the preset has none of
+            continue
+        text = text.replace("](figures/", f"]({rel}/figures/")
+        body += ["###" + text.rstrip("\n"), "", *regenerate_line(provenance)]
+    old = path.read_text() if path.exists() else ""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(replace_block(old, preset, "\n".join(body)))

@@ -1,10 +1,14 @@
 """The study: ``python -m bgn.experiments preset=quick`` (presets: tiny | quick | standard |
-full; the Pareto study's pareto_tiny | pareto_quick | pareto_full run through ``bgn.pareto``).
+full | reproduce; the Pareto study's pareto_tiny | pareto_quick | pareto_full run through
+``bgn.pareto``).
 
-Trains every cell of a preset (scene x fps x model, BGN ablations, sample efficiency) by
-composing the real ``train`` config and calling ``bgn.train.train``, evaluates each cell's
-best checkpoint on the test split (``bgn.evaluate``), and writes the report (``bgn.report``:
-Table 1, inverse, types, ablations, sample efficiency, report.md) under ``report_dir``.
+Trains every cell of a preset (scene x fps x model, BGN ablations, sample efficiency; each
+per seed of the preset's ``seeds``) by composing the real ``train`` config and calling
+``bgn.train.train`` (``workers=<n>``: n cells at once, each in its own process), evaluates each
+cell's best checkpoint on the test split (``bgn.evaluate``), and writes the report
+(``bgn.report``: Table 1, rollouts, inverse, types, ablations, sample efficiency, report.md,
+provenance.json; several seeds: mean and spread per row) under ``report_dir``, and with
+``results_md=<file>`` the preset's generated block of that file.
 Resumable: a cell whose ``metrics.json`` exists is not retrained (an interrupted cell
 continues from its ``last.ckpt``), a cell whose ``eval.json`` is newer than its checkpoint is not
 re-evaluated; the report is always rewritten from what is on disk. Those files are written

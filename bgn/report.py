@@ -45,7 +45,8 @@ SEEDS = "seeds"        # how many seeds an aggregated row holds
 STATS = ("std", "min", "max", "n")  # the spread columns beside each mean in the CSV
 SEEDS_NOTE = ("Seeds: each row is the mean over its `seeds` training seeds, ± the sample "
               "standard deviation, with (min–max) after it; never the best seed. A value "
-              "absent in some seeds is averaged over those that have it (n in the CSV). "
+              "absent in some seeds is averaged over those that have it (n in the CSV); nan: a "
+              "seed's value is NaN (min–max over the others). "
               "Per-seed values: {stem}_per_seed.csv.")
 
 
@@ -58,7 +59,8 @@ def aggregate_rows(rows: list[dict[str, Any]], keys: list[str]) -> list[dict[str
     numeric column becomes its mean over the seeds that have a value, with ``<col>_std``
     (sample standard deviation; 0 with one value), ``<col>_min``, ``<col>_max`` and
     ``<col>_n``; a non-numeric column keeps its first seed's value; ``seeds`` counts the rows.
-    A non-finite value is kept (its mean is NaN): a diverged seed is not hidden."""
+    A non-finite value is kept (a NaN makes the mean NaN; min and max are over the other
+    seeds): a diverged seed is not hidden."""
     groups: dict[tuple[Any, ...], list[dict[str, Any]]] = {}
     for row in rows:
         groups.setdefault(tuple(row.get(k) for k in keys), []).append(row)
@@ -74,8 +76,9 @@ def aggregate_rows(rows: list[dict[str, Any]], keys: list[str]) -> list[dict[str
                 mean = sum(values) / len(values)
                 var = (sum((v - mean) ** 2 for v in values) / (len(values) - 1)
                        if len(values) > 1 else 0.0)
+                numbers = [v for v in values if not math.isnan(v)] or [math.nan]
                 row.update({column: mean, f"{column}_std": math.sqrt(var),
-                            f"{column}_min": min(values), f"{column}_max": max(values),
+                            f"{column}_min": min(numbers), f"{column}_max": max(numbers),
                             f"{column}_n": len(values)})
             else:
                 row[column] = values[0] if values else None
@@ -88,10 +91,16 @@ def spread(row: dict[str, Any], column: str) -> str:
     the seeds agree (or one seed has it)."""
     if f"{column}_std" not in row:
         return fmt(row.get(column))
+    def show(value: float) -> str:  # a NaN mean says so (fmt leaves NaN blank)
+        return "nan" if math.isnan(value) else fmt(value)
+
+    mean, std = row[column], row[f"{column}_std"]
     low, high = row[f"{column}_min"], row[f"{column}_max"]
-    if row[f"{column}_n"] < 2 or low == high:
-        return fmt(row[column])
-    return f"{fmt(row[column])} ± {fmt(row[f'{column}_std'])} ({fmt(low)}–{fmt(high)})"
+    if row[f"{column}_n"] < 2 or (low == high and not math.isnan(mean)):
+        return show(mean)
+    # an infinite seed has no finite std: the range alone then shows it
+    middle = f" ± {show(std)}" if math.isfinite(std) else ""
+    return f"{show(mean)}{middle} ({show(low)}–{show(high)})"
 
 
 def write_seeded_table(report_dir: Path, stem: str, columns: list[str], keys: list[str],
@@ -381,9 +390,14 @@ PROVENANCE_FIELDS = {
 
 def provenance_lines(provenance: dict[str, Any]) -> list[str]:
     """The provenance as a markdown list (report.md's header, the results_md block)."""
-    return [f"- {label}: `{fmt(provenance.get(key))}`" if key == "command"
-            else f"- {label}: {fmt(provenance.get(key))}"
-            for key, label in PROVENANCE_FIELDS.items() if key in provenance]
+    def value(key: str) -> str:
+        v = provenance.get(key)
+        if key == "command":
+            return f"`{v}`"
+        return (", ".join(map(str, v)) or "none") if isinstance(v, list) else fmt(v)
+
+    return [f"- {label}: {value(key)}" for key, label in PROVENANCE_FIELDS.items()
+            if key in provenance]
 
 
 def regenerate_line(provenance: dict[str, Any] | None) -> list[str]:

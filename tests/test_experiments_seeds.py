@@ -18,6 +18,7 @@ from bgn.report import (
     block_markers,
     replace_block,
     rollout_table,
+    spread,
     table1,
     write_report,
 )
@@ -69,6 +70,10 @@ def test_aggregate_rows_mean_spread_and_missing_values() -> None:
     assert n["seeds"] == 1 and n["x"] is None
     nan = aggregate_rows([{"seed": 0, "x": 1.0}, {"seed": 1, "x": float("nan")}], [])[0]
     assert nan["x"] != nan["x"]  # a diverged seed makes the mean NaN, it is not dropped
+    assert spread(nan, "x") == "nan (1–1)"
+    inf = aggregate_rows([{"seed": 0, "x": 70.0}, {"seed": 1, "x": float("inf")}], [])[0]
+    assert spread(inf, "x") == "inf (70–inf)"  # no finite std: the range shows the seed
+    assert spread(m, "x") == "3 ± 2.646 (1–6)"
 
 
 def test_table1_over_seeds_is_mean_and_spread_never_the_best(tmp_path: Path) -> None:
@@ -190,8 +195,9 @@ def test_a_failed_cell_is_named_and_the_others_reported(tmp_path: Path, monkeypa
     assert all((f"| {c.name} |" in listed) == (c.name != broken) for c in cells)
 
 
-@pytest.mark.slow  # four tiny cells trained in two worker processes, evaluated, reported
 def test_tiny_preset_two_seeds_two_workers(tmp_path: Path) -> None:
+    """Four tiny cells (2 models x 2 seeds) trained and evaluated in two worker processes
+    (about 30 s on 2 cores), then one aggregated report with its provenance."""
     cfg = compose_config("experiments", [
         "preset=tiny", "preset.scenes=[spring]", "preset.fps=[50]",
         "preset.models=[bgn,gns]", "preset.seeds=[0,1]", "preset.ablations=null",

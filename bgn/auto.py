@@ -531,10 +531,10 @@ def formula_candidate(results: Sequence[Result], auto_dir: Path, val: Any, train
                       sims: list[int], starts: list[int], n_steps: int,
                       horizons: Sequence[int], each: Mapping[str, Any]) -> Result | None:
     """The best pair-force candidate's law read back as a formula (``bgn.laws``), its
-    constants fine-tuned through substeps (``bgn.laws.finetune_formula``: half its
-    ``max_steps``, else the default steps) and scored as the others; eligible to win, and its
-    best checkpoint the one the winner resumes from. None without a scored pair-force
-    candidate."""
+    constants fine-tuned through substeps (``bgn.laws.finetune_formula``: its default
+    iterations, at most half the candidates' ``max_steps``) and scored as the others;
+    eligible to win, and its best checkpoint the one the winner resumes from. None without a
+    scored pair-force candidate."""
     from bgn.experiments import best_checkpoint
     from bgn.laws import FINETUNE_STEPS, FINETUNE_SUBSTEPS, _spec_text, finetune_formula
 
@@ -542,7 +542,8 @@ def formula_candidate(results: Sequence[Result], auto_dir: Path, val: Any, train
     if not scored:
         return None
     best = min(scored, key=lambda r: r.score(n_steps))
-    steps = max(1, int(each["max_steps"]) // 2) if "max_steps" in each else FINETUNE_STEPS
+    steps = min(FINETUNE_STEPS, max(1, int(each["max_steps"]) // 2)) if "max_steps" in each \
+        else FINETUNE_STEPS
     out_dir = auto_dir / f"formula_{best.candidate.name}"
     start = time.perf_counter()
     record = finetune_formula(best_checkpoint(auto_dir / best.candidate.name), train_split,

@@ -597,7 +597,9 @@ def _run_config_paths(ckpt: Path, run_dir: Path) -> list[Path]:
 def resolve_run(path: str, run_config: str | None = None) -> tuple[Path, Path, Path]:
     """``(checkpoint, run directory, run config)`` of a checkpoint or run directory: a run
     directory gives its best checkpoint (``bgn.experiments.best_checkpoint``: best.ckpt, the
-    newest best-vN.ckpt, else last.ckpt); a checkpoint in ``<run>/checkpoints/`` its run.
+    newest best-vN.ckpt, else last.ckpt), or ``laws/formula.ckpt`` where the run's
+    ``laws/formula.json`` chose the formula law on validation (``model.law=auto``, or
+    ``python -m bgn.laws <ckpt> finetune=true``); a checkpoint in ``<run>/checkpoints/`` its run.
     Bad input: one ``ConfigError`` naming the path and the fix."""
     from bgn.experiments import best_checkpoint
 
@@ -610,8 +612,15 @@ def resolve_run(path: str, run_config: str | None = None) -> tuple[Path, Path, P
         if not (given / "checkpoints").is_dir() and choice.is_file():
             given = given / "auto" / str(json.loads(choice.read_text())["choice"])
         run_dir = given
+        law = given / "laws" / "formula.json"  # a model.law=auto run that chose the formula
+        if law.is_file() and json.loads(law.read_text()).get("choice") == "formula" \
+                and (given / "laws" / "formula.ckpt").is_file():
+            given = run_dir = given / "laws"
+            ckpt = given / "formula.ckpt"
+        else:
+            ckpt = None
         try:
-            ckpt = best_checkpoint(given)
+            ckpt = ckpt or best_checkpoint(given)
         except FileNotFoundError:
             raise ConfigError("ckpt", path, f"the run directory has no checkpoint (looked for "
                               f"{given / 'checkpoints'}/best*.ckpt and last.ckpt): give a run "

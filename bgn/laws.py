@@ -870,11 +870,14 @@ def write_report(report: LawReport, out_dir: str | Path, title: str | None = Non
 
 # ------------------------------------------------------------------- the formula as the law
 
-FINETUNE_STEPS = 200      # Adam steps on the formula's constants
-FINETUNE_SUBSTEPS = 8     # model.substeps while fine-tuning (and in the written checkpoint)
-FINETUNE_LR = 1e-2        # relative: amplitudes are scaled to 1, constants are log c
-FINETUNE_BATCH = 64       # training frames per step
+FINETUNE_STEPS = 40       # L-BFGS iterations on the formula's constants
+FINETUNE_SUBSTEPS = 16    # model.substeps while fine-tuning (and in the written checkpoint)
+FINETUNE_LR = 1.0         # L-BFGS's step (its line search scales it); amplitudes are scaled
+                          # to 1, constants are log c
+FINETUNE_BATCH = 1024     # training frames of the fixed batch (closest_frames among them)
 FINETUNE_HORIZON = 50     # validation rollout steps (as auto.horizon)
+CLOSE_SHARE = 0.25        # of the tuning batch: the frames with the closest pairs
+ROBUST_SCALE = 0.1        # relative error at which law_objective's Cauchy loss bends
 
 
 def formula_spec(report: LawReport) -> str:
@@ -913,6 +916,41 @@ def formula_module(checkpoint: Path, spec: str, substeps: int) -> Any:
     return module, hp
 
 
+def closest_frames(dataset: Any, share: float = CLOSE_SHARE) -> np.ndarray:
+    """Indices of ``dataset``'s frames (a ``FrameDataset``) sorted by their closest pair,
+    nearest first: a handful of constants is pinned at small r only by the frames with a close
+    encounter, which a random batch rarely holds."""
+    from bgn.data.graphs import minimum_image
+
+    file, n = dataset.file, dataset.meta.n_particles
+    i, j = np.triu_indices(n, k=1)
+    nearest = []
+    for s in dataset.sims:
+        t = dataset.history + 1 + np.arange(dataset.frames_per_sim)
+        x = np.asarray(file.read("positions", (s, slice(int(t[0]), int(t[-1]) + 1))), np.float64)
+        r = np.sqrt((minimum_image(x[:, i] - x[:, j], dataset.meta.period) ** 2).sum(-1))
+        nearest.append(r.min(axis=1) if len(i) else np.full(len(t), np.inf))
+    return np.argsort(np.concatenate(nearest), kind="stable")
+
+
+def tuning_batches(dataset: Any, size: int, seed: int = 0) -> list[tuple[float, Any]]:
+    """The fixed batches the constants are tuned on, with their weights in the loss: the
+    ``CLOSE_SHARE`` of ``size`` frames with the closest pairs (weight: their share of the
+    split), and frames drawn at random from the rest (weight: the rest's share). The weighted
+    sum is an unbiased estimate of the loss over the whole split, with far less variance at
+    small r than a random batch of the same size."""
+    from bgn.graph import collate
+
+    n = len(dataset)
+    if size >= n:
+        return [(1.0, collate([dataset[i] for i in range(n)]))]
+    order = closest_frames(dataset)
+    k = max(1, int(round(size * CLOSE_SHARE)))
+    rest = np.random.default_rng(seed).choice(order[k:], size - k, replace=False)
+    return [(k / n, collate([dataset[int(i)] for i in order[:k]])),
+            ((n - k) / n, collate([dataset[int(i)] for i in np.sort(rest)]))]
+
+
 def validation_errors(model: Any, val: Any, history: int, horizon: int = FINETUNE_HORIZON,
                       val_sims: int | None = None) -> dict[str, Any]:
     """bgn.auto's scoring: every validation simulation (or ``val_sims`` of them) rolled out
@@ -933,6 +971,28 @@ def validation_errors(model: Any, val: Any, history: int, horizon: int = FINETUN
             "rollouts": len(sims) * len(starts)}
 
 
+def law_objective(model: Any, head: Any, g: Any) -> torch.Tensor:
+    """The loss a pair law's constants are tuned on. Where the model trains its law with the
+    recorded masses (BGN's ``law`` head): each particle's relative error (``newton.law_loss``)
+    under a Cauchy loss, ``log(1 + rel / ROBUST_SCALE^2)``. A frame whose encounter the
+    substeps do not resolve misses its target whatever the law; squared, those few frames
+    would decide the constants (they favour a law softer than the truth), where the robust loss
+    lets the many resolved frames decide (docs/results.md, "The formula stage"). Else the
+    model's dynamics loss (the law through the window's mass fit). The other tasks' losses are
+    left out: the inverse model reads the head's mass fit (``mass_context=fit``), and its
+    likelihood would pull the law towards masses that are easy to predict."""
+    from bgn.model.newton import law_loss
+
+    if "law" in getattr(model, "heads", ()):
+        rel = law_loss(head, g, reduce=False)
+        return torch.log1p(rel / ROBUST_SCALE ** 2).mean()
+    terms = model.loss_terms(g, model(g))
+    if "dynamics" not in terms:
+        raise ValueError(f"no law or dynamics loss among the model's terms {sorted(terms)}: "
+                         "the pair law cannot be fine-tuned")
+    return terms["dynamics"]
+
+
 def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
                      report: LawReport | None = None, steps: int = FINETUNE_STEPS,
                      substeps: int = FINETUNE_SUBSTEPS, lr: float = FINETUNE_LR,
@@ -942,7 +1002,9 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
                      max_seconds: float | None = None) -> dict[str, Any]:
     """The fitted formula as the model's law, its constants fine-tuned end to end: the
     checkpoint's model with ``law=formula`` (``formula_module``), the law's constants alone
-    trained with the head's own loss on the training split, through ``substeps`` (a frame's
+    fitted by L-BFGS (``steps`` iterations) to the head's own loss (``law_objective``) on a
+    fixed batch of ``batch_size`` training frames (``tuning_batches``: the closest encounters
+    and a random rest, weighted to the split), through ``substeps`` (a frame's
     finite-difference target averages the force over the frame, as the substeps integrate
     it). Only the law is trained: the rest of the model is the checkpoint's, validated with
     the network law, and a handful of constants cannot overfit a split. Both laws are then
@@ -955,7 +1017,6 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
 
     from bgn.checkpoints import read, write_atomic
     from bgn.evaluate import load_model
-    from bgn.graph import collate
 
     network = load_model(checkpoint)
     if start is None and report is None:
@@ -965,24 +1026,30 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     model, head = pair_force_head(module)
     model.requires_grad_(False)
     head.force_law.requires_grad_(True)
-    opt = torch.optim.Adam(head.force_law.parameters(), lr=lr)
-    rng = np.random.default_rng(seed)
+    # a handful of constants and a fixed batch: a deterministic quasi-Newton fit, where
+    # stochastic steps wander by their size at the rare close encounters that pin c
+    batches = tuning_batches(train_split, batch_size, seed)
+    # one iteration per step() (the time budget is checked between them); its line search
+    # may evaluate the loss up to 20 times (the default allows one evaluation per iteration)
+    opt = torch.optim.LBFGS(head.force_law.parameters(), lr=lr, max_iter=1, max_eval=20,
+                            history_size=20, line_search_fn="strong_wolfe")
     losses = []
-    model.train()
+    model.eval()  # no dropout in the inverse model: the loss is the same function each call
     began = time.perf_counter()
+
+    def closure() -> torch.Tensor:
+        opt.zero_grad()
+        loss = sum(w * law_objective(model, head, g) for w, g in batches)
+        if not torch.isfinite(loss):
+            raise ValueError(f"fine-tuning the formula of {checkpoint}: the loss is not "
+                             f"finite at step {len(losses)}; try a smaller finetune.lr")
+        loss.backward()
+        return loss
+
     for _ in range(steps):
         if max_seconds is not None and time.perf_counter() - began > max_seconds:
             break
-        idx = rng.choice(len(train_split), min(batch_size, len(train_split)), replace=False)
-        g = collate([train_split[int(i)] for i in idx])
-        opt.zero_grad()
-        loss = model.total_loss(model.loss_terms(g, model(g)))
-        if not torch.isfinite(loss):
-            raise ValueError(f"fine-tuning the formula of {checkpoint}: the loss is not finite "
-                             f"at step {len(losses)}; try a smaller finetune.lr")
-        loss.backward()
-        opt.step()
-        losses.append(loss.item())
+        losses.append(float(opt.step(closure).detach()))
     spec = head.force_law.spec()
     hp["model_config"] = {**hp["model_config"], "law_formula": spec}
     history = int(hp["history"])
@@ -1117,9 +1184,45 @@ def parse(argv: list[str]) -> tuple[Path, dict[str, Any]]:
     return args.checkpoint, options
 
 
+def formula_stage(checkpoint: Path, train_split: Any, val: Any, config: Any,
+                  out_dir: Path, finetune: bool = True, **options: Any) -> dict[str, Any]:
+    """The law of ``checkpoint`` read back over ``train_split`` (``read_law``) and written to
+    ``out_dir`` (report.md, law.csv, law.json, law.png); with ``finetune`` the formula also
+    fine-tuned as the law and scored against the network law on ``val``'s rollouts
+    (``finetune_formula``): ``formula.ckpt`` with its ``train_config.yaml`` (``config``, the
+    run's, with the formula's model options) and a section of report.md. ``options``:
+    ``read_law``'s (max_terms, tolerance, parsimony) and ``finetune.<key>``. Returns the
+    fine-tuning record (``{}`` without ``finetune``) with ``report`` (report.md's path)."""
+    from omegaconf import OmegaConf, open_dict
+
+    from bgn.checkpoints import read, write_atomic
+    from bgn.evaluate import load_model
+
+    report = read_law(load_model(checkpoint), train_split,
+                      **{k: options[k] for k in ("max_terms", "tolerance", "parsimony")
+                         if k in options})
+    path = write_report(report, out_dir, title=f"Learned law of {checkpoint}")
+    if not finetune:
+        return {"report": str(path)}
+    tuned = {k.split(".", 1)[1]: v for k, v in options.items() if k.startswith("finetune.")}
+    record = finetune_formula(checkpoint, train_split, val, report, out_dir=out_dir, **tuned)
+    section = finetune_markdown(record)
+    print(section)
+    write_atomic(path, path.read_text() + "\n" + section)
+    # the run's config with the formula model's options beside formula.ckpt: bgn.evaluate
+    # takes the folder of a checkpoint outside checkpoints/ for its run
+    tuned_cfg = copy.deepcopy(config)
+    hp = read(record["path"])["hyper_parameters"]["model_config"]
+    with open_dict(tuned_cfg):
+        for key in ("law", "law_formula", "substeps"):
+            tuned_cfg.model[key] = hp[key]
+    write_atomic(Path(out_dir) / "train_config.yaml", OmegaConf.to_yaml(tuned_cfg))
+    return {**record, "report": str(path)}
+
+
 def run(checkpoint: Path, options: dict[str, Any]) -> Path:
     """Read the law of ``checkpoint`` over its training split and write the report; with
-    ``finetune=true`` also the fitted formula as the law, fine-tuned (``finetune_formula``):
+    ``finetune=true`` also the fitted formula as the law, fine-tuned (``formula_stage``):
     ``formula.ckpt``, ``formula.json`` and a section of report.md in the same folder."""
     from omegaconf import OmegaConf
 
@@ -1127,8 +1230,7 @@ def run(checkpoint: Path, options: dict[str, Any]) -> Path:
     from bgn.evaluate import load_model
     from bgn.render import run_config
 
-    module = load_model(checkpoint)
-    pair_force_head(module)  # refused before any data are read
+    pair_force_head(load_model(checkpoint))  # refused before any data are read
     config = Path(options["config"]) if "config" in options else run_config(checkpoint)
     cfg = OmegaConf.load(config)
     data_dir = options.get("data_dir") or OmegaConf.select(cfg, "paths.data_dir",
@@ -1136,31 +1238,13 @@ def run(checkpoint: Path, options: dict[str, Any]) -> Path:
     datamodule = ParticleDataModule(cfg.dataset, cfg.fps, data_dir, show_progress=False)
     datamodule.prepare_data()
     datamodule.setup()
-    report = read_law(module, datamodule.datasets["train"],
-                      **{k: options[k] for k in ("max_terms", "tolerance", "parsimony")
-                         if k in options})
     out = Path(options.get("out_dir") or checkpoint.resolve().parent.parent / "laws")
-    path = write_report(report, out, title=f"Learned law of {checkpoint}")
-    if options.get("finetune"):
-        from omegaconf import open_dict
-
-        from bgn.checkpoints import read, write_atomic
-
-        tuned = {k.split(".", 1)[1]: v for k, v in options.items() if k.startswith("finetune.")}
-        record = finetune_formula(checkpoint, datamodule.datasets["train"],
-                                  datamodule.datasets["val"], report, out_dir=out, **tuned)
-        section = finetune_markdown(record)
-        print(section)
-        write_atomic(path, path.read_text() + "\n" + section)
-        # the run's config with the formula model's options beside formula.ckpt: bgn.evaluate
-        # takes the folder of a checkpoint outside checkpoints/ for its run
-        tuned_cfg = OmegaConf.load(config)
-        hp = read(record["path"])["hyper_parameters"]["model_config"]
-        with open_dict(tuned_cfg):
-            for key in ("law", "law_formula", "substeps"):
-                tuned_cfg.model[key] = hp[key]
-        write_atomic(out / "train_config.yaml", OmegaConf.to_yaml(tuned_cfg))
-    return path
+    record = formula_stage(checkpoint, datamodule.datasets["train"],
+                           datamodule.datasets["val"], cfg, out,
+                           finetune=bool(options.get("finetune", False)),
+                           **{k: v for k, v in options.items()
+                              if k not in ("config", "data_dir", "out_dir", "finetune")})
+    return Path(record["report"])
 
 
 def main(argv: list[str] | None = None) -> Path:

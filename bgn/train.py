@@ -126,6 +126,26 @@ def build_module(cfg: DictConfig, meta: dict[str, Any], stats: dict[str, Any], h
                          provenance=provenance)
 
 
+def law_stage(cfg: DictConfig, best: Path, datamodule: ParticleDataModule, output_dir: Path,
+              world_size: int) -> dict[str, Any]:
+    """``model.law=auto``: the best checkpoint's network law read back as a formula, the
+    formula fine-tuned as the law and kept where it validates better on rollouts
+    (``bgn.laws.formula_stage``, in ``<run>/laws/``); before the test, on the validation
+    split only. Returns its record (``choice``: network or formula; ``path``: formula.ckpt)."""
+    from bgn.laws import formula_stage
+
+    if world_size > 1:  # one process would tune while the others wait at the test's barrier
+        info("model.law=auto: the formula stage runs in a single process; run python -m "
+             f"bgn.laws {best} finetune=true after this DDP run")
+        return {}
+    info("model.law=auto: reading the learned law back as a formula and fine-tuning it")
+    record = formula_stage(best, datamodule.datasets["train"], datamodule.datasets["val"],
+                           cfg, output_dir / "laws")
+    info(f"model.law=auto: the {record['choice']} law validates better; it is tested "
+         f"(report: {record['report']})")
+    return record
+
+
 def train(cfg: DictConfig) -> dict[str, float]:
     """Fit, test, and write metrics.json; returns the final metrics."""
     import lightning as L
@@ -156,19 +176,29 @@ def train(cfg: DictConfig) -> dict[str, float]:
     stop = SignalCheckpoint(checkpoint_dir)
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c]
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=[*callbacks, stop], logger=loggers)
+    law_record: dict[str, Any] = {}
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
         metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
         if cfg.test and not trainer.interrupted:
             best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback \
                 else ""
-            trainer.test(module, datamodule=datamodule, ckpt_path=best or None,
+            tested, tested_ckpt = module, best or None
+            if cfg.model.get("law") == "auto" and best:  # model.law=auto: the formula stage
+                law_record = law_stage(cfg, Path(best), datamodule, output_dir,
+                                       trainer.world_size)
+                if law_record.get("choice") == "formula":
+                    from bgn.evaluate import load_model
+
+                    tested, tested_ckpt = load_model(law_record["path"]), None
+            trainer.test(tested, datamodule=datamodule, ckpt_path=tested_ckpt,
                          weights_only=True)
             metrics.update({k: float(v) for k, v in trainer.callback_metrics.items()})
             if cfg.test_rollouts and trainer.is_global_zero:  # the product: rollouts, batched
                 from bgn.evaluate import test_rollouts
 
-                metrics.update(test_rollouts(module.model, datamodule.datasets["test"]))
+                metrics.update(test_rollouts(tested.model, datamodule.datasets["test"]))
+            module = tested
     except (SystemExit, KeyboardInterrupt):  # SIGTERMException is a SystemExit
         if stop.signal is None:
             raise
@@ -183,6 +213,9 @@ def train(cfg: DictConfig) -> dict[str, float]:
               "dataset": cfg.dataset.scene, "fps": float(datamodule.spec.fps),
               "model": module.model.name,
               "variant": module.model.describe()}  # label, given, physics written in
+    if law_record:  # model.law=auto: which law was tested, and the validation behind it
+        record["law"] = {k: law_record.get(k) for k in ("choice", "tuned", "validation",
+                                                        "rollout_substeps", "path", "report")}
     write_atomic(output_dir / "metrics.json", json.dumps(record, indent=2, sort_keys=True))
     info("final metrics:\n" + json.dumps({k: round(v, 6) for k, v in sorted(metrics.items())
                                           if k.startswith(("test/", "val/nmse"))}, indent=1))

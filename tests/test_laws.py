@@ -336,3 +336,36 @@ def test_bad_finetune_options_are_refused_in_one_line(option, capsys, tmp_path):
     assert done.value.code == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and option.split("=")[0] in err
+
+
+def test_law_auto_tests_the_law_that_validates_better(tmp_path, shared_data_dir):
+    """model.law=auto: after the fit, the law read back as a formula and fine-tuned (the
+    formula stage), the better of the two on validation rollouts tested, and bgn.evaluate
+    given the run directory scores that one."""
+    from bgn.evaluate import resolve_run
+
+    run = tmp_path / "newton"
+    overrides = ["dataset=spring", *SMALL["spring"], f"paths.data_dir={shared_data_dir}",
+                 f"paths.output_dir={run}", "model=newton", "model.hidden=16",
+                 "model.law=auto", "figures=false", "val_rollout_steps=0",
+                 "trainer.max_epochs=1", "+trainer.limit_train_batches=4",
+                 "trainer.limit_val_batches=1", "+trainer.limit_test_batches=1",
+                 "callbacks.progress_bar=null"]
+    train(compose_config("train", overrides))
+    record = json.loads((run / "metrics.json").read_text())
+    law = record["law"]
+    stage = json.loads((run / "laws" / "formula.json").read_text())
+    assert law["choice"] == stage["choice"] in ("network", "formula")
+    horizon = str(stage["validation"]["network"]["horizon"])  # JSON keys are strings
+    errors = {k: v["errors"][horizon] for k, v in stage["validation"].items()}
+    assert errors[law["choice"]] == min(errors.values())  # chosen on validation alone
+    rollouts = [k for k in record["metrics"] if k.startswith("test/rollout_error@")]
+    assert (run / "laws" / "report.md").is_file() and rollouts and all(
+        np.isfinite(record["metrics"][k]) for k in rollouts)
+    ckpt, run_dir, config = resolve_run(str(run))
+    if law["choice"] == "formula":
+        assert ckpt == run / "laws" / "formula.ckpt"
+        assert OmegaConf.load(config).model.law == "formula"
+        assert record["variant"]["label"] != ""  # the tested model describes the formula law
+    else:
+        assert ckpt.parent == run / "checkpoints"

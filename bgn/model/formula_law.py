@@ -121,7 +121,10 @@ class FormulaLaw(nn.Module):
         return json.dumps(list(pairs.values()))
 
 
-LAWS = ("mlp", "formula")
+# auto: the network law is trained, then read back as a formula and fine-tuned after the fit,
+# and the one that validates better on rollouts is kept (bgn.laws.formula_stage, run by
+# bgn.train); the model itself carries the network law
+LAWS = ("mlp", "formula", "auto")
 
 
 def check_law(law: str, law_formula: str) -> None:
@@ -131,5 +134,5 @@ def check_law(law: str, law_formula: str) -> None:
     if law == "formula":
         parse_spec(law_formula)
     elif law_formula:
-        raise ValueError("law_formula is set but law=mlp: set law=formula to use it, or "
+        raise ValueError(f"law_formula is set but law={law}: set law=formula to use it, or "
                          "leave law_formula empty")

@@ -78,7 +78,7 @@ class NewtonConfig(DynamicsConfig):
     activation: str = "silu"
     mass_law: str = "inertial"         # inertial: a = F / m (spring) | source: a = sum m_j F_ij
     substeps: int = 1                  # 1: Numerov's weights; > 1: integrate the frame (above)
-    law: str = "mlp"                   # mlp: f(s) a network | formula: law_formula's formula
+    law: str = "mlp"                   # mlp: f(s) a network | formula: law_formula | auto
     law_formula: str = ""              # the formula's JSON spec (bgn.laws.formula_spec)
 
     def __post_init__(self) -> None:
@@ -377,7 +377,7 @@ def head_label(head: nn.Module) -> str:
     return f"pair-force head ({'types, ' if head.types > 1 else ''}masses {head.mass_law})"
 
 
-def law_loss(head: nn.Module, g: Graph) -> torch.Tensor | None:
+def law_loss(head: nn.Module, g: Graph, reduce: bool = True) -> torch.Tensor | None:
     """The force head's prediction with the recorded masses in place of the window's fit,
     scored by its squared error relative to the target's own size (None for other heads). The
     fit absorbs any law's scale, and over the few frames of a window almost any shape: trained
@@ -385,12 +385,13 @@ def law_loss(head: nn.Module, g: Graph) -> torch.Tensor | None:
     stayed small (docs/results.md, "Gravity_r2: what frames allow"). With the true
     masses the law is identified; relative errors weigh every distance alike, where a squared
     error is set by the few close encounters (docs/results.md, "Measurements behind the
-    defaults")."""
+    defaults"). ``reduce=False``: the relative error of each particle, (N,)."""
     if not isinstance(head, PairForceHead):
         return None
     predicted, target = head(g, known_masses=True)[0], g.target.to(g.pos.dtype)
     size = (target * target).sum(-1)
-    return (((predicted - target) ** 2).sum(-1) / (size + 1e-4 * size.mean() + FIT_EPS)).mean()
+    rel = ((predicted - target) ** 2).sum(-1) / (size + 1e-4 * size.mean() + FIT_EPS)
+    return rel.mean() if reduce else rel
 
 
 def impulse_mass_loss(head: nn.Module, g: Graph, normalizer: Normalizer) -> torch.Tensor | None:

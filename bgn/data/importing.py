@@ -1,7 +1,7 @@
 """Trajectories from outside bgn -> bgn's validated dataset files
 (docs/design.md#imported-files).
 
-``python -m bgn.data.import <path> name=<name>`` reads a file or directory in any layout
+``python -m bgn.train.import <path> name=<name>`` reads a file or directory in any layout
 ``bgn.data.formats`` knows (detected from the files), checks it, and writes
 ``<data_dir>/imported/<name>/{train,val,test}.h5``; ``python -m bgn.train dataset=imported
 dataset.name=<name>`` then trains on them like on a generated scene. ``from_arrays`` does the
@@ -32,7 +32,6 @@ import json
 import os
 import re
 import shutil
-import sys
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import fields, replace
@@ -41,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from bgn.coerce import ConfigError, need_int
 from bgn.data.files import DatasetFile, write_dataset
 from bgn.data.raw import IMPORT_SPLITS, DataImportError, RawTrajectories, SplitArrays
 from bgn.data.spec import IMPORTED, SPLITS, DatasetSpec, imported_dir
@@ -286,13 +286,11 @@ def validate_import(cfg: Any) -> None:
     """The import's config, before any file is read."""
     from omegaconf import OmegaConf
 
-    from bgn.validate import ConfigError, need_int
-
     for key, what in (("path", "the file or folder to import, the first argument"),
                       ("name", "the dataset's name, e.g. name=my_water")):
         if OmegaConf.is_config(cfg) and OmegaConf.is_missing(cfg, key) or not cfg.get(key):
             raise ConfigError(key, message=f"{key} is missing: {what} (python -m "
-                              "bgn.data.import <path> name=<name>)")
+                              "bgn.train.import <path> name=<name>)")
     need_int(cfg.get("split_seed", 0), "split_seed", 0, 2**32 - 1)
     need_int(cfg.get("history", 5), "history", 0)
     if not NAME.fullmatch(str(cfg.get("name"))):
@@ -364,13 +362,3 @@ def path_override(argv: list[str]) -> list[str]:
         else:
             out.append(arg)
     return out
-
-
-def run_cli() -> None:
-    """``python -m bgn.data.import <path> name=<name> ...`` (``bgn/data/import.py``)."""
-    from bgn.config import register_configs
-    from bgn.validate import cli
-
-    sys.argv = [sys.argv[0], *path_override(sys.argv[1:])]
-    register_configs(models=False)
-    cli("import")(main)()  # bad input: one line, non-zero exit (bgn.validate)

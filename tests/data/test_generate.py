@@ -6,6 +6,7 @@ import h5py
 import numpy as np
 import pytest
 
+from bgn.data.edges import radius_graph
 from bgn.data.generate import (
     ALIASED_WARN,
     aliased_share,
@@ -14,7 +15,6 @@ from bgn.data.generate import (
     main,
     simulate_one,
 )
-from bgn.data.graphs import radius_graph
 from bgn.data.spec import DatasetSpec
 
 SCENES = ["spring", "gravity_r1", "gravity_r2", "collisions"]

@@ -24,9 +24,9 @@ from bgn.data.raw import DataImportError
 from bgn.data.spec import DatasetSpec
 from bgn.model.noise import add_random_walk_noise
 from bgn.rollout import rollout
-from bgn.train import build, data_module, train
-from bgn.unroll import advance
-from bgn.validate import ConfigError, validate_train
+from bgn.train.run import build, data_module, train
+from bgn.train.unroll import advance
+from bgn.train.validate import ConfigError, validate_train
 from tests.conftest import SMALL, compose_config
 from tests.data.layouts import (
     write_arrays_h5,
@@ -93,7 +93,7 @@ def _train_cfg(name: str | list[str], data_dir: Path, out: Path, model: str, *ov
         f"paths.output_dir={out}", f"model={model}", *SMALL_MODELS[model], "rollout_steps=3",
         "val_rollout_steps=4", "val_rollout_sims=1", "dataset.batch_size=8",
         "+trainer.fast_dev_run=true", "test=false",
-        # imported data default to model.dynamics=auto (a study of its own, bgn/auto.py)
+        # imported data default to model.dynamics=auto (a study of its own, bgn/studies/auto.py)
         *(["model.dynamics=decoder"] if model == "bgn" else []), *overrides])
 
 
@@ -240,20 +240,20 @@ def test_periodic_positions_are_unwrapped_before_differences(tmp_path):
 
 def test_a_missing_import_is_refused_in_one_line_naming_the_command(tmp_path):
     cfg = _train_cfg("nowhere", tmp_path / "data", tmp_path / "run", "gns")
-    with pytest.raises(ConfigError, match="python -m bgn.data.import"):
+    with pytest.raises(ConfigError, match="python -m bgn.train.import"):
         validate_train(cfg)
 
 
 def test_the_command_line_imports_and_reports_the_next_command(tmp_path):
     source = _write("lagrangebench-h5", tmp_path)
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
-    run = subprocess.run([sys.executable, "-m", "bgn.data.import", str(source), "name=lb",
+    run = subprocess.run([sys.executable, "-m", "bgn.train.import", str(source), "name=lb",
                           f"paths.data_dir={tmp_path / 'data'}"], capture_output=True,
                          text=True, env=env, cwd=tmp_path, timeout=300)
     assert run.returncode == 0, run.stderr
     assert "dataset=imported dataset.name=lb" in run.stdout and "6 particles" not in run.stderr
     assert "3 x 16 x 6 x 2" in run.stdout
-    again = subprocess.run([sys.executable, "-m", "bgn.data.import", str(source), "name=lb",
+    again = subprocess.run([sys.executable, "-m", "bgn.train.import", str(source), "name=lb",
                             f"paths.data_dir={tmp_path / 'data'}"], capture_output=True,
                            text=True, env=env, cwd=tmp_path, timeout=300)
     assert again.returncode != 0 and len(again.stderr.strip().splitlines()) == 1
@@ -305,7 +305,7 @@ def test_kinematic_particles_are_inputs_never_predicted_or_scored(tmp_path):
 
 
 def test_checkpoints_record_the_import_and_its_data(tmp_path):
-    from bgn.train import run_provenance
+    from bgn.train.run import run_provenance
 
     rng = np.random.default_rng(4)
     x = rng.normal(size=(10, 12, 3, 2)) * 0.01 + rng.normal(size=(1, 1, 3, 2))

@@ -155,3 +155,25 @@ def read_record(path: str | Path) -> dict[str, Any] | None:
                     path, str(err).splitlines()[0][:100])
         return None
     return record
+
+
+def best_checkpoint(run_dir: Path) -> Path:
+    """best.ckpt (or the newest best-vN.ckpt after a resume), else last.ckpt."""
+    ckpts = run_dir / "checkpoints"
+    best = sorted(ckpts.glob("best*.ckpt"), key=lambda p: p.stat().st_mtime)
+    if best:
+        return best[-1]
+    if (ckpts / "last.ckpt").exists():
+        return ckpts / "last.ckpt"
+    raise FileNotFoundError(f"no checkpoint in {ckpts}")
+
+
+def run_config(checkpoint: Path) -> Path:
+    """The training config of the run that wrote ``checkpoint`` (``<run>/checkpoints/x.ckpt``)."""
+    run = checkpoint.resolve().parent.parent
+    for candidate in (run / ".hydra" / "config.yaml", run / "train_config.yaml"):
+        if candidate.exists():
+            return candidate
+    raise FileNotFoundError(f"{checkpoint}: no run config beside it (looked for "
+                            f"{run / '.hydra' / 'config.yaml'} and {run / 'train_config.yaml'});"
+                            " pass --config <the run's config.yaml>")

@@ -203,7 +203,7 @@ def test_the_path_is_the_first_positional_argument() -> None:
 
 
 def test_the_command_line_refuses_a_missing_path(tmp_path: Path) -> None:
-    done = subprocess.run([sys.executable, "-m", "bgn.eval.evaluate", str(tmp_path / "nope")],
+    done = subprocess.run([sys.executable, "-m", "bgn.evaluate", str(tmp_path / "nope")],
                           capture_output=True, text=True, cwd=tmp_path, timeout=300,
                           env={**os.environ, "OMP_NUM_THREADS": "1"})
     assert done.returncode == 2

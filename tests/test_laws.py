@@ -221,7 +221,7 @@ def tiny_run(tmp_path: Path, data_dir: Path, model: str, *extra: str) -> Path:
 
 
 def laws_cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "bgn.eval.laws", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "bgn.laws", *args], capture_output=True,
                           text=True, env=CLI_ENV, cwd=ROOT, timeout=300)
 
 

@@ -12,10 +12,10 @@ from bgn.data.generate import (
     aliased_share,
     ensure_dataset,
     generate_file,
-    main,
     simulate_one,
 )
 from bgn.data.spec import DatasetSpec
+from bgn.train.generate import main
 
 SCENES = ["spring", "gravity_r1", "gravity_r2", "collisions"]
 

@@ -422,20 +422,12 @@ def path_override(argv: list[str]) -> list[str]:
     return out
 
 
-def _run_config_paths(ckpt: Path, run_dir: Path) -> list[Path]:
-    """Where a run's config may lie: Hydra's record of a ``bgn.train`` run (beside the
-    checkpoints folder, or the checkpoint), or a study cell's ``train_config.yaml``."""
-    return list(dict.fromkeys([run_dir / ".hydra" / "config.yaml",
-                               ckpt.parent / ".hydra" / "config.yaml",
-                               run_dir / "train_config.yaml"]))
-
-
 def resolve_run(path: str, run_config: str | None = None) -> tuple[Path, Path, Path]:
     """``(checkpoint, run directory, run config)`` of a checkpoint or run directory: a run
-    directory gives its best checkpoint (``bgn.train.checkpoints.best_checkpoint``: best.ckpt, the
-    newest best-vN.ckpt, else last.ckpt); a checkpoint in ``<run>/checkpoints/`` its run.
+    directory gives its best checkpoint (``bgn.train.checkpoints.best_checkpoint``: best.ckpt,
+    the newest best-vN.ckpt, else last.ckpt); a checkpoint in ``<run>/checkpoints/`` its run.
     Bad input: one ``ConfigError`` naming the path and the fix."""
-    from bgn.train.checkpoints import best_checkpoint
+    from bgn.train.checkpoints import best_checkpoint, run_config_paths
 
     given = Path(path).expanduser()
     if not given.exists():
@@ -461,10 +453,10 @@ def resolve_run(path: str, run_config: str | None = None) -> tuple[Path, Path, P
             raise ConfigError("run_config", run_config, "no such file: give the run's "
                               ".hydra/config.yaml")
         return ckpt, run_dir, config
-    for config in _run_config_paths(ckpt, run_dir):
+    for config in run_config_paths(ckpt, run_dir):
         if config.is_file():
             return ckpt, run_dir, config
-    looked = ", ".join(str(p) for p in _run_config_paths(ckpt, run_dir))
+    looked = ", ".join(str(p) for p in run_config_paths(ckpt, run_dir))
     raise ConfigError("ckpt", path, f"no run config beside the checkpoint (looked for {looked}): "
                       "pass run_config=<the run's .hydra/config.yaml>")
 

@@ -168,12 +168,22 @@ def best_checkpoint(run_dir: Path) -> Path:
     raise FileNotFoundError(f"no checkpoint in {ckpts}")
 
 
+def run_config_paths(ckpt: Path, run_dir: Path) -> list[Path]:
+    """Where a run's config may lie, in the order looked at: Hydra's record of a
+    ``python -m bgn.train`` run (beside the checkpoints folder, or the checkpoint), or a study
+    cell's ``train_config.yaml``."""
+    return list(dict.fromkeys([run_dir / ".hydra" / "config.yaml",
+                               ckpt.parent / ".hydra" / "config.yaml",
+                               run_dir / "train_config.yaml"]))
+
+
 def run_config(checkpoint: Path) -> Path:
     """The training config of the run that wrote ``checkpoint`` (``<run>/checkpoints/x.ckpt``)."""
-    run = checkpoint.resolve().parent.parent
-    for candidate in (run / ".hydra" / "config.yaml", run / "train_config.yaml"):
+    checkpoint = checkpoint.resolve()
+    candidates = run_config_paths(checkpoint, checkpoint.parent.parent)
+    for candidate in candidates:
         if candidate.exists():
             return candidate
     raise FileNotFoundError(f"{checkpoint}: no run config beside it (looked for "
-                            f"{run / '.hydra' / 'config.yaml'} and {run / 'train_config.yaml'});"
-                            " pass --config <the run's config.yaml>")
+                            f"{', '.join(map(str, candidates))}); pass --config <the run's "
+                            "config.yaml>")

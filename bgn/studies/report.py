@@ -41,7 +41,7 @@ EMPTY = "(no cells of this kind in the preset)"
 
 
 # ----------------------------------------------------------------------------- seeds
-SEED = "seed"          # the training seed of a per-seed row (bgn.studies.grid' Cell.seed)
+SEED = "seed"          # the training seed of a per-seed row (bgn.studies.cells.Cell.seed)
 SEEDS = "seeds"        # how many seeds an aggregated row holds
 STATS = ("std", "min", "max", "n")  # the spread columns beside each mean in the CSV
 SEEDS_NOTE = ("Seeds: each row is the mean over its `seeds` training seeds, ± the sample "

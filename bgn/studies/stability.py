@@ -495,7 +495,7 @@ def run(cfg: DictConfig) -> Path:
     return report
 
 
-@hydra.main(config_path="../conf/stability", config_name="stability", version_base="1.3")
+@hydra.main(config_path=str(CONF_DIR), config_name="stability", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     """``python -m bgn.stability preset=quick checkpoints.spring=...``: see the module doc."""
     start = time.perf_counter()

@@ -44,6 +44,24 @@ from bgn.studies.report import write_report
 from bgn.train.checkpoints import best_checkpoint, read_record, write_atomic
 
 
+def cached_eval(cell: Cell, cfg: DictConfig) -> dict[str, Any] | None:
+    """A cell's eval.json when it is newer than its best checkpoint, whole, of the current
+    metrics and with its figure on disk; else None (``evaluate_cell`` evaluates it)."""
+    run_dir = Path(cfg.cells_dir) / cell.name
+    try:
+        ckpt = best_checkpoint(run_dir)
+    except FileNotFoundError:
+        return None
+    eval_path = run_dir / "eval.json"
+    figure = Path(cfg.report_dir) / "figures" / f"mass_{cell.name}.png"
+    if eval_path.exists() and eval_path.stat().st_mtime >= ckpt.stat().st_mtime:
+        result = read_record(eval_path)  # None when damaged (named in a warning): redone
+        if result is not None and (not result.get("figure") or figure.exists()) \
+                and "rollout/rollout_cap" in result.get("metrics", {}):  # else: older metrics
+            return result
+    return None
+
+
 def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
     """Test-split metrics of a cell's best checkpoint (cached in eval.json), and its KDE
     figure under the report's figures/ when the model has an inverse head."""
@@ -54,14 +72,12 @@ def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
     ckpt = best_checkpoint(run_dir)
     eval_path = run_dir / "eval.json"
     figure = Path(cfg.report_dir) / "figures" / f"mass_{cell.name}.png"
-    if eval_path.exists() and eval_path.stat().st_mtime >= ckpt.stat().st_mtime:
-        result = read_record(eval_path)  # None when damaged (named in a warning): redone
-        if result is not None and (not result.get("figure") or figure.exists()) \
-                and "rollout/rollout_cap" in result.get("metrics", {}):  # else: older metrics
-            if "model" not in result:  # an older record: what the model is, from its checkpoint
-                result["model"] = load_model(ckpt).model.describe()
-                write_atomic(eval_path, json.dumps(result, indent=2, sort_keys=True))
-            return result
+    result = cached_eval(cell, cfg)
+    if result is not None:
+        if "model" not in result:  # an older record: what the model is, from its checkpoint
+            result["model"] = load_model(ckpt).model.describe()
+            write_atomic(eval_path, json.dumps(result, indent=2, sort_keys=True))
+        return result
     datamodule = cell_datamodule(run_dir, cfg.data_dir)
     e = cfg.preset.eval
     module, test = load_model(ckpt), datamodule.datasets["test"]
@@ -182,7 +198,9 @@ def train_all(cells: list[Cell], cfg: DictConfig, workers: int,
 
     def one(i: int, cell: Cell) -> None:
         done = (Path(cfg.cells_dir) / cell.name / "metrics.json").exists()
-        ok, log = cell_process(cell, cfg, threads)
+        # a cell trained and evaluated before needs no process (a resumed study)
+        ok, log = (True, None) if done and cached_eval(cell, cfg) is not None \
+            else cell_process(cell, cfg, threads)
         state = ("already trained (metrics.json)" if done else "trained") if ok \
             else f"FAILED (log: {log})"
         with lock:
@@ -196,23 +214,11 @@ def train_all(cells: list[Cell], cfg: DictConfig, workers: int,
     return [c.name for c in cells if c.name in failed]  # in the study's order
 
 
-def study_provenance(cfg: DictConfig, workers: int, threads: int | None, wall_s: float,
-                     failed: list[str]) -> dict[str, Any]:
-    """What regenerates the report: the command, the preset and a hash of its composed
-    config, the code's commit (and whether the tree had changes), the machine, threads,
-    workers, seeds and wall time."""
-    import hashlib
-    import platform
-
-    import torch
-
+def code_state() -> dict[str, Any]:
+    """The git commit of the code and whether its tracked files had uncommitted changes
+    (None: unknown), taken when the study starts (the code that trains)."""
     from bgn.eval.evaluate import git_commit
 
-    if _ARGV:
-        command = " ".join(["python -m bgn.experiments", *map(shlex.quote, _ARGV[1:])])
-    else:  # run() called from Python: the command that composes the same preset
-        command = f"python -m bgn.experiments preset={cfg.preset.name}"
-    preset = OmegaConf.to_container(cfg.preset, resolve=True)
     try:
         status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
                                 cwd=CONF_DIR.parent, capture_output=True, text=True,
@@ -220,12 +226,30 @@ def study_provenance(cfg: DictConfig, workers: int, threads: int | None, wall_s:
         dirty: bool | None = bool(status.stdout.strip()) if status.returncode == 0 else None
     except (OSError, subprocess.SubprocessError):
         dirty = None
+    return {"git_commit": git_commit(), "git_dirty": dirty}
+
+
+def study_provenance(cfg: DictConfig, workers: int, threads: int | None, wall_s: float,
+                     failed: list[str], code: dict[str, Any]) -> dict[str, Any]:
+    """What regenerates the report: the command, the preset and a hash of its composed
+    config, the code's commit (and whether the tree had changes: ``code_state``), the
+    machine, threads, workers, seeds and wall time."""
+    import hashlib
+    import platform
+
+    import torch
+
+    if _ARGV:
+        command = " ".join(["python -m bgn.experiments", *map(shlex.quote, _ARGV[1:])])
+    else:  # run() called from Python: the command that composes the same preset
+        command = f"python -m bgn.experiments preset={cfg.preset.name}"
+    preset = OmegaConf.to_container(cfg.preset, resolve=True)
     device = (f"cuda ({torch.cuda.get_device_name(0)})" if torch.cuda.is_available()
               else "cpu")
     return {"command": command, "preset": str(cfg.preset.name),
             "config_hash": hashlib.sha256(json.dumps(preset, sort_keys=True).encode())
             .hexdigest()[:12],
-            "git_commit": git_commit(), "git_dirty": dirty,
+            **code,
             "machine": f"{platform.platform()}, {platform.processor() or platform.machine()}",
             "cpu_count": os.cpu_count(), "torch": torch.__version__, "device": device,
             "workers": workers, "threads_per_worker": threads or torch.get_num_threads(),
@@ -241,7 +265,7 @@ def run(cfg: DictConfig) -> Path:
     import traceback
 
     cells = plan_cells(cfg.preset)
-    start = time.perf_counter()
+    start, code = time.perf_counter(), code_state()
     workers = max(1, int(cfg.get("workers") or 1))
     threads = cfg.get("threads_per_worker")
     threads = int(threads) if threads else (1 if workers > 1 else None)
@@ -259,7 +283,8 @@ def run(cfg: DictConfig) -> Path:
             traceback.print_exc()
             print(f"  FAILED (evaluation): {cell.name}", flush=True)
             failed.append(cell.name)
-    provenance = study_provenance(cfg, workers, threads, time.perf_counter() - start, failed)
+    provenance = study_provenance(cfg, workers, threads, time.perf_counter() - start, failed,
+                                  code)
     report = write_report(cfg.report_dir, cfg.preset.name, cfg.cells_dir, cells, results,
                           provenance, cfg.get("results_md"))
     print(f"report: {report} ({time.perf_counter() - start:.0f} s)")

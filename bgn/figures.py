@@ -225,7 +225,7 @@ def rollout_errors(curves: dict[str, dict[str, np.ndarray]], cap: float | None =
     """Position error against steps, one line per source (the model, the no-learning
     references, the predictability limit): the mean over all rollouts with a failed one at
     the cap (solid) and the median (dashed); ``curves[source]`` holds ``pos_err_mean`` and
-    ``pos_err_median`` per step from the start (``bgn.evaluate.evaluate_rollouts``)."""
+    ``pos_err_median`` per step from the start (``bgn.rollout.evaluate_rollouts``)."""
     fig, ax = plt.subplots(figsize=(6, 4))
     for name, c in curves.items():
         steps = np.arange(len(c["pos_err_mean"]))[1:]

@@ -1,5 +1,5 @@
 """Metrics of predictions and mass samples on plain arrays: one definition each, shared by
-the evaluation of checkpoints (``bgn.evaluate``), the benchmarks and the tests.
+the evaluation of checkpoints (``bgn.eval.evaluate``), the benchmarks and the tests.
 
 R^2; inverse metrics of mass samples (Welch t-test, Wasserstein-1, recovered KDE modes) and
 the calibration and information checks of simulation-based inference (expected coverage at

@@ -1,19 +1,34 @@
-"""Rollouts of a model on a dataset's simulations, through the learned simulator.
+"""Rollouts of a model on a dataset's simulations, through the learned simulator, and their
+scores.
 
 The bridge between the files (``FrameDataset``) and ``bgn.simulator.LearnedSimulator``: true
-windows and particles of chosen simulations in, predicted and true trajectories out.
+windows and particles of chosen simulations in, predicted and true trajectories out;
+``evaluate_rollouts`` scores them beside the no-learning references (``bgn.metrics``), and
+``test_rollouts`` is the training's test phase (``bgn.train.run``) and the evaluation's
+(``bgn.eval.evaluate``) common part.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 import torch
 
 from bgn.data.dataset import FrameDataset
 from bgn.data.frames import evenly_spaced
-from bgn.metrics import capped_rollout_error
+from bgn.metrics import (
+    capped_errors,
+    capped_rollout_error,
+    energy_errors,
+    lagrangebench_metrics,
+    rollout_failures,
+    rollout_metrics,
+    survived,
+)
+from bgn.model.references import REFERENCES, Extrapolation
 from bgn.sim.scene import State
 from bgn.simulator import LearnedSimulator, Particles, Predictor
 
@@ -178,3 +193,141 @@ def position_error(result: dict[str, np.ndarray], horizons: tuple[int, ...] = (1
     """Mean position error after each horizon that the rollout reaches."""
     err = np.linalg.norm(result["predicted"] - result["true"], axis=-1).mean(axis=-1)
     return {h: float(err[h]) for h in horizons if h < len(err)}
+
+
+# ----------------------------------------------------------------------------- scores
+def scene_period(dataset: FrameDataset) -> np.ndarray | None:
+    """(D,) the side of the source's periodic box along each periodic dimension, inf along
+    the others; None where nothing is periodic (imported data record it: ``ImportedScene``)."""
+    periodic = getattr(dataset.scene, "periodic", ()) or ()
+    bounds = getattr(dataset.scene, "bounds", ()) or ()
+    if not any(periodic) or len(bounds) != len(periodic):
+        return None
+    return np.array([hi - lo if p else np.inf for p, (lo, hi) in zip(periodic, bounds)])
+
+
+def lb_prefix(key: str) -> str:
+    """The key prefix of a rollout source's LagrangeBench metrics: ``lb`` for the model,
+    ``lb_last``, ``lb_linear``, ``lb_predictability`` for the references."""
+    return "lb" if key == "rollout" else "lb_" + key.removeprefix("rollout_")
+
+
+def evaluate_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 100,
+                      starts_per_sim: int = 1, max_sims: int | None = None,
+                      references: bool = True, predictability_limit: bool = True,
+                      curves: dict[str, dict[str, np.ndarray]] | None = None,
+                      step: Callable[[str], None] | None = None,
+                      lagrangebench: bool = False, sinkhorn_stride: int = 10,
+                      sinkhorn_rollouts: int | None = 4,
+                      positions: dict[str, np.ndarray] | None = None) -> dict[str, float]:
+    """Rollout metrics (``bgn.metrics.rollout_metrics``) of ``model`` from the same start
+    frames of every test simulation (frame 100 first), keyed ``rollout/<metric>``, and of the
+    no-learning references beside it (``rollout_last/...``, ``rollout_linear/...``) and, with
+    ``predictability_limit``, the scene's predictability limit (``predictability/...``: the
+    exact simulator from positions 1e-6 off, ``bgn.rollout.predictability``). Steps are capped
+    by the file's length. Momentum is scored where the scene conserves it (no walls).
+    ``curves``, when given, receives per source the per-step curves behind the figures
+    (``pos_err_mean``, ``pos_err_median``, ``energy_err``, ``energy_err_truth``); ``step(name)``
+    is called before each source is rolled out (a progress bar). ``lagrangebench``: the
+    same rollouts in LagrangeBench's metrics as well (``bgn.metrics.lagrangebench_metrics``,
+    keyed ``lb/<metric>`` for the model, ``lb_last/...`` etc. for the references), the
+    Sinkhorn divergence on every ``sinkhorn_stride``-th step of ``sinkhorn_rollouts`` evenly
+    spaced rollouts (None: all). ``positions``, when given, receives the model's rollouts:
+    ``predicted`` and ``true`` (R, n_steps + 2, N, D), ``sims`` and ``starts`` (R,), so that
+    quantities bgn cannot compute (an engine's own energy) can be measured on them."""
+    n_steps = min(n_steps, dataset.file.n_frames - dataset.history - 2)
+    starts = rollout_starts(dataset, n_steps, starts_per_sim)
+    sims = evenly_spaced(dataset.file.n_sims, max_sims)
+    predictors: dict[str, Predictor] = {"rollout": model}
+    if references:
+        for prior in REFERENCES:
+            if prior == "linear" and dataset.meta.target == "velocity":
+                continue  # across an impact a linear extrapolation of velocities doubles it
+            predictors[f"rollout_{prior}"] = Extrapolation(dataset.meta, dataset.history, prior)
+    runs = {key: partial(rollout_many, predictor, dataset, sims, starts, n_steps)
+            for key, predictor in predictors.items()}
+    # the true simulator 1e-6 off: the chaos floor (imported data have no simulator to rerun)
+    if references and predictability_limit and getattr(dataset.scene, "has_simulator", True):
+        runs["predictability"] = partial(predictability, dataset, sims, starts, n_steps)
+    metrics: dict[str, float] = {}
+    for key, run in runs.items():
+        if step is not None:
+            step(f"rollouts: {key}")
+        t = run()
+        if positions is not None and key == "rollout":
+            positions.update(predicted=t.predicted, true=t.true,
+                             sims=np.tile(np.asarray(sims), len(starts)),
+                             starts=np.repeat(np.asarray(starts), len(sims)))
+        values = rollout_metrics(t.predicted, t.true, t.masses, dataset.dt, dataset.scene.energy,
+                                 t.first_non_finite, dataset.meta.box,
+                                 momentum=dataset.meta.box is None,
+                                 contacts=((t.radii, t.types)
+                                           if dataset.meta.interaction == "contact" else None))
+        values["seconds_per_step"] = t.seconds_per_step
+        metrics.update({f"{key}/{name}": value for name, value in values.items()})
+        failed_at = rollout_failures(t.predicted, t.true, dataset.meta.box, t.first_non_finite)
+        if lagrangebench:
+            lb = lagrangebench_metrics(t.predicted, t.true, t.masses, dataset.dt, failed_at,
+                                       dataset.meta.box, scene_period(dataset),
+                                       sinkhorn_stride=sinkhorn_stride,
+                                       sinkhorn_rollouts=sinkhorn_rollouts)
+            metrics.update({f"{lb_prefix(key)}/{name}": value for name, value in lb.items()})
+        if curves is not None:
+            err, _, _ = capped_errors(t.predicted, t.true, dataset.meta.box, failed_at)
+            e_err, e_floor = energy_errors(t.predicted, t.true, t.masses, dataset.dt,
+                                           dataset.scene.energy)
+            alive = survived(failed_at, err.shape[1])
+            curves[key] = {"pos_err_mean": err.mean(axis=0),
+                           "pos_err_median": np.median(err, axis=0),
+                           "energy_err": np.median(np.where(alive, e_err, np.inf), axis=0),
+                           "energy_err_truth": np.median(e_floor, axis=0)}
+    return metrics
+
+
+# the test phase's rollout figures (bgn.train), short keys: reference source -> suffix
+SUMMARY_HORIZONS = (10, 50, 100)
+SUMMARY_SOURCES = {"rollout_last": "last", "rollout_linear": "linear",
+                   "predictability": "predictability"}
+
+
+def rollout_summary(metrics: dict[str, float], prefix: str = "test/") -> dict[str, float]:
+    """The headline rollout figures of ``evaluate_rollouts``' metrics under short keys:
+    ``<prefix>rollout_error@h`` (mean over all rollouts, a failed one at the cap) at the
+    horizons reached of 10, 50 and 100 steps; at the longest of them H the median beside it
+    (``rollout_error_median@H``), the MSE over all rollouts (``rollout_mse@H``), the energy
+    error (``energy_error@H``), each reference's ``rollout_error@H_<reference>``; and
+    ``rollout_failed_share``."""
+    reached = [h for h in SUMMARY_HORIZONS if f"rollout/pos_err_mean@{h}" in metrics]
+    out = {f"{prefix}rollout_failed_share": metrics["rollout/failed_share"]}
+    for h in reached:
+        out[f"{prefix}rollout_error@{h}"] = metrics[f"rollout/pos_err_mean@{h}"]
+    if reached:
+        h = reached[-1]
+        out[f"{prefix}rollout_error_median@{h}"] = metrics[f"rollout/pos_err_median@{h}"]
+        out[f"{prefix}rollout_mse@{h}"] = metrics[f"rollout/pos_mse_mean@{h}"]
+        out[f"{prefix}energy_error@{h}"] = metrics[f"rollout/energy_err@{h}"]
+        for source, name in SUMMARY_SOURCES.items():
+            if f"{source}/pos_err_mean@{h}" in metrics:
+                out[f"{prefix}rollout_error@{h}_{name}"] = metrics[f"{source}/pos_err_mean@{h}"]
+    return out
+
+
+@torch.no_grad()
+def test_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 100,
+                  predictability_limit: bool = False) -> dict[str, float]:
+    """``bgn.train``'s test phase: ``evaluate_rollouts`` of ``model`` and the no-learning
+    references on every simulation of ``dataset`` (batched), as ``rollout_summary``'s
+    ``test/...`` keys. The predictability limit is off by default: it runs the exact simulator
+    twice per simulation, one at a time, far slower than the batched rollouts (``python -m
+    bgn.eval.evaluate`` reports it). The model is rolled out in eval mode and left in the mode it
+    was in."""
+    training = getattr(model, "training", False)
+    if isinstance(model, torch.nn.Module):
+        model.eval()
+    try:
+        metrics = evaluate_rollouts(model, dataset, n_steps,
+                                    predictability_limit=predictability_limit)
+    finally:
+        if isinstance(model, torch.nn.Module):
+            model.train(training)
+    return rollout_summary(metrics)

@@ -3,7 +3,7 @@
 The role ``LearnedSimulator`` plays in DeepMind's learning_to_simulate: any model that predicts
 the forward target (``PhysicsModel.predict``) becomes a simulator that advances B simulations
 at once, in torch, on the model's device. Each step rebuilds the graph with the scene's own
-rule (the complete graph, or the radius graph found with a KD-tree, ``bgn.data.graphs``, on
+rule (the complete graph, or the radius graph found with a KD-tree, ``bgn.data.edges``, on
 the torus where the scene has periodic boundaries) and
 integrates the predicted target with the rule that inverts the training targets
 (``bgn.data.targets.step``), so a model fed the true targets reproduces the recorded frames.
@@ -23,7 +23,7 @@ from typing import Protocol
 import torch
 from torch import nn
 
-from bgn.data.graphs import batch_edges, full_graph, scene_edges
+from bgn.data.edges import batch_edges, full_graph, scene_edges
 from bgn.data.targets import step
 from bgn.graph import Graph, window_graph
 from bgn.sim.scene import SceneMeta

@@ -1,6 +1,6 @@
-"""model.dynamics=auto (bgn/auto.py): which structures a scene admits, how the budget is split,
-how candidates are scored and chosen, and (slow tier) that on a tiny spring scene it picks the
-structure the scene was made with."""
+"""model.dynamics=auto (bgn/studies/auto.py): which structures a scene admits, how the budget is
+split, how candidates are scored and chosen, and (slow tier) that on a tiny spring scene it picks
+the structure the scene was made with."""
 
 from __future__ import annotations
 
@@ -15,7 +15,12 @@ import numpy as np
 import pytest
 import torch
 
-from bgn.auto import (
+from bgn.metrics import ESCAPE_FACTOR, capped_rollout_error, rollout_scores
+from bgn.model.bgn import ModelConfig
+from bgn.model.newton import PairForceHead, build_head
+from bgn.sim import make_scene
+from bgn.sim.scene import SceneMeta
+from bgn.studies.auto import (
     Candidate,
     Result,
     candidates,
@@ -25,12 +30,7 @@ from bgn.auto import (
     split_budget,
     write_report,
 )
-from bgn.metrics import ESCAPE_FACTOR, capped_rollout_error, rollout_scores
-from bgn.model.bgn import ModelConfig
-from bgn.model.newton import PairForceHead, build_head
-from bgn.sim import make_scene
-from bgn.sim.scene import SceneMeta
-from bgn.validate import ConfigError, validate_train
+from bgn.train.validate import ConfigError, validate_train
 from tests.conftest import SMALL, compose_config
 from tests.test_train import CLI_ENV, command_line
 
@@ -287,11 +287,11 @@ def test_the_best_pair_force_law_becomes_a_formula_candidate(tmp_path, shared_da
     checkpoint the one the winner would resume from (the composed config fits it)."""
     from omegaconf import OmegaConf
 
-    from bgn.auto import formula_candidate
-    from bgn.checkpoints import check_compatible
     from bgn.data.datamodule import ParticleDataModule
     from bgn.rollout import rollout_starts
-    from bgn.train import train
+    from bgn.studies.auto import formula_candidate
+    from bgn.train.checkpoints import check_compatible
+    from bgn.train.run import train
 
     auto_dir = tmp_path / "auto"
     base = ["dataset=spring", *SMALL["spring"], f"paths.data_dir={shared_data_dir}",
@@ -325,7 +325,7 @@ def test_the_best_pair_force_law_becomes_a_formula_candidate(tmp_path, shared_da
 def test_imported_data_choose_their_structure_by_default(tmp_path) -> None:
     """dataset=imported composes with model.dynamics=auto (conf/dataset_model/imported_bgn.yaml),
     and train() alone refuses it with the way to run it (auto needs the run's overrides)."""
-    from bgn.train import train
+    from bgn.train.run import train
 
     cfg = compose_config("train", ["dataset=imported", "dataset.name=any",
                                    f"paths.output_dir={tmp_path}"])

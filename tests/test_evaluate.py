@@ -19,16 +19,10 @@ import torch
 from omegaconf import OmegaConf
 
 from bgn.data.datamodule import ParticleDataModule
-from bgn.evaluate import (
-    evaluate_model,
-    evaluate_rollouts,
-    mass_figure,
-    path_override,
-    rollout_summary,
-)
-from bgn.evaluate import main as evaluate_main
-from bgn.rollout import rollout_starts
-from bgn.train import build, train
+from bgn.eval.evaluate import evaluate_model, mass_figure, path_override
+from bgn.eval.evaluate import main as evaluate_main
+from bgn.rollout import evaluate_rollouts, rollout_starts, rollout_summary
+from bgn.train.run import build, train
 from tests.conftest import SMALL, compose_config
 from tests.test_simulator import Oracle
 
@@ -68,7 +62,7 @@ FAST_EVAL = ["rollout.steps=20", "max_frames=8", "mass_frames=4", "mass_samples=
 
 @pytest.fixture(scope="module")
 def trained_run(tmp_path_factory, shared_data_dir: Path) -> tuple[Path, dict[str, float]]:
-    """A tiny spring run trained by ``bgn.train.train`` (its test phase included), with the
+    """A tiny spring run trained by ``bgn.train.run.train`` (its test phase included), with the
     config Hydra would have saved in ``.hydra/config.yaml``; returns (run dir, its metrics)."""
     run = tmp_path_factory.mktemp("run")
     cfg = compose_config("train", [*TINY_RUN, f"paths.data_dir={shared_data_dir}",
@@ -220,9 +214,9 @@ def test_the_command_line_refuses_a_missing_path(tmp_path: Path) -> None:
 @pytest.mark.parametrize("model", ["newton", "decoder"])
 def test_the_report_reads_the_pair_law_of_a_pair_force_head(model: str, tmp_path: Path,
                                                             shared_data_dir: Path) -> None:
-    """model=newton has a pair-force head: its formula (bgn.laws) and figure go into the
+    """model=newton has a pair-force head: its formula (bgn.eval.laws) and figure go into the
     report; BGN with the paper's decoder has none, and the report says so."""
-    from bgn.evaluate import law_text, report_text
+    from bgn.eval.evaluate import law_text, report_text
 
     overrides = (["model=newton", "model.hidden=8"] if model == "newton"
                  else [*TINY_BGN, "model.dynamics=decoder"])
@@ -250,7 +244,7 @@ def test_the_lagrangebench_metrics_take_the_source_periodic_box() -> None:
     image reads that box's sides, inf along the others; built-in scenes have none."""
     from types import SimpleNamespace
 
-    from bgn.evaluate import lb_prefix, scene_period
+    from bgn.rollout import lb_prefix, scene_period
     from bgn.sim.imported import ImportedScene
 
     scene = ImportedScene(dim=2, periodic=(True, False), bounds=((0.0, 2.0), (-1.0, 1.0)))
@@ -264,7 +258,7 @@ def test_the_lagrangebench_metrics_take_the_source_periodic_box() -> None:
 def test_an_auto_run_resolves_to_its_chosen_structure(tmp_path: Path) -> None:
     """``python -m bgn.evaluate <run>`` on a model.dynamics=auto run scores the structure
     that auto chose (``auto/auto.json``), with that candidate's own run config."""
-    from bgn.evaluate import resolve_run
+    from bgn.eval.evaluate import resolve_run
 
     for name in ("decoder", "newton_source"):
         (tmp_path / "auto" / name / "checkpoints").mkdir(parents=True)
@@ -280,7 +274,7 @@ def test_data_without_masses_report_the_posterior_unscored(tmp_path: Path) -> No
     """Imported data without masses: the evaluation reports the inverse model's posterior
     (medians and interval widths) and scores nothing against the stand-in unit masses."""
     from bgn.data import from_arrays
-    from bgn.evaluate import evaluate_model
+    from bgn.eval.evaluate import evaluate_model
     from tests.test_train import SMALL_MODELS
 
     rng = np.random.default_rng(0)

@@ -9,8 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from bgn.experiments import plan_cells, run
-from bgn.report import INVERSE_REFERENCES
+from bgn.studies.cells import plan_cells
+from bgn.studies.grid import run
+from bgn.studies.report import INVERSE_REFERENCES
 from tests.conftest import compose_config
 
 
@@ -106,7 +107,8 @@ def test_a_damaged_study_file_is_named_and_its_cell_redone(tmp_path: Path, share
                                                            caplog) -> None:
     """A half-written eval.json (or metrics.json) is named in a warning and the cell is
     evaluated (trained) again, instead of a JSONDecodeError that blocks the study."""
-    from bgn.experiments import Cell, evaluate_cell, train_cell
+    from bgn.studies.cells import Cell, train_cell
+    from bgn.studies.grid import evaluate_cell
 
     cfg = tiny_cfg(tmp_path)
     cfg.data_dir = str(shared_data_dir)

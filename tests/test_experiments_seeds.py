@@ -12,8 +12,9 @@ from typing import Any
 
 import pytest
 
-from bgn.experiments import Cell, CellsFailed, cell_overrides, plan_cells, run
-from bgn.report import (
+from bgn.studies.cells import Cell, cell_overrides, plan_cells
+from bgn.studies.grid import CellsFailed, run
+from bgn.studies.report import (
     aggregate_rows,
     block_markers,
     replace_block,
@@ -22,14 +23,14 @@ from bgn.report import (
     table1,
     write_report,
 )
-from bgn.validate import ConfigError
+from bgn.train.validate import ConfigError
 from tests.conftest import compose_config
 
 SEEDS = (0, 1, 2)
 BGN = [Cell("spring", 50.0, "bgn", seed=s, seeded=True) for s in SEEDS]
 GNS = [Cell("spring", 50.0, "gns_given", seed=s, seeded=True) for s in SEEDS]
 NMSE = {"bgn": [0.1, 0.2, 0.6], "gns_given": [0.3, 0.3, 0.3]}
-CAP = 10.0  # rollout_cap: a failed rollout counts at it (bgn.evaluate)
+CAP = 10.0  # rollout_cap: a failed rollout counts at it (bgn.eval.evaluate)
 # seed 2 of bgn: one of its three rollouts failed, counted at the cap in its mean
 POS_ERR = {"bgn": [0.1, 0.2, (0.3 + 0.3 + CAP) / 3], "gns_given": [0.5, 0.5, 0.5]}
 FAILED = {"bgn": [0.0, 0.0, 1 / 3], "gns_given": [0.0, 0.0, 0.0]}
@@ -161,7 +162,7 @@ def test_a_failed_cell_is_named_and_the_others_reported(tmp_path: Path, monkeypa
                                                         capsys) -> None:
     """workers=1: a cell whose training raises is named, the others are evaluated and
     reported, and the command fails at the end."""
-    import bgn.experiments as experiments
+    import bgn.studies.grid as grid
 
     cfg = compose_config("experiments", [
         "preset=tiny", "preset.scenes=[spring]", "preset.fps=[50]",
@@ -183,8 +184,8 @@ def test_a_failed_cell_is_named_and_the_others_reported(tmp_path: Path, monkeypa
     def evaluate_cell(cell: Cell, cfg: Any) -> dict[str, Any]:
         return record(Cell("spring", 50.0, "bgn", seed=cell.seed, seeded=True))["eval"]
 
-    monkeypatch.setattr(experiments, "train_cell", train_cell)
-    monkeypatch.setattr(experiments, "evaluate_cell", evaluate_cell)
+    monkeypatch.setattr(grid, "train_cell", train_cell)
+    monkeypatch.setattr(grid, "evaluate_cell", evaluate_cell)
     with pytest.raises(CellsFailed) as err:
         run(cfg)
     assert err.value.failed == [broken] and broken in str(err.value)

@@ -1,4 +1,4 @@
-"""bgn.laws: the formula fitter on known laws, a law read back from a trained pair-force head,
+"""bgn.eval.laws: the formula fitter on known laws, a law read back from a trained pair-force head,
 and the command line."""
 
 from __future__ import annotations
@@ -17,8 +17,7 @@ import sympy
 import torch
 from omegaconf import OmegaConf
 
-from bgn.graph import collate
-from bgn.laws import (
+from bgn.eval.laws import (
     Term,
     fit_formula,
     law_section,
@@ -28,8 +27,9 @@ from bgn.laws import (
     sample_law,
     true_law,
 )
+from bgn.graph import collate
 from bgn.sim import make_scene
-from bgn.train import build, train
+from bgn.train.run import build, train
 from tests.conftest import SMALL, compose_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -275,9 +275,9 @@ def zero_crossing(pairs: list[dict]) -> float:
 def test_fine_tuning_moves_a_perturbed_constant_back_and_writes_a_checkpoint(
         tmp_path, shared_data_dir):
     from bgn.data.datamodule import ParticleDataModule
-    from bgn.evaluate import load_model
-    from bgn.laws import finetune_formula, finetune_markdown, validation_errors
+    from bgn.eval.laws import finetune_formula, finetune_markdown, validation_errors
     from bgn.model.formula_law import FormulaLaw
+    from bgn.train.module import load_model
 
     ckpt = tiny_run(tmp_path, shared_data_dir, "newton", "model.hidden=16")
     cfg = OmegaConf.load(tmp_path / "newton" / "train_config.yaml")
@@ -321,7 +321,7 @@ def test_the_command_fine_tunes_with_finetune_true(tmp_path, shared_data_dir):
     assert {"formula.ckpt", "formula.json", "report.md", "train_config.yaml"} <= {
         p.name for p in out.iterdir()}
     record = json.loads((out / "formula.json").read_text())
-    # beside the checkpoint, the run's config with the formula model's options (bgn.evaluate)
+    # beside the checkpoint, the run's config with the formula model's options (bgn.eval.evaluate)
     model = OmegaConf.load(out / "train_config.yaml").model
     assert model.law == "formula" and json.loads(model.law_formula) == record["tuned"]
     text = (out / "report.md").read_text()
@@ -342,7 +342,8 @@ def test_law_auto_tests_the_law_that_validates_better(tmp_path, shared_data_dir)
     """model.law=auto: after the fit, the law read back as a formula and fine-tuned (the
     formula stage), the better of the two on validation rollouts tested, and bgn.evaluate
     given the run directory scores that one."""
-    from bgn.evaluate import resolve_run
+    from bgn.eval.evaluate import resolve_run
+    from bgn.eval.laws import law_stage
 
     run = tmp_path / "newton"
     overrides = ["dataset=spring", *SMALL["spring"], f"paths.data_dir={shared_data_dir}",
@@ -351,7 +352,10 @@ def test_law_auto_tests_the_law_that_validates_better(tmp_path, shared_data_dir)
                  "trainer.max_epochs=1", "+trainer.limit_train_batches=4",
                  "trainer.limit_val_batches=1", "+trainer.limit_test_batches=1",
                  "callbacks.progress_bar=null"]
-    train(compose_config("train", overrides))
+    cfg = compose_config("train", overrides)
+    with pytest.raises(ValueError, match="needs the formula stage"):  # none handed in
+        train(cfg)
+    train(cfg, law_stage=law_stage)
     record = json.loads((run / "metrics.json").read_text())
     law = record["law"]
     stage = json.loads((run / "laws" / "formula.json").read_text())

@@ -1,4 +1,4 @@
-"""The Pareto study (``bgn.pareto``, ``preset=pareto_*``): the front, the time-schedule
+"""The Pareto study (``bgn.studies.pareto``, ``preset=pareto_*``): the front, the time-schedule
 callback, the cells of the presets, and the tiny preset end to end (slow tier)."""
 
 from __future__ import annotations
@@ -12,8 +12,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from bgn import pareto
-from bgn.experiments import is_pareto, plan_cells
+from bgn.studies import pareto
+from bgn.studies.cells import plan_cells
+from bgn.studies.dispatch import is_pareto
 from tests.conftest import compose_config
 
 

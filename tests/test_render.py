@@ -12,12 +12,11 @@ import torch
 from omegaconf import OmegaConf
 from PIL import Image
 
-from bgn.checkpoints import CheckpointError
-from bgn.evaluate import load_model
 from bgn.figures import rollout_animation
-from bgn.module import add_animation
-from bgn.render import main
-from bgn.train import train
+from bgn.studies.render import main
+from bgn.train.checkpoints import CheckpointError
+from bgn.train.module import add_animation, load_model
+from bgn.train.run import train
 from tests.conftest import SMALL, compose_config
 
 

@@ -7,8 +7,8 @@ import csv
 from pathlib import Path
 from typing import Any
 
-from bgn.experiments import Cell
-from bgn.report import (
+from bgn.studies.cells import Cell
+from bgn.studies.report import (
     INVERSE_REFERENCES,
     PAPER_LABEL,
     ablations_table,
@@ -48,7 +48,7 @@ def record(cell: Cell) -> dict[str, Any]:
         metrics.update({f"{key}/pos_err_mean@10": err, f"{key}/failed_share": 0.0})
     out = {"train": {"metrics": {"wall_time_s": 60.0, "test/contact_f1": 0.7}},
            "eval": {"metrics": metrics, "figure": figure}}
-    if cell.scene == "collisions":  # what bgn.experiments records (older records lack it)
+    if cell.scene == "collisions":  # what bgn.studies.grid records (older records lack it)
         out["eval"]["model"] = VARIANTS[cell.model]
     return out
 

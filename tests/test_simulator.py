@@ -8,9 +8,8 @@ import pytest
 import torch
 
 from bgn.data.targets import targets
-from bgn.evaluate import evaluate_rollouts
 from bgn.model import build_model
-from bgn.rollout import particles, rollout, simulator, true_positions
+from bgn.rollout import evaluate_rollouts, particles, rollout, simulator, true_positions
 
 SCENES = ["spring", "gravity_r1", "gravity_r2", "collisions"]
 
@@ -196,8 +195,8 @@ def torus(tmp_path_factory):
     as an engine writes it, imported with bgn.data.from_arrays."""
     from bgn.data import from_arrays
     from bgn.data.dataset import FrameDataset
+    from bgn.data.edges import minimum_image, radius_graph
     from bgn.data.files import DatasetFile
-    from bgn.data.graphs import minimum_image, radius_graph
 
     rng = np.random.default_rng(0)
     s, t, n, dt = 3, 30, 16, 0.02

@@ -10,7 +10,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 
 from bgn.sim.nbody import NYQUIST_TURN
-from bgn.stability import CONF_DIR, build, load_case, run, simulate, simulator_checks
+from bgn.studies.stability import CONF_DIR, build, load_case, run, simulate, simulator_checks
 
 
 def compose_stability(overrides: list[str]):
@@ -98,12 +98,12 @@ def test_unknown_case_keys_are_errors(tmp_path):
     with pytest.raises(ValueError, match="known"):
         load_case("missing", tmp_path)
 def test_a_checkpoint_per_scene_is_used_and_must_match_its_scene(tmp_path, monkeypatch):
-    """``checkpoints.<scene>`` is loaded with ``bgn.evaluate.load_model`` (stubbed here with a
+    """``checkpoints.<scene>`` is loaded with ``bgn.train.module.load_model`` (stubbed here with a
     small untrained model) and used for that scene's cases only."""
     import types
 
-    import bgn.evaluate
-    from bgn.stability import model_for
+    import bgn.train.module
+    from bgn.studies.stability import model_for
 
     cfg = compose_stability(["preset=tiny", f"report_dir={tmp_path}",
                              "preset.cases=[spring_6_bodies]"])
@@ -111,7 +111,7 @@ def test_a_checkpoint_per_scene_is_used_and_must_match_its_scene(tmp_path, monke
     scene, state, _, _ = build(case)
     traj = scene.simulate_from(state, np.arange(30) / case.fps)
     untrained, _ = model_for(case, scene, traj, cfg)
-    monkeypatch.setattr(bgn.evaluate, "load_model",
+    monkeypatch.setattr(bgn.train.module, "load_model",
                         lambda path: types.SimpleNamespace(model=untrained))
     cfg.checkpoints.spring = "spring.ckpt"
     _, label = model_for(case, scene, traj, cfg)

@@ -16,10 +16,10 @@ import pytest
 import torch
 from lightning.pytorch.callbacks import Callback
 
-from bgn.checkpoints import CheckpointError
 from bgn.graph import collate
-from bgn.module import PhysicsModule
-from bgn.train import build, train
+from bgn.train.checkpoints import CheckpointError
+from bgn.train.module import PhysicsModule
+from bgn.train.run import build, train
 from tests.conftest import SMALL, compose_config
 
 ROOT = Path(__file__).resolve().parents[1]

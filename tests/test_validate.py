@@ -1,5 +1,5 @@
 """Bad input is refused before any work, with one line naming the key, the value and what is
-accepted, and exit code 2 (bgn.validate, the schemas of bgn.config)."""
+accepted, and exit code 2 (bgn.train.validate, the schemas of bgn.train.config)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from hydra.core.global_hydra import GlobalHydra
 
-from bgn.validate import ConfigError, validate_generate, validate_train
+from bgn.train.validate import ConfigError, validate_generate, validate_train
 from tests.conftest import compose_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -133,7 +133,7 @@ def run_app(monkeypatch, capsys, tmp_path, module: str, *overrides: str) -> tupl
     ("dataset=nope", "dataset/nope"),            # an unknown config
 ])
 def test_train_app_exits_2_with_one_line(monkeypatch, capsys, tmp_path, override, expected):
-    code, err = run_app(monkeypatch, capsys, tmp_path, "bgn.train", override)
+    code, err = run_app(monkeypatch, capsys, tmp_path, "bgn.train.__main__", override)
     assert code == 2
     lines = err.strip().splitlines()
     assert len(lines) == 1 and expected in lines[0] and "BGN_FULL_ERROR=1" in lines[0], err
@@ -165,17 +165,18 @@ def test_study_validates_every_cell_before_training(monkeypatch, capsys):
     from hydra import initialize_config_dir
     from omegaconf import OmegaConf
 
-    import bgn.experiments as experiments
+    import bgn.studies.dispatch as dispatch
+    import bgn.studies.grid as grid
     from tests.conftest import CONF_DIR
 
     cfg = compose_config("experiments", ["preset=tiny"])
     OmegaConf.update(cfg, "preset.scene_overrides.collisions",
                      ["dataset.n_particles=30", "dataset.box=4.0", "dataset.n_frames=5"])
     trained = []
-    monkeypatch.setattr(experiments, "train_cell", lambda *a: trained.append(a))
+    monkeypatch.setattr(grid, "train_cell", lambda *a: trained.append(a))
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         with pytest.raises(SystemExit) as exit_:
-            experiments.main(cfg)
+            dispatch.main(cfg)
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and len(err.strip().splitlines()) == 1
     assert "bgn: error: cell collisions_" in err and "dataset.n_frames=5" in err

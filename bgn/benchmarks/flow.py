@@ -35,7 +35,7 @@ import torch
 
 from bgn.benchmarks._report import console, machine, print_table
 from bgn.data.stats import summarize
-from bgn.evaluate import r2_score
+from bgn.eval.evaluate import r2_score
 from bgn.graph import Graph, collate
 from bgn.model.registry import build_model
 from bgn.model.target import observed_targets

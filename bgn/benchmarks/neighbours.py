@@ -1,4 +1,4 @@
-"""Benchmark of :func:`bgn.data.graphs.radius_graph`: does neighbour search scale linearly in N?
+"""Benchmark of :func:`bgn.data.edges.radius_graph`: does neighbour search scale linearly in N?
 
 Uniform random points in 2-D at a density giving about ``--neighbours`` neighbours per point
 within a cut-off of 1. Writes ``neighbours.md``, ``neighbours.csv`` and ``neighbours.png`` (time
@@ -25,7 +25,7 @@ import numpy as np
 import scipy
 
 from bgn.benchmarks._report import console, machine, print_table
-from bgn.data.graphs import radius_graph
+from bgn.data.edges import radius_graph
 from bgn.tables import markdown_table, write_csv
 
 CUTOFF = 1.0

@@ -2,7 +2,7 @@
 step, peak memory, fitted exponents, and the fraction of the machine's matmul rate achieved.
 
 Collisions-like frames at the scene's density (200 discs per 10 x 10 box, two types of radius
-0.1 and 0.2, equipartition speeds), edges from ``bgn.data.graphs.radius_graph`` with a contact
+0.1 and 0.2, equipartition speeds), edges from ``bgn.data.edges.radius_graph`` with a contact
 margin of ``--margin`` (1.25 gives the edge density of the measurements in docs/results.md,
 "Measurements behind the defaults"). Each model is its checkout's own config composed with
 ``dataset=collisions`` (``conf/``), so BGN runs with the collisions defaults (vector contact
@@ -51,7 +51,7 @@ import torch
 import bgn
 from bgn.benchmarks._report import console, machine, print_table
 from bgn.benchmarks.flow import synthetic_stats
-from bgn.data.graphs import radius_graph
+from bgn.data.edges import radius_graph
 from bgn.graph import Graph, window_graph
 from bgn.model.registry import MODELS
 from bgn.sim.collisions import CollisionScene

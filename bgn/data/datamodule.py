@@ -15,7 +15,7 @@ from bgn.data.dataset import FrameDataset
 from bgn.data.files import DatasetFile
 from bgn.data.frames import evenly_spaced
 from bgn.data.generate import ensure_splits
-from bgn.data.spec import IMPORTED, DatasetSpec
+from bgn.data.spec import IMPORTED, DatasetSpec, LoaderOptions
 from bgn.graph import collate
 from bgn.sim import SceneMeta
 
@@ -33,35 +33,23 @@ class ParticleDataModule(L.LightningDataModule):
     """
 
     def __init__(self, dataset: Any, fps: float, data_dir: str | Path = "data",
-                 generate_workers: int | None = None, show_progress: bool = True) -> None:
+                 generate_workers: int | None = None, show_progress: bool = True,
+                 spec: DatasetSpec | None = None) -> None:
         super().__init__()
+        # ``spec``: the train split's, where the caller built it already (bgn.train.validate);
         # imported data (dataset=imported): the spec comes from the files under data_dir
-        self.spec = DatasetSpec.from_config(dataset, fps, "train", data_dir)
+        self.spec = spec or DatasetSpec.from_config(dataset, fps, "train", data_dir)
         if self.spec.scene == IMPORTED:
             logging.getLogger("bgn.data").info(
                 f"dataset=imported ({self.spec.params['name']}): frames are "
                 f"{self.spec.dt:g} apart as recorded ({self.spec.fps:g} per time unit); the "
                 f"top-level fps={float(fps):g} is ignored")
-        get = dataset.get if hasattr(dataset, "get") else (lambda k, d=None: d)
-        self.history = int(get("history", 5))
-        self.unroll = int(get("unroll", 0))  # future frames of training samples (bgn.unroll)
-        self.batch_size = int(get("batch_size", 32))
-        self.num_workers = int(get("num_workers", 0))
-        self.in_memory = bool(get("in_memory", True))
-        self.samples: dict[str, int | None] = {}
-        for split, what in (("val", "validation"), ("test", "test")):
-            value = get(f"{split}_samples", None)
-            self.samples[split] = None if value is None else int(value)
-            if value is not None and int(value) < 1:
-                raise ValueError(f"dataset.{split}_samples={value} must be >= 1 (or null: "
-                                 f"the whole {what} split)")
-        train_sims = get("train_sims", None)
-        self.train_sims = None if train_sims is None else int(train_sims)
-        if self.train_sims is not None and not 1 <= self.train_sims <= self.spec.n_sims:
-            raise ValueError(f"dataset.train_sims={self.train_sims} must be in "
-                             f"1..dataset.n_sims={self.spec.n_sims}")
-        if self.batch_size < 1:
-            raise ValueError(f"dataset.batch_size={self.batch_size} must be >= 1")
+        loader = LoaderOptions.from_config(dataset, self.spec.n_sims)  # checked: ConfigError
+        self.history, self.unroll = loader.history, loader.unroll  # unroll: bgn.train.unroll
+        self.batch_size, self.num_workers = loader.batch_size, loader.num_workers
+        self.in_memory, self.train_sims = loader.in_memory, loader.train_sims
+        self.samples: dict[str, int | None] = {"val": loader.val_samples,
+                                               "test": loader.test_samples}
         self.data_dir = Path(data_dir)
         self.generate_workers = generate_workers
         self.show_progress = show_progress

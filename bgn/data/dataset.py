@@ -8,8 +8,8 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from bgn.data.edges import full_graph, pair_codes, scene_edges
 from bgn.data.files import DatasetFile
-from bgn.data.graphs import full_graph, pair_codes, scene_edges
 from bgn.data.targets import backward_velocities, targets
 from bgn.graph import Graph, window_graph
 from bgn.sim import Scene, SceneMeta, make_scene
@@ -27,7 +27,7 @@ class FrameDataset(Dataset):
 
     ``sims`` restricts the simulations used (e.g. the first 3 for a sample-efficiency run).
     ``unroll`` S > 0 adds the true velocities of the S frames after the target's to every
-    graph (``Graph.future_vel``, for unrolled training: ``bgn.unroll``); the last S
+    graph (``Graph.future_vel``, for unrolled training: ``bgn.train.unroll``); the last S
     frames of each simulation then start no sample.
     """
 

@@ -51,7 +51,7 @@ class DatasetFileError(RuntimeError):
 
     def __init__(self, path: str | Path, problem: str, hint: str | None = None) -> None:
         fix = (f"Delete it and regenerate it with `{hint}`" if hint
-               else "Delete it and regenerate it with `python -m bgn.data.generate`")
+               else "Delete it and regenerate it with `python -m bgn.train.generate`")
         super().__init__(f"dataset file {path}: {problem}. {fix}; nothing else is touched.")
         self.path = Path(path)
 

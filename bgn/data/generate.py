@@ -1,7 +1,8 @@
 """Generate (or find in the cache) the HDF5 files of a dataset.
 
-``python -m bgn.data.generate dataset=collisions fps=10`` writes the train, val and test files
-under ``paths.data_dir``. Simulations run in parallel processes; each one draws from its own
+``ensure_splits`` writes the train, val and test files under a data directory (the command
+``python -m bgn.train.generate dataset=collisions fps=10``, ``bgn/train/generate.py``, and the
+DataModule call it). Simulations run in parallel processes; each one draws from its own
 seed sequence ``(seed, split, index)``, so the arrays are bit-identical whatever the number of
 workers, and the simulations of a larger ``n_sims`` extend those of a smaller one.
 """
@@ -12,7 +13,6 @@ import ctypes
 import os
 import signal
 import sys
-import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import nullcontext
@@ -25,8 +25,8 @@ import numpy as np
 from filelock import FileLock
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from bgn.data.edges import contact_margin
 from bgn.data.files import DatasetFile, write_dataset
-from bgn.data.graphs import contact_margin
 from bgn.data.spec import IMPORTED, SPLITS, DatasetSpec
 from bgn.data.stats import compute_stats
 from bgn.sim import Trajectory
@@ -263,27 +263,7 @@ def ensure_splits(spec: DatasetSpec, data_dir: str | Path, workers: int | None =
                 for split in SPLITS}
 
 
-def main(cfg) -> dict[str, Path]:  # noqa: ANN001 (an OmegaConf DictConfig)
-    """Entry point body: generate every split of ``cfg.dataset`` at ``cfg.fps``."""
-    from bgn.validate import validate_generate
+if __name__ == "__main__":  # python -m bgn.data.generate, the older name of the command
+    import runpy
 
-    spec = validate_generate(cfg)  # bad values fail here, before any simulation
-    start = time.perf_counter()
-    paths = ensure_splits(spec, cfg.paths.data_dir, cfg.get("workers"))
-    elapsed = time.perf_counter() - start
-    for split, path in paths.items():
-        f = DatasetFile(path, check_values=False)
-        print(f"{split:>5}: {path}  ({path.stat().st_size / 1e6:.1f} MB, {f.n_sims} sims x "
-              f"{f.n_frames} frames x {f.attrs['n_particles']} particles)")
-        f.close()
-    print(f"done in {elapsed:.1f} s")
-    return paths
-
-
-if __name__ == "__main__":
-    from bgn.config import register_configs
-    from bgn.validate import cli
-
-    register_configs(models=False)  # the dataset schemas conf/generate.yaml builds on
-    # a Hydra app; bad input: one line, exit 2 (main validates first)
-    cli("generate")(main)()
+    runpy.run_module("bgn.train.generate", run_name="__main__", alter_sys=True)

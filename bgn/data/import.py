@@ -1,11 +1,8 @@
-"""``python -m bgn.data.import <path> name=<name> [format=...] [split_seed=0] [overwrite=false]
-[paths.data_dir=...]``: trajectories from another engine -> bgn's dataset files.
+"""``python -m bgn.data.import <path> name=<name> ...``, the import command under the name the
+manual gives it: the command itself is ``bgn.train.import`` (it shares the training's config
+schema); this runs it. Never imported: ``import`` is a Python keyword."""
 
-``import`` is a Python keyword, so this module is only run, never imported by name; the work
-is ``bgn.data.importing``'s.
-"""
-
-from bgn.data.importing import run_cli
+import runpy
 
 if __name__ == "__main__":
-    run_cli()
+    runpy.run_module("bgn.train.import", run_name="__main__", alter_sys=True)

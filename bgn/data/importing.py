@@ -32,7 +32,6 @@ import json
 import os
 import re
 import shutil
-import sys
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import fields, replace
@@ -41,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from bgn.coerce import ConfigError, need_int
 from bgn.data.files import DatasetFile, write_dataset
 from bgn.data.raw import IMPORT_SPLITS, DataImportError, RawTrajectories, SplitArrays
 from bgn.data.spec import IMPORTED, SPLITS, DatasetSpec, imported_dir
@@ -286,8 +286,6 @@ def validate_import(cfg: Any) -> None:
     """The import's config, before any file is read."""
     from omegaconf import OmegaConf
 
-    from bgn.validate import ConfigError, need_int
-
     for key, what in (("path", "the file or folder to import, the first argument"),
                       ("name", "the dataset's name, e.g. name=my_water")):
         if OmegaConf.is_config(cfg) and OmegaConf.is_missing(cfg, key) or not cfg.get(key):
@@ -364,13 +362,3 @@ def path_override(argv: list[str]) -> list[str]:
         else:
             out.append(arg)
     return out
-
-
-def run_cli() -> None:
-    """``python -m bgn.data.import <path> name=<name> ...`` (``bgn/data/import.py``)."""
-    from bgn.config import register_configs
-    from bgn.validate import cli
-
-    sys.argv = [sys.argv[0], *path_override(sys.argv[1:])]
-    register_configs(models=False)
-    cli("import")(main)()  # bad input: one line, non-zero exit (bgn.validate)

@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass, field, fields, is_dataclass
 from pathlib import Path
 from typing import Any
 
-from bgn.checks import as_int
+from bgn.coerce import as_int, need_float, need_int
 from bgn.sim import SCENES, Scene, make_scene
 
 SPLITS = ("train", "val", "test")
@@ -22,6 +22,57 @@ LOADER_KEYS = frozenset({"history", "batch_size", "num_workers", "train_sims", "
                          "in_memory", "generate_workers", "unroll"})
 SIZE_KEYS = ("n_sims", "n_frames", "seed")
 IMPORTED = "imported"  # the scene of imported data (bgn.sim.imported, bgn.data.importing)
+
+
+def check_fps(value: Any) -> float:
+    """``fps`` as a float > 0: the one home of the rule (the spec, and the config checks of
+    ``bgn.train.validate`` before any spec is built)."""
+    return need_float(value, "fps", 0.0, why=" (frames per unit of simulated time)")
+
+
+@dataclass
+class LoaderOptions:
+    """How a dataset node says its frames are loaded (``LOADER_KEYS`` but the generation's
+    ``generate_workers``): the one home of their defaults (the config schema
+    ``bgn.train.config.LoaderNode`` is this class) and of their rules (``from_config``, which
+    the DataModule and ``bgn.train.validate`` both call)."""
+
+    history: int = 5                  # k previous velocities in the input window (>= 0)
+    unroll: int = 0                   # training steps unrolled on the model's own frames
+    batch_size: int = 64
+    val_samples: int | None = None  # validation frames spread over all val sims (null: all)
+    test_samples: int | None = None  # test frames spread over all test sims (null: all)
+    num_workers: int = 0
+    train_sims: int | None = None  # train on the first n simulations only (null: all)
+    in_memory: bool = True
+
+    @classmethod
+    def from_config(cls, dataset: Any, n_sims: int, sims_why: str | None = None,
+                    ) -> LoaderOptions:
+        """The loader keys of a ``dataset`` node (defaults where it names none), checked: a
+        bad value raises ``ConfigError`` (a ``ValueError``) naming it. ``n_sims``: the train
+        split's simulations, the most ``train_sims`` may keep (``sims_why`` says so)."""
+        d = cls()
+
+        def get(key: str) -> Any:
+            node = dataset.get if hasattr(dataset, "get") else (lambda k, default=None: default)
+            return node(key, getattr(d, key))
+
+        history = need_int(get("history"), "dataset.history", 0)
+        unroll = need_int(get("unroll"), "dataset.unroll", 0,
+                          why=": training steps unrolled on the model's own frames")
+        batch_size = need_int(get("batch_size"), "dataset.batch_size", 1)
+        num_workers = need_int(get("num_workers"), "dataset.num_workers", 0)
+        val_samples = need_int(get("val_samples"), "dataset.val_samples", 1, optional=True,
+                               why=": validation frames (null: the whole validation split)")
+        test_samples = need_int(get("test_samples"), "dataset.test_samples", 1, optional=True,
+                                why=": test frames (null: the whole test split)")
+        train_sims = need_int(get("train_sims"), "dataset.train_sims", 1, n_sims, optional=True,
+                              why=sims_why or f" (at most dataset.n_sims={n_sims})")
+        assert history is not None and unroll is not None  # not optional: never None
+        assert batch_size is not None and num_workers is not None
+        return cls(history, unroll, batch_size, val_samples, test_samples, num_workers,
+                   train_sims, bool(get("in_memory")))
 
 
 def imported_dir(data_dir: str | Path, name: str) -> Path:
@@ -62,8 +113,7 @@ class DatasetSpec:
                              f"{sorted(SCENES)}")
         if self.split not in SPLITS:
             raise ValueError(f"split={self.split!r}; choose one of {SPLITS}")
-        if not self.fps > 0:
-            raise ValueError(f"fps={self.fps} must be a positive number of frames per time unit")
+        check_fps(self.fps)
         as_int(self.n_sims, "dataset.n_sims", 1)
         as_int(self.n_frames, "dataset.n_frames", 3)
 
@@ -172,7 +222,7 @@ class DatasetSpec:
                   if k in defaults and v != defaults[k]]
         if data_dir is not None:
             parts.append(_shell(f"paths.data_dir={data_dir}"))
-        return "python -m bgn.data.generate " + " ".join(parts)
+        return "python -m bgn.train.generate " + " ".join(parts)
 
 
 def _override(value: Any) -> str:

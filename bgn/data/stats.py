@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from bgn.data.edges import minimum_image, pair_codes, scene_edges
 from bgn.data.frames import evenly_spaced
-from bgn.data.graphs import minimum_image, pair_codes, scene_edges
 from bgn.data.targets import backward_velocities, targets
 from bgn.sim import Scene
 

@@ -110,7 +110,7 @@ class ModelConfig(DynamicsConfig):
     dynamics: str = "decoder"
     mass_law: str = "inertial"
     substeps: int = 1  # > 1: the newton head integrates each frame in substeps (newton.shoot)
-    law: str = "mlp"  # the newton head's pair law: mlp | formula (law_formula) | auto (bgn.laws)
+    law: str = "mlp"  # the newton head's pair law: mlp | formula (law_formula) | auto
     law_formula: str = ""
     # D^-1/2 Â D^-1/2 in every GCN layer. The paper's plain sums grow like (degree+1)^layers,
     # so contact logits explode at initialisation on large radius graphs and the flows do not

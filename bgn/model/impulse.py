@@ -521,7 +521,7 @@ class ContactImpulseHead(nn.Module):
         ``(j, i, k)`` (M, 3): discs i < k (graph-wide node indices) touch between frames
         t - j and t - j + 1, where free flight meets and the gate is open (probability
         > 1/2). What the head's per-simulation mass solve reads
-        (``bgn.inverse_references.impact_log_mass``)."""
+        (``bgn.eval.mass_baselines.impact_log_mass``)."""
         snd, rcv = g.edge_index
         _, _, frames = self._replay(g)
         depth = len(frames)

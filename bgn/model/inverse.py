@@ -36,7 +36,7 @@ base draw ``e ~ N(0, 1)`` becomes ``sign(e) m(|e|)`` with ``m`` a monotone piece
 map of the radius (knots ``(z, r)``, linear past the last): for a 1-D flow the transform is
 monotone, so this moves every credible interval's bounds around the same median, in the
 flow's own warped coordinates, and the density follows by the change of variables. The map is
-fitted on the validation split after training (``bgn.evaluate.calibrate_mass_posterior``,
+fitted on the validation split after training (``bgn.eval.evaluate.calibrate_mass_posterior``,
 ``bgn.metrics.fit_radius_map``); it is the identity while training and not part of the
 checkpoint's weights.
 """

@@ -16,7 +16,7 @@ through the accumulating ``index_put_`` behind ``x[index]``. Both run as CSR ker
 on large graphs, with no (E, F) memory (docs/results.md, "Measurements behind the defaults").
 
 CSR needs the edges sorted by receiver, which every graph builder here already returns
-(``bgn.data.graphs``) and a batch keeps (``bgn.graph.collate``); other orders are sorted once
+(``bgn.data.edges``) and a batch keeps (``bgn.graph.collate``); other orders are sorted once
 per edge list. The structure (row pointers, the transpose's order) is built once per edge-list
 tensor and reused by every layer of a forward and backward pass.
 """
@@ -176,7 +176,7 @@ def minimum_image(dx: torch.Tensor, period: torch.Tensor | None) -> torch.Tensor
     """Differences ``dx`` (..., D) moved by whole box lengths to their nearest image in each
     periodic dimension; ``period`` broadcasts against ``dx`` (0: not periodic; None: ``dx``
     unchanged). The shift is piecewise constant, so the gradient in ``dx`` is the identity.
-    The numpy twin is ``bgn.data.graphs.minimum_image``."""
+    The numpy twin is ``bgn.data.edges.minimum_image``."""
     if period is None:
         return dx
     period = period.to(dx.dtype)
@@ -188,7 +188,7 @@ def minimum_image(dx: torch.Tensor, period: torch.Tensor | None) -> torch.Tensor
 def edge_period(g: Graph, receivers: torch.Tensor | None = None) -> torch.Tensor | None:
     """(E, D) the box lengths of the graph each edge's receiver belongs to (``Graph.period``;
     ``receivers`` (E,): those of a subset of edges), or None for a graph without periodic
-    boundaries (or a stand-in without the field, e.g. ``bgn.laws.sample_law``'s two
+    boundaries (or a stand-in without the field, e.g. ``bgn.eval.laws.sample_law``'s two
     particles)."""
     period = getattr(g, "period", None)
     if period is None:

@@ -79,7 +79,7 @@ class NewtonConfig(DynamicsConfig):
     mass_law: str = "inertial"         # inertial: a = F / m (spring) | source: a = sum m_j F_ij
     substeps: int = 1                  # 1: Numerov's weights; > 1: integrate the frame (above)
     law: str = "mlp"                   # mlp: f(s) a network | formula: law_formula | auto
-    law_formula: str = ""              # the formula's JSON spec (bgn.laws.formula_spec)
+    law_formula: str = ""              # the formula's JSON spec (bgn.eval.laws.formula_spec)
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -118,7 +118,7 @@ class TargetCoder(nn.Module):
             if name not in stats:
                 raise KeyError(f"the training statistics lack {name!r} (files written before "
                                "dataset schema 3): regenerate the dataset with "
-                               "python -m bgn.data.generate, or use target_prior=none")
+                               "python -m bgn.train.generate, or use target_prior=none")
             scale = float(robust_scale(stats, name).mean())
             self.register_buffer("residual_scale", torch.tensor(scale, dtype=torch.float32))
         else:

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from bgn.checks import as_float, as_int
+from bgn.coerce import as_float, as_int
 from bgn.sim.scene import SceneMeta, State, Trajectory
 
 # Safety net: a correct run never gets near this, an endless zero-time loop would.

@@ -96,7 +96,7 @@ class ImportedScene:
 
     @property
     def margin(self) -> float:
-        """The radius graph's margin (``bgn.data.graphs.scene_edges``); 0 for full graphs."""
+        """The radius graph's margin (``bgn.data.edges.scene_edges``); 0 for full graphs."""
         return float(self.connectivity_radius) if self.graph == "radius" else 0.0
 
     def _no_simulator(self, what: str) -> NoSimulatorError:

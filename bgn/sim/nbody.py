@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from bgn.checks import as_float, as_int
+from bgn.coerce import as_float, as_int
 from bgn.sim.scene import SceneMeta, State, Trajectory
 
 POTENTIALS = ("spring", "r1", "r2")

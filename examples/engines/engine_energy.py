@@ -165,7 +165,7 @@ def main() -> None:
     if args.positions is None:
         positions = _split_positions(args.data_dir, args.split)
     else:
-        with np.load(args.positions) as f:  # bgn.evaluate's rollouts.npz: "predicted"
+        with np.load(args.positions) as f:  # bgn.eval.evaluate's rollouts.npz: "predicted"
             key = args.key or ("positions" if "positions" in f else "predicted")
             positions = f[key]
             velocities = f["velocities"] if "velocities" in f else None

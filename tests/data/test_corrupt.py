@@ -131,13 +131,13 @@ def test_regenerate_hint_carries_overrides_and_data_dir(tmp_path):
     with h5py.File(path, "r+") as f:
         f["stats/target/std"][0] = np.nan
     for message in (refused(path, spec), str(_error(path))):  # with and without the config
-        for part in ("python -m bgn.data.generate dataset=collisions fps=10",
+        for part in ("python -m bgn.train.generate dataset=collisions fps=10",
                      "dataset.n_sims=2", "dataset.n_frames=40", "dataset.n_particles=30",
                      "dataset.box=4.0", f"'paths.data_dir={data}'"):
             assert part in message, message
     # the hint is a command that composes: every override is accepted by the schema
     hint = message.split("`")[1]
-    overrides = [a.strip("'") for a in hint.split("python -m bgn.data.generate ")[1].split(" ")
+    overrides = [a.strip("'") for a in hint.split("python -m bgn.train.generate ")[1].split(" ")
                  if "=" in a]
     compose_config("generate", [o for o in overrides if not o.startswith("paths.data_dir")])
 
@@ -190,7 +190,7 @@ def test_kill_9_during_generation_leaves_no_worker_and_no_temporary(tmp_path):
     overrides = ["dataset=spring", "fps=10", "dataset.n_sims=2", "dataset.n_frames=2000",
                  f"paths.data_dir={data}"]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    proc = subprocess.Popen([sys.executable, "-m", "bgn.data.generate", *overrides,
+    proc = subprocess.Popen([sys.executable, "-m", "bgn.train.generate", *overrides,
                              "workers=2", f"hydra.run.dir={tmp_path / 'run'}"],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:

@@ -44,7 +44,7 @@ def test_truncated_file_names_file_and_fix(train_file, tmp_path):
         DatasetFile(bad, spec)
     message = str(err.value)
     assert str(bad) in message and "truncated or corrupt" in message
-    assert "python -m bgn.data.generate dataset=spring fps=50" in message
+    assert "python -m bgn.train.generate dataset=spring fps=50" in message
     assert bad.exists()  # never deleted behind the user's back
 
 

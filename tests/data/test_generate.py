@@ -6,16 +6,16 @@ import h5py
 import numpy as np
 import pytest
 
+from bgn.data.edges import radius_graph
 from bgn.data.generate import (
     ALIASED_WARN,
     aliased_share,
     ensure_dataset,
     generate_file,
-    main,
     simulate_one,
 )
-from bgn.data.graphs import radius_graph
 from bgn.data.spec import DatasetSpec
+from bgn.train.generate import main
 
 SCENES = ["spring", "gravity_r1", "gravity_r2", "collisions"]
 

@@ -24,9 +24,9 @@ from bgn.data.raw import DataImportError
 from bgn.data.spec import DatasetSpec
 from bgn.model.noise import add_random_walk_noise
 from bgn.rollout import rollout
-from bgn.train import build, data_module, train
-from bgn.unroll import advance
-from bgn.validate import ConfigError, validate_train
+from bgn.train.run import build, data_module, train
+from bgn.train.unroll import advance
+from bgn.train.validate import ConfigError, validate_train
 from tests.conftest import SMALL, compose_config
 from tests.data.layouts import (
     write_arrays_h5,
@@ -93,7 +93,7 @@ def _train_cfg(name: str | list[str], data_dir: Path, out: Path, model: str, *ov
         f"paths.output_dir={out}", f"model={model}", *SMALL_MODELS[model], "rollout_steps=3",
         "val_rollout_steps=4", "val_rollout_sims=1", "dataset.batch_size=8",
         "+trainer.fast_dev_run=true", "test=false",
-        # imported data default to model.dynamics=auto (a study of its own, bgn/auto.py)
+        # imported data default to model.dynamics=auto (a study of its own, bgn/studies/auto.py)
         *(["model.dynamics=decoder"] if model == "bgn" else []), *overrides])
 
 
@@ -305,7 +305,7 @@ def test_kinematic_particles_are_inputs_never_predicted_or_scored(tmp_path):
 
 
 def test_checkpoints_record_the_import_and_its_data(tmp_path):
-    from bgn.train import run_provenance
+    from bgn.train.run import run_provenance
 
     rng = np.random.default_rng(4)
     x = rng.normal(size=(10, 12, 3, 2)) * 0.01 + rng.normal(size=(1, 1, 3, 2))

@@ -12,8 +12,8 @@ from torch import nn
 
 from bgn.data import from_arrays
 from bgn.data.datamodule import ParticleDataModule
+from bgn.data.edges import batch_edges, full_graph
 from bgn.data.files import DatasetFile
-from bgn.data.graphs import batch_edges, full_graph
 from bgn.graph import Graph, collate, window_graph
 from bgn.model import build_model
 from bgn.model.newton import (
@@ -26,9 +26,9 @@ from bgn.model.newton import (
 )
 from bgn.model.ops import scatter_sum
 from bgn.sim.scene import SceneMeta
-from bgn.stability import build as build_case
-from bgn.stability import load_case
-from bgn.train import train
+from bgn.studies.stability import build as build_case
+from bgn.studies.stability import load_case
+from bgn.train.run import train
 from tests.conftest import compose_config
 from tests.test_train import SMALL_MODELS
 
@@ -324,7 +324,7 @@ def short_range_window(masses: np.ndarray, frames: int = 6, dt: float = 0.05,
 def short_range_graph(window: np.ndarray, masses: np.ndarray, edges: str) -> Graph:
     """The graph of the window's last frame: radius edges (CUTOFF plus a margin that covers
     the window's motion) or the complete graph."""
-    from bgn.data.graphs import radius_graph
+    from bgn.data.edges import radius_graph
 
     n = window.shape[1]
     reach = CUTOFF + 2 * float(np.abs(window - window[-1]).max()) + 0.05

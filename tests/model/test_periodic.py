@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from bgn.data.graphs import scene_edges
+from bgn.data.edges import scene_edges
 from bgn.graph import collate, window_graph
 from bgn.model import build_model
 from bgn.model.message_passing import edge_vector, minimum_image

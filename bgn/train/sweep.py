@@ -8,8 +8,8 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from bgn.checkpoints import read_record
 from bgn.tables import write_table
+from bgn.train.checkpoints import read_record
 
 SUMMARY_METRICS = ("val/nmse", "test/nmse", "test/mse", "test/median_relative_error",
                    "test/type_accuracy", "test/contact_f1", "test/contact_r2",

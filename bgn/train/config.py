@@ -13,10 +13,10 @@
 
 A composed node is then typed: ``model.hidden=abc`` or ``fps=abc`` is refused at composition
 and a typo (``model.hiden=3``) is an error. Ranges and cross-checks (``fps > 0``, enough
-frames for the window, ...) are ``bgn.validate``'s.
+frames for the window, ...) are ``bgn.train.validate``'s.
 
 Call ``register_configs()`` before composing a config (``bgn.train`` and
-``bgn.data.generate`` do it at import, the tests in ``compose_config``); calling it again does
+``bgn.train.generate`` do it at import, the tests in ``compose_config``); calling it again does
 nothing.
 """
 
@@ -29,6 +29,7 @@ from typing import Any
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING as REQUIRED  # "???": a value the config must set (after defaults)
 
+from bgn.data.spec import LoaderOptions
 from bgn.sim import SCENES
 from bgn.sim.collisions import ParticleType
 
@@ -50,17 +51,9 @@ ParticleTypeNode = make_dataclass(
 
 
 @dataclass
-class LoaderNode:
-    """How a dataset is loaded (``bgn.data.spec.LOADER_KEYS``: not part of the cache key)."""
-
-    history: int = 5                  # k previous velocities in the input window (>= 0)
-    unroll: int = 0                   # training steps unrolled on the model's own frames
-    batch_size: int = 64
-    val_samples: int | None = None  # validation frames spread over all val sims (null: all)
-    test_samples: int | None = None  # test frames spread over all test sims (null: all)
-    num_workers: int = 0
-    train_sims: int | None = None  # train on the first n simulations only (null: all)
-    in_memory: bool = True
+class LoaderNode(LoaderOptions):
+    """How a dataset is loaded (``bgn.data.spec.LOADER_KEYS``: not part of the cache key): the
+    keys and defaults of ``bgn.data.spec.LoaderOptions``, their one home."""
 
 
 @dataclass
@@ -113,7 +106,7 @@ def dataset_schema(scene: str) -> type:
 # ----------------------------------------------------------------------------- top level
 @dataclass
 class AutoKeys:
-    """``auto``: how ``model.dynamics=auto`` (``bgn.auto``) spends the budget and scores."""
+    """``auto``: how ``model.dynamics=auto`` (``bgn.studies.auto``) spends the budget and scores."""
 
     share: float = 0.5                # of the budget, split evenly among the candidates
     horizon: int = 50                 # rollout steps the choice is made at (capped by the files)
@@ -134,9 +127,9 @@ class TrainKeys:
     val_rollout_steps: int = 50       # val/rollout_error rollout length (0: off)
     val_rollout_sims: int = 2
     test: bool = True
-    test_rollouts: bool = True        # the test phase's rollouts (bgn.evaluate.test_rollouts)
+    test_rollouts: bool = True        # the test phase's rollouts (bgn.rollout.test_rollouts)
     ckpt_path: str | None = None      # resume from this checkpoint
-    auto: AutoKeys = field(default_factory=AutoKeys)  # model.dynamics=auto (bgn.auto)
+    auto: AutoKeys = field(default_factory=AutoKeys)  # model.dynamics=auto (bgn.studies.auto)
 
 
 @dataclass

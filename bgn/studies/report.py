@@ -3,7 +3,7 @@ efficiency) and report.md, from the cells' training records and test-split evalu
 
 Every number in the report comes from the cells' checkpoints except the paper's published
 Table 1 values below, the only ones typed by hand. ``results`` maps a cell's name to
-``{"train": metrics.json record, "eval": eval.json record}`` (``bgn.experiments``).
+``{"train": metrics.json record, "eval": eval.json record}`` (``bgn.studies.grid``).
 """
 
 from __future__ import annotations
@@ -13,10 +13,11 @@ import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from bgn.eval.columns import INVERSE_COLUMNS, INVERSE_REFERENCES, ROLLOUT_COLUMNS
 from bgn.tables import fmt, write_csv, write_table
 
 if TYPE_CHECKING:
-    from bgn.experiments import Cell
+    from bgn.studies.cells import Cell
 
 Results = dict[str, dict[str, Any]]
 
@@ -34,13 +35,13 @@ PAPER_LABEL = "paper (metric unstated)"
 PAPER_COLUMNS = {"BGN": PAPER_BGN, "Cranmer et al.": PAPER_CRANMER,
                  "Sanchez-Gonzalez et al.": PAPER_SANCHEZ}
 
-# no-learning references in Table 1 (bgn.evaluate): metric suffix -> column
+# no-learning references in Table 1 (bgn.eval.evaluate): metric suffix -> column
 REFERENCES = {"last": "repeat-last NMSE", "linear": "linear-extrapolation NMSE"}
 EMPTY = "(no cells of this kind in the preset)"
 
 
 # ----------------------------------------------------------------------------- seeds
-SEED = "seed"          # the training seed of a per-seed row (bgn.experiments' Cell.seed)
+SEED = "seed"          # the training seed of a per-seed row (bgn.studies.cells.Cell.seed)
 SEEDS = "seeds"        # how many seeds an aggregated row holds
 STATS = ("std", "min", "max", "n")  # the spread columns beside each mean in the CSV
 SEEDS_NOTE = ("Seeds: each row is the mean over its `seeds` training seeds, ± the sample "
@@ -136,7 +137,7 @@ def paper_value(source: str, scene: str, fps: float) -> float | None:
 
 
 def evaluation(results: Results, cell: Cell) -> dict[str, Any]:
-    """The test-split metrics of a cell (``bgn.evaluate``)."""
+    """The test-split metrics of a cell (``bgn.eval.evaluate``)."""
     return results[cell.name]["eval"]["metrics"]
 
 
@@ -150,7 +151,7 @@ def _main(cells: list[Cell]) -> list[Cell]:
 
 
 def variant(results: Results, cell: Cell) -> dict[str, str]:
-    """What a cell's model is (``PhysicsModel.describe``, recorded by ``bgn.experiments``):
+    """What a cell's model is (``PhysicsModel.describe``, recorded by ``bgn.studies.grid``):
     its label, what it is given beyond the position window and the physics written into it;
     the cell's model name alone where an older record lacks it."""
     info = results[cell.name]["eval"].get("model") or {}
@@ -204,14 +205,6 @@ def table1(report_dir: Path, cells: list[Cell], results: Results) -> str:
         "latter by default).",
         empty=EMPTY)
 
-
-INVERSE_COLUMNS = ["coverage50", "coverage90", "coverage_max_dev", "sbc_p", "tarp_atc",
-                   "info_gain", "relmass_r2", "relmass_r2_estimate", "mass_rel_err",
-                   "sim_mass_rel_err", "sim_mass_rel_err_flow", "welch_p", "wasserstein1",
-                   "modes_true", "modes_recovered"]
-# the references evaluated beside each inverse model (bgn.evaluate.evaluate_inverse)
-INVERSE_REFERENCES = {"prior": "prior-only sampler",
-                      "physical": "physical estimator (force law, no learning)"}
 
 
 def inverse_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
@@ -320,12 +313,6 @@ def sample_efficiency_table(report_dir: Path, cells: list[Cell], results: Result
         "Test error against the number of training simulations (val and test use every "
         "simulation of their splits).")
 
-
-ROLLOUT_COLUMNS = ["pos_err_mean@1", "pos_err_mean@10", "pos_err_mean@50", "pos_err_mean@100",
-                   "pos_err_median@100", "pos_err_mean@all", "pos_mse_mean@all",
-                   "energy_err@all", "energy_err_truth@all", "momentum_err@all",
-                   "speed_w1_type0", "speed_w1_type1", "collision_rate_ratio", "failed_share",
-                   "rollout_cap", "rollout_steps", "seconds_per_step"]
 
 
 def rollout_table(report_dir: Path, cells: list[Cell], results: Results) -> str:

@@ -34,7 +34,8 @@ from torchmetrics.classification import (
 from bgn.graph import Graph
 from bgn.model import build_model
 from bgn.sim import SceneMeta
-from bgn.unroll import unrolled_loss
+from bgn.train.checkpoints import CheckpointError, read
+from bgn.train.unroll import unrolled_loss
 
 STAGES = ("train", "val", "test")
 
@@ -101,7 +102,7 @@ class PhysicsModule(L.LightningModule):
         # hyperparameters of older checkpoints that __init__ no longer takes (lr, ...) are
         # dropped by Lightning when loading. All are plain types (checkpoints are read with
         # weights_only=True). ``provenance``: the run that trained it (scene, scene parameters
-        # hash, fps, model, history: bgn.checkpoints.provenance), checked when a run resumes.
+        # hash, fps, model, history: bgn.train.checkpoints.provenance), checked when a run resumes.
         self.save_hyperparameters(ignore=["rollout", "rollout_error", "optimizer", "scheduler"])
         self.meta = SceneMeta(**meta)
         stats_arrays = {g: {k: np.asarray(v, dtype=np.float64) for k, v in entries.items()}
@@ -296,3 +297,21 @@ def add_animation(experiment: Any, tag: str, result: dict[str, np.ndarray], step
         width, height = Image.open(path).size
     image = Summary.Image(height=height, width=width, colorspace=4, encoded_image_string=data)
     writer.add_summary(Summary(value=[Summary.Value(tag=tag, image=image)]), step)
+
+
+def load_model(ckpt: str | Path) -> PhysicsModule:
+    """The LightningModule of a checkpoint, on the CPU, in eval mode; read with
+    ``weights_only=True``, and an unreadable file is named (``bgn.train.checkpoints.read``)."""
+    record = read(ckpt)  # a missing, truncated or foreign file: one CheckpointError naming it
+    try:
+        module = PhysicsModule.load_from_checkpoint(ckpt, map_location="cpu", weights_only=True)
+    except RuntimeError as err:  # torch: "Error(s) in loading state_dict ... key(s) ..."
+        if "state_dict" not in str(err):
+            raise
+        model = ((record.get("hyper_parameters") or {}).get("model_config") or {}).get("name")
+        detail = " ".join(str(err).split())[:300]
+        raise CheckpointError(
+            f"checkpoint {ckpt} does not fit this version of bgn's {model or 'model'}: it was "
+            "written by a bgn whose model had other weights (torch says: "
+            f"{detail}); retrain it with this version (python -m bgn.train ...)") from None
+    return module.eval()

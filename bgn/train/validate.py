@@ -1,8 +1,8 @@
 """Bad input, refused at once: config checks before any work, and the one-line exit.
 
-The typed schemas (``bgn.config``) fix the types at composition; here are the ranges and the
-cross-checks, run by every entry point (``bgn.train``, ``bgn.data.generate``,
-``bgn.experiments``) before data are generated or a model is built:
+The typed schemas (``bgn.train.config``) fix the types at composition; here are the ranges and the
+cross-checks, run by every entry point (``bgn.train``, ``bgn.train.generate``,
+``bgn.studies.grid``) before data are generated or a model is built:
 
 - ``fps`` > 0 and low enough that the frame spacing is resolved by the stored float64
   positions (``check_resolution``); the sizes ``dataset.n_sims``, ``n_frames``,
@@ -35,28 +35,17 @@ from typing import Any
 
 import numpy as np
 
-from bgn.checks import as_float, as_int
-from bgn.data.spec import IMPORTED, DatasetSpec
+from bgn.coerce import ConfigError, need_float, need_int
+from bgn.data.spec import IMPORTED, DatasetSpec, LoaderOptions, check_fps
 from bgn.sim import SCENES, Scene
 
-CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 FULL_ERROR_ENV = "BGN_FULL_ERROR"
 CONFIG_EXIT = 2       # bad input (the usual exit code of a command-line usage error)
 DATA_EXIT = 1         # a dataset file that cannot be used
 # Largest accepted round-off of a finite-difference target relative to its typical size
 MAX_ROUNDOFF = 1e-4
 MAX_SEED = 2**32 - 1  # numpy's and Lightning's seed range
-
-
-class ConfigError(ValueError):
-    """A config value bgn cannot use; the message names the key, the value and what is
-    accepted (or is given whole as ``message``)."""
-
-    def __init__(self, key: str, value: Any = None, accepted: str = "",
-                 message: str | None = None) -> None:
-        self.key, self.value = key, value
-        shown = repr(value) if isinstance(value, str) else f"{value}"
-        super().__init__(message or f"{key}={shown}: {accepted}")
 
 
 def _get(node: Any, key: str, default: Any = None) -> Any:
@@ -67,44 +56,6 @@ def _get(node: Any, key: str, default: Any = None) -> Any:
 
 def _keys(node: Any) -> list[Any]:
     return list(node.keys()) if hasattr(node, "keys") else []
-
-
-def need_int(value: Any, key: str, minimum: int, maximum: int | None = None,
-             optional: bool = False, why: str = "") -> int | None:
-    """``value`` as an int in ``[minimum, maximum]`` (``None`` allowed when ``optional``)."""
-    if value is None and optional:
-        return None
-    span = f"an integer >= {minimum}" if maximum is None else \
-        f"an integer in {minimum}..{maximum}"
-    accepted = f"must be {span}{' (or null)' if optional else ''}{why}"
-    try:
-        out = as_int(value, key, minimum)
-    except ValueError:
-        raise ConfigError(key, value, accepted) from None
-    if maximum is not None and out > maximum:
-        raise ConfigError(key, value, accepted)
-    return out
-
-
-def need_float(value: Any, key: str, low: float | None = None, high: float | None = None,
-               strict_low: bool = True, strict_high: bool = False, why: str = "") -> float:
-    """``value`` as a finite float above ``low`` (at least, unless ``strict_low``) and below
-    ``high`` (at most, unless ``strict_high``)."""
-    parts = []
-    if low is not None:
-        parts.append(f"{'>' if strict_low else '>='} {low:g}")
-    if high is not None:
-        parts.append(f"{'<' if strict_high else '<='} {high:g}")
-    accepted = f"must be a finite number{' ' + ' and '.join(parts) if parts else ''}{why}"
-    try:
-        out = as_float(value, key)
-    except ValueError:
-        raise ConfigError(key, value, accepted) from None
-    if low is not None and (out <= low if strict_low else out < low):
-        raise ConfigError(key, value, accepted)
-    if high is not None and (out >= high if strict_high else out > high):
-        raise ConfigError(key, value, accepted)
-    return out
 
 
 # ----------------------------------------------------------------------------- data
@@ -151,20 +102,14 @@ def validate_imported(dataset: Any, data_dir: Any) -> DatasetSpec:
         raise ConfigError("dataset.name", message=(
             "dataset.name is missing: give the name of an import (python -m bgn.data.import "
             "<path> name=<name>), e.g. dataset=imported dataset.name=<name>"))
-    history = need_int(_get(dataset, "history", 5), "dataset.history", 0)
-    unroll = need_int(_get(dataset, "unroll", 0), "dataset.unroll", 0)
-    for key in ("batch_size",):
-        need_int(_get(dataset, key, 1), f"dataset.{key}", 1)
-    need_int(_get(dataset, "num_workers", 0), "dataset.num_workers", 0)
-    for key in ("val_samples", "test_samples"):
-        need_int(_get(dataset, key), f"dataset.{key}", 1, optional=True)
     try:
         spec = DatasetSpec.from_config(dataset, 1.0, "train", data_dir or "data")
     except ValueError as err:
         raise ConfigError("dataset.name", message=str(err)) from None
-    assert history is not None and unroll is not None
-    need_int(_get(dataset, "train_sims"), "dataset.train_sims", 1, spec.n_sims, optional=True,
-             why=f" (at most the {spec.n_sims} imported training trajectories)")
+    loader = LoaderOptions.from_config(
+        dataset, spec.n_sims, sims_why=f" (at most the {spec.n_sims} imported training "
+        "trajectories)")
+    history, unroll = loader.history, loader.unroll
     for split, (_, n_frames) in zip(("train", "val", "test"), spec.sizes):
         if n_frames < history + 3 + unroll:
             raise ConfigError("dataset.history", history, (
@@ -178,18 +123,16 @@ def validate_dataset(dataset: Any, fps: Any, data_dir: Any = None) -> DatasetSpe
     """Check a ``dataset`` node and ``fps`` (types, ranges, the scene's parameters, enough
     frames, a resolved frame spacing); returns the train split's ``DatasetSpec``. Imported
     data (``scene: imported``) are read from their files under ``data_dir``."""
-    fps = need_float(fps, "fps", 0.0, why=" (frames per unit of simulated time)")
+    fps = check_fps(fps)
     scene_name = _get(dataset, "scene")
     if scene_name not in SCENES:
         raise ConfigError("dataset.scene", scene_name, f"choose one of {sorted(SCENES)}")
     if scene_name == IMPORTED:
         return validate_imported(dataset, data_dir)
     n_sims = need_int(_get(dataset, "n_sims"), "dataset.n_sims", 1)
-    history = need_int(_get(dataset, "history", 5), "dataset.history", 0)
-    assert n_sims is not None and history is not None
-    unroll = need_int(_get(dataset, "unroll", 0), "dataset.unroll", 0,
-                      why=": training steps unrolled on the model's own frames")
-    assert unroll is not None
+    assert n_sims is not None
+    loader = LoaderOptions.from_config(dataset, n_sims)  # history, batch_size, train_sims, ...
+    history, unroll = loader.history, loader.unroll
     n_frames = need_int(_get(dataset, "n_frames"), "dataset.n_frames", 3)
     if n_frames is not None and n_frames < history + 3 + unroll:
         unrolled = (" + dataset.unroll", f" and the {unroll} unrolled ones") if unroll else ("", "")
@@ -201,14 +144,6 @@ def validate_dataset(dataset: Any, fps: Any, data_dir: Any = None) -> DatasetSpe
     for key in ("n_particles", "dim"):
         if _get(dataset, key) is not None:
             need_int(_get(dataset, key), f"dataset.{key}", 1)
-    need_int(_get(dataset, "batch_size", 1), "dataset.batch_size", 1)
-    need_int(_get(dataset, "num_workers", 0), "dataset.num_workers", 0)
-    need_int(_get(dataset, "val_samples"), "dataset.val_samples", 1, optional=True,
-             why=": validation frames (null: the whole validation split)")
-    need_int(_get(dataset, "test_samples"), "dataset.test_samples", 1, optional=True,
-             why=": test frames (null: the whole test split)")
-    need_int(_get(dataset, "train_sims"), "dataset.train_sims", 1, n_sims, optional=True,
-             why=f" (at most dataset.n_sims={n_sims})")
     need_int(_get(dataset, "generate_workers"), "dataset.generate_workers", 1, optional=True)
     try:
         spec = DatasetSpec.from_config(dataset, fps, "train")
@@ -234,7 +169,7 @@ def validate_model(model: Any, scene: Scene, history: int) -> None:
     if name not in MODELS:
         raise ConfigError("model", name, f"choose one of {sorted(MODELS)}")
     params = {str(k): v for k, v in (model.items() if hasattr(model, "items") else {})}
-    if params.get("dynamics") == "auto":  # bgn.auto composes and checks each candidate; the
+    if params.get("dynamics") == "auto":  # bgn.studies.auto composes and checks each candidate; the
         params["dynamics"] = "decoder"    # rest of the options are checked with the decoder
     try:
         cfg = config_from_params(MODELS[name].config_class, params, name)
@@ -281,7 +216,7 @@ def validate_optimization(optimizer: Any, scheduler: Any) -> None:
 
 
 def validate_auto(auto: Any) -> None:
-    """The ``auto`` keys of ``model.dynamics=auto`` (``bgn.auto``)."""
+    """The ``auto`` keys of ``model.dynamics=auto`` (``bgn.studies.auto``)."""
     from bgn.model.registry import MODELS
 
     if auto is None:
@@ -309,7 +244,8 @@ def validate_train(cfg: Any) -> DatasetSpec:
         n_val = spec.with_split("val").n_sims  # imported data: each split its own
         need_int(_get(cfg, "val_rollout_sims", 1), "val_rollout_sims", 1, n_val,
                  why=f" (validation simulations: {n_val})")
-    history = need_int(_get(_get(cfg, "dataset"), "history", 5), "dataset.history", 0)
+    history = need_int(_get(_get(cfg, "dataset"), "history", LoaderOptions.history),
+                       "dataset.history", 0)
     assert history is not None
     if _get(cfg, "model") is not None:
         validate_model(_get(cfg, "model"), spec.build_scene(), history)
@@ -320,7 +256,7 @@ def validate_train(cfg: Any) -> DatasetSpec:
 
 
 def validate_generate(cfg: Any) -> DatasetSpec:
-    """Everything ``bgn.data.generate`` is given."""
+    """Everything ``bgn.train.generate`` is given."""
     need_int(_get(cfg, "workers"), "workers", 1, optional=True,
              why=" (simulation processes; null: one per core)")
     if _get(_get(cfg, "dataset"), "scene") == IMPORTED:

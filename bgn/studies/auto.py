@@ -14,7 +14,7 @@ data admit is trained for a share of the budget (``auto.share`` of each of ``tra
 - the baselines (``auto.references``: GNS, Cranmer et al.'s GN) as references: trained and
   reported on the same protocol, never chosen.
 
-Each is composed from the real configs (``bgn.experiments.compose_train``: a scene's
+Each is composed from the real configs (``bgn.studies.cells.compose_train``: a scene's
 ``conf/dataset_model/`` defaults apply) with the run's own overrides, then scored on the
 VALIDATION split (never the test split): every validation simulation (or ``auto.val_sims``
 of them, evenly spread) rolled out from the same start frame (``bgn.rollout.rollout_starts``),
@@ -45,11 +45,11 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from bgn.checkpoints import write_atomic
 from bgn.metrics import SHORT_HORIZON, rollout_scores
 from bgn.sim.scene import SceneMeta
+from bgn.train.checkpoints import write_atomic
 
-log = logging.getLogger("bgn.auto")
+log = logging.getLogger("bgn.studies.auto")
 
 MASS_FRAMES = 64         # validation frames the fitted masses are read from
 LAW_POINTS = 200         # distances the learned pair law is sampled at
@@ -256,7 +256,7 @@ def fitted_masses(head: Any, dataset: Any, frames: int = MASS_FRAMES, batch_size
     import torch
 
     from bgn.data.frames import evenly_spaced
-    from bgn.evaluate import batches
+    from bgn.eval.evaluate import batches
     from bgn.metrics import r2_score
 
     fitted, true, rel_fit, rel_true, fits = [], [], [], [], []
@@ -464,7 +464,7 @@ def compose_candidate(base: Sequence[str], cand: Candidate, out_dir: Path,
     ones), the candidate's, its directory and budget. A dynamics loss weighted 0 (a scene
     that trains its pair-force head on the law alone) is weighted 1 for a candidate without
     that head: it would otherwise learn nothing."""
-    from bgn.experiments import compose_train
+    from bgn.studies.cells import compose_train
 
     reference = any(_key(o) == "model" for o in cand.overrides)
     kept = [o for o in base if _key(o) not in OWN_KEYS
@@ -482,16 +482,17 @@ def compose_candidate(base: Sequence[str], cand: Candidate, out_dir: Path,
 
 
 def train_candidate(cand: Candidate, cfg: DictConfig) -> Result:
-    """Train one candidate (``bgn.train.train``) in its own directory."""
-    from bgn.checkpoints import read
-    from bgn.train import train
+    """Train one candidate (``bgn.train.run.train``) in its own directory."""
+    from bgn.eval.laws import law_stage
+    from bgn.train.checkpoints import read
+    from bgn.train.run import train
 
     out_dir = Path(cfg.paths.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_atomic(out_dir / "train_config.yaml", OmegaConf.to_yaml(cfg, resolve=False))
     result = Result(cand)
     start = time.perf_counter()
-    metrics = train(cfg)
+    metrics = train(cfg, law_stage=law_stage)
     result.wall_s = float(metrics.get("wall_time_s", time.perf_counter() - start))
     last = out_dir / "checkpoints" / "last.ckpt"
     result.steps = int(read(last).get("global_step", 0)) if last.exists() else 0
@@ -504,10 +505,10 @@ def score_candidate(result: Result, out_dir: Path, val: Any, train_split: Any,
     """The validation evidence of a trained candidate (its best checkpoint): rollout errors,
     and for a pair-force head its law over the training split's distances and its fitted
     masses on validation windows."""
-    from bgn.evaluate import load_model
-    from bgn.experiments import best_checkpoint
     from bgn.model.newton import PairForceHead
     from bgn.rollout import rollout_many
+    from bgn.train.checkpoints import best_checkpoint
+    from bgn.train.module import load_model
 
     module = load_model(best_checkpoint(out_dir))
     t = rollout_many(module.model, val, sims, starts, n_steps)
@@ -530,13 +531,13 @@ def score_candidate(result: Result, out_dir: Path, val: Any, train_split: Any,
 def formula_candidate(results: Sequence[Result], auto_dir: Path, val: Any, train_split: Any,
                       sims: list[int], starts: list[int], n_steps: int,
                       horizons: Sequence[int], each: Mapping[str, Any]) -> Result | None:
-    """The best pair-force candidate's law read back as a formula (``bgn.laws``), its
-    constants fine-tuned through substeps (``bgn.laws.finetune_formula``: its default
+    """The best pair-force candidate's law read back as a formula (``bgn.eval.laws``), its
+    constants fine-tuned through substeps (``bgn.eval.laws.finetune_formula``: its default
     iterations, at most half the candidates' ``max_steps``) and scored as the others;
     eligible to win, and its best checkpoint the one the winner resumes from. None without a
     scored pair-force candidate."""
-    from bgn.experiments import best_checkpoint
-    from bgn.laws import FINETUNE_STEPS, FINETUNE_SUBSTEPS, _spec_text, finetune_formula
+    from bgn.eval.laws import FINETUNE_STEPS, FINETUNE_SUBSTEPS, _spec_text, finetune_formula
+    from bgn.train.checkpoints import best_checkpoint
 
     scored = [r for r in results if r.candidate.pair_force and not r.error and r.errors]
     if not scored:
@@ -569,8 +570,9 @@ def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[st
     train overrides (default: Hydra's command line). Returns the winner's final metrics; the
     run directory gets ``metrics.json`` (the winner's, with the choice) and ``auto/``."""
     from bgn.data.frames import evenly_spaced
+    from bgn.eval.laws import law_stage
     from bgn.rollout import rollout_starts
-    from bgn.train import data_module, info, train
+    from bgn.train.run import data_module, info, train
 
     base = run_overrides(overrides)
     run_dir = Path(cfg.paths.output_dir)
@@ -632,7 +634,7 @@ def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[st
     last = out_dir / "checkpoints" / "last.ckpt"
     if last.exists():
         final.ckpt_path = str(last)
-    metrics = train(final)
+    metrics = train(final, law_stage=law_stage)
     record = json.loads((out_dir / "metrics.json").read_text())
     record["auto"] = {"choice": winner.candidate.name, "label": winner.candidate.label,
                       "margin": margin, "report": str(report),

@@ -1,12 +1,12 @@
 """Speed against error: ``python -m bgn.experiments preset=pareto_quick`` (presets:
-pareto_tiny | pareto_quick | pareto_full, ``conf/preset/``; ``bgn.experiments`` hands a
+pareto_tiny | pareto_quick | pareto_full, ``conf/preset/``; ``bgn.studies.grid`` hands a
 preset with a ``schedule_s`` to ``run`` here).
 
 Every cost is set against one error: the rollout error after one simulated time unit (the mean
 position error per particle after ``fps`` steps, mean over all test rollouts from the reference
 start frames, a failed one at the cap of ``bgn.metrics.rollout_metrics``).
 
-- Training compute: one run per scene x fps x model (``bgn.experiments``' cells: resumable,
+- Training compute: one run per scene x fps x model (``bgn.studies.grid``' cells: resumable,
   trained by ``bgn.train``) with checkpoints on a time schedule (``TimeSchedule``); each
   checkpoint's one-step NMSE and rollout error.
 - Inference cost: those checkpoints and BGN (and the baselines) at other sizes, trained for the
@@ -40,9 +40,9 @@ import torch
 from lightning.pytorch.callbacks import Callback
 from omegaconf import DictConfig
 
-from bgn.checkpoints import read_record, write_atomic
-from bgn.experiments import Cell, cell_datamodule, train_cell
+from bgn.studies.cells import Cell, cell_datamodule, train_cell
 from bgn.tables import fmt, write_table
+from bgn.train.checkpoints import read_record, write_atomic
 
 SCHEDULE = "schedule"    # the group of the cells with checkpoints on the time schedule
 SIZES = "sizes"          # the group of the cells at other model sizes
@@ -104,7 +104,7 @@ def schedule_overrides(cell_dir: Path, seconds: Sequence[float]) -> list[str]:
     scheduled checkpoint is evaluated here instead)."""
     last = max(float(s) for s in seconds)
     limit = int(2 * last + 60)  # a safety net only: the schedule stops the fit
-    return ["+callbacks.time_schedule._target_=bgn.pareto.TimeSchedule",
+    return ["+callbacks.time_schedule._target_=bgn.studies.pareto.TimeSchedule",
             f"+callbacks.time_schedule.dirpath={cell_dir / 'checkpoints'}",
             f"+callbacks.time_schedule.seconds=[{','.join(f'{s:g}' for s in seconds)}]",
             f"trainer.max_time=00:{limit // 3600:02d}:{limit // 60 % 60:02d}:{limit % 60:02d}",
@@ -185,9 +185,10 @@ def evaluate_checkpoint(ckpt: Path, test: Any, fps: float, e: DictConfig) -> dic
     """One checkpoint: one-step NMSE (forward metrics without the inverse), rollout error
     after one time unit, wall time per simulated time unit of a rollout of one scene."""
     from bgn.data.frames import evenly_spaced
-    from bgn.evaluate import evaluate_model, load_model
+    from bgn.eval.evaluate import evaluate_model
     from bgn.metrics import rollout_metrics
     from bgn.rollout import rollout_many, rollout_starts
+    from bgn.train.module import load_model
 
     module = load_model(ckpt)
     forward, _ = evaluate_model(module, test, max_frames=e.max_frames, batch_size=e.batch_size,
@@ -268,8 +269,8 @@ def scaled_collisions(cells: list[Cell], cfg: DictConfig, n_particles: int,
     simulator's time per time unit, and the final checkpoint of each of ``cells`` (one scene
     and fps) rolled out of the same true window: its time and its error after one time unit
     against the exact simulator."""
-    from bgn.evaluate import load_model
     from bgn.model.references import Extrapolation
+    from bgn.train.module import load_model
 
     sc = cfg.preset.simulator
     cell = cells[0]

@@ -1,4 +1,4 @@
-"""Tests for bgn.data.graphs: radius graphs against an O(N^2) oracle, boundaries, invariances."""
+"""Tests for bgn.data.edges: radius graphs against an O(N^2) oracle, boundaries, invariances."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from bgn.data.graphs import (
+from bgn.data.edges import (
     batch_edges,
     contact_margin,
     full_graph,

@@ -1,11 +1,12 @@
-"""Train a model on a scene: ``python -m bgn.train [dataset=spring] [fps=50] [model=bgn] ...``.
+"""Train a model on a scene (the body of ``python -m bgn.train [dataset=spring] [fps=50] ...``,
+whose command line is ``bgn/train/__main__.py``).
 
 Generates the dataset on first use, trains with Lightning, evaluates the best checkpoint on
 the test split and writes ``metrics.json`` in the run directory (sweeps gather these into a
 summary table). The run's full config is saved by Hydra in ``<run>/.hydra/config.yaml``;
 ``python -m bgn.train --config-path <run>/.hydra --config-name config`` reproduces it.
 
-Config: ``model`` (the model's options, typed by its dataclass: ``bgn.config``), ``optimizer``
+Config: ``model`` (the model's options, typed by its dataclass: ``bgn.train.config``), ``optimizer``
 and ``scheduler`` (Hydra partials, instantiated here and handed to ``PhysicsModule``), and
 ``dataset_model`` (a scene's own model defaults, ``conf/dataset_model/<scene>_<model>.yaml``).
 Messages go through ``logging`` from the rank-zero process only (DDP runs one process per
@@ -17,6 +18,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -26,22 +28,26 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from bgn.checkpoints import (
-    CheckpointError,
+from bgn.train.checkpoints import (
     check_compatible,
     provenance,
     resolve_last,
     write_atomic,
 )
-from bgn.config import register_configs
-from bgn.validate import cli, validate_train
+from bgn.train.config import register_configs
+from bgn.train.validate import validate_train
 
 if TYPE_CHECKING:  # Lightning and the data and model modules load when they are used, so
-    # that bad input is refused (bgn.validate) before the seconds their import takes
+    # that bad input is refused (bgn.train.validate) before the seconds their import takes
     from bgn.data.datamodule import ParticleDataModule
-    from bgn.module import PhysicsModule
+    from bgn.data.spec import DatasetSpec
+    from bgn.train.module import PhysicsModule
 
-register_configs()  # the schemas (bgn.config), before Hydra composes conf/train.yaml
+register_configs()  # the schemas (bgn.train.config), before Hydra composes conf/train.yaml
+
+# model.law=auto's stage (bgn.eval.laws.law_stage): (cfg, best checkpoint, datamodule, run
+# directory, world size) -> its record, "choice" the law that validates better
+LawStage = Callable[[DictConfig, Path, "ParticleDataModule", Path, int], dict[str, Any]]
 
 log = logging.getLogger("bgn.train")  # not __main__ under python -m bgn.train
 
@@ -62,20 +68,22 @@ def plain_stats(stats: dict[str, dict[str, np.ndarray]]) -> dict[str, dict[str, 
             for g, entries in stats.items()}
 
 
-def data_module(cfg: DictConfig) -> ParticleDataModule:
-    """The DataModule of a composed config (nothing generated or read yet); bad values fail
-    here, before any data are generated."""
+def data_module(cfg: DictConfig, spec: DatasetSpec | None = None) -> ParticleDataModule:
+    """The DataModule of a composed config (nothing generated or read yet). ``spec``: the
+    one ``validate_train(cfg)`` returned, where the caller validated ``cfg`` already;
+    without it, bad values fail here, before any data are generated."""
     from bgn.data.datamodule import ParticleDataModule
 
-    validate_train(cfg)
+    if spec is None:
+        spec = validate_train(cfg)
     # dataset.generate_workers: simulation processes when the data are generated here
     # (default one per core; 1 generates in this process)
     return ParticleDataModule(cfg.dataset, cfg.fps, cfg.paths.data_dir,
-                              generate_workers=cfg.dataset.get("generate_workers"))
+                              generate_workers=cfg.dataset.get("generate_workers"), spec=spec)
 
 
 def run_provenance(cfg: DictConfig, datamodule: ParticleDataModule) -> dict[str, Any]:
-    """What this run's checkpoints record of it (``bgn.checkpoints.provenance``)."""
+    """What this run's checkpoints record of it (``bgn.train.checkpoints.provenance``)."""
     spec = datamodule.spec
     return provenance(spec.scene, spec.generating_config()["params"], spec.fps,
                       str(cfg.model.get("name", "bgn")), datamodule.history)
@@ -108,7 +116,7 @@ def build_module(cfg: DictConfig, meta: dict[str, Any], stats: dict[str, Any], h
                  provenance: dict[str, Any] | None = None) -> PhysicsModule:
     """The LightningModule of a composed config: the model from ``cfg.model``, the optimiser
     and scheduler partials from ``cfg.optimizer`` and ``cfg.scheduler``."""
-    from bgn.module import PhysicsModule
+    from bgn.train.module import PhysicsModule
 
     model_config = OmegaConf.to_container(cfg.model, resolve=True)
     optimizer = scheduler = scheduler_config = None
@@ -126,40 +134,28 @@ def build_module(cfg: DictConfig, meta: dict[str, Any], stats: dict[str, Any], h
                          provenance=provenance)
 
 
-def law_stage(cfg: DictConfig, best: Path, datamodule: ParticleDataModule, output_dir: Path,
-              world_size: int) -> dict[str, Any]:
-    """``model.law=auto``: the best checkpoint's network law read back as a formula, the
-    formula fine-tuned as the law and kept where it validates better on rollouts
-    (``bgn.laws.formula_stage``, in ``<run>/laws/``); before the test, on the validation
-    split only. Returns its record (``choice``: network or formula; ``path``: formula.ckpt)."""
-    from bgn.laws import formula_stage
-
-    if world_size > 1:  # one process would tune while the others wait at the test's barrier
-        info("model.law=auto: the formula stage runs in a single process; run python -m "
-             f"bgn.laws {best} finetune=true after this DDP run")
-        return {}
-    info("model.law=auto: reading the learned law back as a formula and fine-tuning it")
-    record = formula_stage(best, datamodule.datasets["train"], datamodule.datasets["val"],
-                           cfg, output_dir / "laws")
-    info(f"model.law=auto: the {record['choice']} law validates better; it is tested "
-         f"(report: {record['report']})")
-    return record
-
-
-def train(cfg: DictConfig) -> dict[str, float]:
-    """Fit, test, and write metrics.json; returns the final metrics."""
+def train(cfg: DictConfig, spec: DatasetSpec | None = None,
+          law_stage: LawStage | None = None) -> dict[str, float]:
+    """Fit, test, and write metrics.json; returns the final metrics. ``spec``: as
+    ``data_module``'s (``cfg`` validated already). ``law_stage``: with ``model.law=auto``,
+    what reads the best checkpoint's law back as a formula and chooses between the two on
+    validation before the test (``bgn.eval.laws.law_stage``; handed in by the commands above
+    this stage)."""
     import lightning as L
 
-    from bgn.signals import SignalCheckpoint, interrupted
+    from bgn.train.signals import SignalCheckpoint, interrupted
 
     if cfg.model.get("dynamics") == "auto":  # candidates are composed from the overrides
         raise ValueError("model.dynamics=auto is a study of several trainings: run it with "
-                         "python -m bgn.train, or bgn.auto.run_auto(cfg, overrides)")
+                         "python -m bgn.train, or bgn.studies.auto.run_auto(cfg, overrides)")
+    if cfg.model.get("law") == "auto" and law_stage is None:
+        raise ValueError("model.law=auto needs the formula stage: run python -m bgn.train, or "
+                         "pass law_stage=bgn.eval.laws.law_stage")
     start = time.perf_counter()
     L.seed_everything(int(cfg.seed), workers=True)
     output_dir = Path(cfg.paths.output_dir)
     info(f"run directory: {output_dir}")
-    datamodule = data_module(cfg)
+    datamodule = data_module(cfg, spec)
     checkpoint_dir = output_dir / "checkpoints"
     ckpt_path = resolve_last(cfg.get("ckpt_path"), checkpoint_dir)
     if cfg.get("ckpt_path") == "last":
@@ -188,14 +184,14 @@ def train(cfg: DictConfig) -> dict[str, float]:
                 law_record = law_stage(cfg, Path(best), datamodule, output_dir,
                                        trainer.world_size)
                 if law_record.get("choice") == "formula":
-                    from bgn.evaluate import load_model
+                    from bgn.train.module import load_model
 
                     tested, tested_ckpt = load_model(law_record["path"]), None
             trainer.test(tested, datamodule=datamodule, ckpt_path=tested_ckpt,
                          weights_only=True)
             metrics.update({k: float(v) for k, v in trainer.callback_metrics.items()})
             if cfg.test_rollouts and trainer.is_global_zero:  # the product: rollouts, batched
-                from bgn.evaluate import test_rollouts
+                from bgn.rollout import test_rollouts
 
                 metrics.update(test_rollouts(tested.model, datamodule.datasets["test"]))
             module = tested
@@ -220,21 +216,3 @@ def train(cfg: DictConfig) -> dict[str, float]:
     info("final metrics:\n" + json.dumps({k: round(v, 6) for k, v in sorted(metrics.items())
                                           if k.startswith(("test/", "val/nmse"))}, indent=1))
     return metrics
-
-
-@cli("train", validate_train)  # Hydra app; bad input: one line, exit 2 (bgn.validate)
-def main(cfg: DictConfig) -> float:
-    try:
-        if cfg.model.get("dynamics") == "auto":  # the structure chosen by evidence
-            from bgn.auto import run_auto
-
-            metrics = run_auto(cfg)
-        else:
-            metrics = train(cfg)
-    except CheckpointError as err:  # one line, no traceback
-        raise SystemExit(f"bgn.train: {err}") from None
-    return metrics.get("val/nmse", float("nan"))  # the objective a sweeper would minimise
-
-
-if __name__ == "__main__":
-    main()

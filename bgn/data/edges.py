@@ -21,7 +21,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from bgn.checks import as_float, as_int, as_real_array
+from bgn.coerce import as_float, as_int, as_real_array
 
 __all__ = [
     "batch_edges",

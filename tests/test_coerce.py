@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bgn.checks import as_float, as_int, as_real_array
+from bgn.coerce import as_float, as_int, as_real_array
 
 
 def test_as_int() -> None:

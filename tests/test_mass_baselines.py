@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bgn.inverse_references import MassPrior, impact_log_mass, physical_log_mass
+from bgn.eval.mass_baselines import MassPrior, impact_log_mass, physical_log_mass
 from bgn.sim import make_scene
 
 

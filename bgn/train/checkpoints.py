@@ -155,3 +155,35 @@ def read_record(path: str | Path) -> dict[str, Any] | None:
                     path, str(err).splitlines()[0][:100])
         return None
     return record
+
+
+def best_checkpoint(run_dir: Path) -> Path:
+    """best.ckpt (or the newest best-vN.ckpt after a resume), else last.ckpt."""
+    ckpts = run_dir / "checkpoints"
+    best = sorted(ckpts.glob("best*.ckpt"), key=lambda p: p.stat().st_mtime)
+    if best:
+        return best[-1]
+    if (ckpts / "last.ckpt").exists():
+        return ckpts / "last.ckpt"
+    raise FileNotFoundError(f"no checkpoint in {ckpts}")
+
+
+def run_config_paths(ckpt: Path, run_dir: Path) -> list[Path]:
+    """Where a run's config may lie, in the order looked at: Hydra's record of a
+    ``python -m bgn.train`` run (beside the checkpoints folder, or the checkpoint), or a study
+    cell's ``train_config.yaml``."""
+    return list(dict.fromkeys([run_dir / ".hydra" / "config.yaml",
+                               ckpt.parent / ".hydra" / "config.yaml",
+                               run_dir / "train_config.yaml"]))
+
+
+def run_config(checkpoint: Path) -> Path:
+    """The training config of the run that wrote ``checkpoint`` (``<run>/checkpoints/x.ckpt``)."""
+    checkpoint = checkpoint.resolve()
+    candidates = run_config_paths(checkpoint, checkpoint.parent.parent)
+    for candidate in candidates:
+        if candidate.exists():
+            return candidate
+    raise FileNotFoundError(f"{checkpoint}: no run config beside it (looked for "
+                            f"{', '.join(map(str, candidates))}); pass --config <the run's "
+                            "config.yaml>")

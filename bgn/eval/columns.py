@@ -1,0 +1,17 @@
+"""The columns of the metric tables that ``python -m bgn.evaluate``'s report.md and the
+study's report (``bgn.studies.report``) both print, in one place so that the two agree."""
+
+INVERSE_COLUMNS = ["coverage50", "coverage90", "coverage_max_dev", "sbc_p", "tarp_atc",
+                   "info_gain", "relmass_r2", "relmass_r2_estimate", "mass_rel_err",
+                   "sim_mass_rel_err", "sim_mass_rel_err_flow", "welch_p", "wasserstein1",
+                   "modes_true", "modes_recovered"]
+# the references evaluated beside each inverse model (bgn.eval.evaluate.evaluate_inverse)
+INVERSE_REFERENCES = {"prior": "prior-only sampler",
+                      "physical": "physical estimator (force law, no learning)"}
+
+
+ROLLOUT_COLUMNS = ["pos_err_mean@1", "pos_err_mean@10", "pos_err_mean@50", "pos_err_mean@100",
+                   "pos_err_median@100", "pos_err_mean@all", "pos_mse_mean@all",
+                   "energy_err@all", "energy_err_truth@all", "momentum_err@all",
+                   "speed_w1_type0", "speed_w1_type1", "collision_rate_ratio", "failed_share",
+                   "rollout_cap", "rollout_steps", "seconds_per_step"]

@@ -1,0 +1,839 @@
+"""Evaluation of a trained checkpoint on the test split (used by ``bgn.studies.grid``).
+
+Forward metrics (MSE in physical units, NMSE = MSE / training target variance as the
+LightningModule logs it, median relative error, the no-learning references), the inverse
+metrics of ``bgn.metrics`` on the flow's posterior beside the prior-only sampler and the
+force-law estimator (``evaluate_inverse``, ``bgn.eval.mass_baselines``), type metrics, and
+rollout metrics of the model and the no-learning references through the learned simulator.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from scipy.stats import norm
+
+from bgn.data.dataset import FrameDataset
+from bgn.data.frames import evenly_spaced
+from bgn.eval.mass_baselines import MassPrior, impact_log_mass, physical_log_mass
+from bgn.graph import Graph, collate
+from bgn.metrics import (
+    COVERAGE_LEVELS,
+    aggregate_gaussian,
+    binary_f1,
+    calibration_metrics,
+    coverage_curve,
+    fit_radius_map,
+    inverse_metrics,
+    kde_modes,
+    r2_score,
+    recovered_modes,
+    relative_mass_error,
+    type_metrics,
+)
+from bgn.model.encoder import approach_gap
+from bgn.model.impulse import ContactImpulseHead
+from bgn.model.target import extrapolate, observed_targets
+from bgn.rollout import evaluate_rollouts, lb_prefix
+from bgn.train.checkpoints import CheckpointError, read
+from bgn.train.module import PhysicsModule, load_model
+from bgn.train.validate import (
+    DATA_EXIT,
+    MAX_SEED,
+    ConfigError,
+    cli,
+    fail,
+    need_int,
+    reported,
+)
+
+# the metric functions live in bgn.metrics; imports of them from here keep working
+__all__ = ["batches", "calibrate_mass_posterior", "evaluate_model", "evaluate_rollouts",
+           "inverse_metrics", "kde_modes", "load_model", "mass_figure", "r2_score",
+           "recovered_modes", "type_metrics"]
+
+
+# ----------------------------------------------------------------------------- loading
+def batches(dataset: FrameDataset, indices: list[int], batch_size: int) -> list[Graph]:
+    """The frames ``indices`` of ``dataset`` as batched graphs of ``batch_size`` frames."""
+    return [collate([dataset[i] for i in indices[s:s + batch_size]])
+            for s in range(0, len(indices), batch_size)]
+
+
+# ----------------------------------------------------------------------------- evaluation
+@torch.no_grad()
+def calibrate_mass_posterior(module: PhysicsModule, dataset: FrameDataset,
+                             frames: int | None = 256, batch_size: int = 16,
+                             ) -> dict[str, float]:
+    """Fit the mass flow's radius map on ``frames`` evenly spaced frames of ``dataset`` (the
+    validation split: never the split it is scored on), set it on the model
+    (``InverseModel.calibration``) and return its scale at the levels 0.5 and 0.9
+    (``m(z) / z``: 1 where the flow was calibrated, > 1 where overconfident). The map makes
+    the central intervals of the flow hold their levels on those frames
+    (``bgn.metrics.fit_radius_map``): post-hoc recalibration of a posterior that maximum
+    likelihood left miscalibrated."""
+    inverse = module.model.inverse
+    inverse.calibration = torch.empty(2, 0)            # fit the raw flow's base values
+    values = [module.model.mass_base_value(g).double().numpy()
+              for g in batches(dataset, evenly_spaced(len(dataset), frames), batch_size)]
+    z, r = fit_radius_map(np.concatenate(values))
+    inverse.calibration = torch.tensor(np.stack([z, r]), dtype=torch.float32)
+    return {f"mass_calibration_scale{int(level * 100)}": float(np.interp(q, z, r) / q)
+            for level in (0.5, 0.9) for q in [norm.ppf((1 + level) / 2)]}
+
+
+@torch.no_grad()
+def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int | None = 256,
+                   mass_frames: int = 32, mass_samples: int = 32, batch_size: int = 16,
+                   seed: int = 0, inverse: bool = True,
+                   calibration: FrameDataset | None = None,
+                   ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Metrics of one model on a test dataset, and the arrays behind the mass figure
+    (``evaluate_inverse``; empty without an inverse head, or with ``inverse=False``: the
+    forward error alone, as ``bgn.studies.pareto`` needs it per checkpoint). ``calibration``:
+    the split the mass flow's calibration is fitted on first (``calibrate_mass_posterior``, on
+    ``mass_frames`` of its frames; ``mass_calibration_scale50/90`` in the metrics); None keeps
+    the model's own (none after training)."""
+    torch.manual_seed(seed)  # the flow's samples and relmass noise are random
+    model = module.model
+    heads = model.heads
+    variance = module.target_variance.mean().item()
+    indices = evenly_spaced(len(dataset), max_frames)  # covers every test simulation
+    sq_err, rel_err = [], []
+    # references without learning: repeat the last observed target, extrapolate the last two
+    ref_err: dict[str, list[torch.Tensor]] = {"last": [], "linear": []}
+    logits, types, rel_pred, rel_true = [], [], [], []
+    contact_scene = module.meta.interaction == "contact"
+    contacts: dict[str, list[torch.Tensor]] = {"true": [], "head": [], "toi_rule": []}
+    for g in batches(dataset, indices, batch_size):
+        pred = model.predict(g)
+        sq_err.append(((pred - g.target) ** 2).flatten())
+        seen = observed_targets(g, module.meta.target)
+        for name in ref_err if seen.shape[1] > 1 else ("last",):
+            ref_err[name].append(((extrapolate(seen, name) - g.target) ** 2).flatten())
+        rel_err.append((pred - g.target).norm(dim=-1)
+                       / g.target.norm(dim=-1).clamp_min(1e-12))
+        if contact_scene:  # the window's time-of-impact rule, with or without a contact head
+            contacts["true"].append(g.edge_contact > 0.5)
+            contacts["toi_rule"].append(approach_gap(g) <= 0)
+        if heads & {"type", "relmass", "contact"}:
+            out = model(g)
+            if "contact" in heads and contact_scene:
+                contacts["head"].append(out.contact > 0)       # logit > 0: probability > 0.5
+            if "type" in heads:
+                logits.append(out.type_logits)
+                types.append(g.types)
+            if "relmass" in heads:
+                rel_pred.append(model.denormalize_relmass(out.relmass))
+                rel_true.append(g.edge_rel_log_mass)
+    mse = torch.cat(sq_err).mean().item()
+    metrics: dict[str, Any] = {"mse": mse, "nmse": mse / variance,
+                               "median_relative_error": torch.cat(rel_err).median().item(),
+                               "n_frames": len(indices)}
+    for name, errors in ref_err.items():
+        if errors:
+            metrics[f"nmse_{name}_extrapolation"] = torch.cat(errors).mean().item() / variance
+    if logits:
+        metrics.update(type_metrics(torch.cat(logits).numpy(), torch.cat(types).numpy()))
+    if contacts["true"]:
+        true_contacts = torch.cat(contacts["true"]).numpy()
+        metrics["contact_rate"] = float(true_contacts.mean())
+        for name in ("head", "toi_rule"):
+            if contacts[name]:
+                metrics[f"contact_f1_{name}"] = binary_f1(torch.cat(contacts[name]).numpy(),
+                                                          true_contacts)
+    masses_known = getattr(module.meta, "masses_known", True)
+    if rel_pred and masses_known:
+        metrics["relmass_r2"] = r2_score(torch.cat(rel_pred).numpy(), torch.cat(rel_true).numpy())
+    arrays: dict[str, np.ndarray] = {}
+    if model.has_inverse and inverse and not masses_known:  # nothing to score it against
+        metrics.update(posterior_summary(module, dataset, mass_frames, mass_samples,
+                                         batch_size, seed))
+    elif model.has_inverse and inverse:
+        if calibration is not None:
+            metrics.update(calibrate_mass_posterior(module, calibration, mass_frames,
+                                                    batch_size))
+        inverse_values, arrays = evaluate_inverse(module, dataset, mass_frames, mass_samples,
+                                                  batch_size, seed)
+        metrics.update(inverse_values)
+    return metrics, arrays
+
+
+def posterior_summary(module: PhysicsModule, dataset: FrameDataset, mass_frames: int = 32,
+                      mass_samples: int = 32, batch_size: int = 16, seed: int = 0,
+                      ) -> dict[str, float]:
+    """Data without recorded masses (imported): the inverse model's posterior reported, not
+    scored. Per particle of ``mass_frames`` evenly spaced frames, the median and the central
+    90 % interval of its sampled log-mass; keys ``posterior/...``: particles, the spread (std)
+    of the medians over particles, and the mean interval width (nats)."""
+    torch.manual_seed(seed)
+    indices = evenly_spaced(len(dataset), mass_frames)
+    medians, widths = [], []
+    for s in range(0, len(indices), batch_size):
+        g = collate([dataset[i] for i in indices[s:s + batch_size]])
+        samples, _ = module.model.mass_posterior(g, mass_samples)      # (samples, particles)
+        low, mid, high = np.quantile(samples.double().numpy(), [0.05, 0.5, 0.95], axis=0)
+        medians.append(mid)
+        widths.append(high - low)
+    mid, width = np.concatenate(medians), np.concatenate(widths)
+    return {"posterior/particles": float(len(mid)),
+            "posterior/log_mass_median_std": float(mid.std()),
+            "posterior/interval90_width": float(width.mean())}
+
+
+def _posterior_metrics(true_log: np.ndarray, sampled_log: np.ndarray,
+                       log_posterior: np.ndarray | None, log_prior: np.ndarray,
+                       particles: np.ndarray) -> dict[str, float]:
+    """Sample, calibration and information metrics of one posterior (``bgn.metrics``);
+    ``particles`` labels the distinct particles (one mass, several frames)."""
+    return {**inverse_metrics(true_log, sampled_log),
+            **calibration_metrics(true_log, sampled_log, log_posterior, log_prior, particles)}
+
+
+def _point_metrics(estimate: np.ndarray, true_log: np.ndarray, particles: np.ndarray,
+                   edges: np.ndarray, edge_rel: np.ndarray, variance: np.ndarray | None = None,
+                   ) -> dict[str, float]:
+    """Metrics of per-particle point estimates of log-mass (one per particle and frame):
+    ``mass_rel_err`` (median ``|m_hat/m - 1|``), ``relmass_r2_estimate`` (R^2 of the relative
+    log-mass ``estimate_i - estimate_j`` on the frames' edges) and ``sim_mass_rel_err``: the
+    estimates of one particle pooled over the evaluated frames of its simulation, as masses
+    do not change over time (docs/design.md#identifiability): the product of per-frame Gaussians of
+    the posterior's mean and ``variance`` (``bgn.metrics.aggregate_gaussian``; sharp frames weigh
+    more, docs/results.md, "Recalibration, pooling over frames and the fitted masses"), a plain
+    mean without it."""
+    _, index = np.unique(particles, return_inverse=True)
+    _, pooled, _ = aggregate_gaussian(estimate, np.ones_like(estimate) if variance is None
+                                      else variance, particles)
+    truth = np.bincount(index, true_log) / np.bincount(index)
+    return {"mass_rel_err": relative_mass_error(estimate, true_log),
+            "relmass_r2_estimate": r2_score(estimate[edges[1]] - estimate[edges[0]], edge_rel),
+            "sim_mass_rel_err": relative_mass_error(pooled, truth)}
+
+
+def window_and_contacts(dataset: FrameDataset, index: int) -> tuple[np.ndarray,
+                                                                    np.ndarray | None]:
+    """The position window the model sees at dataset ``index`` (k+2, N, D) and, for a contact
+    scene, its contacts as rows ``(frame within the window, i, j)``."""
+    sim, t = dataset.locate(index)
+    first = t - dataset.history - 1
+    window = dataset.file.read("positions", (sim, slice(first, t + 1)))
+    if dataset.meta.interaction != "contact":
+        return window, None
+    table = dataset.file.read("contacts", ...)
+    rows = table[(table[:, 0] == sim) & (table[:, 1] >= first) & (table[:, 1] < t)]
+    return window, np.column_stack([rows[:, 1] - first, rows[:, 2], rows[:, 3]])
+
+
+def _physical(dataset: FrameDataset, prior: MassPrior,
+              views: list[tuple[np.ndarray, np.ndarray | None]]) -> np.ndarray:
+    """The force-law estimate (N,) from the windows (and contacts) of one simulation."""
+    windows = np.stack([w for w, _ in views])
+    contacts = None if views[0][1] is None else [c for _, c in views]
+    return physical_log_mass(dataset.scene, prior, windows, dataset.dt, contacts)
+
+
+def _impact_solve_error(dataset: FrameDataset, prior: MassPrior,
+                        per_sim: dict[int, list[tuple[np.ndarray, np.ndarray | None]]],
+                        model_contacts: dict[int, list[np.ndarray]], sampled: np.ndarray,
+                        particles: np.ndarray) -> float:
+    """A contact scene's per-simulation masses the model's way, and their median relative
+    error: the momentum exchanged at the impacts its contact head sees in the evaluated
+    windows, solved jointly per simulation (``impact_log_mass``), each group of discs linked by
+    impacts placed by the flow's pooled posteriors of its members; a disc in no usable impact
+    keeps its pooled posterior mean. Per-frame posteriors alone cannot do this: each impact
+    says how a disc's mass compares with its partner's, which the flow sees one frame at a
+    time."""
+    labels, mean, var = aggregate_gaussian(sampled.mean(axis=0), sampled.var(axis=0), particles)
+    estimate, truth = [], []
+    for sim, views in per_sim.items():
+        true_log = np.log(dataset.file.read("masses", sim))
+        mine = labels // 1_000_000 == sim
+        index = labels[mine] % 1_000_000
+        gauge = np.full((2, len(true_log)), np.nan)
+        gauge[0, index], gauge[1, index] = mean[mine], var[mine]
+        solved = impact_log_mass(prior, np.stack([w for w, _ in views]), dataset.dt,
+                                 model_contacts[sim], gauge=(gauge[0], gauge[1]))
+        estimate.append(np.where(np.isfinite(solved), solved, gauge[0]))
+        truth.append(true_log)
+    return relative_mass_error(np.concatenate(estimate), np.concatenate(truth))
+
+
+@torch.no_grad()
+def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: int = 32,
+                     mass_samples: int = 32, batch_size: int = 16, seed: int = 0,
+                     ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """The inverse model beside its two references (``bgn.eval.mass_baselines``) on every
+    particle of ``mass_frames`` evenly spaced test frames (they cover every simulation).
+
+    Keys: the model's metrics unprefixed; ``prior/...`` the prior-only sampler's (the same
+    number of draws from the scene's mass law, its exact density); ``physical/...`` the
+    force-law estimator on each frame's window (NaN where the window says nothing: the prior's
+    mean), with ``physical/identified`` the share it could estimate. Per-simulation
+    aggregates (``sim_mass_rel_err``): the product of the model's per-frame posteriors (as
+    Gaussians) over the evaluated frames of a simulation; the estimator's least squares over
+    all those windows at once (``physical/sim_identified``: the share of particles it could
+    estimate). Arrays for the figure: true and sampled masses and the coverage curves of the
+    model and the prior."""
+    model = module.model
+    prior = MassPrior.of_scene(dataset.scene, module.hparams.stats.get("log_mass"))
+    rng = np.random.default_rng(seed)
+    indices = evenly_spaced(len(dataset), mass_frames)
+    true_log, sampled, log_post, physical, particles, edges, edge_rel = ([] for _ in range(7))
+    per_sim: dict[int, list[tuple[np.ndarray, np.ndarray | None]]] = {}
+    # the contact head's impacts in each window: its per-simulation mass solve
+    head = getattr(model, "force_head", None)
+    seen_contacts = (head.window_contacts if isinstance(head, ContactImpulseHead) else None)
+    model_contacts: dict[int, list[np.ndarray]] = {}
+    offset = 0
+    for s in range(0, len(indices), batch_size):
+        chunk = indices[s:s + batch_size]
+        g = collate([dataset[i] for i in chunk])
+        samples, density = model.mass_posterior(g, mass_samples)
+        sampled.append(samples.double().numpy())
+        log_post.append(density.double().numpy())
+        true_log.append(torch.log(g.mass.double()).numpy())
+        # one key per particle of a simulation, the same in every frame: sim * 1e6 + index
+        first_node = torch.cumsum(g.num_nodes, 0) - g.num_nodes
+        node_index = torch.arange(len(g.mass)) - first_node[g.batch]
+        particles.append((g.sim[g.batch] * 1_000_000 + node_index).numpy())
+        edges.append(g.edge_index.numpy() + offset)
+        edge_rel.append(g.edge_rel_log_mass.double().numpy())
+        offset += len(g.mass)
+        rows = None if seen_contacts is None else seen_contacts(g)
+        for b, i in enumerate(chunk):
+            window, contacts = window_and_contacts(dataset, i)
+            sim = dataset.locate(i)[0]
+            per_sim.setdefault(sim, []).append((window, contacts))
+            physical.append(_physical(dataset, prior, [(window, contacts)]))
+            if rows is not None:    # (j, i, k) graph-wide -> (frame in the window, i, k) local
+                mine = rows[g.batch[rows[:, 1]] == b]
+                model_contacts.setdefault(sim, []).append(torch.stack(
+                    [len(window) - 1 - mine[:, 0], mine[:, 1] - first_node[b],
+                     mine[:, 2] - first_node[b]], 1).numpy())
+    true_log_a, sampled_a = np.concatenate(true_log), np.concatenate(sampled, axis=1)
+    particles_a, edges_a = np.concatenate(particles), np.concatenate(edges, axis=1)
+    rel_a = np.concatenate(edge_rel)
+    log_prior = prior.log_pdf(true_log_a)
+    metrics: dict[str, Any] = _posterior_metrics(true_log_a, sampled_a,
+                                                 np.concatenate(log_post), log_prior,
+                                                 particles_a)
+    metrics.update(_point_metrics(sampled_a.mean(axis=0), true_log_a, particles_a, edges_a,
+                                  rel_a, sampled_a.var(axis=0)))
+    if model_contacts:
+        metrics["sim_mass_rel_err_flow"] = metrics["sim_mass_rel_err"]
+        metrics["sim_mass_rel_err"] = _impact_solve_error(
+            dataset, prior, per_sim, model_contacts, sampled_a, particles_a)
+    metrics["mass_particles"] = int(len(true_log_a))
+    prior_samples = prior.sample(sampled_a.shape, rng)
+    references = {"prior": _posterior_metrics(true_log_a, prior_samples, log_prior, log_prior,
+                                              particles_a)}
+    estimate = np.concatenate(physical)
+    pooled = {sim: _physical(dataset, prior, views) for sim, views in per_sim.items()}
+    sim_estimate = np.concatenate(list(pooled.values()))
+    sim_true = np.log(np.concatenate([dataset.file.read("masses", sim) for sim in pooled]))
+    references["physical"] = {
+        **_point_metrics(np.where(np.isfinite(estimate), estimate, prior.mean), true_log_a,
+                         particles_a, edges_a, rel_a),
+        "identified": float(np.mean(np.isfinite(estimate))),
+        # per simulation: one least-squares fit of all its windows, not a mean of estimates
+        "sim_mass_rel_err": relative_mass_error(
+            np.where(np.isfinite(sim_estimate), sim_estimate, prior.mean), sim_true),
+        "sim_identified": float(np.mean(np.isfinite(sim_estimate)))}
+    for name, values in references.items():
+        metrics.update({f"{name}/{k}": v for k, v in values.items()})
+    arrays = {"true_mass": np.exp(true_log_a), "sampled_mass": np.exp(sampled_a),
+              "coverage_levels": COVERAGE_LEVELS,
+              "coverage": coverage_curve(true_log_a, sampled_a),
+              "coverage_prior": coverage_curve(true_log_a, prior_samples)}
+    return metrics, arrays
+
+
+def evaluate_split(module: PhysicsModule, dataset: FrameDataset,
+                   calibration: FrameDataset | None, max_frames: int | None = 256,
+                   mass_frames: int = 32, mass_samples: int = 32, batch_size: int = 16,
+                   seed: int = 0, rollout_steps: int = 100, rollout_starts: int = 1,
+                   rollout_sims: int | None = None,
+                   curves: dict[str, dict[str, np.ndarray]] | None = None,
+                   step: Callable[[str], None] | None = None, lagrangebench: bool = True,
+                   sinkhorn_stride: int = 10, sinkhorn_rollouts: int | None = 4,
+                   positions: dict[str, np.ndarray] | None = None,
+                   ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Everything ``python -m bgn.evaluate`` and the study (``bgn.studies.grid``) score on one
+    split: one-step, type and contact metrics and the inverse metrics with the flow
+    recalibrated on ``calibration`` (``evaluate_model``), then the rollouts of the model, the
+    references and the predictability limit (``evaluate_rollouts``), in LagrangeBench's
+    metrics as well with ``lagrangebench``. Returns the metrics and the mass figure's
+    arrays."""
+    if step is not None:
+        step("one-step, type, contact and inverse metrics")
+    metrics, arrays = evaluate_model(module, dataset, max_frames=max_frames,
+                                     mass_frames=mass_frames, mass_samples=mass_samples,
+                                     batch_size=batch_size, seed=seed, calibration=calibration)
+    metrics.update(evaluate_rollouts(module.model, dataset, n_steps=rollout_steps,
+                                     starts_per_sim=rollout_starts, max_sims=rollout_sims,
+                                     curves=curves, step=step, lagrangebench=lagrangebench,
+                                     sinkhorn_stride=sinkhorn_stride,
+                                     sinkhorn_rollouts=sinkhorn_rollouts,
+                                     positions=positions))
+    return metrics, arrays
+
+
+def mass_figure(arrays: dict[str, np.ndarray], path: str | Path) -> Path:
+    """Write the KDE of true vs sampled masses beside the coverage curves of the model and
+    the prior-only sampler (``figures.mass_calibration``) as a PNG."""
+    from bgn.figures import mass_calibration, save
+
+    return save(mass_calibration(arrays["true_mass"], arrays["sampled_mass"].ravel(),
+                                 arrays["coverage_levels"],
+                                 {"model": arrays["coverage"],
+                                  "prior-only sampler": arrays["coverage_prior"]}), path)
+
+
+# ----------------------------------------------------------------------------- the command
+SPLITS = ("train", "val", "test")
+# Hydra options that take the next argument as their value (not a positional path)
+_VALUE_OPTIONS = {"-cp", "--config-path", "-cn", "--config-name", "-cd", "--config-dir",
+                  "-c", "--cfg", "-p", "--package", "--experimental-rerun"}
+
+
+_ARGV: list[str] = []  # the command line as typed (before path_override), for the report
+
+
+def path_override(argv: list[str]) -> list[str]:
+    """``argv`` with its first positional argument (a path: no ``=``, not an option) turned
+    into the override ``ckpt=<path>`` (quoted where Hydra's grammar needs it), so that
+    ``python -m bgn.evaluate <run> split=val`` reads as Hydra overrides."""
+    out, taken, after_option = list(argv[:1]), False, False
+    for arg in argv[1:]:
+        if not taken and not after_option and "=" not in arg and not arg.startswith("-"):
+            if not re.fullmatch(r"[\w./~+:@-]+", arg):
+                arg = "'" + arg.replace("\\", "\\\\").replace("'", "\\'") + "'"
+            out.append(f"ckpt={arg}")
+            taken = True
+        else:
+            out.append(arg)
+        after_option = arg in _VALUE_OPTIONS
+    return out
+
+
+def resolve_run(path: str, run_config: str | None = None) -> tuple[Path, Path, Path]:
+    """``(checkpoint, run directory, run config)`` of a checkpoint or run directory: a run
+    directory gives its best checkpoint (``bgn.train.checkpoints.best_checkpoint``: best.ckpt,
+    the newest best-vN.ckpt, else last.ckpt), or ``laws/formula.ckpt`` where the run's
+    ``laws/formula.json`` chose the formula law on validation (``model.law=auto``, or
+    ``python -m bgn.laws <ckpt> finetune=true``); a checkpoint in ``<run>/checkpoints/`` its
+    run. Bad input: one ``ConfigError`` naming the path and the fix."""
+    from bgn.train.checkpoints import best_checkpoint, run_config_paths
+
+    given = Path(path).expanduser()
+    if not given.exists():
+        raise ConfigError("ckpt", path, "no such file or directory: give a checkpoint (.ckpt) "
+                          "or a run directory of python -m bgn.train")
+    if given.is_dir():
+        choice = given / "auto" / "auto.json"  # a model.dynamics=auto run: its chosen structure
+        if not (given / "checkpoints").is_dir() and choice.is_file():
+            given = given / "auto" / str(json.loads(choice.read_text())["choice"])
+        run_dir = given
+        law = given / "laws" / "formula.json"  # a model.law=auto run that chose the formula
+        if law.is_file() and json.loads(law.read_text()).get("choice") == "formula" \
+                and (given / "laws" / "formula.ckpt").is_file():
+            given = run_dir = given / "laws"
+            ckpt = given / "formula.ckpt"
+        else:
+            ckpt = None
+        try:
+            ckpt = ckpt or best_checkpoint(given)
+        except FileNotFoundError:
+            raise ConfigError("ckpt", path, f"the run directory has no checkpoint (looked for "
+                              f"{given / 'checkpoints'}/best*.ckpt and last.ckpt): give a run "
+                              "that trained, or a checkpoint file") from None
+    else:
+        ckpt = given
+        run_dir = given.parent.parent if given.parent.name == "checkpoints" else given.parent
+    if run_config is not None:
+        config = Path(run_config).expanduser()
+        if not config.is_file():
+            raise ConfigError("run_config", run_config, "no such file: give the run's "
+                              ".hydra/config.yaml")
+        return ckpt, run_dir, config
+    for config in run_config_paths(ckpt, run_dir):
+        if config.is_file():
+            return ckpt, run_dir, config
+    looked = ", ".join(str(p) for p in run_config_paths(ckpt, run_dir))
+    raise ConfigError("ckpt", path, f"no run config beside the checkpoint (looked for {looked}): "
+                      "pass run_config=<the run's .hydra/config.yaml>")
+
+
+def validate_evaluate(cfg: Any) -> tuple[Path, Path, Path]:
+    """Everything ``python -m bgn.evaluate`` is given, before any data or model is read;
+    returns ``resolve_run``'s paths."""
+    if not cfg.get("ckpt"):
+        raise ConfigError("ckpt", None, "give a checkpoint or run directory: python -m "
+                          "bgn.eval.evaluate outputs/train/runs/<run> [split=test]")
+    for key in ("split", "calibration_split"):
+        if cfg[key] not in SPLITS:
+            raise ConfigError(key, cfg[key], f"choose one of {list(SPLITS)}")
+    if cfg.calibration_split == cfg.split:
+        raise ConfigError("calibration_split", cfg.calibration_split, (
+            "the mass flow would be recalibrated on the split it is scored on; set "
+            "calibration_split to another split (val for split=test, train for split=val)"))
+    need_int(cfg.max_frames, "max_frames", 1, optional=True, why=" (null: every frame)")
+    for key in ("mass_frames", "mass_samples", "batch_size"):
+        need_int(cfg[key], key, 1)
+    need_int(cfg.seed, "seed", 0, MAX_SEED)
+    need_int(cfg.rollout.steps, "rollout.steps", 1)
+    need_int(cfg.rollout.starts_per_sim, "rollout.starts_per_sim", 1)
+    need_int(cfg.rollout.max_sims, "rollout.max_sims", 1, optional=True,
+             why=" (null: every simulation of the split)")
+    need_int(cfg.rollout.sinkhorn_stride, "rollout.sinkhorn_stride", 1)
+    need_int(cfg.rollout.sinkhorn_rollouts, "rollout.sinkhorn_rollouts", 1, optional=True,
+             why=" (null: every rollout)")
+    return resolve_run(str(cfg.ckpt), cfg.get("run_config"))
+
+
+def load_checked(ckpt: Path, run_cfg: Any, datamodule: Any) -> PhysicsModule:
+    """The checkpoint's module, refused in one line when its model is unknown to this bgn or
+    it was trained on another scene or model than its run config says."""
+    from bgn.model.registry import MODELS
+    from bgn.train.checkpoints import check_compatible
+    from bgn.train.run import run_provenance
+
+    record = read(ckpt)
+    name = ((record.get("hyper_parameters") or {}).get("model_config") or {}).get("name")
+    if name not in MODELS:
+        raise CheckpointError(f"checkpoint {ckpt} holds a model {name!r} that this bgn does not "
+                              f"know (models: {sorted(MODELS)}): evaluate it with the bgn that "
+                              "trained it")
+    check_compatible(ckpt, run_provenance(run_cfg, datamodule), ckpt=record)
+    return load_model(ckpt)
+
+
+def git_commit() -> str:
+    """``git rev-parse HEAD`` of the checkout bgn runs from, 'unknown' without git."""
+    import subprocess
+
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent,
+                             capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else "unknown"
+
+
+def provenance_record(cfg: Any, ckpt: Path, config: Path, run_cfg: Any) -> dict[str, Any]:
+    """The report's header: what was evaluated, by which code, where, with which seeds."""
+    import hashlib
+    import os
+    import platform
+    import shlex
+    import sys
+
+    return {"checkpoint": str(ckpt.resolve()), "run_config": str(config.resolve()),
+            "run_config_hash": hashlib.sha256(config.read_bytes()).hexdigest()[:10],
+            "git_commit": git_commit(),
+            "machine": f"{platform.platform()}, {platform.processor() or platform.machine()}",
+            "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
+            "seeds": {"evaluation": int(cfg.seed), "training": run_cfg.get("seed"),
+                      "data": run_cfg.dataset.get("seed")},
+            "split": str(cfg.split), "calibration_split": str(cfg.calibration_split),
+            "command": " ".join(["python -m bgn.evaluate",
+                                 *(shlex.quote(a) for a in (_ARGV or sys.argv)[1:])])}
+
+
+class Stages:
+    """A rich progress bar over the named stages of the evaluation (nothing when off)."""
+
+    def __init__(self, total: int, enabled: bool) -> None:
+        self.progress = None
+        if enabled:
+            from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+            self.progress = Progress(TextColumn("{task.description:<48}"), BarColumn(),
+                                     TextColumn("{task.completed}/{task.total}"),
+                                     TimeElapsedColumn())
+            self.progress.start()
+            self.task = self.progress.add_task("evaluation", total=total)
+        self.started = False
+
+    def __call__(self, name: str) -> None:
+        if self.progress is not None:
+            self.progress.update(self.task, advance=1 if self.started else 0, description=name)
+            self.started = True
+
+    def close(self) -> None:
+        if self.progress is not None:
+            self.progress.update(self.task, completed=self.progress.tasks[0].total,
+                                 description="done")
+            self.progress.stop()
+
+
+ROLLOUT_SOURCES = {"rollout": "model", "rollout_last": "repeat last (no learning)",
+                   "rollout_linear": "linear extrapolation (no learning)",
+                   "predictability": "predictability limit (simulator, 1e-6 off)"}
+ONE_STEP_KEYS = ["mse", "nmse", "nmse_last_extrapolation", "nmse_linear_extrapolation",
+                 "median_relative_error", "n_frames", "type_accuracy", "type_auroc",
+                 "contact_rate", "contact_f1_head", "contact_f1_toi_rule", "relmass_r2"]
+
+
+LB_COLUMNS = ["mse@5", "mse@10", "mse@20", "mse@50", "mse@100", "mse@all", "sinkhorn",
+              "e_kin_mse", "failed_share"]
+LAW_FIGURE = "law.png"
+
+
+def lagrangebench_text(metrics: dict[str, Any]) -> list[str]:
+    """The report's "LagrangeBench metrics" section: one row per rollout source."""
+    from bgn.tables import markdown_table
+
+    rows = [{"source": label, **{c: metrics.get(f"{lb_prefix(key)}/{c}") for c in LB_COLUMNS}}
+            for key, label in ROLLOUT_SOURCES.items() if f"{lb_prefix(key)}/rollouts" in metrics]
+    if not rows:
+        return []
+    columns = [c for c in LB_COLUMNS if any(r[c] is not None for r in rows)]
+    return ["## LagrangeBench metrics", "",
+            "The same rollouts in LagrangeBench's metrics (Toshev et al. 2023, "
+            "lagrangebench/evaluate/metrics.py; bgn.metrics.lagrangebench_metrics), each per "
+            "rollout then averaged over the rollouts as theirs (the standard deviations over "
+            "the rollouts: metrics.json, <name>_std). mse@h: the per-step position MSE (mean "
+            "over particles and coordinates of the squared error) averaged over steps 1..h, "
+            "their mse{h}; mse@all over the whole rollout (their loss); the MSE at step h alone "
+            "is pos_mse_mean@h (metrics.json). sinkhorn: the Sinkhorn divergence between the "
+            "predicted and true particle clouds, uniform weights, squared Euclidean cost, "
+            "entropic regularisation 0.05 x the mean cost (ott-jax's default, which "
+            "LagrangeBench uses), solved with POT in float64 instead of ott-jax in float32; "
+            f"on every {int(metrics.get('lb/sinkhorn_stride', 10))}-th step "
+            f"({int(metrics.get('lb/sinkhorn_frames', 0))} steps) of "
+            f"{int(metrics.get('lb/sinkhorn_rollouts', 0))} of the "
+            f"{int(metrics.get('lb/rollouts', 0))} rollouts, evenly spaced (LagrangeBench: "
+            "every step at inference). e_kin_mse: the MSE over the rollout of the kinetic "
+            "energy per frame, sum_i m_i |v_i|^2 with finite-difference velocities, no 1/2 "
+            "(LagrangeBench's, with m_i = dx^dim: where the source gave no masses bgn's unit "
+            "masses stand in, so multiply by dx^(2 dim) to compare). Every particle counts, "
+            "kinematic ones too (set to the truth in the rollout, as LagrangeBench does); "
+            "periodic dimensions by the minimum image. A failed rollout counts at the cap from "
+            "the step it failed on: MSE rollout_cap^2 / D, Sinkhorn rollout_cap^2, kinetic "
+            "energy 100 x the true mean (speeds 10 x the truth's); failed_share beside.", "",
+            markdown_table(["source", *columns], rows)]
+
+
+def law_text(module: PhysicsModule, dataset: FrameDataset, figure: str | None,
+             ) -> tuple[str, Any]:
+    """The report's section on the learned pair law (``bgn.eval.laws``: its formula, constants
+    and errors over ``dataset``'s distances, the training split) and its figure (None
+    without ``figure``); a model without a pair-force head says it has no pair law."""
+    from bgn.eval.laws import law_figure, markdown, pair_force_head, read_law
+
+    try:
+        pair_force_head(module)
+    except ValueError:
+        name = getattr(module.model, "name", type(module.model).__name__)
+        return (f"## The learned pair law\n\nThe {name} model has no pair-force head, so it "
+                "has no pair law to read (model=newton, or model=bgn model.dynamics=newton, "
+                "on a force or imported scene has one).\n", None)
+    report = read_law(module, dataset)
+    return markdown(report, figure, level=2), None if figure is None else law_figure(report)
+
+
+def report_text(record: dict[str, Any], metrics: dict[str, Any], figures: list[str],
+                law: str | None = None) -> str:
+    """report.md: the provenance header, then one-step, rollout (bgn's and LagrangeBench's)
+    and inverse tables, and ``law``, the section on the learned pair law (``law_text``)."""
+    from bgn.eval.columns import INVERSE_COLUMNS, INVERSE_REFERENCES, ROLLOUT_COLUMNS
+    from bgn.tables import markdown_table
+
+    seeds = ", ".join(f"{k} {v}" for k, v in record["seeds"].items())
+    about = record.get("model") or {}
+    lines = [f"# Evaluation on the {record['split']} split", "",
+             *([f"- model: {about['label']}; given: {', '.join(about['given']) or 'nothing'} "
+                f"beyond the position window; physics written in: {about['physics']}"]
+               if about else []),
+             f"- command: `{record['command']}`",
+             f"- checkpoint: `{record['checkpoint']}`",
+             f"- run config: `{record['run_config']}` (hash {record['run_config_hash']})",
+             f"- git commit: {record['git_commit']}",
+             f"- machine: {record['machine']}; {record['cpu_count']} CPUs, "
+             f"{record['torch_threads']} torch threads",
+             f"- seeds: {seeds}; mass flow recalibrated on the {record['calibration_split']} "
+             f"split; wall time {record['wall_time_s']:.1f} s", "",
+             "## One step", "",
+             markdown_table(["metric", "value"], [{"metric": k, "value": metrics[k]}
+                                                  for k in ONE_STEP_KEYS if k in metrics]),
+             "## Rollouts", "",
+             "From frame 100 of every simulation of the split (when the files are that long). "
+             "Every rollout counts: a failed one (a non-finite value, or a particle more than "
+             "10 scene scales astray) counts at the cap (rollout_cap: 10 scene scales) in "
+             "pos_err_mean and pos_mse_mean; pos_err_median beside the mean would hide up to "
+             "half the rollouts failing. energy_err: median |E_t - E_0| / |E_0|, a failed "
+             "rollout infinite. See bgn.metrics.rollout_metrics.", ""]
+    rows = [{"source": label, **{c: metrics.get(f"{key}/{c}") for c in ROLLOUT_COLUMNS}}
+            for key, label in ROLLOUT_SOURCES.items() if f"{key}/rollouts" in metrics]
+    columns = [c for c in ROLLOUT_COLUMNS if any(r[c] is not None for r in rows)]  # the scene's
+    lines += [markdown_table(["source", *columns], rows)]
+    lines += lagrangebench_text(metrics)
+    if "coverage50" in metrics:
+        rows = [{"source": "model", **{c: metrics.get(c) for c in INVERSE_COLUMNS}}]
+        rows += [{"source": label, **{c: metrics.get(f"{key}/{c}") for c in INVERSE_COLUMNS}}
+                 for key, label in INVERSE_REFERENCES.items()]
+        lines += ["## Inverse model", "",
+                  f"{metrics.get('mass_particles')} particle masses in evenly spaced frames "
+                  f"(bgn.eval.evaluate.evaluate_inverse); the flow recalibrated on the "
+                  f"{record['calibration_split']} split first (scale at 50 % / 90 %: "
+                  f"{metrics.get('mass_calibration_scale50', float('nan')):.3g} / "
+                  f"{metrics.get('mass_calibration_scale90', float('nan')):.3g}).", "",
+                  markdown_table(["source", *INVERSE_COLUMNS], rows)]
+    if "posterior/particles" in metrics:
+        lines += ["## Inverse model (no recorded masses)", "",
+                  "The data carry no masses, so the posterior is reported, not scored "
+                  f"(bgn.eval.evaluate.posterior_summary): over "
+                  f"{int(metrics['posterior/particles'])} particles of evenly spaced frames, "
+                  "the medians of the sampled log-masses spread by "
+                  f"{metrics['posterior/log_mass_median_std']:.3g} (std), and the central 90 % "
+                  f"intervals are {metrics['posterior/interval90_width']:.3g} wide on average "
+                  "(nats).", ""]
+    if law is not None:
+        lines += [law]
+    figures = [f for f in figures if f != LAW_FIGURE or law is None or f not in law]
+    if figures:
+        lines += ["## Figures", ""] + [f"![{Path(f).stem}]({f})" for f in figures] + [""]
+    lines += ["Every value: metrics.json (and metrics.csv, one row per key).", ""]
+    return "\n".join(lines)
+
+
+def write_outputs(out_dir: Path, record: dict[str, Any], metrics: dict[str, Any],
+                  figures: dict[str, Any], law: str | None = None) -> None:
+    """Write report.md, metrics.csv, metrics.json and the figures into ``out_dir``, each
+    through a temporary file and a rename (nothing half-written)."""
+    import csv
+    import io
+    import json
+    import os
+
+    from bgn.figures import save
+    from bgn.train.checkpoints import write_atomic
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    names = []
+    for name, fig in figures.items():
+        tmp = out_dir / f".{name}.tmp{os.getpid()}.png"
+        try:
+            save(fig, tmp)
+            os.replace(tmp, out_dir / f"{name}.png")
+        finally:
+            tmp.unlink(missing_ok=True)
+        names.append(f"{name}.png")
+    values = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in metrics.items()}
+    text = io.StringIO()
+    writer = csv.writer(text)
+    writer.writerow(["metric", "value"])
+    writer.writerows(sorted(values.items()))
+    write_atomic(out_dir / "metrics.csv", text.getvalue())
+    write_atomic(out_dir / "metrics.json", json.dumps(
+        {"provenance": record, "metrics": values}, indent=2, sort_keys=True))
+    write_atomic(out_dir / "report.md", report_text(record, values, names, law))
+
+
+def evaluate_run(cfg: Any, paths: tuple[Path, Path, Path]) -> Path:
+    """The command's work: the run's data and checkpoint, every metric, the files; returns
+    the output folder."""
+    import time
+
+    from omegaconf import OmegaConf
+
+    from bgn.data.datamodule import ParticleDataModule
+    from bgn.figures import energy_drift, rollout_errors
+
+    start = time.perf_counter()
+    ckpt, run_dir, config = paths
+    run_cfg = OmegaConf.load(config)
+    data_dir = cfg.data_dir or run_cfg.paths.data_dir
+    datamodule = ParticleDataModule(run_cfg.dataset, run_cfg.fps, data_dir,
+                                    generate_workers=run_cfg.dataset.get("generate_workers"),
+                                    show_progress=bool(cfg.progress))
+    module = load_checked(ckpt, run_cfg, datamodule)  # before any data are generated
+    datamodule.prepare_data()  # the run's data, generated again where they are missing
+    datamodule.setup()
+    dataset = datamodule.datasets[cfg.split]
+    references = 2 if dataset.meta.target == "velocity" else 3
+    stages = Stages(3 + references + bool(cfg.figures), bool(cfg.progress))
+    curves: dict[str, dict[str, np.ndarray]] = {}
+    positions: dict[str, np.ndarray] = {}  # the model's rollouts, written as rollouts.npz
+    try:
+        metrics, arrays = evaluate_split(
+            module, dataset, datamodule.datasets[cfg.calibration_split], cfg.max_frames,
+            cfg.mass_frames, cfg.mass_samples, cfg.batch_size, int(cfg.seed),
+            int(cfg.rollout.steps), int(cfg.rollout.starts_per_sim), cfg.rollout.max_sims,
+            curves=curves, step=stages, sinkhorn_stride=int(cfg.rollout.sinkhorn_stride),
+            sinkhorn_rollouts=cfg.rollout.sinkhorn_rollouts, positions=positions)
+        figures: dict[str, Any] = {}
+        stages("the learned pair law")
+        law, figures["law"] = law_text(module, datamodule.datasets["train"],
+                                       LAW_FIGURE if cfg.figures else None)
+        if figures["law"] is None:
+            del figures["law"]
+        if cfg.figures:
+            stages("figures")
+            labelled = {ROLLOUT_SOURCES[k]: c for k, c in curves.items()}
+            figures["rollout_error"] = rollout_errors(labelled, metrics.get("rollout/rollout_cap"))
+            figures["energy_drift"] = energy_drift(labelled)
+            if arrays:
+                from bgn.figures import mass_calibration
+
+                figures["mass"] = mass_calibration(
+                    arrays["true_mass"], arrays["sampled_mass"].ravel(),
+                    arrays["coverage_levels"], {"model": arrays["coverage"],
+                                                "prior-only sampler": arrays["coverage_prior"]})
+    finally:
+        stages.close()
+    out_dir = Path(cfg.out_dir) if cfg.out_dir else run_dir / "eval" / str(cfg.split)
+    record = provenance_record(cfg, ckpt, config, run_cfg)
+    record["wall_time_s"] = time.perf_counter() - start
+    record["model"] = module.model.describe()  # the variant, given, physics written in
+    write_outputs(out_dir, record, metrics, figures, law)
+    write_rollouts(out_dir / "rollouts.npz", positions, dataset.dt)
+    return out_dir
+
+
+def write_rollouts(path: Path, positions: dict[str, np.ndarray], dt: float) -> None:
+    """The model's rollouts (``predicted``, ``true`` (R, steps + 2, N, D): the frame before the
+    start, the start, the steps; ``sims``, ``starts`` (R,); ``dt``), written whole through a
+    temporary file, so an engine's own energy can be computed on them
+    (examples/engines/engine_energy.py --positions)."""
+    import os
+
+    tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}.npz")
+    try:
+        np.savez_compressed(tmp, dt=np.asarray(dt), **positions)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+@cli("evaluate")  # Hydra app; bad input: one line, exit 2 (bgn.train.validate)
+def main(cfg: Any) -> Path:
+    """``python -m bgn.evaluate <checkpoint or run directory> [split=test] ...``."""
+    with reported():
+        paths = validate_evaluate(cfg)
+    try:
+        out_dir = evaluate_run(cfg, paths)
+    except CheckpointError as err:  # an unreadable or foreign checkpoint: one line
+        fail(err, DATA_EXIT)
+    print(f"report: {out_dir / 'report.md'}")
+    return out_dir
+
+
+def command() -> None:
+    """The console entry: the positional path becomes ``ckpt=<path>`` before Hydra parses
+    ``sys.argv`` (``path_override``)."""
+    import sys
+
+    from bgn.train.config import register_configs
+
+    register_configs(models=False)  # evaluate_base, before Hydra composes conf/evaluate.yaml
+    _ARGV[:] = sys.argv
+    sys.argv = path_override(sys.argv)
+    main()

@@ -1,0 +1,151 @@
+"""The cells of a study: one training run each, planned from a preset (per seed of its
+``seeds``), trained through the real ``train`` config (``bgn.train.run.train``) and read back.
+Shared by the grid study (``bgn.studies.grid``) and the Pareto study (``bgn.studies.pareto``),
+which plan their cells differently (``plan_cells`` here is the grid's) and train and read them
+alike.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from bgn.coerce import ConfigError
+from bgn.train.checkpoints import read_record, write_atomic
+
+CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One training run of the study."""
+
+    scene: str
+    fps: float
+    model: str
+    ablation: str = "full"
+    train_sims: int | None = None          # sample-efficiency cells only
+    groups: tuple[str, ...] = field(default=("main",), compare=False)
+    tag: str = ""                          # names the ``extra`` overrides (Pareto sizes)
+    extra: tuple[str, ...] = ()            # train overrides of this cell alone, applied last
+    seed: int = 0                          # the training seed (train override seed=<s>)
+    seeded: bool = False                   # one of several seeds: the name ends in _s<seed>
+
+    @property
+    def name(self) -> str:
+        fps = f"{self.fps:g}".replace(".", "p")
+        sims = f"_sims{self.train_sims}" if self.train_sims is not None else ""
+        tag = f"_{self.tag}" if self.tag else ""
+        seed = f"_s{self.seed}" if self.seeded else ""
+        return f"{self.scene}_fps{fps}_{self.model}_{self.ablation}{sims}{tag}{seed}"
+
+
+def preset_seeds(preset: DictConfig) -> list[int]:
+    """The preset's training seeds (``seeds``, default [0]), each once."""
+    seeds = [int(s) for s in (preset.get("seeds") or [0])]
+    if len(set(seeds)) != len(seeds):
+        raise ConfigError("preset.seeds", seeds, "each seed once")
+    return seeds
+
+
+def plan_cells(preset: DictConfig) -> list[Cell]:
+    """Every cell of a preset, each once (an ablation=full cell is the main grid's BGN cell),
+    per seed of ``preset.seeds`` (the first seed's cells first: an interrupted study has whole
+    tables of the first seeds)."""
+    cells: dict[str, Cell] = {}
+
+    def add(cell: Cell, group: str) -> None:
+        old = cells.get(cell.name)
+        groups = (old.groups if old else ()) + (group,)
+        cells[cell.name] = replace(cell, groups=tuple(dict.fromkeys(groups)))
+
+    for scene in preset.scenes:
+        for fps in preset.fps:
+            for model in preset.models:
+                add(Cell(scene, float(fps), model), "main")
+    ab = preset.get("ablations") or {}
+    for scene in ab.get("scenes", []) or []:
+        for ablation in ["full", *ab.get("variants", [])]:
+            add(Cell(scene, float(ab.fps), "bgn", ablation), "ablation")
+    se = preset.get("sample_efficiency") or {}
+    for scene in se.get("scenes", []) or []:
+        for model in se.get("models", preset.models):
+            for n in se.train_sims:
+                add(Cell(scene, float(se.fps), model, "full", int(n)), "sample_efficiency")
+    seeds = preset_seeds(preset)
+    return [replace(c, seed=s, seeded=len(seeds) > 1) for s in seeds for c in cells.values()]
+
+
+def cell_overrides(cell: Cell, cfg: DictConfig) -> list[str]:
+    """The ``train`` overrides of one cell: the preset's common and per-scene ones, then the
+    cell's own choices (later overrides win)."""
+    preset = cfg.preset
+    fps = int(cell.fps) if float(cell.fps).is_integer() else cell.fps
+    out = [f"dataset={cell.scene}", f"fps={fps}", f"model={cell.model}",
+           f"ablation={cell.ablation}", f"trainer.max_time={preset.max_time}",
+           *preset.get("overrides", []),
+           *(preset.get("model_overrides", {}) or {}).get(cell.model, []),
+           *(preset.get("scene_overrides", {}) or {}).get(cell.scene, [])]
+    if cell.train_sims is not None:
+        se = preset.sample_efficiency
+        # n_sims is per split and must hold the largest train_sims; val/test use them all
+        out += [f"dataset.n_sims={max(int(n) for n in se.train_sims)}",
+                f"++dataset.train_sims={cell.train_sims}", *se.get("overrides", [])]
+    if cell.seeded or cell.seed != 0:  # seed 0 is train.yaml's: one-seed cells as before
+        out.append(f"seed={cell.seed}")
+    out += [*cell.extra,
+            f"paths.data_dir={cfg.data_dir}",
+            f"paths.output_dir={Path(cfg.cells_dir) / cell.name}"]
+    return out
+
+
+def compose_train(overrides: list[str]) -> DictConfig:
+    """Compose ``conf/train.yaml`` with overrides, inside or outside a Hydra app."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from bgn.train.config import register_configs
+
+    register_configs()  # the model schemas the model yamls build on
+    if GlobalHydra.instance().is_initialized():
+        return compose(config_name="train", overrides=overrides)
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose(config_name="train", overrides=overrides)
+
+
+def train_cell(cell: Cell, cfg: DictConfig) -> tuple[dict[str, Any], bool]:
+    """Train a cell unless its metrics.json exists; returns (the metrics record, trained?)."""
+    from bgn.eval.laws import law_stage
+    from bgn.train.run import train
+
+    run_dir = Path(cfg.cells_dir) / cell.name
+    metrics_path = run_dir / "metrics.json"
+    record = read_record(metrics_path)  # None: missing, or damaged (named in a warning)
+    if record is not None:
+        return record, False
+    overrides = cell_overrides(cell, cfg)
+    train_cfg = compose_train(overrides)
+    last = run_dir / "checkpoints" / "last.ckpt"
+    if last.exists():  # an interrupted cell continues from its last checkpoint
+        train_cfg.ckpt_path = str(last)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    write_atomic(run_dir / "cell.json", json.dumps(
+        {**asdict(cell), "name": cell.name, "overrides": overrides}, indent=2))
+    write_atomic(run_dir / "train_config.yaml", OmegaConf.to_yaml(train_cfg, resolve=False))
+    train(train_cfg, law_stage=law_stage)
+    return json.loads(metrics_path.read_text()), True
+
+
+def cell_datamodule(run_dir: Path, data_dir: str) -> Any:
+    """The set-up datamodule of a trained cell's dataset (its ``train_config.yaml``)."""
+    from bgn.data.datamodule import ParticleDataModule
+
+    train_cfg = OmegaConf.load(run_dir / "train_config.yaml")
+    datamodule = ParticleDataModule(train_cfg.dataset, train_cfg.fps, data_dir,
+                                    show_progress=False)
+    datamodule.setup()
+    return datamodule

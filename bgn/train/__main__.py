@@ -1,0 +1,37 @@
+"""``python -m bgn.train [dataset=spring] [fps=50] [model=bgn] ...``: train a model on a scene.
+
+Generates the dataset on first use, trains with Lightning, evaluates the best checkpoint on
+the test split and writes ``metrics.json`` in the run directory (``bgn.train.run``). The run's
+full config is saved by Hydra in ``<run>/.hydra/config.yaml``; ``python -m bgn.train
+--config-path <run>/.hydra --config-name config`` reproduces it. ``model.dynamics=auto`` is a
+study of several trainings (``bgn.studies.auto``), started from here.
+"""
+
+from __future__ import annotations
+
+from omegaconf import DictConfig
+
+from bgn.train.checkpoints import CheckpointError
+from bgn.train.run import train
+from bgn.train.validate import cli, validate_train
+
+
+@cli("train")  # Hydra app; bad input: one line, exit 2 (bgn.train.validate)
+def main(cfg: DictConfig) -> float:
+    spec = validate_train(cfg)  # once per run: the DatasetSpec is handed on to the DataModule
+    try:
+        if cfg.model.get("dynamics") == "auto":  # the structure chosen by evidence
+            from bgn.studies.auto import run_auto
+
+            metrics = run_auto(cfg)
+        else:
+            from bgn.eval.laws import law_stage  # model.law=auto's formula stage
+
+            metrics = train(cfg, spec, law_stage=law_stage)
+    except CheckpointError as err:  # one line, no traceback
+        raise SystemExit(f"bgn.train: {err}") from None
+    return metrics.get("val/nmse", float("nan"))  # the objective a sweeper would minimise
+
+
+if __name__ == "__main__":
+    main()

@@ -653,12 +653,20 @@ def rollout_scores(predicted: np.ndarray, true: np.ndarray, first_non_finite: np
     """Errors after each horizon (the mean over R rollouts (R, T+2, N, D) of the capped
     position error, ``bgn.metrics.capped_step_errors``, a failed rollout at the cap from the
     step it failed), the share of rollouts that failed, and the mean error per step (T,)."""
+    errors, failed = failure_capped_errors(predicted, true, first_non_finite, box)
+    n_steps = errors.shape[1]
+    scores = {int(h): float(errors[:, h - 1].mean()) for h in horizons if 1 <= h <= n_steps}
+    return scores, float(np.mean(failed >= 0)), errors.mean(axis=0)
+
+
+def failure_capped_errors(predicted: np.ndarray, true: np.ndarray, first_non_finite: np.ndarray,
+                          box: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """(R, T) each rollout's capped position error per step (``capped_step_errors``), at the
+    cap from the step it failed on, and (R,) that step (-1: it did not fail)."""
     errors = capped_step_errors(predicted, true, box)
     cap = ESCAPE_FACTOR * scene_scale(true, box)[1]
     failed = rollout_failures(predicted, true, box, first_non_finite)
     for r, step in enumerate(failed):
         if step >= 1:
             errors[r, step - 1:] = cap[r]
-    n_steps = errors.shape[1]
-    scores = {int(h): float(errors[:, h - 1].mean()) for h in horizons if 1 <= h <= n_steps}
-    return scores, float(np.mean(failed >= 0)), errors.mean(axis=0)
+    return errors, failed

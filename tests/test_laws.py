@@ -361,7 +361,7 @@ def test_law_auto_tests_the_law_that_validates_better(tmp_path, shared_data_dir)
     stage = json.loads((run / "laws" / "formula.json").read_text())
     assert law["choice"] == stage["choice"] in ("network", "formula")
     horizon = str(stage["validation"]["network"]["horizon"])  # JSON keys are strings
-    errors = {k: v["errors"][horizon] for k, v in stage["validation"].items()}
+    errors = {k: v["typical"][horizon] for k, v in stage["validation"].items()}
     assert errors[law["choice"]] == min(errors.values())  # chosen on validation alone
     rollouts = [k for k in record["metrics"] if k.startswith("test/rollout_error@")]
     assert (run / "laws" / "report.md").is_file() and rollouts and all(

@@ -515,15 +515,19 @@ def load_checked(ckpt: Path, run_cfg: Any, datamodule: Any) -> PhysicsModule:
 
 
 def git_commit() -> str:
-    """``git rev-parse HEAD`` of the checkout bgn runs from, 'unknown' without git."""
+    """``git rev-parse HEAD`` of the checkout bgn runs from; where the code is a copy without
+    its history (a cluster job's, a container's), ``$BGN_GIT_COMMIT`` as the copier set it;
+    else 'unknown'."""
+    import os
     import subprocess
 
+    given = os.environ.get("BGN_GIT_COMMIT", "unknown")
     try:
         out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent,
                              capture_output=True, text=True, timeout=10)
     except (OSError, subprocess.SubprocessError):
-        return "unknown"
-    return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else "unknown"
+        return given
+    return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else given
 
 
 def provenance_record(cfg: Any, ckpt: Path, config: Path, run_cfg: Any) -> dict[str, Any]:

@@ -63,7 +63,6 @@ import json
 import logging
 import math
 import sys
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
@@ -72,7 +71,7 @@ from typing import Any
 import numpy as np
 import sympy
 import torch
-from scipy.optimize import least_squares
+from scipy.optimize import least_squares, minimize
 from scipy.signal import savgol_filter
 from scipy.stats import gaussian_kde
 
@@ -873,15 +872,15 @@ def write_report(report: LawReport, out_dir: str | Path, title: str | None = Non
 
 # ------------------------------------------------------------------- the formula as the law
 
-FINETUNE_STEPS = 40       # L-BFGS iterations on the formula's constants
+FINETUNE_STEPS = 80       # evaluations of the loss (Nelder-Mead) on the formula's constants
 FINETUNE_SUBSTEPS = 16    # model.substeps while fine-tuning (and in the written checkpoint)
-FINETUNE_LR = 1.0         # L-BFGS's step (its line search scales it); amplitudes are scaled
-                          # to 1, constants are log c
-FINETUNE_BATCH = 1024     # training frames of the fixed batch (closest_frames among them)
+FINETUNE_BATCH = 512      # training frames of the fixed batch (closest_frames among them)
+AMPLITUDE_STEP = 0.1      # the first simplex's step in each amplitude (relative to its start)
+C_STEP = 2.0              # ... and its factor on each constant c
 FINETUNE_HORIZON = 50     # validation rollout steps (as auto.horizon)
+TYPICAL_FLOOR = 1e-9      # added to each error before the geometric mean (an exact rollout)
 CLOSE_SHARE = 0.25        # of the tuning batch: the frames with the closest pairs
 ROBUST_SCALE = 0.1        # relative error at which law_objective's Cauchy loss bends
-C_GRID = (0.125, 0.25, 0.5, 1.0, 2.0)  # factors of each c tried before the fit (start_constants)
 
 
 def formula_spec(report: LawReport) -> str:
@@ -957,11 +956,12 @@ def tuning_batches(dataset: Any, size: int, seed: int = 0) -> list[tuple[float, 
 
 def validation_errors(model: Any, val: Any, history: int, horizon: int = FINETUNE_HORIZON,
                       val_sims: int | None = None) -> dict[str, Any]:
-    """bgn.studies.auto's scoring: every validation simulation (or ``val_sims`` of them) rolled out
-    from the shared start frames, the mean capped error after 10 and ``horizon`` steps, a
-    failed rollout at the cap, and the share that failed."""
+    """bgn.studies.auto's scoring: every validation simulation (or ``val_sims`` of them)
+    rolled out from the shared start frames; after 10 and ``horizon`` steps the mean capped
+    error (a failed rollout at the cap) and its geometric mean over the rollouts
+    (``typical``), and the share that failed."""
     from bgn.data.frames import evenly_spaced
-    from bgn.metrics import SHORT_HORIZON, rollout_scores
+    from bgn.metrics import SHORT_HORIZON, failure_capped_errors
     from bgn.rollout import rollout_many, rollout_starts
 
     n_steps = min(horizon, val.file.n_frames - history - 2)
@@ -969,9 +969,12 @@ def validation_errors(model: Any, val: Any, history: int, horizon: int = FINETUN
     sims, starts = evenly_spaced(val.file.n_sims, val_sims), rollout_starts(val, n_steps)
     with torch.no_grad():
         t = rollout_many(model.eval(), val, sims, starts, n_steps)
-    errors, failed, _ = rollout_scores(t.predicted, t.true, t.first_non_finite, val.meta.box,
-                                       horizons)
-    return {"errors": errors, "failed_share": failed, "horizon": n_steps,
+    capped, failed = failure_capped_errors(t.predicted, t.true, t.first_non_finite,
+                                           val.meta.box)
+    at = {h: capped[:, h - 1] for h in horizons}
+    return {"errors": {h: float(e.mean()) for h, e in at.items()},
+            "typical": {h: float(np.exp(np.log(e + TYPICAL_FLOOR).mean())) for h, e in at.items()},
+            "failed_share": float(np.mean(failed >= 0)), "horizon": n_steps,
             "rollouts": len(sims) * len(starts)}
 
 
@@ -997,42 +1000,30 @@ def law_objective(model: Any, head: Any, g: Any) -> torch.Tensor:
     return terms["dynamics"]
 
 
-def start_constants(law: Any, loss: Callable[[], torch.Tensor]) -> None:
-    """Each nonlinear constant c of ``law`` (a ``FormulaLaw``) moved, one after another, to
-    the factor of ``C_GRID`` of its value with the lowest ``loss()``: the law read back from
-    a network can be off by a factor in c (gravity's softening, where few pairs come close),
-    and from there a quasi-Newton fit stalls on the robust loss before the minimum."""
-    from bgn.model.formula_law import NONLINEAR
-
-    for k, kind in enumerate(law.kinds):
-        if kind not in NONLINEAR:
-            continue
-        base, scores = float(law.log_c[k]), []
-        for factor in C_GRID:
-            law.log_c[k] = base + math.log(factor)
-            scores.append((float(loss()), float(law.log_c[k])))
-        law.log_c[k] = min(scores)[1]
+class _Budget(Exception):
+    """The fine-tuning's evaluations or seconds are spent."""
 
 
 def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
                      report: LawReport | None = None, steps: int = FINETUNE_STEPS,
-                     substeps: int = FINETUNE_SUBSTEPS, lr: float = FINETUNE_LR,
+                     substeps: int = FINETUNE_SUBSTEPS,
                      batch_size: int = FINETUNE_BATCH, horizon: int = FINETUNE_HORIZON,
                      val_sims: int | None = None, out_dir: Path | None = None,
                      seed: int = 0, start: str | None = None,
                      max_seconds: float | None = None) -> dict[str, Any]:
     """The fitted formula as the model's law, its constants fine-tuned end to end: the
     checkpoint's model with ``law=formula`` (``formula_module``), the law's constants alone
-    fitted by L-BFGS (``steps`` iterations) to the head's own loss (``law_objective``) on a
-    fixed batch of ``batch_size`` training frames (``tuning_batches``: the closest encounters
-    and a random rest, weighted to the split), through ``substeps`` (a frame's
+    fitted by Nelder-Mead (``steps`` evaluations) to the head's own loss (``law_objective``)
+    on a fixed batch of ``batch_size`` training frames (``tuning_batches``: the closest
+    encounters and a random rest, weighted to the split), through ``substeps`` (a frame's
     finite-difference target averages the force over the frame, as the substeps integrate
-    it). Only the law is trained: the rest of the model is the checkpoint's, validated with
+    it). Only the law is fitted: the rest of the model is the checkpoint's, validated with
     the network law, and a handful of constants cannot overfit a split. Both laws are then
-    scored on the validation rollouts (``validation_errors``); the lower error after the
-    horizon is chosen. ``out_dir``: writes ``formula.ckpt`` (loadable as any checkpoint) and
-    ``formula.json``. ``start``: a spec to start from in place of the law read back (tests).
-    ``max_seconds``: the training stops there too (a time budget: ``bgn.studies.auto``'s share).
+    scored on the validation rollouts (``validation_errors``); the lower typical error
+    (geometric mean over the rollouts) after the horizon is chosen. ``out_dir``: writes
+    ``formula.ckpt`` (loadable as any checkpoint) and ``formula.json``. ``start``: a spec to
+    start from in place of the law read back (tests). ``max_seconds``: the fit stops there
+    too (a time budget: ``bgn.studies.auto``'s share).
     Returns the record (specs before and after, errors, choice)."""
     import time
 
@@ -1050,30 +1041,50 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     # a handful of constants and a fixed batch: a deterministic quasi-Newton fit, where
     # stochastic steps wander by their size at the rare close encounters that pin c
     batches = tuning_batches(train_split, batch_size, seed)
-    with torch.no_grad():  # each constant c from the best of a coarse grid first
-        start_constants(head.force_law, lambda: sum(w * law_objective(model, head, g)
-                                                    for w, g in batches))
-    # one iteration per step() (the time budget is checked between them); its line search
-    # may evaluate the loss up to 20 times (the default allows one evaluation per iteration)
-    opt = torch.optim.LBFGS(head.force_law.parameters(), lr=lr, max_iter=1, max_eval=20,
-                            history_size=20, line_search_fn="strong_wolfe")
-    losses = []
-    model.eval()  # no dropout in the inverse model: the loss is the same function each call
+    # a handful of constants on a fixed batch, derivative-free: through the substeps of the
+    # closest encounters the loss is smooth at the scale of the constants' errors but rough
+    # at the scale of a quasi-Newton step (its gradient jumps), where L-BFGS stalls
+    from bgn.model.formula_law import NONLINEAR
+
+    law = head.force_law
+    nonlinear = torch.tensor([k in NONLINEAR for k in law.kinds])
+    losses: list[float] = []
+    best: list[Any] = [math.inf, None]
     began = time.perf_counter()
 
-    def closure() -> torch.Tensor:
-        opt.zero_grad()
-        loss = sum(w * law_objective(model, head, g) for w, g in batches)
-        if not torch.isfinite(loss):
+    def place(x: np.ndarray) -> None:
+        with torch.no_grad():
+            law.amplitude.copy_(torch.as_tensor(x[:len(law.kinds)]))
+            law.log_c[nonlinear] = torch.as_tensor(x[len(law.kinds):], dtype=law.log_c.dtype)
+
+    def objective(x: np.ndarray) -> float:
+        if len(losses) >= steps or (max_seconds is not None
+                                    and time.perf_counter() - began > max_seconds):
+            raise _Budget
+        place(x)
+        with torch.no_grad():
+            loss = float(sum(w * law_objective(model, head, g) for w, g in batches))
+        if not math.isfinite(loss):
             raise ValueError(f"fine-tuning the formula of {checkpoint}: the loss is not "
-                             f"finite at step {len(losses)}; try a smaller finetune.lr")
-        loss.backward()
+                             f"finite at evaluation {len(losses)}")
+        losses.append(loss)
+        if loss < best[0]:
+            best[:] = [loss, x.copy()]
         return loss
 
-    for _ in range(steps):
-        if max_seconds is not None and time.perf_counter() - began > max_seconds:
-            break
-        losses.append(float(opt.step(closure).detach()))
+    batches = tuning_batches(train_split, batch_size, seed)
+    model.eval()  # no dropout in the inverse model: the loss is the same function each call
+    x0 = np.concatenate([law.amplitude.detach().numpy(),
+                         law.log_c.detach()[nonlinear].numpy()]).astype(np.float64)
+    simplex = np.vstack([x0, x0 + np.diag(np.where(np.arange(len(x0)) < len(law.kinds),
+                                                   AMPLITUDE_STEP, math.log(C_STEP)))])
+    try:
+        minimize(objective, x0, method="Nelder-Mead",
+                 options={"initial_simplex": simplex, "maxfev": steps, "xatol": 1e-3,
+                          "fatol": 1e-6})
+    except _Budget:
+        pass
+    place(best[1] if best[1] is not None else x0)
     spec = head.force_law.spec()
     hp["model_config"] = {**hp["model_config"], "law_formula": spec}
     history = int(hp["history"])
@@ -1086,13 +1097,17 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     for k in sorted({substeps, pair_force_head(network)[1].substeps}):
         head.substeps = k
         by_substeps[k] = validation_errors(model, val, history, horizon, val_sims)
-    rollout_substeps = min(by_substeps, key=lambda k: by_substeps[k]["errors"].get(n, math.inf))
+    # chosen on the typical rollout (the geometric mean): the mean after many steps of a
+    # chaotic scene is set by the few rollouts whose encounters diverge, whatever the law
+    # (docs/results.md, "The formula stage"); a failed rollout still counts, at the cap
+    rollout_substeps = min(by_substeps,
+                           key=lambda k: by_substeps[k]["typical"].get(n, math.inf))
     head.substeps = rollout_substeps
     hp["model_config"] = {**hp["model_config"], "substeps": rollout_substeps}
     scores["formula"] = by_substeps[rollout_substeps]
-    choice = min(scores, key=lambda k: (scores[k]["errors"].get(n, math.inf), k != "network"))
+    choice = min(scores, key=lambda k: (scores[k]["typical"].get(n, math.inf), k != "network"))
     record = {"checkpoint": str(checkpoint), "substeps": substeps, "steps": len(losses),
-              "lr": lr,
+              "batch_size": batch_size,
               "rollout_substeps": rollout_substeps,
               "formula_by_substeps": {str(k): v for k, v in by_substeps.items()},
               "start": json.loads(start_spec), "tuned": json.loads(spec),
@@ -1124,28 +1139,33 @@ def finetune_markdown(record: dict[str, Any], level: int = 2) -> str:
     """The comparison table of ``finetune_formula``'s record."""
     h = "#" * level
     v = record["validation"]
-    horizons = sorted(v["network"]["errors"])
+    horizons = sorted(v["network"]["errors"], key=int)
     lines = [f"{h} The formula as the law, fine-tuned",
              "",
              f"The fitted formula as the model's pair law (model.law=formula), its constants "
-             f"fine-tuned for {record['steps']} steps with model.substeps="
+             f"fitted in {record['steps']} evaluations of the law's loss on "
+             f"{record.get('batch_size', '?')} training frames with model.substeps="
              f"{record['substeps']}, the rest of the model the checkpoint's; both scored on "
              f"the validation split's rollouts ({v['network']['rollouts']} rollouts, a failed "
-             "one at the cap; bgn.studies.auto's protocol).",
+             "one at the cap): the mean error and the typical one (the geometric mean over "
+             "the rollouts).",
              "",
-             "| law | formula | " + " | ".join(f"error @{k}" for k in horizons)
+             "| law | formula | " + " | ".join(f"mean @{k} | typical @{k}" for k in horizons)
              + " | failed |",
-             "|---|---|" + "---|" * len(horizons) + "---|"]
+             "|---|---|" + "---|---|" * len(horizons) + "---|"]
     rows = [("network", "(MLP)", v["network"])] + [
         (f"formula, substeps {k}", _spec_text(record["tuned"]), s)
         for k, s in record["formula_by_substeps"].items()]
     for name, text, s in rows:
+        typical = s.get("typical", {})
         lines.append(f"| {name} | `{text}` | " + " | ".join(
-            _g(s["errors"][k]) for k in horizons) + f" | {s['failed_share']:.0%} |")
+            f"{_g(s['errors'][k])} | {_g(typical[k]) if k in typical else ''}"
+            for k in horizons) + f" | {s['failed_share']:.0%} |")
     lines += ["", f"Fitted before fine-tuning: `{_spec_text(record['start'])}`; the formula "
-              f"rolls out with substeps {record['rollout_substeps']} (the lower error).", "",
-              f"Chosen: **{record['choice']}** (the lower validation rollout error after "
-              f"{horizons[-1]} steps)."]
+              f"rolls out with substeps {record['rollout_substeps']} (the lower typical "
+              "error).", "",
+              f"Chosen: **{record['choice']}** (the lower typical validation rollout error "
+              f"after {horizons[-1]} steps)."]
     if record.get("path"):
         lines += ["", f"Checkpoint with the formula law: `{record['path']}`."]
     return "\n".join(lines) + "\n"
@@ -1173,7 +1193,7 @@ def _flag(value: str) -> bool:
 
 OPTIONS = {"out_dir": str, "config": str, "data_dir": str, "max_terms": int,
            "tolerance": float, "parsimony": float, "finetune": _flag, "finetune.steps": int,
-           "finetune.substeps": int, "finetune.lr": float, "finetune.horizon": int,
+           "finetune.substeps": int, "finetune.batch_size": int, "finetune.horizon": int,
            "finetune.val_sims": int}
 
 
@@ -1201,7 +1221,7 @@ def parse(argv: list[str]) -> tuple[Path, dict[str, Any]]:
             raise ValueError(f"{key}={value!r} must be {kind}") from None
     for key, low, high in (("max_terms", 1, 4), ("tolerance", 0, math.inf),
                            ("parsimony", 1, math.inf), ("finetune.steps", 1, math.inf),
-                           ("finetune.substeps", 1, 64), ("finetune.lr", 1e-12, 1),
+                           ("finetune.substeps", 1, 64), ("finetune.batch_size", 1, math.inf),
                            ("finetune.horizon", 1, math.inf), ("finetune.val_sims", 1, math.inf)):
         if key in options and not low <= options[key] <= high:
             raise ValueError(f"{key}={options[key]} must be in [{low}, {high}]")

@@ -1097,14 +1097,15 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     for k in sorted({substeps, pair_force_head(network)[1].substeps}):
         head.substeps = k
         by_substeps[k] = validation_errors(model, val, history, horizon, val_sims)
-    # chosen on the typical rollout (the geometric mean): the mean after many steps of a
-    # chaotic scene is set by the few rollouts whose encounters diverge, whatever the law
-    # (docs/results.md, "The formula stage"); a failed rollout still counts, at the cap
-    rollout_substeps = min(by_substeps,
-                           key=lambda k: by_substeps[k]["typical"].get(n, math.inf))
+    # the integrator on the mean error: substeps are there for the rare close encounters,
+    # which a typical (geometric-mean) error discounts
+    rollout_substeps = min(by_substeps, key=lambda k: by_substeps[k]["errors"].get(n, math.inf))
     head.substeps = rollout_substeps
     hp["model_config"] = {**hp["model_config"], "substeps": rollout_substeps}
     scores["formula"] = by_substeps[rollout_substeps]
+    # the law on the typical rollout (the geometric mean): the mean after many steps of a
+    # chaotic scene is set by the few rollouts whose encounters diverge, whatever the law
+    # (docs/results.md, "The formula stage"); a failed rollout still counts, at the cap
     choice = min(scores, key=lambda k: (scores[k]["typical"].get(n, math.inf), k != "network"))
     record = {"checkpoint": str(checkpoint), "substeps": substeps, "steps": len(losses),
               "batch_size": batch_size,
@@ -1162,8 +1163,8 @@ def finetune_markdown(record: dict[str, Any], level: int = 2) -> str:
             f"{_g(s['errors'][k])} | {_g(typical[k]) if k in typical else ''}"
             for k in horizons) + f" | {s['failed_share']:.0%} |")
     lines += ["", f"Fitted before fine-tuning: `{_spec_text(record['start'])}`; the formula "
-              f"rolls out with substeps {record['rollout_substeps']} (the lower typical "
-              "error).", "",
+              f"rolls out with substeps {record['rollout_substeps']} (the lower mean error: "
+              "substeps are for the rare close encounters).", "",
               f"Chosen: **{record['choice']}** (the lower typical validation rollout error "
               f"after {horizons[-1]} steps)."]
     if record.get("path"):

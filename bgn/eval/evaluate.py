@@ -424,12 +424,12 @@ def path_override(argv: list[str]) -> list[str]:
 
 def resolve_run(path: str, run_config: str | None = None) -> tuple[Path, Path, Path]:
     """``(checkpoint, run directory, run config)`` of a checkpoint or run directory: a run
-    directory gives its best checkpoint (``bgn.train.checkpoints.best_checkpoint``: best.ckpt,
+    directory gives its chosen checkpoint (``bgn.train.checkpoints.chosen_checkpoint``: best.ckpt,
     the newest best-vN.ckpt, else last.ckpt), or ``laws/formula.ckpt`` where the run's
     ``laws/formula.json`` chose the formula law on validation (``model.law=auto``, or
     ``python -m bgn.laws <ckpt> finetune=true``); a checkpoint in ``<run>/checkpoints/`` its
     run. Bad input: one ``ConfigError`` naming the path and the fix."""
-    from bgn.train.checkpoints import best_checkpoint, run_config_paths
+    from bgn.train.checkpoints import chosen_checkpoint, run_config_paths
 
     given = Path(path).expanduser()
     if not given.exists():
@@ -440,15 +440,10 @@ def resolve_run(path: str, run_config: str | None = None) -> tuple[Path, Path, P
         if not (given / "checkpoints").is_dir() and choice.is_file():
             given = given / "auto" / str(json.loads(choice.read_text())["choice"])
         run_dir = given
-        law = given / "laws" / "formula.json"  # a model.law=auto run that chose the formula
-        if law.is_file() and json.loads(law.read_text()).get("choice") == "formula" \
-                and (given / "laws" / "formula.ckpt").is_file():
-            given = run_dir = given / "laws"
-            ckpt = given / "formula.ckpt"
-        else:
-            ckpt = None
         try:
-            ckpt = ckpt or best_checkpoint(given)
+            ckpt = chosen_checkpoint(given)  # a model.law=auto run: the law it chose
+            if ckpt.parent == given / "laws":
+                run_dir = ckpt.parent  # its train_config.yaml has the formula's options
         except FileNotFoundError:
             raise ConfigError("ckpt", path, f"the run directory has no checkpoint (looked for "
                               f"{given / 'checkpoints'}/best*.ckpt and last.ckpt): give a run "
@@ -515,13 +510,15 @@ def load_checked(ckpt: Path, run_cfg: Any, datamodule: Any) -> PhysicsModule:
 
 
 def git_commit() -> str:
-    """``git rev-parse HEAD`` of the checkout bgn runs from; where the code is a copy without
-    its history (a cluster job's, a container's), ``$BGN_GIT_COMMIT`` as the copier set it;
-    else 'unknown'."""
+    """``git rev-parse HEAD`` of the checkout bgn runs from, 'unknown' without git; where the
+    code is a copy (a cluster job's, a container's), ``$BGN_GIT_COMMIT`` as the copier set it
+    wins: a copy's git metadata, if any came along, may be stale."""
     import os
     import subprocess
 
     given = os.environ.get("BGN_GIT_COMMIT", "unknown")
+    if given != "unknown":
+        return given
     try:
         out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent,
                              capture_output=True, text=True, timeout=10)

@@ -41,7 +41,7 @@ from bgn.studies.cells import (
     train_cell,
 )
 from bgn.studies.report import write_report
-from bgn.train.checkpoints import best_checkpoint, read_record, write_atomic
+from bgn.train.checkpoints import chosen_checkpoint, read_record, write_atomic
 
 
 def cached_eval(cell: Cell, cfg: DictConfig) -> dict[str, Any] | None:
@@ -49,7 +49,7 @@ def cached_eval(cell: Cell, cfg: DictConfig) -> dict[str, Any] | None:
     metrics and with its figure on disk; else None (``evaluate_cell`` evaluates it)."""
     run_dir = Path(cfg.cells_dir) / cell.name
     try:
-        ckpt = best_checkpoint(run_dir)
+        ckpt = chosen_checkpoint(run_dir)
     except FileNotFoundError:
         return None
     eval_path = run_dir / "eval.json"
@@ -63,13 +63,14 @@ def cached_eval(cell: Cell, cfg: DictConfig) -> dict[str, Any] | None:
 
 
 def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
-    """Test-split metrics of a cell's best checkpoint (cached in eval.json), and its KDE
-    figure under the report's figures/ when the model has an inverse head."""
+    """Test-split metrics of a cell's chosen checkpoint (``chosen_checkpoint``; cached in
+    eval.json), and its KDE figure under the report's figures/ when the model has an inverse
+    head."""
     from bgn.eval.evaluate import evaluate_split, mass_figure
     from bgn.train.module import load_model
 
     run_dir = Path(cfg.cells_dir) / cell.name
-    ckpt = best_checkpoint(run_dir)
+    ckpt = chosen_checkpoint(run_dir)  # the formula where model.law=auto chose it
     eval_path = run_dir / "eval.json"
     figure = Path(cfg.report_dir) / "figures" / f"mass_{cell.name}.png"
     result = cached_eval(cell, cfg)
@@ -219,6 +220,8 @@ def code_state() -> dict[str, Any]:
     (None: unknown), taken when the study starts (the code that trains)."""
     from bgn.eval.evaluate import git_commit
 
+    if os.environ.get("BGN_GIT_COMMIT"):  # a copy of the code: its git state is not known
+        return {"git_commit": git_commit(), "git_dirty": None}
     try:
         status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
                                 cwd=CONF_DIR.parent, capture_output=True, text=True,

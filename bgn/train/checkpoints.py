@@ -168,6 +168,18 @@ def best_checkpoint(run_dir: Path) -> Path:
     raise FileNotFoundError(f"no checkpoint in {ckpts}")
 
 
+def chosen_checkpoint(run_dir: Path) -> Path:
+    """The checkpoint a run stands for: ``laws/formula.ckpt`` where its ``laws/formula.json``
+    chose the formula law on validation (``model.law=auto``, or ``python -m bgn.laws <ckpt>
+    finetune=true``), else ``best_checkpoint``."""
+    law = run_dir / "laws" / "formula.json"
+    if law.is_file() and (run_dir / "laws" / "formula.ckpt").is_file():
+        record = read_record(law)
+        if record is not None and record.get("choice") == "formula":
+            return run_dir / "laws" / "formula.ckpt"
+    return best_checkpoint(run_dir)
+
+
 def run_config_paths(ckpt: Path, run_dir: Path) -> list[Path]:
     """Where a run's config may lie, in the order looked at: Hydra's record of a
     ``python -m bgn.train`` run (beside the checkpoints folder, or the checkpoint), or a study

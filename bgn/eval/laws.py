@@ -63,6 +63,8 @@ import json
 import logging
 import math
 import sys
+import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
@@ -177,6 +179,9 @@ class Formula:
     loss: float
     complexity: int
     front: list[dict[str, Any]] = field(default_factory=list)
+    # (terms, values) of each formula on the front: forms the fine-tuning may prefer on the
+    # frames themselves (finetune_formula), where the network's law is off
+    alternatives: list[tuple[list[Term], np.ndarray]] = field(default_factory=list)
 
     @property
     def cs(self) -> list[float]:
@@ -406,7 +411,10 @@ def fit_formula(r: np.ndarray, y: np.ndarray, weight: np.ndarray | None = None,
         pick = np.sort(rng.integers(0, n, n))
         boots.append(_refine(terms, r[pick], y[pick], w[pick], values)[0])
     boot_std = np.std(boots, axis=0) if boots else np.full(p, np.nan)
-    return Formula(terms, np.asarray(values, np.float64), stderr, boot_std, loss, chosen, front)
+    alternatives = [(refined[e["complexity"]][1], np.asarray(refined[e["complexity"]][2],
+                                                             np.float64)) for e in front]
+    return Formula(terms, np.asarray(values, np.float64), stderr, boot_std, loss, chosen, front,
+                   alternatives)
 
 
 # ----------------------------------------------------------------------------- the model's law
@@ -877,6 +885,7 @@ FINETUNE_SUBSTEPS = 16    # model.substeps while fine-tuning (and in the written
 FINETUNE_BATCH = 512      # training frames of the fixed batch (closest_frames among them)
 AMPLITUDE_STEP = 0.1      # the first simplex's step in each amplitude (relative to its start)
 C_STEP = 2.0              # ... and its factor on each constant c
+FORM_TOLERANCE = 0.02     # a simpler form is kept while its tuned loss is within this of the best
 FINETUNE_HORIZON = 50     # validation rollout steps (as auto.horizon)
 TYPICAL_FLOOR = 1e-9      # added to each error before the geometric mean (an exact rollout)
 CLOSE_SHARE = 0.25        # of the tuning batch: the frames with the closest pairs
@@ -887,14 +896,18 @@ def formula_spec(report: LawReport) -> str:
     """The report's formulas as ``model.law_formula`` (``bgn.model.formula_law``'s format: a
     JSON list of pairs of types, each with its terms: kind, power, amplitude a, constant c),
     in physical units: the head with ``model.law=formula`` evaluates this law."""
-    pairs = []
-    for pair in report.pairs:
-        f, cs = pair.formula, iter(pair.formula.cs)
-        pairs.append({"types": [int(t) for t in pair.types], "terms": [
-            {"kind": t.kind, "power": float(t.power), "a": float(a),
-             "c": next(cs) if t.nonlinear else None}
-            for t, a in zip(f.terms, f.values[:len(f.terms)])]})
-    return json.dumps(pairs)
+    return json.dumps([pair_spec(pair.types, pair.formula.terms, pair.formula.values)
+                       for pair in report.pairs])
+
+
+def pair_spec(types: tuple[int, int], terms: list[Term], values: np.ndarray) -> dict[str, Any]:
+    """One pair of types' entry of a ``model.law_formula`` spec: ``values`` the amplitudes,
+    then one constant c per nonlinear term."""
+    cs = iter(float(c) for c in values[len(terms):])
+    return {"types": [int(t) for t in types], "terms": [
+        {"kind": t.kind, "power": float(t.power), "a": float(a),
+         "c": next(cs) if t.nonlinear else None}
+        for t, a in zip(terms, values[:len(terms)])]}
 
 
 def formula_module(checkpoint: Path, spec: str, substeps: int) -> Any:
@@ -1004,6 +1017,93 @@ class _Budget(Exception):
     """The fine-tuning's evaluations or seconds are spent."""
 
 
+def n_constants(spec: str | list[dict[str, Any]]) -> int:
+    """Amplitudes and constants c of a ``model.law_formula`` spec."""
+    pairs = json.loads(spec) if isinstance(spec, str) else spec
+    return sum(1 + (t.get("c") is not None) for p in pairs for t in p["terms"])
+
+
+def candidate_specs(report: LawReport) -> list[str]:
+    """The forms the fine-tuning starts from: the formula read back, then (one pair of types
+    only) every other formula on its fit's front."""
+    specs = [formula_spec(report)]
+    if len(report.pairs) == 1:
+        pair = report.pairs[0]
+        for terms, values in pair.formula.alternatives:
+            spec = json.dumps([pair_spec(pair.types, terms, values)])
+            if spec not in specs:
+                specs.append(spec)
+    return specs
+
+
+def prune_terms(tune: Callable[[str], tuple[float, Any, Any, str]], loss: float, module: Any,
+                hp: Any, spec: str) -> tuple[float, Any, Any, str]:
+    """Backward elimination on the frames: a term is dropped (the rest tuned again) while the
+    loss rises by at most ``FORM_TOLERANCE``; a term the network's law needed in its tails
+    (where the frames barely pin it) goes."""
+    while True:
+        pairs = json.loads(spec)
+        if len(pairs) != 1 or len(pairs[0]["terms"]) < 2:
+            return loss, module, hp, spec
+        for k in range(len(pairs[0]["terms"])):
+            fewer = [{**pairs[0], "terms": [t for j, t in enumerate(pairs[0]["terms"])
+                                            if j != k]}]
+            result = tune(json.dumps(fewer))
+            if not result[0] > loss * (1 + FORM_TOLERANCE):
+                loss, module, hp, spec = min(result[0], loss), *result[1:]
+                break
+        else:
+            return loss, module, hp, spec
+
+
+def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], steps: int,
+                   deadline: float | None, name: str) -> tuple[float, int]:
+    """The constants of ``head``'s formula law fitted in place to ``law_objective`` on the
+    weighted ``batches``, derivative-free (Nelder-Mead, at most ``steps`` evaluations): the
+    law's loss through the substeps of the closest encounters is smooth at the scale of the
+    constants' errors but rough at a quasi-Newton step's (its gradient jumps), where L-BFGS
+    stalls. Returns (the lowest loss, evaluations); ``_Budget`` past ``deadline`` before any."""
+    from bgn.model.formula_law import NONLINEAR
+
+    law = head.force_law
+    nonlinear = torch.tensor([k in NONLINEAR for k in law.kinds])
+    best: list[Any] = [math.inf, None]
+    count = [0]
+
+    def place(x: np.ndarray) -> None:
+        with torch.no_grad():
+            law.amplitude.copy_(torch.as_tensor(x[:len(law.kinds)]))
+            law.log_c[nonlinear] = torch.as_tensor(x[len(law.kinds):], dtype=law.log_c.dtype)
+
+    def objective(x: np.ndarray) -> float:
+        if count[0] >= steps or (deadline is not None and time.perf_counter() > deadline):
+            raise _Budget
+        place(x)
+        with torch.no_grad():
+            loss = float(sum(w * law_objective(model, head, g) for w, g in batches))
+        if not math.isfinite(loss):
+            raise ValueError(f"fine-tuning the formula of {name}: the loss is not finite at "
+                             f"evaluation {count[0]}")
+        count[0] += 1
+        if loss < best[0]:
+            best[:] = [loss, x.copy()]
+        return loss
+
+    x0 = np.concatenate([law.amplitude.detach().numpy(),
+                         law.log_c.detach()[nonlinear].numpy()]).astype(np.float64)
+    simplex = np.vstack([x0, x0 + np.diag(np.where(np.arange(len(x0)) < len(law.kinds),
+                                                   AMPLITUDE_STEP, math.log(C_STEP)))])
+    try:
+        minimize(objective, x0, method="Nelder-Mead",
+                 options={"initial_simplex": simplex, "maxfev": steps, "xatol": 1e-3,
+                          "fatol": 1e-6})
+    except _Budget:
+        if best[1] is None:
+            raise
+    place(best[1])
+    return best[0], count[0]
+
+
 def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
                      report: LawReport | None = None, steps: int = FINETUNE_STEPS,
                      substeps: int = FINETUNE_SUBSTEPS,
@@ -1025,66 +1125,49 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     start from in place of the law read back (tests). ``max_seconds``: the fit stops there
     too (a time budget: ``bgn.studies.auto``'s share).
     Returns the record (specs before and after, errors, choice)."""
-    import time
-
     from bgn.train.checkpoints import read, write_atomic
     from bgn.train.module import load_model
 
     network = load_model(checkpoint)
     if start is None and report is None:
         report = read_law(network, train_split)
-    start_spec = start if start is not None else formula_spec(report)
-    module, hp = formula_module(checkpoint, start_spec, substeps)
+    batches = tuning_batches(train_split, batch_size, seed)
+    deadline = None if max_seconds is None else time.perf_counter() + max_seconds
+    evaluations = [0]
+
+    def tune(spec: str) -> tuple[float, Any, Any, str]:
+        """(tuned loss, module, hp, tuned spec) of the checkpoint's model with law ``spec``."""
+        module, hp = formula_module(checkpoint, spec, substeps)
+        model, head = pair_force_head(module)
+        model.requires_grad_(False)
+        model.eval()  # no dropout in the inverse model: the loss is one function
+        loss, n = tune_constants(model, head, batches, steps, deadline, str(checkpoint))
+        evaluations[0] += n
+        return loss, module, hp, head.force_law.spec()
+
+    # every form on the fit's front, each tuned on the frames and pruned of the terms the
+    # frames do not need; the lowest loss wins, the fewest constants among near ties
+    starts = [start] if start is not None else candidate_specs(report)
+    forms = []
+    for spec in starts:
+        try:
+            loss, module, hp, tuned = tune(spec)
+            loss, module, hp, tuned = prune_terms(tune, loss, module, hp, tuned)
+        except _Budget:
+            break
+        forms.append({"start": json.loads(spec), "tuned": json.loads(tuned), "loss": loss,
+                      "constants": n_constants(tuned), "module": module, "hp": hp})
+    if not forms:  # no time for even one evaluation: the form read back, as it was
+        module, hp = formula_module(checkpoint, starts[0], substeps)
+        forms.append({"start": json.loads(starts[0]), "tuned": json.loads(starts[0]),
+                      "loss": math.nan, "constants": n_constants(starts[0]),
+                      "module": module, "hp": hp})
+    lowest = min(f["loss"] for f in forms)
+    near = [f for f in forms if not f["loss"] > lowest * (1 + FORM_TOLERANCE)] or forms
+    form = min(near, key=lambda f: (f["constants"], f["loss"]))
+    module, hp = form["module"], form["hp"]
+    start_spec = json.dumps(form["start"])
     model, head = pair_force_head(module)
-    model.requires_grad_(False)
-    head.force_law.requires_grad_(True)
-    # a handful of constants and a fixed batch: a deterministic quasi-Newton fit, where
-    # stochastic steps wander by their size at the rare close encounters that pin c
-    batches = tuning_batches(train_split, batch_size, seed)
-    # a handful of constants on a fixed batch, derivative-free: through the substeps of the
-    # closest encounters the loss is smooth at the scale of the constants' errors but rough
-    # at the scale of a quasi-Newton step (its gradient jumps), where L-BFGS stalls
-    from bgn.model.formula_law import NONLINEAR
-
-    law = head.force_law
-    nonlinear = torch.tensor([k in NONLINEAR for k in law.kinds])
-    losses: list[float] = []
-    best: list[Any] = [math.inf, None]
-    began = time.perf_counter()
-
-    def place(x: np.ndarray) -> None:
-        with torch.no_grad():
-            law.amplitude.copy_(torch.as_tensor(x[:len(law.kinds)]))
-            law.log_c[nonlinear] = torch.as_tensor(x[len(law.kinds):], dtype=law.log_c.dtype)
-
-    def objective(x: np.ndarray) -> float:
-        if len(losses) >= steps or (max_seconds is not None
-                                    and time.perf_counter() - began > max_seconds):
-            raise _Budget
-        place(x)
-        with torch.no_grad():
-            loss = float(sum(w * law_objective(model, head, g) for w, g in batches))
-        if not math.isfinite(loss):
-            raise ValueError(f"fine-tuning the formula of {checkpoint}: the loss is not "
-                             f"finite at evaluation {len(losses)}")
-        losses.append(loss)
-        if loss < best[0]:
-            best[:] = [loss, x.copy()]
-        return loss
-
-    batches = tuning_batches(train_split, batch_size, seed)
-    model.eval()  # no dropout in the inverse model: the loss is the same function each call
-    x0 = np.concatenate([law.amplitude.detach().numpy(),
-                         law.log_c.detach()[nonlinear].numpy()]).astype(np.float64)
-    simplex = np.vstack([x0, x0 + np.diag(np.where(np.arange(len(x0)) < len(law.kinds),
-                                                   AMPLITUDE_STEP, math.log(C_STEP)))])
-    try:
-        minimize(objective, x0, method="Nelder-Mead",
-                 options={"initial_simplex": simplex, "maxfev": steps, "xatol": 1e-3,
-                          "fatol": 1e-6})
-    except _Budget:
-        pass
-    place(best[1] if best[1] is not None else x0)
     spec = head.force_law.spec()
     hp["model_config"] = {**hp["model_config"], "law_formula": spec}
     history = int(hp["history"])
@@ -1107,14 +1190,14 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     # chaotic scene is set by the few rollouts whose encounters diverge, whatever the law
     # (docs/results.md, "The formula stage"); a failed rollout still counts, at the cap
     choice = min(scores, key=lambda k: (scores[k]["typical"].get(n, math.inf), k != "network"))
-    record = {"checkpoint": str(checkpoint), "substeps": substeps, "steps": len(losses),
-              "batch_size": batch_size,
+    record = {"checkpoint": str(checkpoint), "substeps": substeps,
+              "steps": evaluations[0], "batch_size": batch_size,
+              "forms": [{k: f[k] for k in ("start", "tuned", "loss", "constants")}
+                        for f in forms],
               "rollout_substeps": rollout_substeps,
               "formula_by_substeps": {str(k): v for k, v in by_substeps.items()},
               "start": json.loads(start_spec), "tuned": json.loads(spec),
-              "loss_first": losses[0] if losses else None,
-              "loss_last": losses[-1] if losses else None, "validation": scores,
-              "choice": choice}
+              "loss": form["loss"], "validation": scores, "choice": choice}
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
@@ -1162,6 +1245,13 @@ def finetune_markdown(record: dict[str, Any], level: int = 2) -> str:
         lines.append(f"| {name} | `{text}` | " + " | ".join(
             f"{_g(s['errors'][k])} | {_g(typical[k]) if k in typical else ''}"
             for k in horizons) + f" | {s['failed_share']:.0%} |")
+    if record.get("forms"):
+        lines += ["", "Forms tried (each on the front of the fit, its constants fitted to the "
+                  "law's loss on the frames, then pruned of terms the frames do not need; the "
+                  f"lowest loss wins, the fewest constants within {FORM_TOLERANCE:.0%} of it):",
+                  "", "| from | tuned and pruned | constants | loss |", "|---|---|---|---|"]
+        lines += [f"| `{_spec_text(f['start'])}` | `{_spec_text(f['tuned'])}` | "
+                  f"{f['constants']} | {_g(f['loss'])} |" for f in record["forms"]]
     lines += ["", f"Fitted before fine-tuning: `{_spec_text(record['start'])}`; the formula "
               f"rolls out with substeps {record['rollout_substeps']} (the lower mean error: "
               "substeps are for the rare close encounters).", "",

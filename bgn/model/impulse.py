@@ -334,8 +334,8 @@ class ContactImpulseHead(nn.Module):
         unless a chain of impacts runs through discs further apart.
 
         A Jacobi sum of every impact a disc meets, each from the velocities at the frame's
-        start, creates energy whenever a disc is hit twice within a frame (docs/results.md:
-        the fps 10 hard case); one impact at a time, an elastic impact conserves energy and
+        start, creates energy whenever a disc is hit twice within a frame (docs/results.md,
+        "Impacts one at a time"); one impact at a time, an elastic impact conserves energy and
         every pair impact momentum, whatever the number of impacts. As in the simulator, a
         pair (or a wall) is not solved again right after its own impact, only once one of
         its discs has had another.

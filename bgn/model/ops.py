@@ -39,7 +39,7 @@ ACTIVATIONS: dict[str, type[nn.Module]] = {
 IN_PLACE = frozenset({"relu"})
 # Hidden widths of the edge MLPs are padded with zero weights to a multiple of this inside the
 # matrix products: MKL's float32 kernels run faster on such widths than on cranmer_gn's 300
-# (docs/results.md, "Earlier runs"); the padded channels stay exactly zero.
+# (docs/notes/2026-11-25-history.md, "Earlier runs"); the padded channels stay exactly zero.
 PAD_WIDTH = 16
 
 
@@ -104,7 +104,7 @@ def pad_features(x: torch.Tensor, width: int) -> torch.Tensor:
 
 # Below this many input features a Linear layer's weight gradient is computed as
 # ``(xᵀ g)ᵀ`` instead of autograd's ``gᵀ x``: MKL's single-thread kernel for the latter is far
-# slower when x is that narrow (docs/results.md, "Earlier runs").
+# slower when x is that narrow (docs/notes/2026-11-25-history.md, "Earlier runs").
 NARROW_INPUT = 16
 
 

@@ -1025,14 +1025,24 @@ def n_constants(spec: str | list[dict[str, Any]]) -> int:
 
 def candidate_specs(report: LawReport) -> list[str]:
     """The forms the fine-tuning starts from: the formula read back, then (one pair of types
-    only) every other formula on its fit's front."""
+    only) every other formula on its fit's front and every one-term form of the library with
+    a constant c, each fitted to the learned law first. The network's law can be off where
+    the frames pin the form (gravity's close encounters), so a form the fit passed over may
+    fit the frames best."""
     specs = [formula_spec(report)]
-    if len(report.pairs) == 1:
-        pair = report.pairs[0]
-        for terms, values in pair.formula.alternatives:
-            spec = json.dumps([pair_spec(pair.types, terms, values)])
-            if spec not in specs:
-                specs.append(spec)
+    if len(report.pairs) != 1:
+        return specs
+    pair = report.pairs[0]
+    forms = list(pair.formula.alternatives)
+    for term in default_library():
+        if term.nonlinear:  # (the fitter needs a linear term beside it: a constant)
+            one = fit_formula(pair.r, pair.learned, pair.density, max_terms=1,
+                              library=[Term("const"), term], n_boot=0)
+            forms += [(t, v) for t, v in one.alternatives if t == [term]]
+    for terms, values in forms:
+        spec = json.dumps([pair_spec(pair.types, terms, values)])
+        if spec not in specs:
+            specs.append(spec)
     return specs
 
 

@@ -121,6 +121,16 @@ class FormulaLaw(nn.Module):
         return json.dumps(list(pairs.values()))
 
 
+def term_text(term: dict[str, Any], digits: int = 4) -> str:
+    """One term of a spec as plain text, e.g. ``-1.003*(r + 0.01067)**-2`` (model labels;
+    bgn.eval.laws prints whole formulas through sympy)."""
+    a, p, c = f"{term['a']:.{digits}g}", f"{term.get('power', 0.0):g}", term.get("c")
+    c = None if c is None else f"{c:.{digits}g}"
+    return {"const": a, "power": f"{a}*r**{p}", "log": f"{a}*log(r)",
+            "exp": f"{a}*exp(-r/{c})", "shifted": f"{a}*(r + {c})**{p}",
+            "plummer": f"{a}*(r**2 + {c}**2)**({p}/2)"}[term["kind"]]
+
+
 # auto: the network law is trained, then read back as a formula and fine-tuned after the fit,
 # and the one that validates better on rollouts is kept (bgn.laws.formula_stage, run by
 # bgn.train); the model itself carries the network law

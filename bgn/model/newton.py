@@ -34,6 +34,7 @@ the time of impact (``bgn.model.impulse``) for contact scenes. BGN uses it with
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -51,7 +52,7 @@ from bgn.model.base import (
     contact_pos_weight,
 )
 from bgn.model.encoder import DIRECTION_EPS
-from bgn.model.formula_law import FormulaLaw, check_law
+from bgn.model.formula_law import FormulaLaw, check_law, term_text
 from bgn.model.impulse import ContactImpulseHead
 from bgn.model.message_passing import edge_vector
 from bgn.model.normalizer import Normalizer
@@ -364,8 +365,14 @@ def head_physics(head: nn.Module) -> str:
     assert isinstance(head, PairForceHead)
     masses = {"inertial": "inertial masses fitted to the window, a = F / m",
               "source": "masses at the source fitted per simulation, a_i = sum_j m_j F_ij"}
+    law = ""
+    if isinstance(head.force_law, FormulaLaw):  # the law itself written in, as a formula
+        terms = json.loads(head.force_law.spec())
+        law = "; the pair law a fitted formula " + "; ".join(
+            " + ".join(term_text(t) for t in p["terms"]) + (
+                f" (types {p['types']})" if head.types > 1 else "") for p in terms)
     return (f"central pair forces, equal and opposite; {masses[head.mass_law]} "
-            f"(mass_law={head.mass_law})")
+            f"(mass_law={head.mass_law}){law}")
 
 
 def head_label(head: nn.Module) -> str:
@@ -374,7 +381,9 @@ def head_label(head: nn.Module) -> str:
     if isinstance(head, ContactImpulseHead):
         return "impulse head (radii)"
     assert isinstance(head, PairForceHead)
-    return f"pair-force head ({'types, ' if head.types > 1 else ''}masses {head.mass_law})"
+    law = ", law a formula" if isinstance(head.force_law, FormulaLaw) else ""
+    return (f"pair-force head ({'types, ' if head.types > 1 else ''}masses {head.mass_law}"
+            f"{law})")
 
 
 def law_loss(head: nn.Module, g: Graph, reduce: bool = True) -> torch.Tensor | None:

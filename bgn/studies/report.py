@@ -381,6 +381,8 @@ def provenance_lines(provenance: dict[str, Any]) -> list[str]:
         v = provenance.get(key)
         if key == "command":
             return f"`{v}`"
+        if v is None:  # git state of a copy without history, say
+            return "unknown"
         return (", ".join(map(str, v)) or "none") if isinstance(v, list) else fmt(v)
 
     return [f"- {label}: {value(key)}" for key, label in PROVENANCE_FIELDS.items()

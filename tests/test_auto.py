@@ -288,6 +288,7 @@ def test_the_best_pair_force_law_becomes_a_formula_candidate(tmp_path, shared_da
     from omegaconf import OmegaConf
 
     from bgn.data.datamodule import ParticleDataModule
+    from bgn.eval.laws import law_stage
     from bgn.rollout import rollout_starts
     from bgn.studies.auto import formula_candidate
     from bgn.train.checkpoints import check_compatible
@@ -301,7 +302,7 @@ def test_the_best_pair_force_law_becomes_a_formula_candidate(tmp_path, shared_da
             "trainer.limit_val_batches=1"]
     best = Candidate("newton_inertial", "pair-force head",
                      ["model.dynamics=newton", "model.mass_law=inertial"], pair_force=True)
-    train(compose_candidate(base, best, auto_dir / best.name, {}))
+    train(compose_candidate(base, best, auto_dir / best.name, {}), law_stage=law_stage)
     cfg = compose_config("train", base)
     dm = ParticleDataModule(cfg.dataset, cfg.fps, shared_data_dir, show_progress=False)
     dm.prepare_data()
@@ -315,7 +316,9 @@ def test_the_best_pair_force_law_becomes_a_formula_candidate(tmp_path, shared_da
     assert result.candidate.name == "formula_newton_inertial"
     assert math.isfinite(result.errors[n_steps]) and result.law is not None
     tuned = json.loads((auto_dir / result.candidate.name / "formula.json").read_text())
-    assert tuned["steps"] == 3 and "constants fine-tuned" in result.candidate.label
+    # each form tuned in at most its share of the steps (half the candidates' max_steps)
+    assert 0 < tuned["steps"] <= 3 * tuned["tunings"]
+    assert "constants fine-tuned" in result.candidate.label
     final = compose_candidate(base, result.candidate, auto_dir / result.candidate.name, {})
     assert final.model.law == "formula" and json.loads(final.model.law_formula) == tuned["tuned"]
     check_compatible(auto_dir / result.candidate.name / "checkpoints" / "last.ckpt", {},

@@ -777,9 +777,10 @@ def law_section(module: Any, dataset: Any, level: int = 2) -> str:
     return markdown(read_law(module, dataset), level=level)
 
 
-def law_figure(report: LawReport) -> Any:
+def law_figure(report: LawReport, tuned: str | None = None) -> Any:
     """Learned law, formula and truth against r, their relative errors, and the histogram of
-    the training distances underneath; one column per pair of types."""
+    the training distances underneath; one column per pair of types. ``tuned``: a
+    ``model.law_formula`` spec drawn too (the formula fitted to the frames)."""
     from matplotlib.ticker import FormatStrFormatter, FuncFormatter, NullFormatter
 
     from bgn.figures import plt
@@ -790,12 +791,15 @@ def law_figure(report: LawReport) -> Any:
     for col, pair in enumerate(report.pairs):
         law_ax, err_ax, hist_ax = axes[:, col]
         curves = {"learned": pair.learned, "formula": pair.formula(pair.r)}
+        if tuned is not None:
+            curves["formula fitted to the frames"] = spec_values(tuned, pair.types, pair.r)
         if pair.truth is not None:
             curves["truth"] = pair.truth
         signs = {np.sign(c[np.abs(c) > 0]).mean() for c in curves.values()}
         one_sign = all(abs(s) == 1 for s in signs) and len(signs) == 1
         flip = -1.0 if one_sign and signs.pop() < 0 else 1.0
-        styles = {"learned": "-", "formula": "--", "truth": ":"}
+        styles = {"learned": "-", "formula": "--", "formula fitted to the frames": "-.",
+                  "truth": ":"}
         for name, c in curves.items():
             law_ax.plot(pair.r, flip * c, styles[name], label=name, lw=2 if name == "learned"
                         else 1.5)
@@ -813,6 +817,10 @@ def law_figure(report: LawReport) -> Any:
                         label="learned vs truth")
             err_ax.plot(pair.r, _rel_error(curves["formula"], pair.truth, pair.r), "--",
                         label="formula vs truth")
+            if tuned is not None:
+                err_ax.plot(pair.r, _rel_error(curves["formula fitted to the frames"],
+                                               pair.truth, pair.r), "-.",
+                            label="fitted to the frames vs truth")
         err_ax.set_yscale("log")
         err_ax.set_ylabel("relative error")
         err_ax.legend(fontsize=8)
@@ -829,6 +837,17 @@ def law_figure(report: LawReport) -> Any:
         hist_ax.set_ylabel("training pairs")
     fig.tight_layout()
     return fig
+
+
+def spec_values(spec: str, types: tuple[int, int], r: np.ndarray) -> np.ndarray:
+    """The law of a ``model.law_formula`` spec between ``types`` at distances ``r``."""
+    from bgn.model.formula_law import FormulaLaw
+
+    n_types = 1 + max(max(p["types"]) for p in json.loads(spec))
+    law = FormulaLaw(spec, max(n_types, max(types) + 1))
+    pair = torch.full((len(r),), min(types) * law.n_types + max(types))
+    with torch.no_grad():
+        return law(torch.as_tensor(r, dtype=torch.float64), pair).numpy()
 
 
 def _jsonable(report: LawReport) -> dict[str, Any]:
@@ -1143,7 +1162,7 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
         report = read_law(network, train_split)
     batches = tuning_batches(train_split, batch_size, seed)
     deadline = None if max_seconds is None else time.perf_counter() + max_seconds
-    evaluations = [0]
+    evaluations = [0, 0]  # loss evaluations, tunings (each at most `steps` evaluations)
 
     def tune(spec: str) -> tuple[float, Any, Any, str]:
         """(tuned loss, module, hp, tuned spec) of the checkpoint's model with law ``spec``."""
@@ -1153,6 +1172,7 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
         model.eval()  # no dropout in the inverse model: the loss is one function
         loss, n = tune_constants(model, head, batches, steps, deadline, str(checkpoint))
         evaluations[0] += n
+        evaluations[1] += 1
         return loss, module, hp, head.force_law.spec()
 
     # every form on the fit's front, each tuned on the frames and pruned of the terms the
@@ -1201,7 +1221,7 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     # (docs/results.md, "The formula stage"); a failed rollout still counts, at the cap
     choice = min(scores, key=lambda k: (scores[k]["typical"].get(n, math.inf), k != "network"))
     record = {"checkpoint": str(checkpoint), "substeps": substeps,
-              "steps": evaluations[0], "batch_size": batch_size,
+              "steps": evaluations[0], "tunings": evaluations[1], "batch_size": batch_size,
               "forms": [{k: f[k] for k in ("start", "tuned", "loss", "constants")}
                         for f in forms],
               "rollout_substeps": rollout_substeps,
@@ -1354,6 +1374,11 @@ def formula_stage(checkpoint: Path, train_split: Any, val: Any, config: Any,
     section = finetune_markdown(record)
     print(section)
     write_atomic(path, path.read_text() + "\n" + section)
+    from bgn.figures import save
+
+    tmp = Path(out_dir) / "law.tmp.png"  # the figure again, with the formula fitted to frames
+    save(law_figure(report, json.dumps(record["tuned"])), tmp)
+    tmp.replace(Path(out_dir) / "law.png")
     # the run's config with the formula model's options beside formula.ckpt: bgn.evaluate
     # takes the folder of a checkpoint outside checkpoints/ for its run
     tuned_cfg = copy.deepcopy(config)

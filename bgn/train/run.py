@@ -148,7 +148,9 @@ def train(cfg: DictConfig, spec: DatasetSpec | None = None,
     if cfg.model.get("dynamics") == "auto":  # candidates are composed from the overrides
         raise ValueError("model.dynamics=auto is a study of several trainings: run it with "
                          "python -m bgn.train, or bgn.studies.auto.run_auto(cfg, overrides)")
-    if cfg.model.get("law") == "auto" and law_stage is None:
+    # (a fast_dev_run writes no checkpoint: it has no law to read back)
+    if cfg.model.get("law") == "auto" and law_stage is None \
+            and not cfg.trainer.get("fast_dev_run"):
         raise ValueError("model.law=auto needs the formula stage: run python -m bgn.train, or "
                          "pass law_stage=bgn.eval.laws.law_stage")
     start = time.perf_counter()

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import math
 import operator
+from collections.abc import Mapping
+from datetime import timedelta
 from typing import Any
 
 import numpy as np
@@ -103,3 +105,22 @@ def need_float(value: Any, key: str, low: float | None = None, high: float | Non
     if high is not None and (out >= high if strict_high else out > high):
         raise ConfigError(key, value, accepted)
     return out
+
+
+def seconds(max_time: Any) -> float | None:
+    """Lightning's ``max_time`` (``"DD:HH:MM:SS"``, a dict of timedelta fields, a timedelta
+    or None) in seconds."""
+    if max_time is None:
+        return None
+    if isinstance(max_time, timedelta):
+        return max_time.total_seconds()
+    if isinstance(max_time, Mapping):
+        return timedelta(**{str(k): float(v) for k, v in max_time.items()}).total_seconds()
+    days, hours, minutes, secs = (float(p) for p in str(max_time).split(":"))
+    return timedelta(days=days, hours=hours, minutes=minutes, seconds=secs).total_seconds()
+
+
+def clock(total: float) -> str:
+    """Whole seconds as Lightning's ``"DD:HH:MM:SS"``."""
+    s = int(total)
+    return f"{s // 86400:02d}:{s // 3600 % 24:02d}:{s // 60 % 60:02d}:{s % 60:02d}"

@@ -904,6 +904,7 @@ FINETUNE_SUBSTEPS = 16    # model.substeps while fine-tuning (and in the written
 FINETUNE_BATCH = 512      # training frames of the fixed batch (closest_frames among them)
 AMPLITUDE_STEP = 0.1      # the first simplex's step in each amplitude (relative to its start)
 C_STEP = 2.0              # ... and its factor on each constant c
+LAW_STAGE_SHARE = 0.5     # model.law=auto: the forms' fitting at most this share of max_time
 FORM_TOLERANCE = 0.02     # a simpler form is kept while its tuned loss is within this of the best
 FINETUNE_HORIZON = 50     # validation rollout steps (as auto.horizon)
 TYPICAL_FLOOR = 1e-9      # added to each error before the geometric mean (an exact rollout)
@@ -1402,9 +1403,13 @@ def law_stage(cfg: Any, best: Path, datamodule: Any, output_dir: Path,
         log.info("model.law=auto: the formula stage runs in a single process; run python -m "
                  f"bgn.laws {best} finetune=true after this DDP run")
         return {}
+    from bgn.coerce import seconds
+
+    budget = seconds(cfg.trainer.get("max_time"))  # the fitting's share of the run's time
     log.info("model.law=auto: reading the learned law back as a formula and fine-tuning it")
     record = formula_stage(best, datamodule.datasets["train"], datamodule.datasets["val"],
-                           cfg, output_dir / "laws")
+                           cfg, output_dir / "laws", **({} if budget is None else {
+                               "finetune.max_seconds": LAW_STAGE_SHARE * budget}))
     log.info(f"model.law=auto: the {record['choice']} law validates better; it is tested "
              f"(report: {record['report']})")
     return record

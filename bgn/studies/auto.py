@@ -37,7 +37,6 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from datetime import timedelta
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -45,6 +44,7 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from bgn.coerce import clock, seconds
 from bgn.metrics import SHORT_HORIZON, rollout_scores
 from bgn.sim.scene import SceneMeta
 from bgn.train.checkpoints import write_atomic
@@ -134,25 +134,6 @@ def masses_known(dataset: Any) -> bool:
 
 
 # ----------------------------------------------------------------------------- budget
-def seconds(max_time: Any) -> float | None:
-    """Lightning's ``max_time`` (``"DD:HH:MM:SS"``, a dict of timedelta fields, a timedelta
-    or None) in seconds."""
-    if max_time is None:
-        return None
-    if isinstance(max_time, timedelta):
-        return max_time.total_seconds()
-    if isinstance(max_time, Mapping):
-        return timedelta(**{str(k): float(v) for k, v in max_time.items()}).total_seconds()
-    days, hours, minutes, secs = (float(p) for p in str(max_time).split(":"))
-    return timedelta(days=days, hours=hours, minutes=minutes, seconds=secs).total_seconds()
-
-
-def clock(total: float) -> str:
-    """Whole seconds as Lightning's ``"DD:HH:MM:SS"``."""
-    s = int(total)
-    return f"{s // 86400:02d}:{s // 3600 % 24:02d}:{s // 60 % 60:02d}:{s % 60:02d}"
-
-
 def split_budget(trainer: Mapping[str, Any], share: float, n: int,
                  ) -> tuple[dict[str, Any], dict[str, Any]]:
     """The trainer limits of each of ``n`` candidates (``share`` of each limit set, split

@@ -35,12 +35,15 @@ vector from j to i (positive: repulsive). This module reads that law back:
    ``write_report`` writes report.md, law.csv, law.json and law.png; ``law_section`` gives
    the markdown for an evaluation report.
 4. ``finetune=true`` (``finetune_formula``): the formula as the model's law (``model.law=formula``,
-   ``model.law_formula``: ``formula_spec``'s JSON, ``bgn.model.formula_law``), its constants
-   fine-tuned end to end with the head's loss through ``model.substeps`` (a frame's
-   finite-difference target averages the force over the frame), then the network law and the
-   formula scored on the validation rollouts (``bgn.studies.auto``'s protocol) and the better
-   chosen;
-   ``<run>/laws/formula.ckpt`` (with its ``train_config.yaml``) loads as any checkpoint.
+   ``model.law_formula``: ``formula_spec``'s JSON, ``bgn.model.formula_law``). Every form on
+   the fit's front and every one-term form of the library (``candidate_specs``) has its
+   constants fitted to the frames (``tune_constants``: Nelder-Mead on the head's law loss
+   under a Cauchy loss, ``law_objective``, through ``model.substeps``: a frame's
+   finite-difference target averages the force over the frame) and is pruned of the terms the
+   frames do not need (``prune_terms``); the lowest loss wins. The network law and the formula
+   are then scored on the validation rollouts (``bgn.studies.auto``'s protocol) and the better
+   chosen; ``<run>/laws/formula.ckpt`` (with its ``train_config.yaml``) loads as any
+   checkpoint. ``model.law=auto`` runs this after training (``law_stage``).
 
 Libraries. PySR (symbolic regression, Cranmer's route) downloads and compiles Julia at run
 time: not possible without network. PySINDy (installs from PyPI, with scikit-learn) fits
@@ -938,12 +941,13 @@ def formula_module(checkpoint: Path, spec: str, substeps: int) -> Any:
     from bgn.train.checkpoints import read
     from bgn.train.module import PhysicsModule
 
-    hp = dict(read(checkpoint).get("hyper_parameters") or {})
+    saved = read(checkpoint)  # once: the fine-tuning rebuilds the model for every form
+    hp = dict(saved.get("hyper_parameters") or {})
     hp["model_config"] = {**hp["model_config"], "law": "formula", "law_formula": spec,
                           "substeps": int(substeps)}
     keep = inspect.signature(PhysicsModule.__init__).parameters
     module = PhysicsModule(**{k: v for k, v in hp.items() if k in keep})
-    old = read(checkpoint)["state_dict"]
+    old = saved["state_dict"]
     missing, unexpected = module.load_state_dict(
         {k: v for k, v in old.items() if ".force_law." not in k}, strict=False)
     if [k for k in missing if ".force_law." not in k] or unexpected:
@@ -952,7 +956,7 @@ def formula_module(checkpoint: Path, spec: str, substeps: int) -> Any:
     return module, hp
 
 
-def closest_frames(dataset: Any, share: float = CLOSE_SHARE) -> np.ndarray:
+def closest_frames(dataset: Any) -> np.ndarray:
     """Indices of ``dataset``'s frames (a ``FrameDataset``) sorted by their closest pair,
     nearest first: a handful of constants is pinned at small r only by the frames with a close
     encounter, which a random batch rarely holds."""

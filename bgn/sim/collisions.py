@@ -119,24 +119,20 @@ def _check_initial_state(pos: np.ndarray, vel: np.ndarray, m: np.ndarray, r: np.
                                  "apart")
 
 
-def integrate(positions: np.ndarray, velocities: np.ndarray, masses: np.ndarray,
-              radii: np.ndarray, box: float, times: np.ndarray, *,
-              return_events: bool = False
-              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, EventLog | None]:
-    """Evolve hard discs from ``times[0]`` exactly; sample the state at ``times``.
-
-    positions, velocities: (N, D) at ``times[0]``; discs must not overlap and must lie inside
-    ``[0, box]^D``. Returns positions (T, N, D), velocities (T, N, D), contacts (M, 3) int64
-    rows ``(frame, i, j)``, ``i < j``, one per pair that collides in ``(times[frame],
-    times[frame + 1]]``, and the event log if ``return_events``. A frame at time t shows the
-    state after every event at time <= t. The events never depend on ``times`` beyond where
-    the run stops, so any two time grids agree bit for bit at the times they share.
-    """
+def _checked_times(times: np.ndarray) -> np.ndarray:
+    """``times`` as float64, refused unless a non-empty, strictly increasing 1-D array."""
     times = np.asarray(times, dtype=np.float64)
     if times.ndim != 1 or times.size == 0:
         raise ValueError("times must be a non-empty 1-D array")
     if np.any(np.diff(times) <= 0):
         raise ValueError("times must be strictly increasing")
+    return times
+
+
+def _initial_state(positions: np.ndarray, velocities: np.ndarray, masses: np.ndarray,
+                   radii: np.ndarray, box: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The start as float64 arrays (N, D), (N, D), (N,), (N,), checked for the event loop."""
     pos = np.asarray(positions, dtype=np.float64)
     vel = np.asarray(velocities, dtype=np.float64)
     m = np.asarray(masses, dtype=np.float64)
@@ -144,60 +140,94 @@ def integrate(positions: np.ndarray, velocities: np.ndarray, masses: np.ndarray,
     if pos.ndim != 2 or vel.shape != pos.shape or m.shape != pos.shape[:1] \
             or r.shape != pos.shape[:1]:
         raise ValueError("positions/velocities must be (N, D), masses and radii (N,)")
-    n, dim = pos.shape
-    box = float(box)
     _check_initial_state(pos, vel, m, r, box)
-    n_frames = times.size
-    t_start = float(times[0])
-    frame_times = times.tolist()
+    return pos, vel, m, r
 
-    # (D, N) layout: per-component rows are contiguous, which makes the small vector ops of
-    # the prediction cheaper; per-event arithmetic is done on Python floats.
-    xT = np.ascontiguousarray(pos.T)   # position of each particle at its own time t0
-    vT = np.ascontiguousarray(vel.T)
-    t0 = np.full(n, t_start)            # each particle's time of its last event
-    # Contact distances squared: a table for moderate N, per row on the fly beyond (memory).
-    sig2 = (r[:, None] + r[None, :]) ** 2 if n <= _SIG2_TABLE_MAX else None
-    m_list = m.tolist()
-    lo_list = r.tolist()                # wall contact coordinates per particle
-    hi_list = (box - r).tolist()
-    # last[i]: partner of i's last event (-1 - axis for a wall, n for none). The pair of a
-    # collision is not rescheduled until one of the two has another event: in exact
-    # arithmetic they separate, and round-off must not make them collide again at once.
-    last = [n] * n
-    t_next = np.full(n, np.inf)         # next event of each particle (absolute time)
-    partner = np.full(n, n, dtype=np.int64)
-    t_wall = np.full(n, np.inf)         # next wall hit, from the particle's own motion only
-    wall_code = np.full(n, -1, dtype=np.int64)
-    inf = math.inf
 
-    def predict_wall(k: int, tk: float, xk: list[float], vk: list[float]) -> None:
+def _flown(x: list[float], v: list[float], dt: float) -> list[float]:
+    """Position after ``dt`` of free flight from ``x`` at velocity ``v``."""
+    return [a + u * dt for a, u in zip(x, v, strict=True)]
+
+
+def _elastic_impact(xi: list[float], xj: list[float], vi: list[float], vj: list[float],
+                    mi: float, mj: float) -> tuple[list[float], list[float]] | None:
+    """Velocities of two touching discs after an elastic impulse along their line of centres
+    (docs/design.md#collisions-scene); None when they do not approach (a grazing pair that
+    round-off turned separating gets no impulse)."""
+    d = [b - a for a, b in zip(xi, xj, strict=True)]
+    dist = math.sqrt(math.fsum(e * e for e in d))
+    nrm = [e / dist for e in d]
+    vn = sum((b - a) * e for a, b, e in zip(vi, vj, nrm, strict=True))
+    if not vn < 0:   # also a NaN normal (coincident centres): no impulse
+        return None
+    jimp = 2.0 * mi * mj / (mi + mj) * vn
+    ci, cj = jimp / mi, jimp / mj
+    return ([u + ci * e for u, e in zip(vi, nrm, strict=True)],
+            [u - cj * e for u, e in zip(vj, nrm, strict=True)])
+
+
+class _EventLoop:
+    """The state of one event-driven run: each particle's motion since its last event, its
+    next predicted event (time, partner) and the events so far.
+
+    (D, N) layout: per-component rows are contiguous, which makes the small vector ops of the
+    prediction cheaper; per-event arithmetic is done on Python floats.
+    """
+
+    def __init__(self, pos: np.ndarray, vel: np.ndarray, m: np.ndarray, r: np.ndarray,
+                 box: float, t_start: float) -> None:
+        n, dim = pos.shape
+        self.n, self.dim, self.r = n, dim, r
+        self.xT = np.ascontiguousarray(pos.T)   # position of each particle at its own t0
+        self.vT = np.ascontiguousarray(vel.T)
+        self.t0 = np.full(n, t_start)            # each particle's time of its last event
+        # Contact distances squared: a table for moderate N, per row on the fly beyond (memory).
+        self.sig2 = (r[:, None] + r[None, :]) ** 2 if n <= _SIG2_TABLE_MAX else None
+        self.m_list = m.tolist()
+        self.lo_list = r.tolist()                # wall contact coordinates per particle
+        self.hi_list = (box - r).tolist()
+        # last[i]: partner of i's last event (-1 - axis for a wall, n for none). The pair of a
+        # collision is not rescheduled until one of the two has another event: in exact
+        # arithmetic they separate, and round-off must not make them collide again at once.
+        self.last = [n] * n
+        self.t_next = np.full(n, np.inf)         # next event of each particle (absolute time)
+        self.partner = np.full(n, n, dtype=np.int64)
+        self.t_wall = np.full(n, np.inf)         # next wall hit, from the particle's motion only
+        self.wall_code = np.full(n, -1, dtype=np.int64)
+        self.ev_t: list[float] = []
+        self.ev_i: list[int] = []
+        self.ev_j: list[int] = []
+        for k, (xk, vk) in enumerate(zip(pos.tolist(), vel.tolist(), strict=True)):
+            self.predict_wall(k, t_start, xk, vk)
+
+    def predict_wall(self, k: int, tk: float, xk: list[float], vk: list[float]) -> None:
         """Next wall hit of ``k``; only changes when k's velocity changes."""
-        best, axis = inf, 0
-        for a in range(dim):
+        best, axis = math.inf, 0
+        for a in range(self.dim):
             va = vk[a]
             if va > 0:
-                t = (hi_list[k] - xk[a]) / va
+                t = (self.hi_list[k] - xk[a]) / va
             elif va < 0:
-                t = (lo_list[k] - xk[a]) / va
+                t = (self.lo_list[k] - xk[a]) / va
             else:
                 continue
             if t < best:
                 best, axis = t, a
         # A disc a hair past its wall (round-off) and moving out bounces now.
-        t_wall[k] = tk + max(best, 0.0)
-        wall_code[k] = -1 - axis
+        self.t_wall[k] = tk + max(best, 0.0)
+        self.wall_code[k] = -1 - axis
 
-    def predict(rows: np.ndarray, now: float) -> None:
+    def predict(self, rows: np.ndarray, now: float) -> None:
         """Recompute the next event of ``rows`` given every particle's motion at ``now``."""
-        xs = vT * (now - t0)
-        xs += xT
+        vT, sig2, r, n, last, inf = self.vT, self.sig2, self.r, self.n, self.last, math.inf
+        xs = vT * (now - self.t0)
+        xs += self.xT
         dx = xs[:, None, :] - xs[:, rows, None]       # (D, R, N)
         dv = vT[:, None, :] - vT[:, rows, None]
         b = dx[0] * dv[0]
         dvv = dv[0] * dv[0]
         c = dx[0] * dx[0]
-        for a in range(1, dim):
+        for a in range(1, self.dim):
             b += dx[a] * dv[a]
             dvv += dv[a] * dv[a]
             c += dx[a] * dx[a]
@@ -222,102 +252,143 @@ def integrate(positions: np.ndarray, velocities: np.ndarray, masses: np.ndarray,
         jp = tau.argmin(axis=1)
         tp = tau[np.arange(rows.size), jp]
         tp += now
-        tw = t_wall[rows]
+        tw = self.t_wall[rows]
         wall = tw < tp
-        t_next[rows] = np.where(wall, tw, tp)
-        partner[rows] = np.where(wall, wall_code[rows], jp)
+        self.t_next[rows] = np.where(wall, tw, tp)
+        self.partner[rows] = np.where(wall, self.wall_code[rows], jp)
 
-    out_x = np.empty((n_frames, n, dim))
-    out_v = np.empty((n_frames, n, dim))
-    ev_t: list[float] = []
-    ev_i: list[int] = []
-    ev_j: list[int] = []
+    def flight(self, k: int, te: float) -> tuple[list[float], list[float]]:
+        """Position of ``k`` at ``te`` and its velocity, as Python floats."""
+        vk = self.vT[:, k].tolist()
+        return _flown(self.xT[:, k].tolist(), vk, te - float(self.t0[k])), vk
 
-    x_list = pos.tolist()
-    v_list = vel.tolist()
-    for k in range(n):
-        predict_wall(k, t_start, x_list[k], v_list[k])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for start in range(0, n, _PREDICT_CHUNK):  # chunks: (D, rows, N) temporaries
-            predict(np.arange(start, min(start + _PREDICT_CHUNK, n)), t_start)
-        frame = 0
-        for _ in range(_MAX_EVENTS):
-            k = int(t_next.argmin())
-            te = float(t_next[k])
-            # Frames strictly before the event see the old motion; an event at exactly a
-            # frame time is shown in that frame (contacts use the interval (t_f, t_f+1]).
-            while frame < n_frames and frame_times[frame] < te:
-                xs = vT * (frame_times[frame] - t0)
-                xs += xT
-                out_x[frame] = xs.T
-                out_v[frame] = vT.T
-                frame += 1
-            if frame == n_frames:
-                break
-            p = int(partner[k])
-            if p >= 0:
-                i, j = (k, p) if k < p else (p, k)
-                dti = te - float(t0[i])
-                dtj = te - float(t0[j])
-                vi = vT[:, i].tolist()
-                vj = vT[:, j].tolist()
-                xi = [x + u * dti for x, u in zip(xT[:, i].tolist(), vi, strict=True)]
-                xj = [x + u * dtj for x, u in zip(xT[:, j].tolist(), vj, strict=True)]
-                d = [b - a for a, b in zip(xi, xj, strict=True)]
-                dist = math.sqrt(math.fsum(e * e for e in d))
-                nrm = [e / dist for e in d]
-                vn = sum((b - a) * e for a, b, e in zip(vi, vj, nrm, strict=True))
-                if vn < 0:  # a grazing pair that round-off turned separating gets no impulse
-                    mi, mj = m_list[i], m_list[j]
-                    jimp = 2.0 * mi * mj / (mi + mj) * vn
-                    ci, cj = jimp / mi, jimp / mj
-                    vi = [u + ci * e for u, e in zip(vi, nrm, strict=True)]
-                    vj = [u - cj * e for u, e in zip(vj, nrm, strict=True)]
-                    vT[:, i] = vi
-                    vT[:, j] = vj
-                xT[:, i] = xi
-                xT[:, j] = xj
-                t0[i] = te
-                t0[j] = te
-                last[i] = j
-                last[j] = i
-                predict_wall(i, te, xi, vi)
-                predict_wall(j, te, xj, vj)
-                mask = partner == i
-                mask |= partner == j
-                mask[i] = True
-                mask[j] = True
-                ev_t.append(te)
-                ev_i.append(i)
-                ev_j.append(j)
-            else:
-                axis = -1 - p
-                vk = vT[:, k].tolist()
-                xk = [x + u * (te - float(t0[k])) for x, u in zip(xT[:, k].tolist(), vk,
-                                                                   strict=True)]
-                vk[axis] = -vk[axis]   # exact: a sign flip
-                xT[:, k] = xk
-                vT[axis, k] = vk[axis]
-                t0[k] = te
-                last[k] = p
-                predict_wall(k, te, xk, vk)
-                mask = partner == k
-                mask[k] = True
-                ev_t.append(te)
-                ev_i.append(k)
-                ev_j.append(p)
-            predict(np.flatnonzero(mask), te)
-        else:  # pragma: no cover - only an integrator bug gets here
-            raise RuntimeError(f"more than {_MAX_EVENTS} events; the event loop is stuck")
+    def moved(self, k: int, te: float, xk: list[float], vk: list[float], other: int) -> None:
+        """Record an event of ``k`` with ``other`` at ``te``: its new reference point and
+        its next wall hit (its velocity ``vk`` is already stored)."""
+        self.xT[:, k] = xk
+        self.t0[k] = te
+        self.last[k] = other
+        self.predict_wall(k, te, xk, vk)
 
-    log = EventLog(np.asarray(ev_t, dtype=np.float64), np.asarray(ev_i, dtype=np.int64),
-                   np.asarray(ev_j, dtype=np.int64))
+    def affected(self, *ks: int) -> np.ndarray:
+        """Mask of ``ks`` and of the particles whose predicted event was with one of them."""
+        mask = self.partner == ks[0]
+        for k in ks[1:]:
+            mask |= self.partner == k
+        for k in ks:
+            mask[k] = True
+        return mask
+
+    def collide(self, i: int, j: int, te: float) -> np.ndarray:
+        """Disc-disc event of ``i < j`` at ``te``; returns the particles to predict again."""
+        xi, vi = self.flight(i, te)
+        xj, vj = self.flight(j, te)
+        after = _elastic_impact(xi, xj, vi, vj, self.m_list[i], self.m_list[j])
+        if after is not None:
+            vi, vj = after
+            self.vT[:, i] = vi
+            self.vT[:, j] = vj
+        self.moved(i, te, xi, vi, j)
+        self.moved(j, te, xj, vj, i)
+        self.log(te, i, j)
+        return self.affected(i, j)
+
+    def bounce(self, k: int, code: int, te: float) -> np.ndarray:
+        """Wall hit ``code`` (-1 - axis) of ``k`` at ``te``: that velocity component flips
+        sign (exact); returns the particles to predict again."""
+        axis = -1 - code
+        xk, vk = self.flight(k, te)
+        vk[axis] = -vk[axis]
+        self.vT[axis, k] = vk[axis]
+        self.moved(k, te, xk, vk, code)
+        self.log(te, k, code)
+        return self.affected(k)
+
+    def log(self, te: float, i: int, j: int) -> None:
+        """Append an event to the log (``EventLog``'s convention for ``j``)."""
+        self.ev_t.append(te)
+        self.ev_i.append(i)
+        self.ev_j.append(j)
+
+    def event_log(self) -> EventLog:
+        """The events so far, in order."""
+        return EventLog(np.asarray(self.ev_t, dtype=np.float64),
+                        np.asarray(self.ev_i, dtype=np.int64),
+                        np.asarray(self.ev_j, dtype=np.int64))
+
+    def sample(self, frame: int, until: float, frame_times: list[float], out_x: np.ndarray,
+               out_v: np.ndarray) -> int:
+        """Write the frames from ``frame`` on that come strictly before ``until`` (the next
+        event); returns the first frame not written."""
+        while frame < len(frame_times) and frame_times[frame] < until:
+            xs = self.vT * (frame_times[frame] - self.t0)
+            xs += self.xT
+            out_x[frame] = xs.T
+            out_v[frame] = self.vT.T
+            frame += 1
+        return frame
+
+    def run(self, frame_times: list[float]) -> tuple[np.ndarray, np.ndarray]:
+        """Apply events in time order until the last frame time; the frames (T, N, D)."""
+        n_frames = len(frame_times)
+        out_x = np.empty((n_frames, self.n, self.dim))
+        out_v = np.empty((n_frames, self.n, self.dim))
+        t_next, partner = self.t_next, self.partner
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for start in range(0, self.n, _PREDICT_CHUNK):  # chunks: (D, rows, N) temporaries
+                self.predict(np.arange(start, min(start + _PREDICT_CHUNK, self.n)),
+                             frame_times[0])
+            frame = 0
+            for _ in range(_MAX_EVENTS):
+                k = int(t_next.argmin())
+                te = float(t_next[k])
+                # Frames strictly before the event see the old motion; an event at exactly a
+                # frame time is shown in that frame (contacts use the interval (t_f, t_f+1]).
+                if frame_times[frame] < te:   # frame < n_frames here
+                    frame = self.sample(frame, te, frame_times, out_x, out_v)
+                    if frame == n_frames:
+                        break
+                p = int(partner[k])
+                if p >= 0:
+                    mask = self.collide(min(k, p), max(k, p), te)
+                else:
+                    mask = self.bounce(k, p, te)
+                self.predict(np.flatnonzero(mask), te)
+            else:  # pragma: no cover - only an integrator bug gets here
+                raise RuntimeError(f"more than {_MAX_EVENTS} events; the event loop is stuck")
+        return out_x, out_v
+
+
+def _frame_contacts(log: EventLog, times: np.ndarray) -> np.ndarray:
+    """Rows ``(frame, i, j)`` (M, 3) int64, one per pair that collides in ``(times[frame],
+    times[frame + 1]]``, sorted and unique."""
     disc_ev = log.j >= 0
     frame_of = np.searchsorted(times, log.times[disc_ev], side="left") - 1
     c_arr = np.stack([frame_of, log.i[disc_ev], log.j[disc_ev]], axis=1).astype(np.int64)
     c_arr = c_arr[frame_of >= 0]   # an impact at exactly times[0] precedes every interval
-    c_arr = np.unique(c_arr, axis=0) if c_arr.size else np.zeros((0, 3), dtype=np.int64)
-    return out_x, out_v, c_arr, log if return_events else None
+    return np.unique(c_arr, axis=0) if c_arr.size else np.zeros((0, 3), dtype=np.int64)
+
+
+def integrate(positions: np.ndarray, velocities: np.ndarray, masses: np.ndarray,
+              radii: np.ndarray, box: float, times: np.ndarray, *,
+              return_events: bool = False
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, EventLog | None]:
+    """Evolve hard discs from ``times[0]`` exactly; sample the state at ``times``.
+
+    positions, velocities: (N, D) at ``times[0]``; discs must not overlap and must lie inside
+    ``[0, box]^D``. Returns positions (T, N, D), velocities (T, N, D), contacts (M, 3) int64
+    rows ``(frame, i, j)``, ``i < j``, one per pair that collides in ``(times[frame],
+    times[frame + 1]]``, and the event log if ``return_events``. A frame at time t shows the
+    state after every event at time <= t. The events never depend on ``times`` beyond where
+    the run stops, so any two time grids agree bit for bit at the times they share.
+    """
+    times = _checked_times(times)
+    box = float(box)
+    pos, vel, m, r = _initial_state(positions, velocities, masses, radii, box)
+    loop = _EventLoop(pos, vel, m, r, box, float(times[0]))
+    out_x, out_v = loop.run(times.tolist())
+    log = loop.event_log()
+    return out_x, out_v, _frame_contacts(log, times), log if return_events else None
 
 
 @dataclass

@@ -242,6 +242,57 @@ def _ready(n: int, edge_index: torch.Tensor, pairs: _PairEvents, walls: _WallEve
     return pair_first & mine[:n_pair] & mine[n_pair:2 * n_pair], wall_first & mine[2 * n_pair:]
 
 
+def _take_ready(n: int, near_edges: torch.Tensor, pending_pairs: _PairEvents,
+                pending_walls: _WallEvents) -> tuple[_PairEvents, _WallEvents, bool]:
+    """The pending impacts applied this round (``_ready``) and whether that is all of them."""
+    pair_now, wall_now = _ready(n, near_edges, pending_pairs, pending_walls)
+    if bool(pair_now.all() & wall_now.all()):     # the usual case: none wait
+        return pending_pairs, pending_walls, True
+    return pending_pairs.take(pair_now), pending_walls.take(wall_now), False
+
+
+def _kicks(pairs: _PairEvents, walls: _WallEvents, like: torch.Tensor,
+           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per disc a round's impact changes (pairs' receivers, senders, then walls): the disc,
+    when (a fraction of the frame) and its velocity change (K, D) in ``like``'s dtype."""
+    discs = torch.cat([pairs.rcv, pairs.snd, walls.disc])
+    when = torch.cat([pairs.time, pairs.time, walls.time])
+    kick = torch.cat([pairs.dv_rcv, pairs.dv_snd, walls.dv[:, None]
+                      * F.one_hot(walls.axis, like.shape[1]).to(like.dtype)])
+    return discs, when, kick
+
+
+class _NearPairs(NamedTuple):
+    """The pairs that may meet within the frame, even after a kick (``REACH_FRAMES``): the
+    impacts' work is on these alone (a few % of a gas's edges), round after round."""
+
+    edges: torch.Tensor     # (2, K) the near edges, both directions (what ``_ready`` links)
+    pairs: torch.Tensor     # (P,) edge index of each near pair once (receiver < sender)
+    snd: torch.Tensor       # (P,)
+    rcv: torch.Tensor       # (P,)
+
+
+def _near_pairs(g: Graph, v: torch.Tensor, dt: torch.Tensor, gap: torch.Tensor) -> _NearPairs:
+    """The pairs whose gap (E,) twice their speeds close within a frame."""
+    snd, rcv = g.edge_index
+    speed = torch.sqrt((v * v).sum(-1) + TINY)
+    near = (gap < REACH_FRAMES * (speed[rcv] + speed[snd]) * dt[rcv]).nonzero()[:, 0]
+    near_edges = g.edge_index.index_select(1, near)
+    once = near_edges[1] < near_edges[0]                # each pair once (graphs are symmetric)
+    near_snd, near_rcv = near_edges[:, once]
+    return _NearPairs(near_edges, near[once], near_snd, near_rcv)
+
+
+class _FrameContext(NamedTuple):
+    """What stays fixed while a frame's impacts are resolved: the graph, the frame spacing
+    per disc (N,), the pairs that may meet and the terms every impact reads."""
+
+    g: Graph
+    dt: torch.Tensor
+    near: _NearPairs
+    terms: _FrameTerms
+
+
 class ContactImpulseHead(nn.Module):
     """Positions and velocity window of a contact scene's graph -> the next finite-difference
     velocity (N, D, physical units) and the contact gate's logits on the edges (E,)."""
@@ -343,67 +394,81 @@ class ContactImpulseHead(nn.Module):
         ``every_edge``: also the gate's logits at the frame's start on every edge (the contact
         head's output; the MLP runs on ``candidates`` only, ``-RULE_LOGIT`` elsewhere); a
         replayed frame needs none."""
-        snd, rcv = g.edge_index
-        n = x.shape[0]
-        speed = torch.sqrt((v * v).sum(-1) + TINY)
-        logits = None
-        if every_edge:
-            frac, hit, _, _, gap, feats = self.pair_geometry(g, x, v, dt)
-            chosen = self.candidates(g, v, dt, hit, gap).nonzero()[:, 0]
-            chosen_logits = self.gate_logits(feats.index_select(0, chosen),
-                                             hit.index_select(0, chosen))
-            logits = frac.new_full(frac.shape, -RULE_LOGIT).index_copy(0, chosen, chosen_logits)
-        else:
-            gap = (torch.sqrt((edge_vector(x, g) ** 2).sum(-1) + TINY)
-                   - g.radius[rcv] - g.radius[snd])
-        # the pairs that may meet within the frame, even after a kick (REACH_FRAMES): the
-        # impacts' work is on these alone (a few % of a gas's edges), round after round
-        near = (gap < REACH_FRAMES * (speed[rcv] + speed[snd]) * dt[rcv]).nonzero()[:, 0]
-        near_edges = g.edge_index.index_select(1, near)
-        once = near_edges[1] < near_edges[0]                # each pair once (graphs are symmetric)
-        pairs_near = near[once]
-        near_snd, near_rcv = near_edges[:, once]
-        first = pairs_near[hit[pairs_near]] if every_edge else pairs_near
-        flight = _Flight(x, v, x.new_zeros(n))
+        logits, hit, gap = self._frame_start(g, x, v, dt, every_edge)
+        near = _near_pairs(g, v, dt, gap)
+        first = near.pairs if hit is None else near.pairs[hit[near.pairs]]
+        flight = _Flight(x, v, x.new_zeros(x.shape[0]))
         terms = _FrameTerms(self.log_masses(g), *self.restitutions(), walls(g), scene_speed(g))
-        pending_pairs = self._pair_events(g, flight, dt, first, terms)
-        pending_walls = self._wall_events(g, flight, dt, torch.arange(n, device=x.device),
-                                          None, terms)
-        mean_v, fired, fired_logits = v, [first[:0]], [x.new_zeros(0)]
+        return self._impacts(_FrameContext(g, dt, near, terms), flight, first, logits)
+
+    def _frame_start(self, g: Graph, x: torch.Tensor, v: torch.Tensor, dt: torch.Tensor,
+                     every_edge: bool,
+                     ) -> tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor]:
+        """Per edge at the frame's start: the gate's logits (the MLP on ``candidates``,
+        ``-RULE_LOGIT`` elsewhere) and whether free flight hits, both None unless
+        ``every_edge``, and the gap between the discs."""
+        if not every_edge:
+            snd, rcv = g.edge_index
+            return None, None, (torch.sqrt((edge_vector(x, g) ** 2).sum(-1) + TINY)
+                                - g.radius[rcv] - g.radius[snd])
+        frac, hit, _, _, gap, feats = self.pair_geometry(g, x, v, dt)
+        chosen = self.candidates(g, v, dt, hit, gap).nonzero()[:, 0]
+        chosen_logits = self.gate_logits(feats.index_select(0, chosen),
+                                         hit.index_select(0, chosen))
+        logits = frac.new_full(frac.shape, -RULE_LOGIT).index_copy(0, chosen, chosen_logits)
+        return logits, hit, gap
+
+    def _impacts(self, ctx: _FrameContext, flight: _Flight, first: torch.Tensor,
+                 logits: torch.Tensor | None) -> FrameImpacts:
+        """``resolve``'s rounds from the frame's start (``flight``): the pair impacts ahead on
+        the ``first`` edges and every disc's walls, then, round after round, the ready
+        impacts applied (``_ready``) and the changed discs' next ones solved."""
+        g, dt, n = ctx.g, ctx.dt, flight.x.shape[0]
+        pending = (self._pair_events(g, flight, dt, first, ctx.terms),
+                   self._wall_events(g, flight, dt, torch.arange(n, device=flight.x.device),
+                                     None, ctx.terms))
+        mean_v, fired, fired_logits = flight.v, [first[:0]], [flight.x.new_zeros(0)]
         for _ in range(MAX_ROUNDS):
-            if not (len(pending_pairs.edge) or len(pending_walls.disc)):
+            if not (len(pending[0].edge) or len(pending[1].disc)):
                 break
-            pair_now, wall_now = _ready(n, near_edges, pending_pairs, pending_walls)
-            every = bool(pair_now.all() & wall_now.all())     # the usual case: none wait
-            pairs, walls_now = ((pending_pairs, pending_walls) if every else
-                                (pending_pairs.take(pair_now), pending_walls.take(wall_now)))
-            discs = torch.cat([pairs.rcv, pairs.snd, walls_now.disc])
-            when = torch.cat([pairs.time, pairs.time, walls_now.time])
-            kick = torch.cat([pairs.dv_rcv, pairs.dv_snd, walls_now.dv[:, None]
-                              * F.one_hot(walls_now.axis, x.shape[1]).to(x.dtype)])
+            pairs, walls_now, every = _take_ready(n, ctx.near.edges, *pending)
+            discs, when, kick = _kicks(pairs, walls_now, flight.x)
             flight = flight.advance(discs, when, kick, dt)
             mean_v = mean_v.index_add(0, discs, kick * (1 - when)[:, None])
             fired.append(pairs.edge)
             fired_logits.append(pairs.logit)
-            # the discs that changed look again; their other pending impacts are void
-            changed = torch.zeros(n, dtype=torch.bool, device=x.device)
-            changed[discs] = True
-            if not every:
-                pending_pairs = pending_pairs.take(
-                    ~(changed[pending_pairs.rcv] | changed[pending_pairs.snd]))
-                pending_walls = pending_walls.take(~changed[pending_walls.disc])
-            # not the pair that just met (each changed disc met one partner at most)
-            partner = torch.full((n,), -1, dtype=torch.long, device=x.device)
-            partner[pairs.rcv] = pairs.snd
-            again = (changed[near_rcv] | changed[near_snd]) & (partner[near_rcv] != near_snd)
-            moved = changed.nonzero()[:, 0]
-            just_walled = torch.zeros(n, x.shape[1], dtype=torch.bool, device=x.device)
-            just_walled[walls_now.disc, walls_now.axis] = True
-            new_pairs = self._pair_events(g, flight, dt, pairs_near[again], terms)
-            new_walls = self._wall_events(g, flight, dt, moved, just_walled[moved], terms)
-            pending_pairs = new_pairs if every else pending_pairs.cat(new_pairs)
-            pending_walls = new_walls if every else pending_walls.cat(new_walls)
+            pending = self._pending_after(ctx, flight, pairs, walls_now, discs,
+                                          None if every else pending)
         return FrameImpacts(flight.v, mean_v, logits, torch.cat(fired), torch.cat(fired_logits))
+
+    def _pending_after(self, ctx: _FrameContext, flight: _Flight, pairs: _PairEvents,
+                       walls_now: _WallEvents, discs: torch.Tensor,
+                       waiting: tuple[_PairEvents, _WallEvents] | None,
+                       ) -> tuple[_PairEvents, _WallEvents]:
+        """The impacts pending after a round that changed ``discs``: the ``waiting`` ones (None
+        when the round applied them all) of discs that did not change (the others are void),
+        and the changed discs' next pair impacts (not with the partner just met) and walls
+        (not an axis just hit)."""
+        n, dim, device = flight.x.shape[0], flight.x.shape[1], flight.x.device
+        changed = torch.zeros(n, dtype=torch.bool, device=device)
+        changed[discs] = True
+        if waiting is not None:
+            waiting = (waiting[0].take(~(changed[waiting[0].rcv] | changed[waiting[0].snd])),
+                       waiting[1].take(~changed[waiting[1].disc]))
+        # each changed disc met one partner at most
+        partner = torch.full((n,), -1, dtype=torch.long, device=device)
+        partner[pairs.rcv] = pairs.snd
+        near = ctx.near
+        again = (changed[near.rcv] | changed[near.snd]) & (partner[near.rcv] != near.snd)
+        moved = changed.nonzero()[:, 0]
+        just_walled = torch.zeros(n, dim, dtype=torch.bool, device=device)
+        just_walled[walls_now.disc, walls_now.axis] = True
+        new_pairs = self._pair_events(ctx.g, flight, ctx.dt, near.pairs[again], ctx.terms)
+        new_walls = self._wall_events(ctx.g, flight, ctx.dt, moved, just_walled[moved],
+                                      ctx.terms)
+        if waiting is None:
+            return new_pairs, new_walls
+        return waiting[0].cat(new_pairs), waiting[1].cat(new_walls)
 
     def _pair_events(self, g: Graph, flight: _Flight, dt: torch.Tensor, edges: torch.Tensor,
                      frame: _FrameTerms) -> _PairEvents:

@@ -66,7 +66,18 @@ def check_positive_ints(cfg: Any, names: tuple[str, ...]) -> None:
 
 
 @dataclass
-class DynamicsConfig:
+class OptionGroup:
+    """Root of the option dataclasses a model config composes by inheritance (BGN's
+    ``ModelConfig``: the paper's options, ``DynamicsConfig`` and each structured head's group),
+    so every key stays flat (``model.law=auto``). Each group's ``__post_init__`` checks its own
+    fields and calls ``super().__post_init__()``; the chain ends here, whatever the order."""
+
+    def __post_init__(self) -> None:
+        pass
+
+
+@dataclass
+class DynamicsConfig(OptionGroup):
     """Options every model shares: what its dynamics head predicts and its loss
     (``bgn.model.target``), so that all models train on equal terms.
     ``target_prior=none dynamics_loss=mse`` is the paper's (and the baselines' published)
@@ -96,6 +107,7 @@ class DynamicsConfig:
     checkpoint_edges_gpu: int | None = 2_097_152
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if not self.rollout_noise >= 0.0:
             raise ValueError(f"rollout_noise={self.rollout_noise} must be >= 0")
         if self.edge_chunk is not None and not self.edge_chunk >= 1:

@@ -36,10 +36,9 @@ from bgn.model.encoder import (
     node_features,
     node_input_dim,
 )
-from bgn.model.formula_law import check_law
-from bgn.model.inverse import CONTEXTS, FLOWS, InverseModel
+from bgn.model.inverse import InverseModel, InverseOptions
 from bgn.model.newton import (
-    MASS_LAWS,
+    NewtonOptions,
     PairForceHead,
     build_head,
     head_given,
@@ -48,70 +47,27 @@ from bgn.model.newton import (
     impulse_mass_loss,
     law_loss,
 )
-from bgn.model.processor import CONTACT_MODES, MESSAGES, Processor, ProcessorOutput
-
-DYNAMICS = ("decoder", "newton")
+from bgn.model.processor import ContactOptions, Processor, ProcessorOutput
 
 
 @dataclass
-class ModelConfig(DynamicsConfig):
+class ModelConfig(NewtonOptions, ContactOptions, InverseOptions, DynamicsConfig):
     """BGN's options and their defaults (the schema of ``conf/model/bgn.yaml``,
-    docs/design.md#model); the shared ``target_prior``, ``dynamics_loss`` and ``huber_delta`` come
-    from ``DynamicsConfig``. Heads a scene does not need are never built."""
+    docs/design.md#model): the paper's own below; each head's in its module, composed here by
+    inheritance so every key stays flat (``model.law=auto``): the structured dynamics head's
+    (``newton.NewtonOptions``), the contact decoder's (``processor.ContactOptions``), the
+    inverse model's (``inverse.InverseOptions``) and every model's (``base.DynamicsConfig``).
+    Heads a scene does not need are never built."""
 
     hidden: int = 128
     node_layers: int = 2               # raw-residual GCN layers of the node encoder (Eq. 1)
     edge_layers: int = 2               # weighted GCN layers of the edge encoder
     decoder_hidden: int = 128          # per-dimension raw-residual decoders (Eq. 5)
     activation: str = "silu"
-    flow: str = "nsf"                  # conditional flow of the inverse model: nsf | naf (README)
-    flow_transforms: int = 3
-    flow_hidden: int = 64
-    # What the flow is conditioned on (inverse.InverseModel.context): "node", H̃_V alone (the
-    # paper), or "pairs", also pair terms of the observed accelerations (not in the paper; it
-    # raised the relative-mass R^2 and the information gain on spring and collisions:
-    # docs/results.md), or "fit", pairs and the log-masses the structured head (dynamics=newton,
-    # force scenes; elsewhere fit = pairs) fits to the window. mass_context_dropout: dropout
-    # on that context.
-    mass_context: str = "pairs"
-    mass_context_dropout: float = 0.0
-    # mass_context=fit: also the fit's relative standard error, so the flow can tell a window
-    # that pins the masses from one that does not (gravity_r2: docs/results.md); where the
-    # context is not a fit (see _conditioning) there is no fit error to read, and it is unused
-    mass_fit_error: bool = False
-    # frames of the window whose accelerations the pair terms read (1: the newest; at most
-    # the history): an impact anywhere in the window carries the pair's mass ratio
-    mass_context_frames: int = 1
     classifier: bool = True            # particle-type head (Eq. 2), only with n_types > 1
     contact: bool = True               # contact decoder (Eq. 3-4)
     inverse: bool = True               # mass flow + relative-mass decoder (Eq. 6-10)
-    # aggregate (sparse, any N) | dense (the paper's literal C || H_V; fixed-N full graphs)
-    contact_mode: str = "aggregate"
-    # Not in the paper: add a linear term of the swap-symmetric edge features (distance, radial
-    # and total relative speed) to the contact logit <h_E,i, h_E,j>. Node embeddings that do
-    # not know positions cannot say from an inner product alone whether two particles touch.
-    contact_edge_term: bool = True
-    # Not in the paper, contact scenes: + the window's time-of-impact features in that edge
-    # term (how close each pair comes within the next frame in free flight, against the sum
-    # of the radii, and the rule "they touch"): encoder.approach_gap.
-    contact_gap: bool = False
-    # What the contact-weighted aggregation sums (processor.ContactHead): "linear", a linear map
-    # of the edge features (our reading of the paper), or "mlp", an edge MLP that also reads
-    # both particles' H̃_V and can express an elastic impulse, or "vector", an edge MLP whose
-    # outputs weigh the edge's own vectors (direction, relative velocities): a D-vector
-    # impulse added to the decoded target (README). collisions defaults to "vector"
-    # (conf/dataset_model/collisions_bgn.yaml).
-    contact_message: str = "linear"
     shared_decoder: bool = False
-    # Not in the paper: "newton" replaces the decoder of Eq. 5 by the structured head of
-    # bgn.model.newton (learned central pair forces, equal and opposite, masses fitted to the
-    # window) on pairwise-force scenes; "decoder" is the paper's. mass_law: how masses enter
-    # the forces there (inertial: spring; source: gravity, conf/dataset_model/).
-    dynamics: str = "decoder"
-    mass_law: str = "inertial"
-    substeps: int = 1  # > 1: the newton head integrates each frame in substeps (newton.shoot)
-    law: str = "mlp"  # the newton head's pair law: mlp | formula (law_formula) | auto
-    law_formula: str = ""
     # D^-1/2 Â D^-1/2 in every GCN layer. The paper's plain sums grow like (degree+1)^layers,
     # so contact logits explode at initialisation on large radius graphs and the flows do not
     # train (docs/results.md, "Measurements behind the defaults").
@@ -130,16 +86,6 @@ class ModelConfig(DynamicsConfig):
     # Not in the paper: the decoder also sees the node's own input features (a skip past the
     # GCN layers, which mix each node with its neighbours).
     decoder_skip: bool = True
-    # Force scenes: the contact target is |F_ij| / robust scale, compressed by log1p so that
-    # the heavy tail of close encounters does not dominate (SIMS.md); "linear" = paper MSE.
-    force_transform: str = "log1p"     # "log1p" | "linear"
-    # Contact scenes: weight of the positive class in the contact BCE. Few candidate edges
-    # touch; unweighted, the head learns to say "no contact" everywhere (docs/results.md,
-    # "Measurements behind the defaults").
-    # "balanced" = (1 - p) / p with p the training split's contact fraction; a number sets it;
-    # 1 = the paper's plain BCE. Typed Any for Hydra (OmegaConf's Union[str, float] refuses
-    # the int that `model.contact_pos_weight=1` parses to); __post_init__ checks it.
-    contact_pos_weight: Any = "balanced"
     # Eq. 12 weights, one per task (keys: LOSS_KEYS); missing keys weigh 1. collisions
     # down-weights the auxiliary tasks (conf/dataset_model/collisions_bgn.yaml).
     # "law" (the structured force head with the recorded masses, newton.law_loss) is the one
@@ -148,34 +94,8 @@ class ModelConfig(DynamicsConfig):
         default_factory=lambda: {**dict.fromkeys(LOSS_KEYS, 1.0), "law": 0.0})
 
     def __post_init__(self) -> None:
-        super().__post_init__()
-        check_positive_ints(self, ("hidden", "node_layers", "edge_layers", "decoder_hidden",
-                                   "flow_transforms", "flow_hidden", "substeps"))
-        if self.dynamics not in DYNAMICS:
-            raise ValueError(f"dynamics={self.dynamics!r}; choose one of {DYNAMICS}")
-        if self.mass_law not in MASS_LAWS:
-            raise ValueError(f"mass_law={self.mass_law!r}; choose one of {MASS_LAWS}")
-        check_law(self.law, self.law_formula)
-        if self.flow not in FLOWS:
-            raise ValueError(f"flow={self.flow!r}; choose one of {FLOWS}")
-        if self.mass_context not in CONTEXTS:
-            raise ValueError(f"mass_context={self.mass_context!r}; choose one of {CONTEXTS}")
-        if self.mass_context_frames < 1:
-            raise ValueError(f"mass_context_frames={self.mass_context_frames} must be >= 1")
-        if not 0.0 <= self.mass_context_dropout < 1.0:
-            raise ValueError(f"mass_context_dropout={self.mass_context_dropout} must be in "
-                             "[0, 1)")
-        if self.contact_mode not in CONTACT_MODES:
-            raise ValueError(f"contact_mode={self.contact_mode!r}; choose one of "
-                             f"{CONTACT_MODES}")
-        if self.contact_message not in MESSAGES:
-            raise ValueError(f"contact_message={self.contact_message!r}; choose one of "
-                             f"{MESSAGES}")
-        if self.force_transform not in ("log1p", "linear"):
-            raise ValueError(f"force_transform={self.force_transform!r}; use log1p or linear")
-        if self.contact_pos_weight != "balanced" and not float(self.contact_pos_weight) > 0:
-            raise ValueError(f"contact_pos_weight={self.contact_pos_weight!r}; use 'balanced' "
-                             "or a positive number")
+        super().__post_init__()  # the groups', in the order of the bases
+        check_positive_ints(self, ("hidden", "node_layers", "edge_layers", "decoder_hidden"))
         unknown = set(self.loss_weights) - set(LOSS_KEYS)
         if unknown:
             raise ValueError(f"unknown loss weights {sorted(unknown)}; keys are {LOSS_KEYS}")

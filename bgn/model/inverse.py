@@ -43,12 +43,15 @@ checkpoint's weights.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 import zuko
 from torch import nn
 from torch.nn import functional as F
 
 from bgn.graph import Graph
+from bgn.model.base import OptionGroup, check_positive_ints
 from bgn.model.message_passing import CheckpointEdges, edge_chunks, edge_sums, edge_vector
 from bgn.model.ops import Linear, activation, linear
 
@@ -56,6 +59,46 @@ FLOWS = ("nsf", "naf")
 CONTEXTS = ("node", "pairs", "fit")
 PAIR_FEATURES = 5   # log r, log |a_i|, log |a_j|, cos(a_i, u_ij), cos(a_j, u_ij)
 _EPS = 1e-12
+
+
+@dataclass
+class InverseOptions(OptionGroup):
+    """The inverse model's options (``InverseModel``, Eq. 6-10; ``bgn.model.bgn.ModelConfig``
+    composes them): the flow and what it is conditioned on. ``inverse`` (in ``ModelConfig``)
+    switches the model itself."""
+
+    flow: str = "nsf"                  # conditional flow: nsf | naf (the paper's; module doc)
+    flow_transforms: int = 3
+    flow_hidden: int = 64
+    # What the flow is conditioned on (InverseModel.context): "node", H̃_V alone (the paper),
+    # or "pairs", also pair terms of the observed accelerations (not in the paper; it raised
+    # the relative-mass R^2 and the information gain on spring and collisions:
+    # docs/results.md), or "fit", pairs and the log-masses the structured head
+    # (dynamics=newton, force scenes; elsewhere fit = pairs) fits to the window.
+    # mass_context_dropout: dropout on that context.
+    mass_context: str = "pairs"
+    mass_context_dropout: float = 0.0
+    # mass_context=fit: also the fit's relative standard error, so the flow can tell a window
+    # that pins the masses from one that does not (gravity_r2: docs/results.md); where the
+    # context is not a fit (bgn.model.bgn.BGN._conditioning) there is no fit error to read,
+    # and it is unused
+    mass_fit_error: bool = False
+    # frames of the window whose accelerations the pair terms read (1: the newest; at most
+    # the history): an impact anywhere in the window carries the pair's mass ratio
+    mass_context_frames: int = 1
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_positive_ints(self, ("flow_transforms", "flow_hidden"))
+        if self.flow not in FLOWS:
+            raise ValueError(f"flow={self.flow!r}; choose one of {FLOWS}")
+        if self.mass_context not in CONTEXTS:
+            raise ValueError(f"mass_context={self.mass_context!r}; choose one of {CONTEXTS}")
+        if self.mass_context_frames < 1:
+            raise ValueError(f"mass_context_frames={self.mass_context_frames} must be >= 1")
+        if not 0.0 <= self.mass_context_dropout < 1.0:
+            raise ValueError(f"mass_context_dropout={self.mass_context_dropout} must be in "
+                             "[0, 1)")
 
 
 def make_flow(kind: str, context: int, transforms: int, hidden: int) -> zuko.flows.Flow:

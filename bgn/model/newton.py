@@ -47,6 +47,7 @@ from bgn.graph import Graph
 from bgn.model.base import (
     DynamicsConfig,
     ModelOutput,
+    OptionGroup,
     PhysicsModel,
     check_positive_ints,
     contact_pos_weight,
@@ -61,6 +62,7 @@ from bgn.model.target import observed_targets
 from bgn.sim.scene import SceneMeta
 
 MASS_LAWS = ("inertial", "source")
+DYNAMICS = ("decoder", "newton")  # BGN's dynamics head: Eq. 5's decoder or the structured head
 FIT_EPS = 1e-12  # keeps a mass fit finite when a particle feels no force over the window
 ROBUST_STEPS, ROBUST_SCALE = 2, 0.01  # reweighting of the gravity mass fit (source law)
 REL_ERROR_FLOOR = 1e-6  # the log of a fit's relative error stays finite for an exact fit
@@ -71,24 +73,54 @@ SHOOTING_ITERATIONS = 4
 
 
 @dataclass
-class NewtonConfig(DynamicsConfig):
-    """Options of the structured force model (the schema of ``conf/model/newton.yaml``)."""
+class ForceLawOptions(OptionGroup):
+    """The pair-force head's law and integration: options of ``model=newton`` (``NewtonConfig``)
+    and of BGN with ``model.dynamics=newton`` (``NewtonOptions``)."""
 
-    hidden: int = 64                   # width of the force-law MLP f(s)
-    layers: int = 2                    # its hidden layers
-    activation: str = "silu"
-    mass_law: str = "inertial"         # inertial: a = F / m (spring) | source: a = sum m_j F_ij
-    substeps: int = 1                  # 1: Numerov's weights; > 1: integrate the frame (above)
+    # how masses enter the forces: inertial, a = F / m (spring) | source, a = sum m_j F_ij
+    # (gravity); each scene sets its own (conf/dataset_model/)
+    mass_law: str = "inertial"
+    substeps: int = 1                  # 1: Numerov's weights; > 1: integrate the frame (shoot)
     law: str = "mlp"                   # mlp: f(s) a network | formula: law_formula | auto
     law_formula: str = ""              # the formula's JSON spec (bgn.eval.laws.formula_spec)
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_positive_ints(self, ("hidden", "layers", "substeps"))
-        activation(self.activation)
+        check_positive_ints(self, ("substeps",))
         if self.mass_law not in MASS_LAWS:
             raise ValueError(f"mass_law={self.mass_law!r}; choose one of {MASS_LAWS}")
         check_law(self.law, self.law_formula)
+
+
+@dataclass
+class NewtonOptions(ForceLawOptions):
+    """BGN's structured dynamics head (``bgn.model.bgn.ModelConfig`` composes it): which head
+    predicts the target, and the pair-force head's options."""
+
+    # Not in the paper: "newton" replaces the decoder of Eq. 5 by the scene's structured head
+    # (``build_head``: learned central pair forces, equal and opposite, masses fitted to the
+    # window, on pairwise-force scenes; pair impulses on contact scenes); "decoder" is the
+    # paper's. "auto" is resolved before a model is built (bgn.studies.auto).
+    dynamics: str = "decoder"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.dynamics not in DYNAMICS:
+            raise ValueError(f"dynamics={self.dynamics!r}; choose one of {DYNAMICS}")
+
+
+@dataclass
+class NewtonConfig(ForceLawOptions, DynamicsConfig):
+    """Options of the structured force model (the schema of ``conf/model/newton.yaml``)."""
+
+    hidden: int = 64                   # width of the force-law MLP f(s)
+    layers: int = 2                    # its hidden layers
+    activation: str = "silu"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_positive_ints(self, ("hidden", "layers"))
+        activation(self.activation)
 
 
 def past_positions(g: Graph) -> torch.Tensor:

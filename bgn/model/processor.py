@@ -14,11 +14,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import nn
 
 from bgn.graph import Graph
+from bgn.model.base import OptionGroup
 from bgn.model.encoder import (
     approach_gap,
     gap_features,
@@ -30,6 +32,58 @@ from bgn.model.ops import EdgeMLP, scatter_sum
 
 CONTACT_MODES = ("aggregate", "dense")
 MESSAGES = ("linear", "mlp", "vector")
+FORCE_TRANSFORMS = ("log1p", "linear")
+
+
+@dataclass
+class ContactOptions(OptionGroup):
+    """The contact decoder's options (``ContactHead``, Eq. 3-4; ``bgn.model.bgn.ModelConfig``
+    composes them): how its logits are formed, what its weighted sum carries, its target and
+    its loss. ``contact`` (in ``ModelConfig``) switches the head itself."""
+
+    # aggregate (sparse, any N) | dense (the paper's literal C || H_V; fixed-N full graphs)
+    contact_mode: str = "aggregate"
+    # Not in the paper: add a linear term of the swap-symmetric edge features (distance, radial
+    # and total relative speed) to the contact logit <h_E,i, h_E,j>. Node embeddings that do
+    # not know positions cannot say from an inner product alone whether two particles touch.
+    contact_edge_term: bool = True
+    # Not in the paper, contact scenes: + the window's time-of-impact features in that edge
+    # term (how close each pair comes within the next frame in free flight, against the sum
+    # of the radii, and the rule "they touch"): encoder.approach_gap.
+    contact_gap: bool = False
+    # What the contact-weighted aggregation sums (ContactHead): "linear", a linear map of the
+    # edge features (our reading of the paper), or "mlp", an edge MLP that also reads both
+    # particles' H̃_V and can express an elastic impulse, or "vector", an edge MLP whose
+    # outputs weigh the edge's own vectors (direction, relative velocities): a D-vector
+    # impulse added to the decoded target (docs/design.md#departures-from-the-paper).
+    # collisions defaults to "vector" (conf/dataset_model/collisions_bgn.yaml).
+    contact_message: str = "linear"
+    # Force scenes: the contact target is |F_ij| / robust scale, compressed by log1p so that
+    # the heavy tail of close encounters does not dominate; "linear" = paper MSE
+    # (docs/design.md#departures-from-the-paper).
+    force_transform: str = "log1p"     # "log1p" | "linear"
+    # Contact scenes: weight of the positive class in the contact BCE. Few candidate edges
+    # touch; unweighted, the head learns to say "no contact" everywhere (docs/results.md,
+    # "Measurements behind the defaults").
+    # "balanced" = (1 - p) / p with p the training split's contact fraction
+    # (base.contact_pos_weight); a number sets it; 1 = the paper's plain BCE. Typed Any for
+    # Hydra (OmegaConf's Union[str, float] refuses the int that `model.contact_pos_weight=1`
+    # parses to); __post_init__ checks it.
+    contact_pos_weight: Any = "balanced"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.contact_mode not in CONTACT_MODES:
+            raise ValueError(f"contact_mode={self.contact_mode!r}; choose one of "
+                             f"{CONTACT_MODES}")
+        if self.contact_message not in MESSAGES:
+            raise ValueError(f"contact_message={self.contact_message!r}; choose one of "
+                             f"{MESSAGES}")
+        if self.force_transform not in FORCE_TRANSFORMS:
+            raise ValueError(f"force_transform={self.force_transform!r}; use log1p or linear")
+        if self.contact_pos_weight != "balanced" and not float(self.contact_pos_weight) > 0:
+            raise ValueError(f"contact_pos_weight={self.contact_pos_weight!r}; use 'balanced' "
+                             "or a positive number")
 
 
 class TypeClassifier(nn.Module):

@@ -209,3 +209,12 @@ def test_the_more_sims_experiment_sets_the_sizes_and_nothing_else():
     for cfg in (plain, more):
         cfg.dataset.n_sims = cfg.dataset.n_frames = 0
     assert OmegaConf.to_container(plain) == OmegaConf.to_container(more)
+
+
+def test_the_old_quick_names_compose_the_configs_they_were_renamed_to():
+    smoke = compose_config("train", ["experiment=smoke"])
+    assert (smoke.dataset.n_sims, smoke.trainer.max_time) == (3, "00:00:02:00")
+    assert compose_config("train", ["experiment=quick"]) == smoke
+    first_look = compose_config("experiments", ["preset=first_look"])
+    assert first_look.preset.name == "first_look"
+    assert compose_config("experiments", ["preset=quick"]) == first_look

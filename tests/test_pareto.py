@@ -148,7 +148,7 @@ def test_the_issue_cells_are_in_the_full_pareto_preset() -> None:
     assert list(p.simulator.collisions_n) == [2000, 20000]
 
 
-@pytest.mark.parametrize("name,fps", [("quick", [10, 50]), ("standard", [10, 30, 50, 100])])
+@pytest.mark.parametrize("name,fps", [("first_look", [10, 50]), ("standard", [10, 30, 50, 100])])
 def test_table1_presets_cover_the_four_scenes(name: str, fps: list[int]) -> None:
     cfg = preset_cfg(name)
     assert not is_pareto(cfg)

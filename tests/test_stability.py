@@ -85,9 +85,13 @@ def test_every_case_loads_and_builds(name):
         assert not np.array_equal(state.positions, base.positions)
 
 
-def test_every_case_is_in_the_quick_preset():
-    cfg = compose_stability(["preset=quick"])
+def test_every_case_is_in_the_all_cases_preset():
+    cfg = compose_stability(["preset=all_cases"])
     assert sorted(cfg.preset.cases) == sorted(p.stem for p in (CONF_DIR / "case").glob("*.yaml"))
+
+
+def test_the_old_quick_name_composes_the_all_cases_preset():
+    assert compose_stability(["preset=quick"]) == compose_stability(["preset=all_cases"])
 
 
 def test_unknown_case_keys_are_errors(tmp_path):

@@ -1,7 +1,7 @@
 """The studies' one command: ``python -m bgn.experiments preset=<name>``
 (``conf/experiments.yaml``).
 
-A grid preset (tiny | quick | standard | full | reproduce) runs ``bgn.studies.grid``; a Pareto
+A grid preset (tiny | first_look | standard | full | reproduce) runs ``bgn.studies.grid``; a Pareto
 preset (pareto_tiny | pareto_quick | pareto_full: checkpoints on a time schedule) runs
 ``bgn.studies.pareto``. Every cell's train config is checked before the first cell trains.
 """

@@ -1,5 +1,5 @@
-"""The grid study (run by ``python -m bgn.experiments preset=quick``: ``bgn.studies.dispatch``;
-presets tiny | quick | standard | full | reproduce).
+"""The grid study (run by ``python -m bgn.experiments preset=first_look``:
+``bgn.studies.dispatch``; presets tiny | first_look | standard | full | reproduce).
 
 Trains every cell of a preset (scene x fps x model, BGN ablations, sample efficiency; each per
 seed of the preset's ``seeds``: ``bgn.studies.cells``; ``workers=<n>``: n cells at once, each

@@ -1,4 +1,5 @@
-"""Hard-case stability suite: ``python -m bgn.stability preset=quick`` (presets: tiny | quick).
+"""Hard-case stability suite: ``python -m bgn.stability preset=all_cases`` (presets: tiny |
+all_cases).
 
 Configs live in their own Hydra root, ``conf/stability/``: ``stability.yaml``, one file per
 case (``case/<case>.yaml``: scene, parameters, fps, frames, an initial state or parts of one,
@@ -497,6 +498,6 @@ def run(cfg: DictConfig) -> Path:
 
 @hydra.main(config_path=str(CONF_DIR), config_name="stability", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    """``python -m bgn.stability preset=quick checkpoints.spring=...``: see the module doc."""
+    """``python -m bgn.stability preset=all_cases checkpoints.spring=...``: see the module doc."""
     start = time.perf_counter()
     print(f"report: {run(cfg)} ({time.perf_counter() - start:.0f} s)")

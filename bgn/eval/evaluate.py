@@ -12,8 +12,9 @@ from __future__ import annotations
 import json
 import re
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -264,6 +265,135 @@ def _impact_solve_error(dataset: FrameDataset, prior: MassPrior,
     return relative_mass_error(np.concatenate(estimate), np.concatenate(truth))
 
 
+def _window_rows(rows: torch.Tensor, g: Graph, b: int, first_node: torch.Tensor,
+                 frames: int) -> np.ndarray:
+    """The contact head's impacts ``(j, i, k)`` (graph-wide node indices, as
+    ``window_contacts`` gives them) of the batch's graph ``b`` as rows ``(frame in its window
+    of ``frames`` frames, i, k)`` with the graph's own node indices."""
+    mine = rows[g.batch[rows[:, 1]] == b]
+    return torch.stack([frames - 1 - mine[:, 0], mine[:, 1] - first_node[b],
+                        mine[:, 2] - first_node[b]], 1).numpy()
+
+
+class _MassArrays(NamedTuple):
+    """``_MassDraws`` concatenated: per particle and frame the true log-mass (P,), the draws
+    (S, P) and their log-density, the particle's key, the force-law estimate (P,); the frames'
+    edges (2, E) and their true relative log-masses (E,)."""
+
+    true_log: np.ndarray
+    sampled: np.ndarray
+    log_post: np.ndarray
+    particles: np.ndarray
+    physical: np.ndarray
+    edges: np.ndarray
+    edge_rel: np.ndarray
+
+
+@dataclass
+class _MassDraws:
+    """What ``evaluate_inverse`` gathers batch by batch (``_MassArrays``' lists), and per
+    simulation its windows (and contacts) and the contact head's impacts in them."""
+
+    true_log: list[np.ndarray] = field(default_factory=list)
+    sampled: list[np.ndarray] = field(default_factory=list)
+    log_post: list[np.ndarray] = field(default_factory=list)
+    particles: list[np.ndarray] = field(default_factory=list)
+    physical: list[np.ndarray] = field(default_factory=list)
+    edges: list[np.ndarray] = field(default_factory=list)
+    edge_rel: list[np.ndarray] = field(default_factory=list)
+    per_sim: dict[int, list[tuple[np.ndarray, np.ndarray | None]]] = field(default_factory=dict)
+    model_contacts: dict[int, list[np.ndarray]] = field(default_factory=dict)
+    offset: int = 0     # particles gathered so far: where the next batch's edges start
+
+    def add_posterior(self, model: Any, g: Graph, mass_samples: int) -> torch.Tensor:
+        """The flow's draws on batch ``g`` and their log-density (Eq. 7), the true masses,
+        the particles' keys and the edges; returns the first node of each graph of the batch."""
+        samples, density = model.mass_posterior(g, mass_samples)
+        self.sampled.append(samples.double().numpy())
+        self.log_post.append(density.double().numpy())
+        self.true_log.append(torch.log(g.mass.double()).numpy())
+        # one key per particle of a simulation, the same in every frame: sim * 1e6 + index
+        first_node = torch.cumsum(g.num_nodes, 0) - g.num_nodes
+        node_index = torch.arange(len(g.mass)) - first_node[g.batch]
+        self.particles.append((g.sim[g.batch] * 1_000_000 + node_index).numpy())
+        self.edges.append(g.edge_index.numpy() + self.offset)
+        self.edge_rel.append(g.edge_rel_log_mass.double().numpy())
+        self.offset += len(g.mass)
+        return first_node
+
+    def add_windows(self, dataset: FrameDataset, prior: MassPrior, chunk: np.ndarray,
+                    g: Graph, first_node: torch.Tensor, rows: torch.Tensor | None) -> None:
+        """Each frame of ``chunk`` (the batch ``g``): its window and contacts, the force-law
+        estimate on it and the contact head's impacts in it (``rows``: ``window_contacts``
+        on the batch, None without that head)."""
+        for b, i in enumerate(chunk):
+            window, contacts = window_and_contacts(dataset, i)
+            sim = dataset.locate(i)[0]
+            self.per_sim.setdefault(sim, []).append((window, contacts))
+            self.physical.append(_physical(dataset, prior, [(window, contacts)]))
+            if rows is not None:
+                self.model_contacts.setdefault(sim, []).append(
+                    _window_rows(rows, g, b, first_node, len(window)))
+
+    def arrays(self) -> _MassArrays:
+        """The batches concatenated."""
+        return _MassArrays(np.concatenate(self.true_log), np.concatenate(self.sampled, axis=1),
+                           np.concatenate(self.log_post), np.concatenate(self.particles),
+                           np.concatenate(self.physical), np.concatenate(self.edges, axis=1),
+                           np.concatenate(self.edge_rel))
+
+
+def _gather_draws(model: Any, dataset: FrameDataset, prior: MassPrior, indices: np.ndarray,
+                  mass_samples: int, batch_size: int) -> _MassDraws:
+    """The posterior's draws and the windows of the frames ``indices``, a batch at a time."""
+    # the contact head's impacts in each window: its per-simulation mass solve
+    head = getattr(model, "force_head", None)
+    seen_contacts = (head.window_contacts if isinstance(head, ContactImpulseHead) else None)
+    draws = _MassDraws()
+    for s in range(0, len(indices), batch_size):
+        chunk = indices[s:s + batch_size]
+        g = collate([dataset[i] for i in chunk])
+        first_node = draws.add_posterior(model, g, mass_samples)
+        draws.add_windows(dataset, prior, chunk, g, first_node,
+                          None if seen_contacts is None else seen_contacts(g))
+    return draws
+
+
+def _model_mass_metrics(dataset: FrameDataset, prior: MassPrior, draws: _MassDraws,
+                        a: _MassArrays, log_prior: np.ndarray) -> dict[str, Any]:
+    """The model's inverse metrics: its posterior's and its posterior means'; with a contact
+    head, ``sim_mass_rel_err`` from the per-simulation impact solve (the flow's pooled one as
+    ``sim_mass_rel_err_flow``)."""
+    metrics: dict[str, Any] = _posterior_metrics(a.true_log, a.sampled, a.log_post, log_prior,
+                                                 a.particles)
+    metrics.update(_point_metrics(a.sampled.mean(axis=0), a.true_log, a.particles, a.edges,
+                                  a.edge_rel, a.sampled.var(axis=0)))
+    if draws.model_contacts:
+        metrics["sim_mass_rel_err_flow"] = metrics["sim_mass_rel_err"]
+        metrics["sim_mass_rel_err"] = _impact_solve_error(
+            dataset, prior, draws.per_sim, draws.model_contacts, a.sampled, a.particles)
+    metrics["mass_particles"] = int(len(a.true_log))
+    return metrics
+
+
+def _physical_reference(dataset: FrameDataset, prior: MassPrior, draws: _MassDraws,
+                        a: _MassArrays) -> dict[str, float]:
+    """The force-law estimator's metrics: on each frame's window (the prior's mean where it
+    says nothing; ``identified`` the share it could estimate) and per simulation, one
+    least-squares fit of all its windows (``sim_identified``)."""
+    pooled = {sim: _physical(dataset, prior, views) for sim, views in draws.per_sim.items()}
+    sim_estimate = np.concatenate(list(pooled.values()))
+    sim_true = np.log(np.concatenate([dataset.file.read("masses", sim) for sim in pooled]))
+    return {
+        **_point_metrics(np.where(np.isfinite(a.physical), a.physical, prior.mean), a.true_log,
+                         a.particles, a.edges, a.edge_rel),
+        "identified": float(np.mean(np.isfinite(a.physical))),
+        # per simulation: one least-squares fit of all its windows, not a mean of estimates
+        "sim_mass_rel_err": relative_mass_error(
+            np.where(np.isfinite(sim_estimate), sim_estimate, prior.mean), sim_true),
+        "sim_identified": float(np.mean(np.isfinite(sim_estimate)))}
+
+
 @torch.no_grad()
 def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: int = 32,
                      mass_samples: int = 32, batch_size: int = 16, seed: int = 0,
@@ -280,77 +410,23 @@ def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: 
     all those windows at once (``physical/sim_identified``: the share of particles it could
     estimate). Arrays for the figure: true and sampled masses and the coverage curves of the
     model and the prior."""
-    model = module.model
     prior = MassPrior.of_scene(dataset.scene, module.hparams.stats.get("log_mass"))
     rng = np.random.default_rng(seed)
-    indices = evenly_spaced(len(dataset), mass_frames)
-    true_log, sampled, log_post, physical, particles, edges, edge_rel = ([] for _ in range(7))
-    per_sim: dict[int, list[tuple[np.ndarray, np.ndarray | None]]] = {}
-    # the contact head's impacts in each window: its per-simulation mass solve
-    head = getattr(model, "force_head", None)
-    seen_contacts = (head.window_contacts if isinstance(head, ContactImpulseHead) else None)
-    model_contacts: dict[int, list[np.ndarray]] = {}
-    offset = 0
-    for s in range(0, len(indices), batch_size):
-        chunk = indices[s:s + batch_size]
-        g = collate([dataset[i] for i in chunk])
-        samples, density = model.mass_posterior(g, mass_samples)
-        sampled.append(samples.double().numpy())
-        log_post.append(density.double().numpy())
-        true_log.append(torch.log(g.mass.double()).numpy())
-        # one key per particle of a simulation, the same in every frame: sim * 1e6 + index
-        first_node = torch.cumsum(g.num_nodes, 0) - g.num_nodes
-        node_index = torch.arange(len(g.mass)) - first_node[g.batch]
-        particles.append((g.sim[g.batch] * 1_000_000 + node_index).numpy())
-        edges.append(g.edge_index.numpy() + offset)
-        edge_rel.append(g.edge_rel_log_mass.double().numpy())
-        offset += len(g.mass)
-        rows = None if seen_contacts is None else seen_contacts(g)
-        for b, i in enumerate(chunk):
-            window, contacts = window_and_contacts(dataset, i)
-            sim = dataset.locate(i)[0]
-            per_sim.setdefault(sim, []).append((window, contacts))
-            physical.append(_physical(dataset, prior, [(window, contacts)]))
-            if rows is not None:    # (j, i, k) graph-wide -> (frame in the window, i, k) local
-                mine = rows[g.batch[rows[:, 1]] == b]
-                model_contacts.setdefault(sim, []).append(torch.stack(
-                    [len(window) - 1 - mine[:, 0], mine[:, 1] - first_node[b],
-                     mine[:, 2] - first_node[b]], 1).numpy())
-    true_log_a, sampled_a = np.concatenate(true_log), np.concatenate(sampled, axis=1)
-    particles_a, edges_a = np.concatenate(particles), np.concatenate(edges, axis=1)
-    rel_a = np.concatenate(edge_rel)
-    log_prior = prior.log_pdf(true_log_a)
-    metrics: dict[str, Any] = _posterior_metrics(true_log_a, sampled_a,
-                                                 np.concatenate(log_post), log_prior,
-                                                 particles_a)
-    metrics.update(_point_metrics(sampled_a.mean(axis=0), true_log_a, particles_a, edges_a,
-                                  rel_a, sampled_a.var(axis=0)))
-    if model_contacts:
-        metrics["sim_mass_rel_err_flow"] = metrics["sim_mass_rel_err"]
-        metrics["sim_mass_rel_err"] = _impact_solve_error(
-            dataset, prior, per_sim, model_contacts, sampled_a, particles_a)
-    metrics["mass_particles"] = int(len(true_log_a))
-    prior_samples = prior.sample(sampled_a.shape, rng)
-    references = {"prior": _posterior_metrics(true_log_a, prior_samples, log_prior, log_prior,
-                                              particles_a)}
-    estimate = np.concatenate(physical)
-    pooled = {sim: _physical(dataset, prior, views) for sim, views in per_sim.items()}
-    sim_estimate = np.concatenate(list(pooled.values()))
-    sim_true = np.log(np.concatenate([dataset.file.read("masses", sim) for sim in pooled]))
-    references["physical"] = {
-        **_point_metrics(np.where(np.isfinite(estimate), estimate, prior.mean), true_log_a,
-                         particles_a, edges_a, rel_a),
-        "identified": float(np.mean(np.isfinite(estimate))),
-        # per simulation: one least-squares fit of all its windows, not a mean of estimates
-        "sim_mass_rel_err": relative_mass_error(
-            np.where(np.isfinite(sim_estimate), sim_estimate, prior.mean), sim_true),
-        "sim_identified": float(np.mean(np.isfinite(sim_estimate)))}
+    draws = _gather_draws(module.model, dataset, prior,
+                          evenly_spaced(len(dataset), mass_frames), mass_samples, batch_size)
+    a = draws.arrays()
+    log_prior = prior.log_pdf(a.true_log)
+    metrics = _model_mass_metrics(dataset, prior, draws, a, log_prior)
+    prior_samples = prior.sample(a.sampled.shape, rng)
+    references = {"prior": _posterior_metrics(a.true_log, prior_samples, log_prior, log_prior,
+                                              a.particles),
+                  "physical": _physical_reference(dataset, prior, draws, a)}
     for name, values in references.items():
         metrics.update({f"{name}/{k}": v for k, v in values.items()})
-    arrays = {"true_mass": np.exp(true_log_a), "sampled_mass": np.exp(sampled_a),
+    arrays = {"true_mass": np.exp(a.true_log), "sampled_mass": np.exp(a.sampled),
               "coverage_levels": COVERAGE_LEVELS,
-              "coverage": coverage_curve(true_log_a, sampled_a),
-              "coverage_prior": coverage_curve(true_log_a, prior_samples)}
+              "coverage": coverage_curve(a.true_log, a.sampled),
+              "coverage_prior": coverage_curve(a.true_log, prior_samples)}
     return metrics, arrays
 
 

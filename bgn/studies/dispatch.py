@@ -14,6 +14,7 @@ from omegaconf import DictConfig
 
 from bgn.studies import grid, pareto
 from bgn.studies.cells import cell_overrides, compose_train, plan_cells
+from bgn.studies.headline import validate_stages
 from bgn.train.validate import ConfigError, cli, validate_train
 
 
@@ -26,6 +27,8 @@ def is_pareto(cfg: DictConfig) -> bool:
 def validate_cells(cfg: DictConfig) -> None:
     """The train config of every cell, checked before the first cell trains
     (``bgn.train.validate.validate_train``): a bad preset fails at once, naming the cell."""
+    if not is_pareto(cfg):  # the grid's stability and Pareto stages (bgn.studies.headline)
+        validate_stages(cfg.preset)
     for cell in pareto.plan_cells(cfg) if is_pareto(cfg) else plan_cells(cfg.preset):
         try:
             validate_train(compose_train(cell_overrides(cell, cfg)))

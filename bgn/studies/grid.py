@@ -7,7 +7,8 @@ in its own process), evaluates each cell's best checkpoint on the test split
 (``bgn.eval.evaluate``), and writes the report (``bgn.studies.report``: Table 1, rollouts,
 inverse, types, ablations, sample efficiency, report.md, provenance.json; several seeds: mean
 and spread per row) under ``report_dir``, and with ``results_md=<file>`` the preset's generated
-block of that file.
+block of that file. A preset with ``stability`` or ``pareto`` then writes those tables from the
+same cells (``bgn.studies.headline``: ``report_dir``/stability, /pareto; their own blocks).
 Resumable: a cell whose ``metrics.json`` exists is not retrained (an interrupted cell
 continues from its ``last.ckpt``), a cell whose ``eval.json`` is newer than its checkpoint is not
 re-evaluated; the report is always rewritten from what is on disk. Those files are written
@@ -40,6 +41,7 @@ from bgn.studies.cells import (
     preset_seeds,
     train_cell,
 )
+from bgn.studies.headline import run_stages
 from bgn.studies.report import write_report
 from bgn.train.checkpoints import chosen_checkpoint, read_record, write_atomic
 
@@ -291,6 +293,10 @@ def run(cfg: DictConfig) -> Path:
     report = write_report(cfg.report_dir, cfg.preset.name, cfg.cells_dir, cells, results,
                           provenance, cfg.get("results_md"))
     print(f"report: {report} ({time.perf_counter() - start:.0f} s)")
+    # the stability and Pareto tables from the same cells (preset.stability / .pareto)
+    failed += run_stages(cfg, cells, results, provenance, workers, threads)
+    if cfg.preset.get("stability") is not None or cfg.preset.get("pareto") is not None:
+        print(f"total wall time {time.perf_counter() - start:.0f} s")
     if failed:
         raise CellsFailed(report, failed)
     return report

@@ -372,6 +372,7 @@ PROVENANCE_FIELDS = {
     "machine": "machine", "cpu_count": "CPUs", "torch": "torch", "device": "device",
     "workers": "workers (parallel cells)", "threads_per_worker": "torch threads per cell",
     "seeds": "training seeds", "wall_time_s": "wall time of this command (s)",
+    "stage_wall_time_s": "then this table's stage, from the trained cells (s)",
     "failed_cells": "failed cells (not in the tables)"}
 
 

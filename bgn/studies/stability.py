@@ -319,7 +319,16 @@ def model_checks(case: Case, scene: Scene, traj: Trajectory, model: Any, label: 
 # ----------------------------------------------------------------------------- the suite
 def run_case(case: Case, cfg: DictConfig) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """Simulator checks and model rows of one case."""
-    preset = cfg.preset
+    case, scene, traj, row = simulate_case(case, cfg.preset)
+    picked = model_for(case, scene, traj, cfg)
+    rows = [] if picked is None else case_model_rows(case, scene, traj, row, *picked, cfg.preset)
+    return row, rows
+
+
+def simulate_case(case: Case, preset: DictConfig) -> tuple[Case, Scene, Trajectory,
+                                                           dict[str, Any]]:
+    """The case capped at ``preset.max_frames``, its scene, its exact trajectory and the
+    simulator's checks of it (judged)."""
     if preset.get("max_frames"):
         case = dataclasses.replace(case, n_frames=min(case.n_frames, int(preset.max_frames)))
     times = np.arange(case.n_frames) / case.fps
@@ -333,23 +342,28 @@ def run_case(case: Case, cfg: DictConfig) -> tuple[dict[str, Any], list[dict[str
         diff = np.abs(untransform(case, traj.positions[:n]) - ref.positions).max()
         row["transform_error"] = float(diff / ref.positions.std())
     judge(case, scene, row)
-    model_rows: list[dict[str, Any]] = []
-    picked = model_for(case, scene, traj, cfg)
-    if picked is not None:
-        horizons, starts = list(preset.horizons), int(preset.one_step_starts)
-        model_rows = model_checks(case, scene, traj, *picked, horizons, starts)
-        if not isinstance(scene, CollisionScene):  # the references of a force scene
-            from bgn.model.references import FrameOracle
+    return case, scene, traj, row
 
-            oracle = FrameOracle(scene, picked[0].history)
-            model_rows += model_checks(dataclasses.replace(case, model_dtypes=["float64"]),
-                                       scene, traj, oracle, oracle.label, horizons, starts)
-            model_rows.append(predictability_row(case, scene, traj, picked[0].history,
-                                                 horizons))
-        if "aliased_frames" in row:  # beside left_scale: how much the frames alias
-            for model_row in model_rows:
-                model_row["aliased_frames"] = row["aliased_frames"]
-    return row, model_rows
+
+def case_model_rows(case: Case, scene: Scene, traj: Trajectory, row: dict[str, Any],
+                    model: Any, label: str, preset: DictConfig, references: bool = True,
+                    ) -> list[dict[str, Any]]:
+    """The rollout rows of one model on a simulated case and, on a force scene with
+    ``references``, the frame oracle's and the predictability limit's (they do not depend on
+    the model: several models of one scene need them once)."""
+    horizons, starts = list(preset.horizons), int(preset.one_step_starts)
+    model_rows = model_checks(case, scene, traj, model, label, horizons, starts)
+    if references and not isinstance(scene, CollisionScene):  # a force scene's references
+        from bgn.model.references import FrameOracle
+
+        oracle = FrameOracle(scene, model.history)
+        model_rows += model_checks(dataclasses.replace(case, model_dtypes=["float64"]),
+                                   scene, traj, oracle, oracle.label, horizons, starts)
+        model_rows.append(predictability_row(case, scene, traj, model.history, horizons))
+    if "aliased_frames" in row:  # beside left_scale: how much the frames alias
+        for model_row in model_rows:
+            model_row["aliased_frames"] = row["aliased_frames"]
+    return model_rows
 
 
 def predictability_row(case: Case, scene: Scene, traj: Trajectory, history: int,

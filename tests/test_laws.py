@@ -296,7 +296,11 @@ def test_fine_tuning_moves_a_perturbed_constant_back_and_writes_a_checkpoint(
     timed = finetune_formula(ckpt, dm.datasets["train"], dm.datasets["val"],
                              start=spring_spec(1.5, -2.0), steps=40, substeps=4, horizon=20,
                              max_seconds=0.0)
-    assert timed["steps"] == 0 and timed["tuned"] == timed["start"]
+    # (the law only put in physical units: this loss leaves its scale free)
+    assert timed["steps"] == 0 and timed["polish"] is None
+    np.testing.assert_allclose([t["a"] for t in timed["tuned"][0]["terms"]],
+                               [timed["scale"] * t["a"] for t in timed["start"][0]["terms"]],
+                               rtol=1e-12)
     scores = record["validation"]
     assert record["choice"] in scores and all(
         np.isfinite(list(s["errors"].values())).all() for s in scores.values())
@@ -373,3 +377,40 @@ def test_law_auto_tests_the_law_that_validates_better(tmp_path, shared_data_dir)
         assert "law a formula" in record["variant"]["label"]  # the tested model says so
     else:
         assert ckpt.parent == run / "checkpoints"
+
+
+def _one_pair(*terms: tuple[str, float, float, float | None]) -> str:
+    return json.dumps([{"types": [0, 0], "terms": [
+        {"kind": k, "power": p, "a": a, "c": c} for k, p, a, c in terms]}])
+
+
+SPRING_AND_A_TAIL = _one_pair(("const", 0.0, 1.98, None), ("power", 1.0, -2.0, None),
+                              ("shifted", -3.0, -2.2e-4, 0.3))
+
+
+def test_a_term_below_a_percent_of_the_law_everywhere_is_negligible():
+    from bgn.eval.laws import negligible_term
+
+    r = np.random.default_rng(0).uniform(0.2, 3.6, 10_000)
+    assert negligible_term(SPRING_AND_A_TAIL, r) == 2
+    assert negligible_term(_one_pair(("const", 0.0, 1.98, None), ("power", 1.0, -2.0, None)),
+                           r) is None
+    # small at most distances, but not at the closest ones the data reach: kept
+    short = _one_pair(("const", 0.0, 1.98, None), ("power", 1.0, -2.0, None),
+                      ("power", -12.0, 1e-9, None))
+    assert negligible_term(short, r) is None
+    assert negligible_term(SPRING_AND_A_TAIL, None) is None
+
+
+def test_pruning_drops_a_negligible_term_whatever_the_loss():
+    from bgn.eval.laws import prune_terms
+
+    def tune(spec: str) -> tuple[float, None, None, str]:  # every term less costs 5 %
+        return 1.0 + 0.05 * (3 - len(json.loads(spec)[0]["terms"])), None, None, spec
+
+    r = np.random.default_rng(0).uniform(0.2, 3.6, 1_000)
+    loss, _, _, spec = prune_terms(tune, 1.0, None, None, SPRING_AND_A_TAIL, r)
+    assert [t["kind"] for t in json.loads(spec)[0]["terms"]] == ["const", "power"]
+    assert loss == pytest.approx(1.05)
+    # without distances only the loss decides: 5 % is above FORM_TOLERANCE, nothing goes
+    assert prune_terms(tune, 1.0, None, None, SPRING_AND_A_TAIL)[3] == SPRING_AND_A_TAIL

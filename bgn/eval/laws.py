@@ -903,12 +903,16 @@ def write_report(report: LawReport, out_dir: str | Path, title: str | None = Non
 # ------------------------------------------------------------------- the formula as the law
 
 FINETUNE_STEPS = 80       # evaluations of the loss (Nelder-Mead) on the formula's constants
-FINETUNE_SUBSTEPS = 16    # model.substeps while fine-tuning (and in the written checkpoint)
+FINETUNE_SUBSTEPS = 16    # model.substeps while the forms are tuned (and in the written checkpoint)
+POLISH_SUBSTEPS = 64      # ... while the chosen form's constants are polished (finetune_formula)
+POLISH_STEPS = 120        # evaluations of that polish
 FINETUNE_BATCH = 512      # training frames of the fixed batch (closest_frames among them)
 AMPLITUDE_STEP = 0.1      # the first simplex's step in each amplitude (relative to its start)
 C_STEP = 2.0              # ... and its factor on each constant c
 LAW_STAGE_SHARE = 0.5     # model.law=auto: the forms' fitting at most this share of max_time
 FORM_TOLERANCE = 0.02     # a simpler form is kept while its tuned loss is within this of the best
+NEGLIGIBLE = 0.01         # a term this small against the law at every distance goes (prune_terms)
+DISTANCE_QUANTILES = np.linspace(0.01, 0.99, 99)  # "every distance the data reach", robustly
 FINETUNE_HORIZON = 50     # validation rollout steps (as auto.horizon)
 TYPICAL_FLOOR = 1e-9      # added to each error before the geometric mean (an exact rollout)
 CLOSE_SHARE = 0.25        # of the tuning batch: the frames with the closest pairs
@@ -1070,19 +1074,46 @@ def candidate_specs(report: LawReport) -> list[str]:
     return specs
 
 
+def negligible_term(spec: str, distances: np.ndarray | None) -> int | None:
+    """The smallest term of a one-pair ``spec`` whose size stays below ``NEGLIGIBLE`` times
+    the law's RMS size at every training distance (``DISTANCE_QUANTILES`` of ``distances``),
+    or None. Such a term changes no prediction the frames can check; the loss may still
+    prefer it a little, where it absorbs what the substeps miss at the closest encounters.
+    Dropping it whatever the loss is sequential thresholding, as sparse regression does."""
+    from bgn.model.formula_law import FormulaLaw
+
+    pairs = json.loads(spec)
+    if distances is None or len(distances) == 0 or len(pairs) != 1 \
+            or len(pairs[0]["terms"]) < 2:
+        return None
+    r = torch.as_tensor(np.quantile(distances, DISTANCE_QUANTILES), dtype=torch.float64)
+    with torch.no_grad():
+        values = FormulaLaw(spec).values(r).numpy()                      # (R, K)
+    size = np.sqrt(np.mean(values.sum(-1) ** 2))
+    peak = np.abs(values).max(0) / max(size, 1e-300)
+    k = int(np.argmin(peak))
+    return k if peak[k] < NEGLIGIBLE else None
+
+
 def prune_terms(tune: Callable[[str], tuple[float, Any, Any, str]], loss: float, module: Any,
-                hp: Any, spec: str) -> tuple[float, Any, Any, str]:
-    """Backward elimination on the frames: a term is dropped (the rest tuned again) while the
-    loss rises by at most ``FORM_TOLERANCE``; a term the network's law needed in its tails
-    (where the frames barely pin it) goes."""
+                hp: Any, spec: str, distances: np.ndarray | None = None,
+                ) -> tuple[float, Any, Any, str]:
+    """Backward elimination on the frames: a negligible term (``negligible_term``, at the
+    ``distances`` the data reach) is dropped, the rest tuned again, whatever the loss; else a
+    term is dropped while the loss rises by at most ``FORM_TOLERANCE``: a term the network's
+    law needed in its tails (where the frames barely pin it) goes."""
     while True:
         pairs = json.loads(spec)
         if len(pairs) != 1 or len(pairs[0]["terms"]) < 2:
             return loss, module, hp, spec
-        for k in range(len(pairs[0]["terms"])):
+        drop = negligible_term(spec, distances)
+        for k in range(len(pairs[0]["terms"])) if drop is None else [drop]:
             fewer = [{**pairs[0], "terms": [t for j, t in enumerate(pairs[0]["terms"])
                                             if j != k]}]
             result = tune(json.dumps(fewer))
+            if drop is not None:
+                loss, module, hp, spec = result
+                break
             if not result[0] > loss * (1 + FORM_TOLERANCE):
                 loss, module, hp, spec = min(result[0], loss), *result[1:]
                 break
@@ -1138,6 +1169,23 @@ def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], step
     return best[0], count[0]
 
 
+def polish_constants(model: Any, head: Any, batches: list[tuple[float, Any]],
+                     deadline: float | None, name: str) -> dict[str, Any] | None:
+    """The chosen form's constants tuned again through ``POLISH_SUBSTEPS``: through the
+    coarser substeps the forms are compared with, the loss is rough at the scale of a
+    softening constant, and its minimum spans a band around the truth (docs/results.md, "The
+    formula stage"). The substeps are put back after. None where no time is left."""
+    coarse = head.substeps
+    head.substeps = POLISH_SUBSTEPS
+    try:
+        loss, n = tune_constants(model, head, batches, POLISH_STEPS, deadline, name)
+    except _Budget:
+        return None
+    finally:
+        head.substeps = coarse
+    return {"substeps": POLISH_SUBSTEPS, "loss": loss, "evaluations": n}
+
+
 def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
                      report: LawReport | None = None, steps: int = FINETUNE_STEPS,
                      substeps: int = FINETUNE_SUBSTEPS,
@@ -1151,8 +1199,10 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     on a fixed batch of ``batch_size`` training frames (``tuning_batches``: the closest
     encounters and a random rest, weighted to the split), through ``substeps`` (a frame's
     finite-difference target averages the force over the frame, as the substeps integrate
-    it). Only the law is fitted: the rest of the model is the checkpoint's, validated with
-    the network law, and a handful of constants cannot overfit a split. Both laws are then
+    it); the chosen form's constants are then polished through finer substeps
+    (``polish_constants``). Only the law is fitted: the rest of the model is the
+    checkpoint's, validated with the network law, and a handful of constants cannot overfit
+    a split. Both laws are then
     scored on the validation rollouts (``validation_errors``); the lower typical error
     (geometric mean over the rollouts) after the horizon is chosen. ``out_dir``: writes
     ``formula.ckpt`` (loadable as any checkpoint) and ``formula.json``. ``start``: a spec to
@@ -1166,6 +1216,7 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     if start is None and report is None:
         report = read_law(network, train_split)
     batches = tuning_batches(train_split, batch_size, seed)
+    distances = np.concatenate(list(pair_distances(train_split).values()) or [np.zeros(0)])
     deadline = None if max_seconds is None else time.perf_counter() + max_seconds
     evaluations = [0, 0]  # loss evaluations, tunings (each at most `steps` evaluations)
 
@@ -1187,7 +1238,8 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     for spec in starts:
         try:
             loss, module, hp, tuned = tune(spec)
-            loss, module, hp, tuned = prune_terms(tune, loss, module, hp, tuned)
+            loss, module, hp, tuned = prune_terms(tune, loss, module, hp, tuned,
+                                                  distances)
         except _Budget:
             break
         forms.append({"start": json.loads(spec), "tuned": json.loads(tuned), "loss": loss,
@@ -1203,6 +1255,16 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     module, hp = form["module"], form["hp"]
     start_spec = json.dumps(form["start"])
     model, head = pair_force_head(module)
+    polish = polish_constants(model, head, batches, deadline, str(checkpoint)) \
+        if math.isfinite(form["loss"]) else None
+    evaluations[0] += polish["evaluations"] if polish else 0
+    scale = 1.0
+    if "law" not in getattr(model, "heads", ()):
+        # tuned through the window's mass fit, which absorbs the law's scale (law_objective):
+        # the constants put back in physical units, as the law read back is (calibrate_scale)
+        scale = calibrate_scale(head, train_split)[0]
+        with torch.no_grad():
+            head.force_law.amplitude.mul_(scale)
     spec = head.force_law.spec()
     hp["model_config"] = {**hp["model_config"], "law_formula": spec}
     history = int(hp["history"])
@@ -1232,7 +1294,8 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
               "rollout_substeps": rollout_substeps,
               "formula_by_substeps": {str(k): v for k, v in by_substeps.items()},
               "start": json.loads(start_spec), "tuned": json.loads(spec),
-              "loss": form["loss"], "validation": scores, "choice": choice}
+              "scale": scale, "loss": form["loss"], "polish": polish,
+              "validation": scores, "choice": choice}
     if out_dir is not None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
@@ -1289,8 +1352,16 @@ def finetune_markdown(record: dict[str, Any], level: int = 2) -> str:
                   f"{f['constants']} | {_g(f['loss'])} |" for f in record["forms"]]
     lines += ["", f"Fitted before fine-tuning: `{_spec_text(record['start'])}`; the formula "
               f"rolls out with substeps {record['rollout_substeps']} (the lower mean error: "
-              "substeps are for the rare close encounters).", "",
-              f"Chosen: **{record['choice']}** (the lower typical validation rollout error "
+              "substeps are for the rare close encounters).", ""]
+    if record.get("polish"):
+        lines += [f"The chosen form's constants then polished through "
+                  f"{record['polish']['substeps']} substeps ({record['polish']['evaluations']} "
+                  f"evaluations; loss {_g(record['polish']['loss'])}).", ""]
+    if record.get("scale", 1.0) != 1.0:
+        lines += [f"The tuned constants put in physical units by the factor {_g(record['scale'])} "
+                  "(the loss through the window's mass fit leaves the law's scale free; "
+                  "the forms above are before it).", ""]
+    lines += [f"Chosen: **{record['choice']}** (the lower typical validation rollout error "
               f"after {horizons[-1]} steps)."]
     if record.get("path"):
         lines += ["", f"Checkpoint with the formula law: `{record['path']}`."]

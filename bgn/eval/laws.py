@@ -905,7 +905,6 @@ def write_report(report: LawReport, out_dir: str | Path, title: str | None = Non
 FINETUNE_STEPS = 80       # evaluations of the loss (Nelder-Mead) on the formula's constants
 FINETUNE_SUBSTEPS = 16    # model.substeps while the forms are tuned (and in the written checkpoint)
 POLISH_SUBSTEPS = 64      # ... while the chosen form's constants are polished (finetune_formula)
-POLISH_STEPS = 120        # evaluations of that polish
 FINETUNE_BATCH = 512      # training frames of the fixed batch (closest_frames among them)
 AMPLITUDE_STEP = 0.1      # the first simplex's step in each amplitude (relative to its start)
 C_STEP = 2.0              # ... and its factor on each constant c
@@ -1167,16 +1166,17 @@ def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], step
     return best[0], count[0]
 
 
-def polish_constants(model: Any, head: Any, batches: list[tuple[float, Any]],
+def polish_constants(model: Any, head: Any, batches: list[tuple[float, Any]], steps: int,
                      deadline: float | None, name: str) -> dict[str, Any] | None:
-    """The chosen form's constants tuned again through ``POLISH_SUBSTEPS``: through the
+    """The chosen form's constants tuned once more (``steps`` evaluations, as every form)
+    through ``POLISH_SUBSTEPS``: through the
     coarser substeps the forms are compared with, the loss is rough at the scale of a
     softening constant, and its minimum spans a band around the truth (docs/results.md, "The
     formula stage"). The substeps are put back after. None where no time is left."""
     coarse = head.substeps
     head.substeps = POLISH_SUBSTEPS
     try:
-        loss, n = tune_constants(model, head, batches, POLISH_STEPS, deadline, name)
+        loss, n = tune_constants(model, head, batches, steps, deadline, name)
     except _Budget:
         return None
     finally:
@@ -1253,9 +1253,11 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     module, hp = form["module"], form["hp"]
     start_spec = json.dumps(form["start"])
     model, head = pair_force_head(module)
-    polish = polish_constants(model, head, batches, deadline, str(checkpoint)) \
+    polish = polish_constants(model, head, batches, steps, deadline, str(checkpoint)) \
         if math.isfinite(form["loss"]) else None
-    evaluations[0] += polish["evaluations"] if polish else 0
+    if polish:
+        evaluations[0] += polish["evaluations"]
+        evaluations[1] += 1
     scale = 1.0
     if "law" not in getattr(model, "heads", ()):
         # tuned through the window's mass fit, which absorbs the law's scale (law_objective):

@@ -342,6 +342,16 @@ def test_bad_finetune_options_are_refused_in_one_line(option, capsys, tmp_path):
     assert len(err.strip().splitlines()) == 1 and option.split("=")[0] in err
 
 
+def law_auto_overrides(run: Path, data_dir: Path) -> list[str]:
+    """A tiny model.law=auto run on spring (one epoch of four batches)."""
+    return ["dataset=spring", *SMALL["spring"], f"paths.data_dir={data_dir}",
+            f"paths.output_dir={run}", "model=newton", "model.hidden=16",
+            "model.law=auto", "figures=false", "val_rollout_steps=0",
+            "trainer.max_epochs=1", "+trainer.limit_train_batches=4",
+            "trainer.limit_val_batches=1", "+trainer.limit_test_batches=1",
+            "callbacks.progress_bar=null"]
+
+
 def test_law_auto_tests_the_law_that_validates_better(tmp_path, shared_data_dir):
     """model.law=auto: after the fit, the law read back as a formula and fine-tuned (the
     formula stage), the better of the two on validation rollouts tested, and bgn.evaluate
@@ -350,13 +360,7 @@ def test_law_auto_tests_the_law_that_validates_better(tmp_path, shared_data_dir)
     from bgn.eval.laws import law_stage
 
     run = tmp_path / "newton"
-    overrides = ["dataset=spring", *SMALL["spring"], f"paths.data_dir={shared_data_dir}",
-                 f"paths.output_dir={run}", "model=newton", "model.hidden=16",
-                 "model.law=auto", "figures=false", "val_rollout_steps=0",
-                 "trainer.max_epochs=1", "+trainer.limit_train_batches=4",
-                 "trainer.limit_val_batches=1", "+trainer.limit_test_batches=1",
-                 "callbacks.progress_bar=null"]
-    cfg = compose_config("train", overrides)
+    cfg = compose_config("train", law_auto_overrides(run, shared_data_dir))
     with pytest.raises(ValueError, match="needs the formula stage"):  # none handed in
         train(cfg)
     train(cfg, law_stage=law_stage)
@@ -377,6 +381,24 @@ def test_law_auto_tests_the_law_that_validates_better(tmp_path, shared_data_dir)
         assert "law a formula" in record["variant"]["label"]  # the tested model says so
     else:
         assert ckpt.parent == run / "checkpoints"
+
+
+def test_law_auto_chooses_the_law_without_a_test(tmp_path, shared_data_dir):
+    """model.law=auto with test=false: the formula stage still runs (it chooses on
+    validation), the run records its choice and bgn.evaluate finds the chosen law; nothing
+    is tested."""
+    from bgn.eval.evaluate import resolve_run
+    from bgn.eval.laws import law_stage
+
+    run = tmp_path / "newton"
+    train(compose_config("train", [*law_auto_overrides(run, shared_data_dir), "test=false"]),
+          law_stage=law_stage)
+    stage = json.loads((run / "laws" / "formula.json").read_text())
+    record = json.loads((run / "metrics.json").read_text())
+    assert record["law"]["choice"] == stage["choice"] in ("network", "formula")
+    assert not any(k.startswith("test/") for k in record["metrics"])  # no test read
+    ckpt, _, _ = resolve_run(str(run))
+    assert (ckpt == run / "laws" / "formula.ckpt") == (stage["choice"] == "formula")
 
 
 def _one_pair(*terms: tuple[str, float, float, float | None]) -> str:

@@ -139,8 +139,8 @@ def train(cfg: DictConfig, spec: DatasetSpec | None = None,
     """Fit, test, and write metrics.json; returns the final metrics. ``spec``: as
     ``data_module``'s (``cfg`` validated already). ``law_stage``: with ``model.law=auto``,
     what reads the best checkpoint's law back as a formula and chooses between the two on
-    validation before the test (``bgn.eval.laws.law_stage``; handed in by the commands above
-    this stage)."""
+    validation, before the test and with ``test=false`` too (``bgn.eval.laws.law_stage``;
+    handed in by the commands above this stage)."""
     import lightning as L
 
     from bgn.train.signals import SignalCheckpoint, interrupted
@@ -178,17 +178,21 @@ def train(cfg: DictConfig, spec: DatasetSpec | None = None,
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
         metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
-        if cfg.test and not trainer.interrupted:
-            best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback \
-                else ""
-            tested, tested_ckpt = module, best or None
-            if cfg.model.get("law") == "auto" and best:  # model.law=auto: the formula stage
-                law_record = law_stage(cfg, Path(best), datamodule, output_dir,
-                                       trainer.world_size)
-                if law_record.get("choice") == "formula":
-                    from bgn.train.module import load_model
+        best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback \
+            and not trainer.interrupted else ""
+        tested, tested_ckpt = module, best or None
+        # model.law=auto: the formula stage chooses on validation (train and val splits
+        # only), so it runs with test=false too; the test below scores what it chose
+        if cfg.model.get("law") == "auto" and best:
+            law_record = law_stage(cfg, Path(best), datamodule, output_dir,
+                                   trainer.world_size)
+            if law_record.get("choice") == "formula":
+                from bgn.train.module import load_model
 
-                    tested, tested_ckpt = load_model(law_record["path"]), None
+                tested, tested_ckpt = load_model(law_record["path"]), None
+        if not cfg.test and law_record:
+            info(f"test=false: the {law_record.get('choice')} law is chosen, not tested")
+        if cfg.test and not trainer.interrupted:
             trainer.test(tested, datamodule=datamodule, ckpt_path=tested_ckpt,
                          weights_only=True)
             metrics.update({k: float(v) for k, v in trainer.callback_metrics.items()})
@@ -196,7 +200,7 @@ def train(cfg: DictConfig, spec: DatasetSpec | None = None,
                 from bgn.rollout import test_rollouts
 
                 metrics.update(test_rollouts(tested.model, datamodule.datasets["test"]))
-            module = tested
+        module = tested  # the run's model: the law the stage chose, tested or not
     except (SystemExit, KeyboardInterrupt):  # SIGTERMException is a SystemExit
         if stop.signal is None:
             raise

@@ -105,9 +105,10 @@ def rollout(result: dict[str, np.ndarray]) -> Figure:
     return fig
 
 
-def sample_efficiency(rows: Sequence[dict[str, Any]]) -> Figure:
-    """Test NMSE against the number of training simulations, one line per (scene, fps,
-    model), log-log; ``rows`` hold scene, fps, model, train_sims and nmse."""
+def sample_efficiency(rows: Sequence[dict[str, Any]], split: str = "test") -> Figure:
+    """NMSE on ``split`` (the study's scored split) against the number of training
+    simulations, one line per (scene, fps, model), log-log; ``rows`` hold scene, fps, model,
+    train_sims and nmse."""
     fig, ax = plt.subplots(figsize=(4.8, 3.4))
     for key in dict.fromkeys((r["scene"], r["fps"], r["model"]) for r in rows):
         pts = sorted((r["train_sims"], r["nmse"]) for r in rows
@@ -116,7 +117,7 @@ def sample_efficiency(rows: Sequence[dict[str, Any]]) -> Figure:
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xlabel("training simulations")
-    ax.set_ylabel("test NMSE")
+    ax.set_ylabel(f"{split} NMSE")
     if rows:
         ax.legend(fontsize=7)
     fig.tight_layout()

@@ -30,7 +30,8 @@ class Cell:
     ablation: str = "full"
     train_sims: int | None = None          # sample-efficiency cells only
     groups: tuple[str, ...] = field(default=("main",), compare=False)
-    tag: str = ""                          # names the ``extra`` overrides (Pareto sizes)
+    tag: str = ""                          # names the ``extra`` overrides (Pareto sizes,
+                                           # the grid's ``variants``)
     extra: tuple[str, ...] = ()            # train overrides of this cell alone, applied last
     seed: int = 0                          # the training seed (train override seed=<s>)
     seeded: bool = False                   # one of several seeds: the name ends in _s<seed>
@@ -52,10 +53,19 @@ def preset_seeds(preset: DictConfig) -> list[int]:
     return seeds
 
 
+def preset_variants(preset: DictConfig) -> list[tuple[str, tuple[str, ...]]]:
+    """The main grid's variants (``preset.variants``: a name -> the train overrides it adds
+    to each main cell, after the preset's own; the same scene and model with overrides A
+    against B), as (``Cell.tag``, ``Cell.extra``); one unnamed variant without the key."""
+    variants = preset.get("variants") or {}
+    return [(str(name), tuple(str(o) for o in (overrides or [])))
+            for name, overrides in variants.items()] or [("", ())]
+
+
 def plan_cells(preset: DictConfig) -> list[Cell]:
     """Every cell of a preset, each once (an ablation=full cell is the main grid's BGN cell),
-    per seed of ``preset.seeds`` (the first seed's cells first: an interrupted study has whole
-    tables of the first seeds)."""
+    the main grid's once per variant (``preset_variants``), per seed of ``preset.seeds`` (the
+    first seed's cells first: an interrupted study has whole tables of the first seeds)."""
     cells: dict[str, Cell] = {}
 
     def add(cell: Cell, group: str) -> None:
@@ -66,7 +76,8 @@ def plan_cells(preset: DictConfig) -> list[Cell]:
     for scene in preset.scenes:
         for fps in preset.fps:
             for model in preset.models:
-                add(Cell(scene, float(fps), model), "main")
+                for tag, extra in preset_variants(preset):
+                    add(Cell(scene, float(fps), model, tag=tag, extra=extra), "main")
     ab = preset.get("ablations") or {}
     for scene in ab.get("scenes", []) or []:
         for ablation in ["full", *ab.get("variants", [])]:

@@ -1,9 +1,10 @@
 """The studies' one command: ``python -m bgn.experiments preset=<name>``
 (``conf/experiments.yaml``).
 
-A grid preset (tiny | first_look | standard | full | reproduce) runs ``bgn.studies.grid``; a Pareto
-preset (pareto_tiny | pareto_quick | pareto_full: checkpoints on a time schedule) runs
-``bgn.studies.pareto``. Every cell's train config is checked before the first cell trains.
+A grid preset (tiny | first_look | standard | full | reproduce | recheck) runs
+``bgn.studies.grid``; a Pareto preset (pareto_tiny | pareto_quick | pareto_full: checkpoints
+on a time schedule) runs ``bgn.studies.pareto``. Every cell's train config is checked before
+the first cell trains.
 """
 
 from __future__ import annotations
@@ -27,7 +28,9 @@ def is_pareto(cfg: DictConfig) -> bool:
 def validate_cells(cfg: DictConfig) -> None:
     """The train config of every cell, checked before the first cell trains
     (``bgn.train.validate.validate_train``): a bad preset fails at once, naming the cell."""
-    if not is_pareto(cfg):  # the grid's stability and Pareto stages (bgn.studies.headline)
+    if not is_pareto(cfg):  # the grid's eval.split and variants, its stability and Pareto
+        grid.validate_grid(cfg.preset)  # stages (bgn.studies.headline)
+        grid.check_variant_cells(cfg)
         validate_stages(cfg.preset)
     for cell in pareto.plan_cells(cfg) if is_pareto(cfg) else plan_cells(cfg.preset):
         try:

@@ -1,10 +1,12 @@
 """The grid study (run by ``python -m bgn.experiments preset=first_look``:
-``bgn.studies.dispatch``; presets tiny | first_look | standard | full | reproduce).
+``bgn.studies.dispatch``; presets tiny | first_look | standard | full | reproduce | recheck).
 
-Trains every cell of a preset (scene x fps x model, BGN ablations, sample efficiency; each per
-seed of the preset's ``seeds``: ``bgn.studies.cells``; ``workers=<n>``: n cells at once, each
-in its own process), evaluates each cell's best checkpoint on the test split
-(``bgn.eval.evaluate``), and writes the report (``bgn.studies.report``: Table 1, rollouts,
+Trains every cell of a preset (scene x fps x model (x ``variants``: named sets of train
+overrides), BGN ablations, sample efficiency; each per seed of the preset's ``seeds``:
+``bgn.studies.cells``; ``workers=<n>``: n cells at once, each in its own process), evaluates
+each cell's best checkpoint on the split ``eval.split`` names (test by default; val to re-check
+a default, the mass flow then recalibrated on train: ``bgn.eval.evaluate``), and writes the
+report (``bgn.studies.report``: Table 1, rollouts,
 inverse, types, ablations, sample efficiency, report.md, provenance.json; several seeds: mean
 and spread per row) under ``report_dir``, and with ``results_md=<file>`` the preset's generated
 block of that file. A preset with ``stability`` or ``pareto`` then writes those tables from the
@@ -29,8 +31,9 @@ from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from bgn.coerce import ConfigError
 from bgn.studies.cells import (
     CONF_DIR,
     Cell,
@@ -42,39 +45,109 @@ from bgn.studies.cells import (
     train_cell,
 )
 from bgn.studies.headline import run_stages
-from bgn.studies.report import write_report
+from bgn.studies.report import CALIBRATION_SPLIT, write_report
 from bgn.train.checkpoints import chosen_checkpoint, read_record, write_atomic
 
 
+def eval_split(preset: DictConfig) -> str:
+    """The split a grid preset scores (``eval.split``; test where the key is absent)."""
+    return str((preset.get("eval") or {}).get("split", "test"))
+
+
+def validate_grid(preset: DictConfig) -> None:
+    """The grid's own keys ``eval.split`` and ``variants``, checked before any cell trains
+    (``bgn.studies.dispatch.validate_cells``): a bad value is one ``ConfigError`` naming it."""
+    import re
+
+    split = eval_split(preset)
+    if split not in CALIBRATION_SPLIT:
+        raise ConfigError("preset.eval.split", split,
+                          f"choose one of {list(CALIBRATION_SPLIT)} (the split every table "
+                          "scores; val to re-check a default)")
+    stages = [k for k in ("stability", "pareto") if preset.get(k) is not None]
+    if split != "test" and stages:
+        raise ConfigError("preset.eval.split", split, (
+            f"the {' and '.join(stages)} stage(s) write headline test tables; set "
+            + " and ".join(f"preset.{k}=null" for k in stages) + " for a validation study"))
+    variants = preset.get("variants")
+    if variants is None:
+        return
+    if not isinstance(variants, DictConfig) or not variants:
+        raise ConfigError("preset.variants", variants, "must be a mapping of a variant's "
+                          "name to its list of train overrides (or null)")
+    for name, overrides in variants.items():
+        if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", str(name)):
+            raise ConfigError(f"preset.variants.{name}", name, "a variant's name becomes "
+                              "part of its cells' names: letters, digits, _ . -")
+        if overrides is not None and (not isinstance(overrides, ListConfig) or not all(
+                isinstance(o, str) for o in overrides)):
+            raise ConfigError(f"preset.variants.{name}", overrides,
+                              "must be a list of train overrides (key=value strings)")
+    if stages:
+        raise ConfigError("preset.variants", list(variants), (
+            f"the {' and '.join(stages)} stage(s) read one cell per scene, model and seed; "
+            "set " + " and ".join(f"preset.{k}=null" for k in stages) + " with variants"))
+
+
+def check_variant_cells(cfg: DictConfig) -> None:
+    """A variant's cells already under ``cells_dir`` were trained with its overrides: a
+    trained cell is not retrained (resumable), so a variant renamed to other overrides would
+    otherwise report the old cells under the new overrides. Refused before any cell trains."""
+    for cell in plan_cells(cfg.preset):
+        record = Path(cfg.cells_dir) / cell.name / "cell.json"
+        if not cell.tag or not record.exists():
+            continue
+        trained = tuple((read_record(record) or {}).get("extra") or ())
+        if trained != cell.extra:
+            raise ConfigError(f"preset.variants.{cell.tag}", list(cell.extra), (
+                f"cell {cell.name} under {cfg.cells_dir} was trained with "
+                f"{list(trained) or 'no overrides'}: give this variant another name, or "
+                "use another cells_dir"))
+
+
+def eval_files(cell: Cell, cfg: DictConfig) -> tuple[Path, Path]:
+    """A cell's evaluation record and mass figure for the preset's split: eval.json and
+    figures/mass_<cell>.png for test, eval_<split>.json and mass_<cell>_<split>.png
+    otherwise (a re-check on validation keeps the test evaluation, and reads as another)."""
+    split = eval_split(cfg.preset)
+    suffix = "" if split == "test" else f"_{split}"
+    return (Path(cfg.cells_dir) / cell.name / f"eval{suffix}.json",
+            Path(cfg.report_dir) / "figures" / f"mass_{cell.name}{suffix}.png")
+
+
 def cached_eval(cell: Cell, cfg: DictConfig) -> dict[str, Any] | None:
-    """A cell's eval.json when it is newer than its best checkpoint, whole, of the current
-    metrics and with its figure on disk; else None (``evaluate_cell`` evaluates it)."""
+    """A cell's evaluation record of the preset's split (``eval_files``) when it is newer
+    than its best checkpoint, whole, of the current metrics and split and with its figure on
+    disk; else None (``evaluate_cell`` evaluates it)."""
     run_dir = Path(cfg.cells_dir) / cell.name
     try:
         ckpt = chosen_checkpoint(run_dir)
     except FileNotFoundError:
         return None
-    eval_path = run_dir / "eval.json"
-    figure = Path(cfg.report_dir) / "figures" / f"mass_{cell.name}.png"
+    eval_path, figure = eval_files(cell, cfg)
     if eval_path.exists() and eval_path.stat().st_mtime >= ckpt.stat().st_mtime:
         result = read_record(eval_path)  # None when damaged (named in a warning): redone
         if result is not None and (not result.get("figure") or figure.exists()) \
+                and result.get("split", "test") == eval_split(cfg.preset) \
                 and "rollout/rollout_cap" in result.get("metrics", {}):  # else: older metrics
             return result
     return None
 
 
 def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
-    """Test-split metrics of a cell's chosen checkpoint (``chosen_checkpoint``; cached in
-    eval.json), and its KDE figure under the report's figures/ when the model has an inverse
-    head."""
+    """Metrics of a cell's chosen checkpoint (``chosen_checkpoint``) on the preset's split
+    (``eval.split``: test, or val with the mass flow recalibrated on train, as
+    ``python -m bgn.evaluate <run> split=val calibration_split=train``; cached in
+    ``eval_files``), and its KDE figure under the report's figures/ when the model has an
+    inverse head."""
     from bgn.eval.evaluate import evaluate_split, mass_figure
     from bgn.train.module import load_model
 
     run_dir = Path(cfg.cells_dir) / cell.name
     ckpt = chosen_checkpoint(run_dir)  # the formula where model.law=auto chose it
-    eval_path = run_dir / "eval.json"
-    figure = Path(cfg.report_dir) / "figures" / f"mass_{cell.name}.png"
+    eval_path, figure = eval_files(cell, cfg)
+    split = eval_split(cfg.preset)
+    calibration = CALIBRATION_SPLIT[split]  # never the scored split
     result = cached_eval(cell, cfg)
     if result is not None:
         if "model" not in result:  # an older record: what the model is, from its checkpoint
@@ -83,15 +156,16 @@ def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
         return result
     datamodule = cell_datamodule(run_dir, cfg.data_dir)
     e = cfg.preset.eval
-    module, test = load_model(ckpt), datamodule.datasets["test"]
+    module, scored = load_model(ckpt), datamodule.datasets[split]
     metrics, arrays = evaluate_split(  # the code of python -m bgn.evaluate
-        module, test, datamodule.datasets["val"], max_frames=e.max_frames,
+        module, scored, datamodule.datasets[calibration], max_frames=e.max_frames,
         mass_frames=e.mass_frames, mass_samples=e.mass_samples, batch_size=e.batch_size,
         rollout_steps=e.rollout_steps, rollout_starts=e.rollout_starts,
         rollout_sims=e.rollout_sims)
     # the report labels each row by what the model is given and has written in (bgn.studies.report)
     result = {"checkpoint": str(ckpt), "metrics": metrics, "figure": None,
-              "model": module.model.describe()}
+              "model": module.model.describe(), "split": split,
+              "calibration_split": calibration}
     if arrays:
         result["figure"] = str(mass_figure(arrays, figure))
     write_atomic(eval_path, json.dumps(result, indent=2, sort_keys=True))
@@ -258,7 +332,9 @@ def study_provenance(cfg: DictConfig, workers: int, threads: int | None, wall_s:
             "machine": f"{platform.platform()}, {platform.processor() or platform.machine()}",
             "cpu_count": os.cpu_count(), "torch": torch.__version__, "device": device,
             "workers": workers, "threads_per_worker": threads or torch.get_num_threads(),
-            "seeds": preset_seeds(cfg.preset), "wall_time_s": round(wall_s, 1),
+            "seeds": preset_seeds(cfg.preset), "eval_split": eval_split(cfg.preset),
+            "calibration_split": CALIBRATION_SPLIT[eval_split(cfg.preset)],
+            "wall_time_s": round(wall_s, 1),
             "failed_cells": failed, "preset_config": preset}
 
 
@@ -291,7 +367,7 @@ def run(cfg: DictConfig) -> Path:
     provenance = study_provenance(cfg, workers, threads, time.perf_counter() - start, failed,
                                   code)
     report = write_report(cfg.report_dir, cfg.preset.name, cfg.cells_dir, cells, results,
-                          provenance, cfg.get("results_md"))
+                          provenance, cfg.get("results_md"), split=eval_split(cfg.preset))
     print(f"report: {report} ({time.perf_counter() - start:.0f} s)")
     # the stability and Pareto tables from the same cells (preset.stability / .pareto)
     failed += run_stages(cfg, cells, results, provenance, workers, threads)

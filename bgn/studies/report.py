@@ -1,5 +1,8 @@
 """The study's report: one function per table (Table 1, inverse, types, ablations, sample
-efficiency) and report.md, from the cells' training records and test-split evaluations.
+efficiency) and report.md, from the cells' training records and their evaluations on the
+split the preset scores (``preset.eval.split``: test, or val to re-check a default; every
+title, report.md's heading and provenance.json name it, and a validation study's
+``results_md`` block is ``<preset>_val``, never the test block ``<preset>``).
 
 Every number in the report comes from the cells' checkpoints except the paper's published
 Table 1 values below, the only ones typed by hand. ``results`` maps a cell's name to
@@ -38,6 +41,32 @@ PAPER_COLUMNS = {"BGN": PAPER_BGN, "Cranmer et al.": PAPER_CRANMER,
 # no-learning references in Table 1 (bgn.eval.evaluate): metric suffix -> column
 REFERENCES = {"last": "repeat-last NMSE", "linear": "linear-extrapolation NMSE"}
 EMPTY = "(no cells of this kind in the preset)"
+
+# the splits a study scores (preset.eval.split), each with the split the mass flow is
+# recalibrated on first: never the scored one (python -m bgn.evaluate refuses that too)
+CALIBRATION_SPLIT = {"test": "val", "val": "train"}
+SPLIT_NAMES = {"test": "test", "val": "validation", "train": "training"}
+VAL_NOTE = ("Validation split: a re-check of defaults, not test results. The mass flow is "
+            "recalibrated on the training split, whose masses it was trained on: compare "
+            "relmass_r2 and info_gain across rows, not coverage.")
+OVERRIDES = "overrides"  # the preset variant of a cell (preset.variants), where it has one
+
+
+def variant_overrides(cell: Cell) -> str:
+    """A cell's preset variant (``preset.variants``: its name and the train overrides it
+    adds), blank where the preset has none."""
+    return f"{cell.tag}: {' '.join(cell.extra) or 'none'}" if cell.tag else ""
+
+
+def override_columns(cells: list[Cell]) -> list[str]:
+    """The overrides column where some cell has a preset variant (none otherwise: the tables
+    of a preset without variants are as before)."""
+    return [OVERRIDES] if any(c.tag for c in cells) else []
+
+
+def split_notes(split: str, notes: str) -> str:
+    """A table's notes, led by what a validation table is (``VAL_NOTE``)."""
+    return f"{VAL_NOTE} {notes}" if split == "val" else notes
 
 
 # ----------------------------------------------------------------------------- seeds
@@ -167,11 +196,13 @@ VARIANT_COLUMNS = ["given", "physics written in"]
 PAPER_SOURCE = {"bgn": "BGN", "cranmer_gn": "Cranmer et al.", "gns": "Sanchez-Gonzalez et al."}
 
 
-def table1(report_dir: Path, cells: list[Cell], results: Results) -> str:
-    """Table 1: one row per scene x fps x model of the main grid (its variant, what it is
-    given, the physics written in), MSE and NMSE, the no-learning references of the same
-    frames and the paper's value for the paper's variant."""
+def table1(report_dir: Path, cells: list[Cell], results: Results, split: str = "test") -> str:
+    """Table 1: one row per scene x fps x model (x preset variant) of the main grid (its
+    variant, what it is given, the physics written in), MSE and NMSE on ``split``, the
+    no-learning references of the same frames and the paper's value for the paper's
+    variant."""
     main, rows = _main(cells), []
+    extra = override_columns(main)
     for scene, fps in dict.fromkeys((c.scene, c.fps) for c in main):
         for c in [c for c in main if (c.scene, c.fps) == (scene, fps)]:
             m, about = evaluation(results, c), variant(results, c)
@@ -180,18 +211,18 @@ def table1(report_dir: Path, cells: list[Cell], results: Results) -> str:
             paper = (paper_value(source, scene, fps) if source and about["given"] == "-"
                      and about["physics written in"] == "none" else None)
             rows.append({SEED: c.seed, "scene": scene, "fps": fmt(fps), **about,
-                         "MSE": m["mse"],
+                         OVERRIDES: variant_overrides(c), "MSE": m["mse"],
                          "NMSE": m["nmse"],
-                         # the same test frames for every model of a scene x fps
+                         # the same frames for every model of a scene x fps
                          **{column: m.get(f"nmse_{ref}_extrapolation")
                             for ref, column in REFERENCES.items()}, PAPER_LABEL: paper})
-    columns = ["scene", "fps", "model", *VARIANT_COLUMNS, "MSE", "NMSE", *REFERENCES.values(),
-               PAPER_LABEL]
+    columns = ["scene", "fps", "model", *extra, *VARIANT_COLUMNS, "MSE", "NMSE",
+               *REFERENCES.values(), PAPER_LABEL]
     return write_seeded_table(
-        report_dir, "table1", columns, ["scene", "fps", "model", *VARIANT_COLUMNS,
+        report_dir, "table1", columns, ["scene", "fps", "model", *extra, *VARIANT_COLUMNS,
                                         PAPER_LABEL], rows,
-        "Table 1: one-step error on the test split",
-        "MSE of the forward target (next velocity for collisions, acceleration "
+        f"Table 1: one-step error on the {SPLIT_NAMES[split]} split",
+        split_notes(split, "MSE of the forward target (next velocity for collisions, acceleration "
         "otherwise) in physical units; NMSE = MSE / training target variance. model: the "
         "variant (BGN with the paper's decoder or a structured head; a baseline with the "
         "node inputs it is given); given: what it reads beyond the position window "
@@ -202,35 +233,40 @@ def table1(report_dir: Path, cells: list[Cell], results: Results) -> str:
         "values per scene). The extrapolation columns learn nothing: they repeat the last "
         "observed target, or extrapolate the last two linearly, from the input window "
         "(the floor a learned model must beat; the models predict the change from the "
-        "latter by default).",
+        "latter by default)." + (" overrides: the preset variant (its name and the train "
+                                 "overrides it adds)." if extra else "")),
         empty=EMPTY)
 
 
 
-def inverse_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
+def inverse_table(report_dir: Path, cells: list[Cell], results: Results,
+                  split: str = "test") -> str:
     """Inverse model: every full-model cell with a mass head (main grid first), its sample,
-    calibration and information metrics and figure, with the prior-only sampler and the
-    force-law estimator on the same test particles below it."""
-    columns = ["scene", "fps", "model", *INVERSE_COLUMNS, "mass_calibration_scale50",
-               "mass_calibration_scale90", "mass_particles", "figure"]
+    calibration and information metrics and figure on ``split``, with the prior-only sampler
+    and the force-law estimator on the same particles below it."""
     main = _main(cells)
+    extra = override_columns(main)
+    columns = ["scene", "fps", "model", *extra, *INVERSE_COLUMNS, "mass_calibration_scale50",
+               "mass_calibration_scale90", "mass_particles", "figure"]
     rows = []
     for c in main + [c for c in cells if "main" not in c.groups]:
         figure = results[c.name]["eval"].get("figure")
         if c.ablation == "full" and c.train_sims is None and figure:
             m = evaluation(results, c)
             rows.append({SEED: c.seed, "scene": c.scene, "fps": fmt(c.fps),
-                         "model": c.model, **m, "figure": f"figures/{Path(figure).name}"})
+                         "model": c.model, OVERRIDES: variant_overrides(c), **m,
+                         "figure": f"figures/{Path(figure).name}"})
             for key, label in INVERSE_REFERENCES.items():
                 values = {k: m.get(f"{key}/{k}") for k in INVERSE_COLUMNS}
                 if any(v is not None for v in values.values()):
                     rows.append({SEED: c.seed, "scene": c.scene, "fps": fmt(c.fps),
-                                 "model": label, **values})
+                                 "model": label, OVERRIDES: variant_overrides(c), **values})
     return write_seeded_table(
-        report_dir, "inverse", columns, ["scene", "fps", "model"], rows,
-        "Inverse model: sampled vs true masses",
-        "Log-masses (natural log) of every particle of a subset of test frames, the flow "
-        "recalibrated first on as many validation frames (a monotone map of its base radius; "
+        report_dir, "inverse", columns, ["scene", "fps", "model", *extra], rows,
+        f"Inverse model: sampled vs true masses ({SPLIT_NAMES[split]} split)",
+        split_notes(split, f"Log-masses (natural log) of every particle of a subset of "
+        f"{SPLIT_NAMES[split]} frames, the flow recalibrated first on as many "
+        f"{SPLIT_NAMES[CALIBRATION_SPLIT[split]]} frames (a monotone map of its base radius; "
         "mass_calibration_scale50/90: the map's scale at those levels, > 1 where the trained "
         "flow was overconfident). Calibration (docs/design.md#inverse-metrics): coverage50/90, "
         "the fraction "
@@ -255,33 +291,37 @@ def inverse_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
         "calibrated, "
         "zero information) and the physical estimator (the known force law on the "
         "window's finite differences; collisions: momentum exchange at impacts, which one "
-        "window rarely holds; its per-simulation value pools the windows of a simulation).",
+        "window rarely holds; its per-simulation value pools the windows of a simulation)."),
         images=("figure",))
 
 
-def types_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
-    """Particle types: accuracy and AUROC of every full-model cell with a type head."""
+def types_table(report_dir: Path, cells: list[Cell], results: Results,
+                split: str = "test") -> str:
+    """Particle types: accuracy and AUROC on ``split`` of every full-model cell with a type
+    head."""
     rows = [{SEED: c.seed, "scene": c.scene, "fps": fmt(c.fps), "model": c.model,
-             **evaluation(results, c)}
+             OVERRIDES: variant_overrides(c), **evaluation(results, c)}
             for c in cells if c.ablation == "full" and c.train_sims is None
             and "type_accuracy" in evaluation(results, c)]
-    keys = ["scene", "fps", "model"]
+    keys = ["scene", "fps", "model", *override_columns(cells)]
     return write_seeded_table(
         report_dir, "types", [*keys, "type_accuracy", "type_auroc"], keys, rows,
-        "Particle-type classification (test split)",
-        "Accuracy and one-vs-rest AUROC of the type classifier (collisions).",
+        f"Particle-type classification ({SPLIT_NAMES[split]} split)",
+        split_notes(split, "Accuracy and one-vs-rest AUROC of the type classifier "
+                    "(collisions)."),
         csv_too=False)
 
 
-def ablations_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
-    """Ablations of BGN per scene: the forward error and every head's metric; contact
-    metrics from the training run's test of its best checkpoint."""
+def ablations_table(report_dir: Path, cells: list[Cell], results: Results,
+                    split: str = "test") -> str:
+    """Ablations of BGN per scene: the forward error and every head's metric on ``split``;
+    contact metrics from the training run's test of its best checkpoint."""
     rows = []
     for c in cells:
         if "ablation" in c.groups:
             m = {**evaluation(results, c)}
-            for k in ("contact_f1", "contact_auroc", "contact_r2"):
-                m[k] = training(results, c).get(f"test/{k}")
+            for k in ("contact_f1", "contact_auroc", "contact_r2"):  # the test split's
+                m[k] = training(results, c).get(f"test/{k}") if split == "test" else None
             rows.append({SEED: c.seed, "scene": c.scene, "fps": fmt(c.fps),
                          "ablation": c.ablation, **m})
     return write_seeded_table(
@@ -289,38 +329,45 @@ def ablations_table(report_dir: Path, cells: list[Cell], results: Results) -> st
         ["scene", "fps", "ablation", "nmse", "mse", "median_relative_error", "type_accuracy",
          "type_auroc", "contact_f1", "contact_auroc", "contact_r2", "relmass_r2",
          "wasserstein1", "coverage50", "coverage90"], ["scene", "fps", "ablation"], rows,
-        "Ablations of BGN",
-        "Blank: the head is absent in that variant (or the scene has no such head). "
-        "Contact metrics come from the training run's test of its best checkpoint.",
+        f"Ablations of BGN ({SPLIT_NAMES[split]} split)",
+        split_notes(split, "Blank: the head is absent in that variant (or the scene has no "
+                    "such head). " + ("Contact metrics come from the training run's test of "
+                                      "its best checkpoint." if split == "test" else
+                                      "Contact metrics are left out: they come from the "
+                                      "training run's test, on the test split.")),
         csv_too=False)
 
 
-def sample_efficiency_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
-    """Sample efficiency: test error against the number of training simulations, as a table
-    and as a log-log plot (``sample_efficiency.png``)."""
+def sample_efficiency_table(report_dir: Path, cells: list[Cell], results: Results,
+                            split: str = "test") -> str:
+    """Sample efficiency: the error on ``split`` against the number of training simulations,
+    as a table and as a log-log plot (``sample_efficiency.png``)."""
     from bgn.figures import sample_efficiency, save
 
     rows = [{SEED: c.seed, "scene": c.scene, "fps": fmt(c.fps), "model": c.model,
              "train_sims": c.train_sims, **evaluation(results, c)}
             for c in cells if "sample_efficiency" in c.groups]
     keys = ["scene", "fps", "model", "train_sims"]
-    save(sample_efficiency(aggregate_rows(rows, keys)),  # the mean over seeds
+    save(sample_efficiency(aggregate_rows(rows, keys), split),  # the mean over seeds
          report_dir / "sample_efficiency.png")
     return write_seeded_table(
         report_dir, "sample_efficiency",
         [*keys, "nmse", "mse", "median_relative_error"], keys, rows,
-        "Sample efficiency",
-        "Test error against the number of training simulations (val and test use every "
-        "simulation of their splits).")
+        f"Sample efficiency ({SPLIT_NAMES[split]} split)",
+        split_notes(split, f"{SPLIT_NAMES[split].capitalize()} error against the number of "
+                    "training simulations (val and test use every simulation of their "
+                    "splits)."))
 
 
 
-def rollout_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
-    """Rollouts beside Table 1: per scene x fps, every model of the main grid and the
-    no-learning references rolled out from the same test frames."""
-    rows = []
-    for scene, fps in dict.fromkeys((c.scene, c.fps) for c in _main(cells)):
-        group = [c for c in _main(cells) if (c.scene, c.fps) == (scene, fps)]
+def rollout_table(report_dir: Path, cells: list[Cell], results: Results,
+                  split: str = "test") -> str:
+    """Rollouts beside Table 1: per scene x fps (x preset variant: its overrides may change
+    the data), every model of the main grid and the no-learning references rolled out from
+    the same frames of ``split``."""
+    rows, extra = [], override_columns(_main(cells))
+    for scene, fps, tag in dict.fromkeys((c.scene, c.fps, c.tag) for c in _main(cells)):
+        group = [c for c in _main(cells) if (c.scene, c.fps, c.tag) == (scene, fps, tag)]
         sources = [(variant(results, c), c, "rollout") for c in group]
         # the references learn nothing: one seed's cell holds them (the same test frames)
         nothing = {"given": "-", "physics written in": "none"}
@@ -332,13 +379,15 @@ def rollout_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
         for about, c, key in sources:
             values = {k: evaluation(results, c).get(f"{key}/{k}") for k in ROLLOUT_COLUMNS}
             if any(v is not None for v in values.values()):
-                rows.append({SEED: c.seed, "scene": scene, "fps": fmt(fps), **about, **values})
-    keys = ["scene", "fps", "model", *VARIANT_COLUMNS]
+                rows.append({SEED: c.seed, "scene": scene, "fps": fmt(fps), **about,
+                             OVERRIDES: variant_overrides(c), **values})
+    keys = ["scene", "fps", "model", *extra, *VARIANT_COLUMNS]
     return write_seeded_table(
         report_dir, "rollouts", [*keys, *ROLLOUT_COLUMNS], keys, rows,
-        "Rollouts on the test split",
-        "Each model (its variant, what it is given and the physics written in: as Table 1) "
-        "fed its own frames from the same start frames of every test simulation "
+        f"Rollouts on the {SPLIT_NAMES[split]} split",
+        split_notes(split, "Each model (its variant, what it is given and the physics "
+        "written in: as Table 1) fed its own frames from the same start frames of every "
+        f"{SPLIT_NAMES[split]} simulation "
         "(frame 100 when the file is long enough), through the learned simulator. Every "
         "rollout counts, a failed one at the cap (rollout_cap: 10 scene scales, the mean "
         "over the rollouts). pos_err_mean@h: mean over all rollouts of the mean position "
@@ -357,7 +406,7 @@ def rollout_table(report_dir: Path, cells: list[Cell], results: Results) -> str:
         "extrapolation rows learn nothing (repeat the last observed target, or "
         "extrapolate the last two). The predictability row is the exact simulator "
         "started with every position 1e-6 off: chaos alone; a rollout error above it is "
-        "the model's.")
+        "the model's."))
 
 
 TABLES = {"table1": table1, "rollouts": rollout_table, "inverse": inverse_table,
@@ -371,7 +420,9 @@ PROVENANCE_FIELDS = {
     "git_commit": "git commit", "git_dirty": "uncommitted changes in the tree",
     "machine": "machine", "cpu_count": "CPUs", "torch": "torch", "device": "device",
     "workers": "workers (parallel cells)", "threads_per_worker": "torch threads per cell",
-    "seeds": "training seeds", "wall_time_s": "wall time of this command (s)",
+    "seeds": "training seeds", "eval_split": "split scored (every table)",
+    "calibration_split": "mass flow recalibrated on",
+    "wall_time_s": "wall time of this command (s)",
     "stage_wall_time_s": "then this table's stage, from the trained cells (s)",
     "failed_cells": "failed cells (not in the tables)"}
 
@@ -401,19 +452,22 @@ def regenerate_line(provenance: dict[str, Any] | None) -> list[str]:
 
 def report_md(report_dir: Path, preset: str, cells_dir: str | Path, cells: list[Cell],
               results: Results, tables: dict[str, str],
-              provenance: dict[str, Any] | None = None) -> Path:
+              provenance: dict[str, Any] | None = None, split: str = "test") -> Path:
     """report.md: the provenance, links to every file, every table inline (one heading level
     down, each with the command that regenerates it), the plot, and one line per cell
-    (training time, test NMSE)."""
+    (training time, NMSE on ``split``)."""
     cells = [c for c in cells if c.name in results]  # a failed cell has no record
     total = sum(training(results, c).get("wall_time_s", 0.0) for c in cells)
-    lines = [f"# Experiments report: preset `{preset}`", ""]
+    name = SPLIT_NAMES[split]
+    lines = [f"# Experiments report: preset `{preset}`, scored on the {name} split", ""]
+    if split != "test":
+        lines += [VAL_NOTE, ""]
     if provenance:
         lines += ["## Provenance", "", *provenance_lines(provenance),
                   "", "(also in [provenance.json](provenance.json))", ""]
     lines += [f"{len(cells)} cells trained under `{cells_dir}` "
              f"(total training wall time {total / 60:.1f} min). Every number comes from "
-             "the checkpoints of these cells, evaluated on the test split, except the "
+             f"the checkpoints of these cells, evaluated on the {name} split, except the "
              "paper's published values (labelled).", "",
              "- [Table 1: one-step MSE and NMSE per scene, fps and model](table1.md) "
              "([csv](table1.csv))",
@@ -428,7 +482,8 @@ def report_md(report_dir: Path, preset: str, cells_dir: str | Path, cells: list[
     for text in tables.values():
         lines += ["#" + text.rstrip("\n"), "", *regenerate_line(provenance)]
     lines += ["![sample efficiency](sample_efficiency.png)", "",
-              "## Cells", "", "| cell | groups | trained in (s) | test NMSE |", "|---|---|---|---|"]
+              "## Cells", "", f"| cell | groups | trained in (s) | {split} NMSE |",
+              "|---|---|---|---|"]
     lines += [f"| {c.name} | {', '.join(c.groups)} | "
               f"{fmt(training(results, c).get('wall_time_s'))} | "
               f"{fmt(evaluation(results, c)['nmse'])} |" for c in cells]
@@ -440,27 +495,38 @@ def report_md(report_dir: Path, preset: str, cells_dir: str | Path, cells: list[
 def write_report(report_dir: str | Path, preset: str, cells_dir: str | Path,
                  cells: list[Cell], results: Results,
                  provenance: dict[str, Any] | None = None,
-                 results_md: str | Path | None = None) -> Path:
+                 results_md: str | Path | None = None, split: str = "test") -> Path:
     """Every report file under ``report_dir`` (with ``provenance``: provenance.json too, and
-    its header in report.md); with ``results_md``, that file's generated block of this preset
-    rewritten (``replace_block``). Cells without a record (failed) are left out. Returns
-    report.md."""
+    its header in report.md), each table titled with ``split`` (the split the cells were
+    scored on); with ``results_md``, that file's generated block of this preset and split
+    rewritten (``replace_block``, ``block_name``). Cells without a record (failed) are left
+    out. Returns report.md."""
     import json
 
     report_dir = Path(report_dir)
     (report_dir / "figures").mkdir(parents=True, exist_ok=True)
     cells = [c for c in cells if c.name in results]
-    tables = {name: table(report_dir, cells, results) for name, table in TABLES.items()}
+    tables = {name: table(report_dir, cells, results, split=split)
+              for name, table in TABLES.items()}
     if provenance:
         (report_dir / "provenance.json").write_text(
             json.dumps(provenance, indent=2, sort_keys=True) + "\n")
-    report = report_md(report_dir, preset, cells_dir, cells, results, tables, provenance)
+    report = report_md(report_dir, preset, cells_dir, cells, results, tables, provenance,
+                       split)
     if results_md:
-        write_results_block(Path(results_md), preset, report_dir, tables, provenance)
+        write_results_block(Path(results_md), block_name(preset, split), report_dir, tables,
+                            provenance)
     return report
 
 
 # ----------------------------------------------------------------------------- results_md
+def block_name(preset: str, split: str = "test") -> str:
+    """The generated block of a study in a results file: ``<preset>`` for the test split (the
+    headline tables), ``<preset>_<split>`` otherwise, so that a validation study never
+    overwrites (or reads as) a block of test results."""
+    return preset if split == "test" else f"{preset}_{split}"
+
+
 def block_markers(preset: str) -> tuple[str, str]:
     """The markers around a preset's generated block in a results file."""
     return (f"<!-- generated:{preset}:begin -->", f"<!-- generated:{preset}:end -->")

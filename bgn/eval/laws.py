@@ -1485,7 +1485,7 @@ def law_stage(cfg: Any, best: Path, datamodule: Any, output_dir: Path,
     record = formula_stage(best, datamodule.datasets["train"], datamodule.datasets["val"],
                            cfg, output_dir / "laws", **({} if budget is None else {
                                "finetune.max_seconds": LAW_STAGE_SHARE * budget}))
-    log.info(f"model.law=auto: the {record['choice']} law validates better; it is tested "
+    log.info(f"model.law=auto: the {record['choice']} law validates better "
              f"(report: {record['report']})")
     return record
 

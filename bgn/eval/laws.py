@@ -904,7 +904,7 @@ def write_report(report: LawReport, out_dir: str | Path, title: str | None = Non
 
 FINETUNE_STEPS = 80       # evaluations of the loss (Nelder-Mead) on the formula's constants
 FINETUNE_SUBSTEPS = 16    # model.substeps while the forms are tuned (and in the written checkpoint)
-POLISH_SUBSTEPS = 64      # ... while the chosen form's constants are polished (finetune_formula)
+POLISH_FACTOR = 4         # the chosen form's constants polished through this times finer substeps
 FINETUNE_BATCH = 512      # training frames of the fixed batch (closest_frames among them)
 AMPLITUDE_STEP = 0.1      # the first simplex's step in each amplitude (relative to its start)
 C_STEP = 2.0              # ... and its factor on each constant c
@@ -1169,19 +1169,19 @@ def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], step
 def polish_constants(model: Any, head: Any, batches: list[tuple[float, Any]], steps: int,
                      deadline: float | None, name: str) -> dict[str, Any] | None:
     """The chosen form's constants tuned once more (``steps`` evaluations, as every form)
-    through ``POLISH_SUBSTEPS``: through the
-    coarser substeps the forms are compared with, the loss is rough at the scale of a
-    softening constant, and its minimum spans a band around the truth (docs/results.md, "The
-    formula stage"). The substeps are put back after. None where no time is left."""
+    through ``POLISH_FACTOR`` times finer substeps: through the coarser substeps the forms
+    are compared with, the loss is rough at the scale of a softening constant, and its minimum
+    spans a band around the truth (docs/results.md, "The formula stage"). The substeps are put
+    back after. None where no time is left."""
     coarse = head.substeps
-    head.substeps = POLISH_SUBSTEPS
+    head.substeps = fine = POLISH_FACTOR * coarse
     try:
         loss, n = tune_constants(model, head, batches, steps, deadline, name)
     except _Budget:
         return None
     finally:
         head.substeps = coarse
-    return {"substeps": POLISH_SUBSTEPS, "loss": loss, "evaluations": n}
+    return {"substeps": fine, "loss": loss, "evaluations": n}
 
 
 def finetune_formula(checkpoint: Path, train_split: Any, val: Any,

@@ -436,3 +436,24 @@ def test_pruning_drops_a_negligible_term_whatever_the_loss():
     assert loss == pytest.approx(1.05)
     # without distances only the loss decides: 5 % is above FORM_TOLERANCE, nothing goes
     assert prune_terms(tune, 1.0, None, None, SPRING_AND_A_TAIL)[3] == SPRING_AND_A_TAIL
+
+
+def test_a_term_twice_starts_at_morses_two_scales_despite_a_cut_off_tail():
+    """ASE's Morse force with its smooth cut-off: half the pairs lie where the force is near
+    zero, which a relative fit lets decide; in absolute terms the two exponentials start near
+    Morse's two decay lengths."""
+    from types import SimpleNamespace
+
+    from bgn.eval.laws import twice_form
+
+    r = np.geomspace(0.85, 3.0, 240)
+    s = np.clip(1 - (r - 1.9 * R0) / (0.8 * R0), 0, 1)
+    cut = np.where(s >= 1, 1.0, 6 * s**5 - 15 * s**4 + 10 * s**3)
+    law = KNOWN["morse"][0](r) * cut
+    noisy = law + np.random.default_rng(0).normal(0, 0.01, r.size)  # a network's noise
+    density = np.where(r > 2.1, 4.0, 1.0)  # most pairs beyond the cut-off's start
+    found = twice_form(SimpleNamespace(r=r, learned=noisy, density=density), Term("exp"))
+    assert found is not None
+    terms, values = found
+    assert terms == [Term("exp"), Term("exp")]
+    np.testing.assert_allclose(sorted(values[2:]), [R0 / (2 * RHO), R0 / RHO], rtol=0.1)

@@ -914,6 +914,7 @@ NEGLIGIBLE = 0.01         # a term this small against the law at every distance 
 DISTANCE_QUANTILES = np.linspace(0.01, 0.99, 99)  # "every distance the data reach", robustly
 FINETUNE_HORIZON = 50     # validation rollout steps (as auto.horizon)
 TYPICAL_FLOOR = 1e-9      # added to each error before the geometric mean (an exact rollout)
+CANCELLING = 0.01         # a term twice whose amplitudes cancel to this is one term's derivative
 CLOSE_SHARE = 0.25        # of the tuning batch: the frames with the closest pairs
 ROBUST_SCALE = 0.1        # relative error at which law_objective's Cauchy loss bends
 
@@ -1050,20 +1051,21 @@ def n_constants(spec: str | list[dict[str, Any]]) -> int:
 
 def candidate_specs(report: LawReport) -> list[str]:
     """The forms the fine-tuning starts from: the formula read back, then (one pair of types
-    only) every other formula on its fit's front and every one-term form of the library with
-    a constant c, each fitted to the learned law first. The network's law can be off where
-    the frames pin the form (gravity's close encounters), so a form the fit passed over may
-    fit the frames best."""
+    only) every other formula on its fit's front, every one-term form of the library with a
+    constant c, and every such term twice (``twice_form``), each fitted to the learned law.
+    The network's law can be off where the frames pin the form (gravity's close encounters),
+    so a form the fit passed over may fit the frames best."""
     specs = [formula_spec(report)]
     if len(report.pairs) != 1:
         return specs
     pair = report.pairs[0]
     forms = list(pair.formula.alternatives)
-    for term in default_library():
-        if term.nonlinear:  # (the fitter needs a linear term beside it: a constant)
-            one = fit_formula(pair.r, pair.learned, pair.density, max_terms=1,
-                              library=[Term("const"), term], n_boot=0)
-            forms += [(t, v) for t, v in one.alternatives if t == [term]]
+    nonlinear = [term for term in default_library() if term.nonlinear]
+    for term in nonlinear:  # (the fitter needs a linear term beside it: a constant)
+        one = fit_formula(pair.r, pair.learned, pair.density, max_terms=1,
+                          library=[Term("const"), term], n_boot=0)
+        forms += [(t, v) for t, v in one.alternatives if t == [term]]
+    forms += [form for term in nonlinear if (form := twice_form(pair, term)) is not None]
     for terms, values in forms:
         spec = json.dumps([pair_spec(pair.types, terms, values)])
         if spec not in specs:
@@ -1090,6 +1092,21 @@ def negligible_term(spec: str, distances: np.ndarray | None) -> int | None:
     peak = np.abs(values).max(0) / max(size, 1e-300)
     k = int(np.argmin(peak))
     return k if peak[k] < NEGLIGIBLE else None
+
+
+def twice_form(pair: Any, term: Term) -> tuple[list[Term], np.ndarray] | None:
+    """``term`` twice, each with its own c (Morse: two exponentials), fitted to ``pair``'s
+    learned law in absolute terms: relative residuals are set by the many pairs where the law
+    is near zero (beyond a cut-off), as the frames' loss is not, and there the fit collapses
+    to one scale. None where the two amplitudes cancel to ``CANCELLING`` of the larger: a
+    finite difference of one term (its derivative in c), not two scales of the law."""
+    fit = fit_formula(pair.r, pair.learned, pair.density, max_terms=2,
+                      library=[Term("const"), term], scale=np.ones_like(pair.r), n_boot=0)
+    for terms, values in fit.alternatives:
+        a = np.abs(values[:2])
+        if terms == [term, term] and abs(values[0] + values[1]) > CANCELLING * a.max():
+            return terms, values
+    return None
 
 
 def prune_terms(tune: Callable[[str], tuple[float, Any, Any, str]], loss: float, module: Any,

@@ -72,9 +72,10 @@ def read_law(laws: Path) -> dict[str, np.ndarray]:
 
 
 def bands_table(r: np.ndarray, density: np.ndarray, truth: np.ndarray,
-                laws: dict[str, np.ndarray]) -> list[str]:
-    """Median / max relative error of each law against the engine in quantile bands of the
-    training distances (``density``: the data's density of log r on the grid ``r``)."""
+                laws: dict[str, np.ndarray], relative: bool = True) -> list[str]:
+    """Median / max error of each law against the engine in quantile bands of the training
+    distances (``density``: the data's density of log r on the grid ``r``): relative to the
+    engine's force (``relative``), else to its RMS size over the training distances."""
     weight = density * np.gradient(np.log(r))
     cdf = np.cumsum(weight) / weight.sum()
     scale = np.sqrt(np.average(truth**2, weights=weight))  # floor near the zero crossing
@@ -86,8 +87,8 @@ def bands_table(r: np.ndarray, density: np.ndarray, truth: np.ndarray,
             continue
         cells = []
         for values in laws.values():
-            rel = np.abs(values[inside] - truth[inside]) / np.maximum(
-                np.abs(truth[inside]), 0.01 * scale)
+            size = np.maximum(np.abs(truth[inside]), 0.01 * scale) if relative else scale
+            rel = np.abs(values[inside] - truth[inside]) / size
             cells.append(f"{np.median(rel):.3g} / {rel.max():.3g}")
         lines.append(f"| {lo:g}-{hi:g} | {r[inside][0]:.3g}-{r[inside][-1]:.3g} | "
                      + " | ".join(cells) + " |")
@@ -107,7 +108,11 @@ def main() -> None:
     lines = [f"# {args.laws}: the learned pair law against the engine's", "", f"Engine: {text}.",
              "", "Relative errors |a - b| / |b| (|b| floored at 1 % of the engine's RMS force "
              "over the training distances), median / max, in quantile bands of the training "
-             "pair distances:", "", *bands_table(law["r"], law["density"], truth, compared)]
+             "pair distances:", "", *bands_table(law["r"], law["density"], truth, compared),
+             "", "The same errors against the engine's RMS force over the training distances "
+             "(where the force is near zero, beyond the cutoff's start, a relative error says "
+             "little):", "",
+             *bands_table(law["r"], law["density"], truth, compared, relative=False)]
     if "fitted" in law:
         lines += ["", f"Formula fitted to the frames (bgn.model.formula_law spec): "
                       f"`{json.dumps(law['fitted_text'])}`"]

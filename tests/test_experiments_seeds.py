@@ -223,3 +223,22 @@ def test_tiny_preset_two_seeds_two_workers(tmp_path: Path) -> None:
     assert provenance["git_commit"] and provenance["config_hash"]
     assert "## Provenance" in report.read_text()
     assert "<!-- generated:tiny:begin -->" in (tmp_path / "results.md").read_text()
+
+
+def test_seeds_of_one_model_config_are_one_row_whatever_their_fitted_law() -> None:
+    """A formula law fitted per run names other constants in each seed's label and physics:
+    the seeds of one model config are still one row (its texts merged), two configs two."""
+    from bgn.studies.report import MODEL_ID, merged_text
+
+    physics = ["pair forces; the law a formula -1.003*(r + 0.0107)**-2",
+               "pair forces; the law a formula -0.9996*(r + 0.0097)**-2"]
+    text = "physics written in"
+    rows = [{"seed": s, MODEL_ID: "bgn/", "scene": "g", "model": "BGN", text: p, "x": x}
+            for s, p, x in zip(SEEDS, physics, [1.0, 3.0])]
+    rows.append({"seed": 0, MODEL_ID: "gns/", "scene": "g", "model": "BGN", text: "none",
+                 "x": 5.0})
+    one, other = aggregate_rows(rows, ["scene", "model", text])
+    assert one["seeds"] == 2 and one["x"] == 2.0 and other["x"] == 5.0
+    assert one[text] == ("pair forces; the law a formula (per seed: -1.003*(r + "
+                              "0.0107)**-2 | -0.9996*(r + 0.0097)**-2)")
+    assert merged_text(["same", "same"]) == "same"

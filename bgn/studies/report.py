@@ -72,6 +72,8 @@ def split_notes(split: str, notes: str) -> str:
 # ----------------------------------------------------------------------------- seeds
 SEED = "seed"          # the training seed of a per-seed row (bgn.studies.cells.Cell.seed)
 SEEDS = "seeds"        # how many seeds an aggregated row holds
+MODEL_ID = "model_id"  # a per-seed row's model config (cell model and variant): what groups it
+MODEL_TEXT = ("model", "given", "physics written in")  # what describes it, seed by seed
 STATS = ("std", "min", "max", "n")  # the spread columns beside each mean in the CSV
 SEEDS_NOTE = ("Seeds: each row is the mean over its `seeds` training seeds, ± the sample "
               "standard deviation, with (min–max) after it; never the best seed. A value "
@@ -84,21 +86,43 @@ def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
+def _group_key(row: dict[str, Any], keys: list[str]) -> tuple[Any, ...]:
+    """What makes rows one aggregated row: ``keys``, where a row has a ``MODEL_ID`` (the
+    cell's model config) that in place of the texts describing the model, which may differ
+    across seeds (a formula law fitted per run)."""
+    if MODEL_ID not in row:
+        return tuple(row.get(k) for k in keys)
+    return (*(row.get(k) for k in keys if k not in MODEL_TEXT), row[MODEL_ID])
+
+
+def merged_text(values: list[Any]) -> Any:
+    """One cell for a text column whose seeds differ: the common start, then each seed's
+    rest (``a, formula x`` and ``a, formula y``: ``a, formula (per seed: x | y)``)."""
+    distinct = list(dict.fromkeys(values))
+    if len(distinct) < 2 or not all(isinstance(v, str) for v in distinct):
+        return distinct[0] if distinct else None
+    head = os.path.commonprefix(distinct)
+    head = head[:max(head.rfind(" "), 0) + 1] if head else ""
+    return f"{head}(per seed: {' | '.join(v[len(head):] for v in values)})"
+
+
 def aggregate_rows(rows: list[dict[str, Any]], keys: list[str]) -> list[dict[str, Any]]:
-    """One row per distinct ``keys`` (in order of first appearance) from per-seed rows: each
-    numeric column becomes its mean over the seeds that have a value, with ``<col>_std``
-    (sample standard deviation; 0 with one value), ``<col>_min``, ``<col>_max`` and
-    ``<col>_n``; a non-numeric column keeps its first seed's value; ``seeds`` counts the rows.
-    A non-finite value is kept (a NaN makes the mean NaN; min and max are over the other
-    seeds): a diverged seed is not hidden."""
+    """One row per distinct ``keys`` (``_group_key``; in order of first appearance) from
+    per-seed rows: each numeric column becomes its mean over the seeds that have a value, with
+    ``<col>_std`` (sample standard deviation; 0 with one value), ``<col>_min``, ``<col>_max``
+    and ``<col>_n``; a non-numeric column keeps its first seed's value (a key column whose
+    seeds differ: ``merged_text``); ``seeds`` counts the rows. A non-finite value is kept (a
+    NaN makes the mean NaN; min and max are over the other seeds): a diverged seed is not
+    hidden."""
     groups: dict[tuple[Any, ...], list[dict[str, Any]]] = {}
     for row in rows:
-        groups.setdefault(tuple(row.get(k) for k in keys), []).append(row)
+        groups.setdefault(_group_key(row, keys), []).append(row)
     out = []
     for members in groups.values():
-        row: dict[str, Any] = {k: members[0].get(k) for k in keys}
+        row: dict[str, Any] = {k: merged_text([m.get(k) for m in members]) for k in keys}
         row[SEEDS] = len(members)
-        columns = dict.fromkeys(c for r in members for c in r if c not in keys and c != SEED)
+        columns = dict.fromkeys(c for r in members for c in r
+                                if c not in keys and c not in (SEED, MODEL_ID))
         for column in columns:
             values = [r[column] for r in members if r.get(column) is not None]
             if values and all(_is_number(v) for v in values):
@@ -184,7 +208,7 @@ def variant(results: Results, cell: Cell) -> dict[str, str]:
     its label, what it is given beyond the position window and the physics written into it;
     the cell's model name alone where an older record lacks it."""
     info = results[cell.name]["eval"].get("model") or {}
-    return {"model": info.get("label", cell.model),
+    return {MODEL_ID: f"{cell.model}/{cell.tag}", "model": info.get("label", cell.model),
             "given": ", ".join(info.get("given", [])) or ("-" if info else ""),
             "physics written in": info.get("physics", "")}
 

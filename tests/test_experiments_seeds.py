@@ -240,5 +240,5 @@ def test_seeds_of_one_model_config_are_one_row_whatever_their_fitted_law() -> No
     one, other = aggregate_rows(rows, ["scene", "model", text])
     assert one["seeds"] == 2 and one["x"] == 2.0 and other["x"] == 5.0
     assert one[text] == ("pair forces; the law a formula (per seed: -1.003*(r + "
-                              "0.0107)**-2 | -0.9996*(r + 0.0097)**-2)")
+                         "0.0107)**-2; -0.9996*(r + 0.0097)**-2)")
     assert merged_text(["same", "same"]) == "same"

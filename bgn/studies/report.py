@@ -97,13 +97,14 @@ def _group_key(row: dict[str, Any], keys: list[str]) -> tuple[Any, ...]:
 
 def merged_text(values: list[Any]) -> Any:
     """One cell for a text column whose seeds differ: the common start, then each seed's
-    rest (``a, formula x`` and ``a, formula y``: ``a, formula (per seed: x | y)``)."""
+    rest (``a, formula x`` and ``a, formula y``: ``a, formula (per seed: x; y)``: no ``|``,
+    which would split a markdown table's cell)."""
     distinct = list(dict.fromkeys(values))
     if len(distinct) < 2 or not all(isinstance(v, str) for v in distinct):
         return distinct[0] if distinct else None
     head = os.path.commonprefix(distinct)
     head = head[:max(head.rfind(" "), 0) + 1] if head else ""
-    return f"{head}(per seed: {' | '.join(v[len(head):] for v in values)})"
+    return f"{head}(per seed: {'; '.join(v[len(head):] for v in values)})"
 
 
 def aggregate_rows(rows: list[dict[str, Any]], keys: list[str]) -> list[dict[str, Any]]:

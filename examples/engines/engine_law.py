@@ -125,13 +125,19 @@ def main() -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.5, 4.5))
+    fig, (ax, err) = plt.subplots(2, 1, figsize=(6.5, 7), sharex=True)
     ax.plot(law["r"], truth, "k:", lw=2, label="engine (ASE, cutoff included)")
+    floor = 0.01 * np.sqrt(np.mean(truth**2))
     for name, values in compared.items():
         ax.plot(law["r"], values, label=name)
-    ax.set(xlabel="r (training pair distances)", ylabel="f(r) between unit masses (> 0 repulsive)")
+        err.semilogy(law["r"], np.abs(values - truth) / np.maximum(np.abs(truth), floor),
+                     label=name)
+    ax.set(ylabel="f(r) between unit masses (> 0 repulsive)")
     ax.set_ylim(1.3 * truth.min(), 1.1 * truth.max())
     ax.legend()
+    err.set(xlabel="r (training pair distances)",
+            ylabel="relative error vs engine (floor: 1 % of its RMS)")
+    err.legend()
     fig.tight_layout()
     fig.savefig(args.laws / "engine_law.png", dpi=120)
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shlex
 import subprocess
 import sys
@@ -44,7 +45,7 @@ from bgn.studies.cells import (
     preset_seeds,
     train_cell,
 )
-from bgn.studies.headline import run_stages
+from bgn.studies.headline import STAGES, run_stages
 from bgn.studies.report import CALIBRATION_SPLIT, write_report
 from bgn.train.checkpoints import chosen_checkpoint, read_record, write_atomic
 
@@ -57,14 +58,12 @@ def eval_split(preset: DictConfig) -> str:
 def validate_grid(preset: DictConfig) -> None:
     """The grid's own keys ``eval.split`` and ``variants``, checked before any cell trains
     (``bgn.studies.dispatch.validate_cells``): a bad value is one ``ConfigError`` naming it."""
-    import re
-
     split = eval_split(preset)
     if split not in CALIBRATION_SPLIT:
         raise ConfigError("preset.eval.split", split,
                           f"choose one of {list(CALIBRATION_SPLIT)} (the split every table "
                           "scores; val to re-check a default)")
-    stages = [k for k in ("stability", "pareto") if preset.get(k) is not None]
+    stages = [k for k in STAGES if preset.get(k) is not None]
     if split != "test" and stages:
         raise ConfigError("preset.eval.split", split, (
             f"the {' and '.join(stages)} stage(s) write headline test tables; set "
@@ -371,7 +370,7 @@ def run(cfg: DictConfig) -> Path:
     print(f"report: {report} ({time.perf_counter() - start:.0f} s)")
     # the stability and Pareto tables from the same cells (preset.stability / .pareto)
     failed += run_stages(cfg, cells, results, provenance, workers, threads)
-    if cfg.preset.get("stability") is not None or cfg.preset.get("pareto") is not None:
+    if any(cfg.preset.get(k) is not None for k in STAGES):
         print(f"total wall time {time.perf_counter() - start:.0f} s")
     if failed:
         raise CellsFailed(report, failed)

@@ -40,6 +40,7 @@ import torch
 from lightning.pytorch.callbacks import Callback
 from omegaconf import DictConfig
 
+from bgn.coerce import clock
 from bgn.studies.cells import Cell, cell_datamodule, train_cell
 from bgn.tables import fmt, write_table
 from bgn.train.checkpoints import read_record, write_atomic
@@ -107,7 +108,7 @@ def schedule_overrides(cell_dir: Path, seconds: Sequence[float]) -> list[str]:
     return ["+callbacks.time_schedule._target_=bgn.studies.pareto.TimeSchedule",
             f"+callbacks.time_schedule.dirpath={cell_dir / 'checkpoints'}",
             f"+callbacks.time_schedule.seconds=[{','.join(f'{s:g}' for s in seconds)}]",
-            f"trainer.max_time=00:{limit // 3600:02d}:{limit // 60 % 60:02d}:{limit % 60:02d}",
+            f"trainer.max_time={clock(limit)}",
             "test=false"]
 
 

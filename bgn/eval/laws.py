@@ -36,14 +36,16 @@ vector from j to i (positive: repulsive). This module reads that law back:
    the markdown for an evaluation report.
 4. ``finetune=true`` (``finetune_formula``): the formula as the model's law (``model.law=formula``,
    ``model.law_formula``: ``formula_spec``'s JSON, ``bgn.model.formula_law``). Every form on
-   the fit's front and every one-term form of the library (``candidate_specs``) has its
-   constants fitted to the frames (``tune_constants``: Nelder-Mead on the head's law loss
-   under a Cauchy loss, ``law_objective``, through ``model.substeps``: a frame's
-   finite-difference target averages the force over the frame) and is pruned of the terms the
-   frames do not need (``prune_terms``); the lowest loss wins. The network law and the formula
-   are then scored on the validation rollouts (``bgn.studies.auto``'s protocol) and the better
-   chosen; ``<run>/laws/formula.ckpt`` (with its ``train_config.yaml``) loads as any
-   checkpoint. ``model.law=auto`` runs this after training (``law_stage``).
+   the fit's front, every one-term form of the library and every nonlinear term twice
+   (``candidate_specs``) has its constants fitted to the frames (``tune_constants``:
+   Nelder-Mead on the head's law loss under a Cauchy loss, ``law_objective``, through
+   ``model.substeps``: a frame's finite-difference target averages the force over the frame)
+   and is pruned of the terms the frames do not need (``prune_terms``); the lowest loss wins,
+   and its constants are polished through finer substeps (``polish_constants``). The network
+   law and the formula are then scored on the validation rollouts (``bgn.studies.auto``'s
+   protocol) and the better chosen; ``<run>/laws/formula.ckpt`` (with its
+   ``train_config.yaml``) loads as any checkpoint. ``model.law=auto`` runs this after training
+   (``law_stage``).
 
 Libraries. PySR (symbolic regression, Cranmer's route) downloads and compiles Julia at run
 time: not possible without network. PySINDy (installs from PyPI, with scikit-learn) fits
@@ -85,6 +87,7 @@ from scipy.stats import gaussian_kde
 ZERO_CROSSING_WIDTH = 0.1
 SIZE_FLOOR = 0.01                 # of the law's size at the median point (fit_formula)
 GRID_POINTS = 240                 # log-spaced distances per pair of types
+DISTANCE_QUANTILES = np.linspace(0.01, 0.99, 99)  # "every distance the data reach", robustly
 KDE_POINTS = 20_000               # distances the density of log r is estimated from
 BAND_QUANTILES = (0.0, 0.01, 0.1, 0.5, 0.9, 0.99, 1.0)  # bands of the error table
 C_GRID = 41                       # values of a nonlinear constant tried before refinement
@@ -565,6 +568,8 @@ class PairLaw:
     bands: list[dict[str, Any]]
     n_distances: int
     truth_in_form: dict[str, Any] | None = None
+    # the training distances at DISTANCE_QUANTILES: where the data reach (negligible_term)
+    reach: np.ndarray | None = None
 
 
 @dataclass
@@ -654,7 +659,8 @@ def read_law(module_or_model: Any, dataset: Any, max_terms: int = 3,
         pairs.append(PairLaw(
             types, r, learned, formula, true, density, edges, np.histogram(distances, edges)[0],
             _bands(head, dim, types, distances, factor, formula,
-                   None if truth is None else truth[0]), len(distances), in_form))
+                   None if truth is None else truth[0]), len(distances), in_form,
+            np.quantile(distances, DISTANCE_QUANTILES)))
     return LawReport(
         scene=dataset.meta.name, model=getattr(model, "name", type(model).__name__),
         mass_law=head.mass_law, scale=scale,
@@ -911,7 +917,6 @@ C_STEP = 2.0              # ... and its factor on each constant c
 LAW_STAGE_SHARE = 0.5     # model.law=auto: the forms' fitting at most this share of max_time
 FORM_TOLERANCE = 0.02     # a simpler form is kept while its tuned loss is within this of the best
 NEGLIGIBLE = 0.01         # a term this small against the law at every distance goes (prune_terms)
-DISTANCE_QUANTILES = np.linspace(0.01, 0.99, 99)  # "every distance the data reach", robustly
 FINETUNE_HORIZON = 50     # validation rollout steps (as auto.horizon)
 TYPICAL_FLOOR = 1e-9      # added to each error before the geometric mean (an exact rollout)
 CANCELLING = 0.01         # a term twice whose amplitudes cancel to this is one term's derivative
@@ -1073,19 +1078,19 @@ def candidate_specs(report: LawReport) -> list[str]:
     return specs
 
 
-def negligible_term(spec: str, distances: np.ndarray | None) -> int | None:
+def negligible_term(spec: str, reach: np.ndarray | None) -> int | None:
     """The smallest term of a one-pair ``spec`` whose size stays below ``NEGLIGIBLE`` times
-    the law's RMS size at every training distance (``DISTANCE_QUANTILES`` of ``distances``),
-    or None. Such a term changes no prediction the frames can check; the loss may still
-    prefer it a little, where it absorbs what the substeps miss at the closest encounters.
-    Dropping it whatever the loss is sequential thresholding, as sparse regression does."""
+    the law's RMS size at every distance of ``reach`` (where the data reach: the training
+    distances at ``DISTANCE_QUANTILES``, ``PairLaw.reach``), or None. Such a term changes no
+    prediction the frames can check; the loss may still prefer it a little, where it absorbs
+    what the substeps miss at the closest encounters. Dropping it whatever the loss is
+    sequential thresholding, as sparse regression does."""
     from bgn.model.formula_law import FormulaLaw
 
     pairs = json.loads(spec)
-    if distances is None or len(distances) == 0 or len(pairs) != 1 \
-            or len(pairs[0]["terms"]) < 2:
+    if reach is None or len(reach) == 0 or len(pairs) != 1 or len(pairs[0]["terms"]) < 2:
         return None
-    r = torch.as_tensor(np.quantile(distances, DISTANCE_QUANTILES), dtype=torch.float64)
+    r = torch.as_tensor(reach, dtype=torch.float64)
     with torch.no_grad():
         values = FormulaLaw(spec).values(r).numpy()                      # (R, K)
     size = np.sqrt(np.mean(values.sum(-1) ** 2))
@@ -1110,24 +1115,26 @@ def twice_form(pair: Any, term: Term) -> tuple[list[Term], np.ndarray] | None:
 
 
 def prune_terms(tune: Callable[[str], tuple[float, Any, Any, str]], loss: float, module: Any,
-                hp: Any, spec: str, distances: np.ndarray | None = None,
+                hp: Any, spec: str, reach: np.ndarray | None = None,
                 ) -> tuple[float, Any, Any, str]:
-    """Backward elimination on the frames: a negligible term (``negligible_term``, at the
-    ``distances`` the data reach) is dropped, the rest tuned again, whatever the loss; else a
+    """Backward elimination on the frames: a negligible term (``negligible_term``, over the
+    distances the data ``reach``) is dropped, the rest tuned again, whatever the loss; else a
     term is dropped while the loss rises by at most ``FORM_TOLERANCE``: a term the network's
     law needed in its tails (where the frames barely pin it) goes."""
+    def without(k: int) -> str:
+        pair = json.loads(spec)[0]
+        return json.dumps([{**pair, "terms": [t for j, t in enumerate(pair["terms"]) if j != k]}])
+
     while True:
         pairs = json.loads(spec)
         if len(pairs) != 1 or len(pairs[0]["terms"]) < 2:
             return loss, module, hp, spec
-        drop = negligible_term(spec, distances)
-        for k in range(len(pairs[0]["terms"])) if drop is None else [drop]:
-            fewer = [{**pairs[0], "terms": [t for j, t in enumerate(pairs[0]["terms"])
-                                            if j != k]}]
-            result = tune(json.dumps(fewer))
-            if drop is not None:
-                loss, module, hp, spec = result
-                break
+        drop = negligible_term(spec, reach)
+        if drop is not None:
+            loss, module, hp, spec = tune(without(drop))
+            continue
+        for k in range(len(pairs[0]["terms"])):
+            result = tune(without(k))
             if not result[0] > loss * (1 + FORM_TOLERANCE):
                 loss, module, hp, spec = min(result[0], loss), *result[1:]
                 break
@@ -1217,12 +1224,11 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     it); the chosen form's constants are then polished through finer substeps
     (``polish_constants``). Only the law is fitted: the rest of the model is the
     checkpoint's, validated with the network law, and a handful of constants cannot overfit
-    a split. Both laws are then
-    scored on the validation rollouts (``validation_errors``); the lower typical error
-    (geometric mean over the rollouts) after the horizon is chosen. ``out_dir``: writes
-    ``formula.ckpt`` (loadable as any checkpoint) and ``formula.json``. ``start``: a spec to
-    start from in place of the law read back (tests). ``max_seconds``: the fit stops there
-    too (a time budget: ``bgn.studies.auto``'s share).
+    a split. Both laws are then scored on the validation rollouts (``validation_errors``);
+    the lower typical error (geometric mean over the rollouts) after the horizon is chosen.
+    ``out_dir``: writes ``formula.ckpt`` (loadable as any checkpoint) and ``formula.json``.
+    ``start``: a spec to start from in place of the law read back (tests). ``max_seconds``:
+    the fit stops there too (a time budget: ``bgn.studies.auto``'s share).
     Returns the record (specs before and after, errors, choice)."""
     from bgn.train.checkpoints import read, write_atomic
     from bgn.train.module import load_model
@@ -1231,7 +1237,12 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     if start is None and report is None:
         report = read_law(network, train_split)
     batches = tuning_batches(train_split, batch_size, seed)
-    distances = np.concatenate(list(pair_distances(train_split).values()) or [np.zeros(0)])
+    # where the data reach: the report's (one pair of types), else from the split's distances
+    if report is not None and len(report.pairs) == 1:
+        reach = report.pairs[0].reach
+    else:
+        seen = np.concatenate([np.zeros(0), *pair_distances(train_split).values()])
+        reach = np.quantile(seen, DISTANCE_QUANTILES) if seen.size else None
     deadline = None if max_seconds is None else time.perf_counter() + max_seconds
     evaluations = [0, 0]  # loss evaluations, tunings (each at most `steps` evaluations)
 
@@ -1246,15 +1257,14 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
         evaluations[1] += 1
         return loss, module, hp, head.force_law.spec()
 
-    # every form on the fit's front, each tuned on the frames and pruned of the terms the
-    # frames do not need; the lowest loss wins, the fewest constants among near ties
+    # every candidate form, each tuned on the frames and pruned of the terms the frames do
+    # not need; the lowest loss wins, the fewest constants among near ties
     starts = [start] if start is not None else candidate_specs(report)
     forms = []
     for spec in starts:
         try:
             loss, module, hp, tuned = tune(spec)
-            loss, module, hp, tuned = prune_terms(tune, loss, module, hp, tuned,
-                                                  distances)
+            loss, module, hp, tuned = prune_terms(tune, loss, module, hp, tuned, reach)
         except _Budget:
             break
         forms.append({"start": json.loads(spec), "tuned": json.loads(tuned), "loss": loss,
@@ -1361,9 +1371,10 @@ def finetune_markdown(record: dict[str, Any], level: int = 2) -> str:
             f"{_g(s['errors'][k])} | {_g(typical[k]) if k in typical else ''}"
             for k in horizons) + f" | {s['failed_share']:.0%} |")
     if record.get("forms"):
-        lines += ["", "Forms tried (each on the front of the fit, its constants fitted to the "
-                  "law's loss on the frames, then pruned of terms the frames do not need; the "
-                  f"lowest loss wins, the fewest constants within {FORM_TOLERANCE:.0%} of it):",
+        lines += ["", "Forms tried (the fit's front, the library's one-term forms and each "
+                  "nonlinear term twice: each form's constants fitted to the law's loss on the "
+                  "frames, then pruned of terms the frames do not need; the lowest loss wins, "
+                  f"the fewest constants within {FORM_TOLERANCE:.0%} of it):",
                   "", "| from | tuned and pruned | constants | loss |", "|---|---|---|---|"]
         lines += [f"| `{_spec_text(f['start'])}` | `{_spec_text(f['tuned'])}` | "
                   f"{f['constants']} | {_g(f['loss'])} |" for f in record["forms"]]

@@ -52,21 +52,17 @@ def engine_force(dataset: Path, r: np.ndarray) -> tuple[np.ndarray, str]:
                      "knows (ASE's Morse gas)")
 
 
-def read_law(laws: Path) -> dict[str, np.ndarray]:
+def read_law_folder(laws: Path) -> dict[str, np.ndarray]:
     with open(laws / "law.csv") as f:
         rows = [row for row in csv.DictReader(f)]
     cols = {k: np.array([float(row[k]) for row in rows]) for k in ("r", "learned", "formula")}
     density = np.asarray(json.loads((laws / "law.json").read_text())["pairs"][0]["density"])
     cols["density"] = density
     if (laws / "formula.json").is_file():
-        import torch
-
-        from bgn.model.formula_law import FormulaLaw
+        from bgn.eval.laws import spec_values
 
         record = json.loads((laws / "formula.json").read_text())
-        law = FormulaLaw(json.dumps(record["tuned"]))
-        with torch.no_grad():
-            cols["fitted"] = law(torch.as_tensor(cols["r"], dtype=torch.float64)).numpy()
+        cols["fitted"] = spec_values(json.dumps(record["tuned"]), (0, 0), cols["r"])
         cols["fitted_text"] = record["tuned"]
     return cols
 
@@ -100,7 +96,7 @@ def main() -> None:
     ap.add_argument("dataset", type=Path, help="the engine's dataset folder (engine.json)")
     ap.add_argument("laws", type=Path, help="a python -m bgn.laws output folder")
     args = ap.parse_args()
-    law = read_law(args.laws)
+    law = read_law_folder(args.laws)
     truth, text = engine_force(args.dataset, law["r"])
     compared = {"learned": law["learned"], "read back": law["formula"]}
     if "fitted" in law:

@@ -194,10 +194,12 @@ def test_report_names_the_choice_and_shows_its_evidence(tmp_path):
     absent = Result(Candidate("impulse", "impulses", [], admitted=False, reason="no contacts"))
     protocol = {"horizon": 50, "horizons": [10, 50], "sims": [0, 1], "starts": [6],
                 "rollouts": 2, "share": 0.5, "budget_each": {"max_steps": 30},
-                "budget_winner": {"max_steps": 70}, "masses_known": True}
+                "budget_winner": {"max_steps": 70}, "masses_known": True,
+                "balance": {"linear": 2e-9, "angular": 3e-7, "sims": 8, "frames": 256}}
     report = write_report(tmp_path, [decoder, pair, absent], pair, 4.0, protocol).read_text()
     assert "**newton_inertial**" in report and "4 times that" in report
     assert "no: no contacts" in report
+    assert "momentum imbalance 2e-09" in report and "Verdict: balanced" in report
     record = json.loads((tmp_path / "auto.json").read_text())
     assert record["choice"] == "newton_inertial" and record["margin"] == 4.0
     rows = (tmp_path / "auto.csv").read_text().splitlines()

@@ -9,7 +9,9 @@ data admit is trained for a share of the budget (``auto.share`` of each of ``tra
 - the pair-force head (``bgn.model.newton``) with each way masses can enter (``mass_law``
   inertial and source), where the scene has pairwise (or unknown) forces on a complete or
   radius graph (short-range data: a pair beyond the radius has no edge and no force), an
-  acceleration target and a window of at least 3 velocities (``newton.check_scene``);
+  acceleration target and a window of at least 3 velocities (``newton.check_scene``), and
+  whose training data conserve momentum and angular momentum (``bgn.data.balance``: what
+  central pair forces cannot break, so a field, walls, drag or friction rule them out);
 - the contact-impulse head (``bgn.model.impulse``) on contact scenes whose discs have radii;
 - the baselines (``auto.references``: GNS, Cranmer et al.'s GN) as references: trained and
   reported on the same protocol, never chosen.
@@ -36,7 +38,7 @@ import logging
 import math
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -45,6 +47,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from bgn.coerce import clock, seconds
+from bgn.data.balance import IMBALANCE_MAX, Balance, momentum_balance
 from bgn.metrics import SHORT_HORIZON, rollout_scores
 from bgn.sim.scene import SceneMeta
 from bgn.train.checkpoints import write_atomic
@@ -79,10 +82,12 @@ class Candidate:
 
 
 def candidates(meta: SceneMeta, history: int, radii_given: bool,
-               references: Sequence[str] = ("gns", "cranmer_gn")) -> list[Candidate]:
+               references: Sequence[str] = ("gns", "cranmer_gn"),
+               balance: Balance | None = None) -> list[Candidate]:
     """Every structure BGN has, each admitted or not (with the reason) by the scene's
-    metadata, the window (``history`` past velocities) and whether the discs' radii are
-    given; then the references."""
+    metadata, the window (``history`` past velocities), whether the discs' radii are given
+    and what the data conserve (``balance``: a pair-force head cannot make data whose
+    momentum or angular momentum changes); then the references."""
     from bgn.model.newton import check_scene
 
     out = [Candidate("decoder", "BGN + the paper's decoder (Eq. 5): the window in, the "
@@ -101,6 +106,8 @@ def candidates(meta: SceneMeta, history: int, radii_given: bool,
                 check_scene(meta, history, "the pair-force head")
             except ValueError as err:
                 cand.admitted, cand.reason = False, str(err).split(": use model=")[0]
+            if cand.admitted and balance is not None and balance.breaks():
+                cand.admitted, cand.reason = False, balance.breaks()
         out.append(cand)
     impulse = Candidate("impulse", "BGN + contact-impulse head (equal and opposite impulses "
                         "along the normal at the time of impact, masses learned from radii)",
@@ -347,6 +354,22 @@ def _fmt(value: float) -> str:
         else f"{value:.3g}"
 
 
+def balance_lines(balance: Mapping[str, Any] | None) -> list[str]:
+    """The report's paragraph on what the training split conserves (``bgn.data.balance``)."""
+    if not balance:
+        return []
+    if balance.get("linear") is None:
+        return [f"What the data conserve: not tested ({balance.get('reason')})."]
+    b = Balance(**balance)
+    angular = ("not defined (periodic or 1-D)" if b.angular is None
+               else f"{b.angular:.2g}")
+    verdict = b.breaks() or ("balanced: central pair forces can make these data")
+    return [f"What the data conserve (training split, {b.sims} simulations x {b.frames} "
+            f"frames, median; 0 = balanced by some positive masses, limit "
+            f"{IMBALANCE_MAX:g}): momentum imbalance {b.linear:.2g}, with angular momentum "
+            f"{angular}. Verdict: {verdict}."]
+
+
 def write_report(auto_dir: Path, results: Sequence[Result], winner: Result, margin: float,
                  protocol: dict[str, Any]) -> Path:
     """``report.md``, ``auto.csv``, ``auto.json`` and the figures in ``auto_dir``."""
@@ -402,6 +425,7 @@ def write_report(auto_dir: Path, results: Sequence[Result], winner: Result, marg
               f"{_fmt(winner.errors.get(h))} after {h} steps; the runner-up's is "
               f"{_fmt(margin)} times that." if math.isfinite(margin) else
               f"Chosen: **{winner.candidate.name}**, the one eligible candidate.", ""]
+    lines += balance_lines(protocol.get("balance")) + [""]
     failures = [r for r in results if r.error]
     for r in failures:
         lines.append(f"- {r.candidate.name} could not be trained or scored: {r.error}")
@@ -564,8 +588,9 @@ def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[st
     datamodule.prepare_data()
     datamodule.setup()
     val, train_split = datamodule.datasets["val"], datamodule.datasets["train"]
+    balance = momentum_balance(train_split.file, datamodule.meta)
     pool = candidates(datamodule.meta, datamodule.history, radii_given(train_split),
-                      list(auto.get("references", ["gns", "cranmer_gn"]) or []))
+                      list(auto.get("references", ["gns", "cranmer_gn"]) or []), balance)
     admitted = [c for c in pool if c.admitted]
     each, winner_limits = split_budget(cfg.trainer, share, len(admitted))
     n_steps = min(int(auto.get("horizon", 50)), val.file.n_frames - datamodule.history - 2)
@@ -605,7 +630,7 @@ def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[st
     protocol = {"horizon": n_steps, "horizons": horizons, "sims": sims, "starts": starts,
                 "rollouts": len(sims) * len(starts), "share": share,
                 "budget_each": each, "budget_winner": winner_limits,
-                "masses_known": masses_known(val)}
+                "masses_known": masses_known(val), "balance": asdict(balance)}
     report = write_report(auto_dir, results, winner, margin, protocol)
     info(f"auto: chose {winner.candidate.name} (runner-up / winner at {n_steps} steps: "
          f"{margin:.3g}); report: {report}")

@@ -1,0 +1,143 @@
+"""What the data conserve (bgn.data.balance): central pair forces balance, a field, walls or
+tangential pair forces do not, whatever the masses, the units or the particles' order."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from bgn.data.balance import IMBALANCE_MAX, Balance, imbalance, momentum_balance, simulation_columns
+
+
+def trajectory(seed: int, field: float = 0.0, tangential: float = 0.0, dim: int = 2,
+               n: int = 5, frames: int = 120, substeps: int = 20, dt: float = 0.02,
+               ) -> np.ndarray:
+    """(T, N, D) positions of ``n`` particles of random masses under spring-like central
+    pair forces ``-(s - 1) u_ij``, plus a uniform ``field`` along the first axis and, equal
+    and opposite but across the line, ``tangential`` times the pair's force turned by 90
+    degrees (2-D); velocity Verlet with ``substeps`` per frame."""
+    rng = np.random.default_rng(seed)
+    m = rng.uniform(0.5, 2.0, n)
+    x = rng.uniform(-1.5, 1.5, (n, dim))
+    v = rng.normal(0.0, 0.5, (n, dim))
+    v -= (m[:, None] * v).sum(0) / m.sum()
+
+    def accel(x: np.ndarray) -> np.ndarray:
+        d = x[:, None] - x[None]                       # x_i - x_j
+        s = np.linalg.norm(d, axis=-1) + np.eye(n)
+        u = d / s[..., None]
+        f = (-(s - 1.0))[..., None] * u * (1 - np.eye(n))[..., None]
+        if tangential:
+            f = f + tangential * np.stack([-f[..., 1], f[..., 0]], -1)
+        a = f.sum(1) / m[:, None]
+        a[:, 0] += field
+        return a
+
+    h = dt / substeps
+    out = [x.copy()]
+    a = accel(x)
+    for _ in range(frames - 1):
+        for _ in range(substeps):
+            v += 0.5 * h * a
+            x += h * v
+            a = accel(x)
+            v += 0.5 * h * a
+        out.append(x.copy())
+    return np.stack(out)
+
+
+def columns_imbalance(x: np.ndarray, angular: bool) -> float:
+    cols = simulation_columns(x, angular)
+    return imbalance(cols if angular else cols[: (len(x) - 2) * x.shape[-1]])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_central_pair_forces_balance_with_unknown_masses(seed):
+    x = trajectory(seed)
+    assert columns_imbalance(x, angular=False) < 1e-12
+    assert columns_imbalance(x, angular=True) < IMBALANCE_MAX / 10
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_field_breaks_the_momentum_balance(seed):
+    assert columns_imbalance(trajectory(seed, field=-1.0), angular=False) > 10 * IMBALANCE_MAX
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_forces_across_the_line_keep_momentum_but_not_angular_momentum(seed):
+    x = trajectory(seed, tangential=0.5)
+    assert columns_imbalance(x, angular=False) < 1e-12
+    assert columns_imbalance(x, angular=True) > 10 * IMBALANCE_MAX
+
+
+def test_the_imbalance_does_not_depend_on_order_units_or_origin():
+    x = trajectory(3, field=-0.3)
+    ref = columns_imbalance(x, angular=True)
+    perm = np.random.default_rng(0).permutation(x.shape[1])
+    assert columns_imbalance(x[:, perm], angular=True) == pytest.approx(ref, rel=1e-6)
+    assert columns_imbalance(7.0 * x, angular=True) == pytest.approx(ref, rel=1e-6)
+    assert columns_imbalance(x + np.array([3.0, -2.0]), angular=True) == \
+        pytest.approx(ref, rel=1e-6)
+
+
+def test_a_particle_that_never_accelerates_balances_nothing():
+    x = trajectory(4, field=-1.0)
+    still = np.zeros((len(x), 1, 2)) + 5.0       # a particle at rest far away
+    assert columns_imbalance(np.concatenate([x, still], 1), angular=False) > 10 * IMBALANCE_MAX
+
+
+class FakeFile:
+    """The slice of ``DatasetFile`` that momentum_balance reads."""
+
+    def __init__(self, positions: np.ndarray, kinematic: np.ndarray | None = None) -> None:
+        self.arrays = {"positions": positions}
+        if kinematic is not None:
+            self.arrays["kinematic"] = kinematic
+        self.handle = self.arrays
+        self.n_sims, self.n_frames = positions.shape[:2]
+
+    def read(self, name: str, index=()) -> np.ndarray:
+        return self.arrays[name][index]
+
+
+def meta(dim: int = 2, periodic: bool = False) -> SimpleNamespace:
+    return SimpleNamespace(dim=dim, periodic=periodic)
+
+
+def test_momentum_balance_over_simulations_and_its_verdict():
+    balanced = FakeFile(np.stack([trajectory(s) for s in range(3)]))
+    b = momentum_balance(balanced, meta())
+    assert b.sims == 3 and b.linear < 1e-12 and b.angular < IMBALANCE_MAX and b.breaks() == ""
+    pulled = FakeFile(np.stack([trajectory(s, field=-1.0) for s in range(3)]))
+    assert "total momentum changes" in momentum_balance(pulled, meta()).breaks()
+    turned = FakeFile(np.stack([trajectory(s, tangential=0.5) for s in range(3)]))
+    assert "angular momentum changes" in momentum_balance(turned, meta()).breaks()
+    # periodic: angular momentum is not defined, momentum still is
+    b = momentum_balance(turned, meta(periodic=True))
+    assert b.angular is None and b.breaks() == ""
+
+
+def test_sources_that_move_particles_leave_the_balance_untested():
+    x = np.stack([trajectory(s, field=-1.0) for s in range(2)])
+    kinematic = np.zeros((x.shape[0], x.shape[2]), dtype=bool)
+    kinematic[:, 0] = True
+    b = momentum_balance(FakeFile(x, kinematic), meta())
+    assert b.linear is None and "moved by the source" in b.reason and b.breaks() == ""
+
+
+def test_auto_refuses_the_pair_force_head_where_the_data_do_not_balance():
+    from bgn.sim.scene import SceneMeta
+    from bgn.studies.auto import candidates
+
+    gas = SceneMeta("imported", 2, 8, 1, "unknown", "acceleration", "radius")
+    broken = Balance(linear=0.2, angular=0.2, sims=4, frames=100)
+    pool = {c.name: c for c in candidates(gas, 5, False, (), broken)}
+    assert pool["decoder"].admitted
+    for law in ("inertial", "source"):
+        assert not pool[f"newton_{law}"].admitted
+        assert "total momentum changes" in pool[f"newton_{law}"].reason
+    fine = Balance(linear=1e-9, angular=None, sims=4, frames=100)
+    assert all(c.admitted for c in candidates(gas, 5, False, (), fine)
+               if c.name.startswith("newton"))

@@ -220,6 +220,19 @@ def test_candidates_compose_from_the_real_configs(tmp_path):
     assert newton.trainer.max_steps == 3 and newton.test is False
     assert newton.paths.output_dir == str(tmp_path / "n")
     # gravity_r2 trains its pair-force head on the law alone: the decoder needs its dynamics
+    # recorded masses: the law learns with them and the flow reads the fit, unless set
+    plain = {c.name: c for c in candidates(make_scene("spring").meta, 5, True, REFS)}
+    free = ["dataset=spring", "model.mass_context=pairs"]
+    taught = compose_candidate(free, plain["newton_inertial"], tmp_path / "m", limits,
+                               masses=True)
+    assert taught.model.loss_weights.law == 1.0 and taught.model.mass_context == "fit"
+    assert taught.model.mass_fit_error and "model.mass_context=fit" in \
+        plain["newton_inertial"].overrides
+    blind = compose_candidate(free, plain["newton_source"], tmp_path / "b", limits)
+    assert blind.model.mass_context == "pairs" and not blind.model.loss_weights.law
+    compose_candidate(base, pool["newton_source"], tmp_path / "k", limits, masses=True)
+    assert pool["newton_source"].overrides == ["model.dynamics=newton",   # gravity_r2's own
+                                               "model.mass_law=source"]   # defaults stand
     decoder = compose_candidate(base, pool["decoder"], tmp_path / "d", limits)
     assert decoder.model.dynamics == "decoder" and decoder.model.loss_weights.dynamics == 1
     assert decoder.model.target_prior == "none"              # the scene's defaults apply

@@ -462,13 +462,24 @@ def _key(override: str) -> str:
     return override.lstrip("~+").split("=", 1)[0]
 
 
+# what a pair-force candidate on data with recorded masses adds where no scene default says
+# otherwise: the force scenes' own recipe (conf/dataset_model/gravity_r2_bgn.yaml)
+WITH_MASSES = ("model.loss_weights.law=1.0", "model.mass_context=fit",
+               "model.mass_fit_error=true")
+
+
 def compose_candidate(base: Sequence[str], cand: Candidate, out_dir: Path,
-                      limits: Mapping[str, Any], test: bool = False) -> DictConfig:
+                      limits: Mapping[str, Any], test: bool = False,
+                      masses: bool = False) -> DictConfig:
     """The train config of one candidate: conf/train.yaml with the run's overrides (less
     those the candidate sets, and less its model options for a reference, which has other
     ones), the candidate's, its directory and budget. A dynamics loss weighted 0 (a scene
     that trains its pair-force head on the law alone) is weighted 1 for a candidate without
-    that head: it would otherwise learn nothing."""
+    that head: it would otherwise learn nothing. Where the data record masses (``masses``)
+    and the law loss and the mass context are left at their defaults (0, ``pairs``), a pair-force
+    candidate gets ``WITH_MASSES``: its law also learns with the recorded masses (through
+    the window's fit alone its shape is barely pinned, docs/design.md#choosing-a-structure)
+    and its mass flow reads the masses the head fits."""
     from bgn.studies.cells import compose_train
 
     reference = any(_key(o) == "model" for o in cand.overrides)
@@ -477,9 +488,15 @@ def compose_candidate(base: Sequence[str], cand: Candidate, out_dir: Path,
     own = [*cand.overrides, f"paths.output_dir={out_dir}", f"test={str(test).lower()}"]
     cfg = compose_train([*kept, *own])
     weights = cfg.model.get("loss_weights") or {}
+    extra: list[str] = []
     if not cand.pair_force and not reference and weights.get("dynamics", 1.0) == 0:
-        cand.overrides.append("model.loss_weights.dynamics=1.0")
-        cfg = compose_train([*kept, "model.loss_weights.dynamics=1.0", *own])
+        extra = ["model.loss_weights.dynamics=1.0"]
+    elif cand.pair_force and masses and not weights.get("law", 0.0) \
+            and cfg.model.get("mass_context") == "pairs":
+        extra = list(WITH_MASSES)
+    if extra:
+        cand.overrides.extend(extra)
+        cfg = compose_train([*kept, *extra, *own])
     with open_dict(cfg):
         for key, value in limits.items():
             cfg.trainer[key] = value
@@ -589,6 +606,7 @@ def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[st
     datamodule.setup()
     val, train_split = datamodule.datasets["val"], datamodule.datasets["train"]
     balance = momentum_balance(train_split.file, datamodule.meta)
+    known = masses_known(val)
     pool = candidates(datamodule.meta, datamodule.history, radii_given(train_split),
                       list(auto.get("references", ["gns", "cranmer_gn"]) or []), balance)
     admitted = [c for c in pool if c.admitted]
@@ -606,7 +624,8 @@ def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[st
         if cand.admitted:
             out_dir = auto_dir / cand.name
             try:
-                result = train_candidate(cand, compose_candidate(base, cand, out_dir, each))
+                result = train_candidate(cand, compose_candidate(base, cand, out_dir, each,
+                                                                 masses=known))
                 score_candidate(result, out_dir, val, train_split, sims, starts, n_steps,
                                 horizons)
             except Exception as err:  # one candidate's failure is evidence, not the end
@@ -630,13 +649,13 @@ def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[st
     protocol = {"horizon": n_steps, "horizons": horizons, "sims": sims, "starts": starts,
                 "rollouts": len(sims) * len(starts), "share": share,
                 "budget_each": each, "budget_winner": winner_limits,
-                "masses_known": masses_known(val), "balance": asdict(balance)}
+                "masses_known": known, "balance": asdict(balance)}
     report = write_report(auto_dir, results, winner, margin, protocol)
     info(f"auto: chose {winner.candidate.name} (runner-up / winner at {n_steps} steps: "
          f"{margin:.3g}); report: {report}")
     out_dir = auto_dir / winner.candidate.name
     final = compose_candidate(base, winner.candidate, out_dir, winner_limits,
-                              test=bool(cfg.test))
+                              test=bool(cfg.test), masses=known)
     last = out_dir / "checkpoints" / "last.ckpt"
     if last.exists():
         final.ckpt_path = str(last)

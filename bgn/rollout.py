@@ -206,6 +206,12 @@ def scene_period(dataset: FrameDataset) -> np.ndarray | None:
     return np.array([hi - lo if p else np.inf for p, (lo, hi) in zip(periodic, bounds)])
 
 
+def discs(dataset: FrameDataset, radii: np.ndarray) -> bool:
+    """Whether rollouts get the discs' contact metrics (``contact_rollout_metrics``): a
+    contact scene, or imported particles whose radii are given (``radii_by_type``)."""
+    return dataset.meta.interaction == "contact" or bool(radii.size and np.all(radii > 0))
+
+
 def lb_prefix(key: str) -> str:
     """The key prefix of a rollout source's LagrangeBench metrics: ``lb`` for the model,
     ``lb_last``, ``lb_linear``, ``lb_predictability`` for the references."""
@@ -262,7 +268,7 @@ def evaluate_rollouts(model: Predictor, dataset: FrameDataset, n_steps: int = 10
                                  t.first_non_finite, dataset.meta.box,
                                  momentum=dataset.meta.box is None,
                                  contacts=((t.radii, t.types)
-                                           if dataset.meta.interaction == "contact" else None))
+                                           if discs(dataset, t.radii) else None))
         values["seconds_per_step"] = t.seconds_per_step
         metrics.update({f"{key}/{name}": value for name, value in values.items()})
         failed_at = rollout_failures(t.predicted, t.true, dataset.meta.box, t.first_non_finite)

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import re
 import shutil
@@ -282,6 +283,29 @@ def _take(whole: SplitArrays, rows: list[int]) -> SplitArrays:
 
 
 # ----------------------------------------------------------------------------- the command
+def radii_from_types(raw: RawTrajectories, radii_by_type: Sequence[float] | None
+                     ) -> RawTrajectories:
+    """``raw`` with each particle's radius that of its type (``radii_by_type[k]``: type k's),
+    for a source that records types and no radii; unchanged for None."""
+    if radii_by_type is None:
+        return raw
+    table = np.asarray(list(radii_by_type), dtype=np.float64)
+    for split, part in raw.splits.items():
+        if part.radii is not None:
+            raise DataImportError(f"radii_by_type: the {split} split records its own "
+                                  "radii; drop radii_by_type")
+        if part.types is None:
+            raise DataImportError(f"radii_by_type: the {split} split records no particle "
+                                  "types; give radii in the source (plain arrays: 'radii')")
+        types = np.asarray(part.types)
+        if types.max() >= len(table):
+            raise DataImportError(f"radii_by_type has {len(table)} entries but the {split} "
+                                  f"split has particles of type {int(types.max())}: give one "
+                                  "radius per type")
+    return replace(raw, splits={split: replace(part, radii=table[np.asarray(part.types)])
+                                for split, part in raw.splits.items()})
+
+
 def validate_import(cfg: Any) -> None:
     """The import's config, before any file is read."""
     from omegaconf import OmegaConf
@@ -297,6 +321,11 @@ def validate_import(cfg: Any) -> None:
         raise ConfigError("name", cfg.get("name"), "use letters, digits, '.', '_' and '-'")
     if cfg.get("target") not in TARGETS:
         raise ConfigError("target", cfg.get("target"), f"choose one of {TARGETS}")
+    radii = cfg.get("radii_by_type")
+    if radii is not None and (not len(radii) or not all(
+            isinstance(r, (int, float)) and math.isfinite(r) and r > 0 for r in radii)):
+        raise ConfigError("radii_by_type", radii, "give one positive radius per particle type, "
+                          "e.g. radii_by_type=[0.02,0.03]")
 
 
 def describe(paths: Mapping[str, Path], seconds: float) -> str:
@@ -322,6 +351,9 @@ def describe(paths: Mapping[str, Path], seconds: float) -> str:
                         if scene["kinematic_types"] else "none"),
                      "masses: " + ("recorded (they score the inverse model)" if known else
                                    "not given (ones; the mass posterior is reported, unscored)"),
+                     "radii: " + (f"{np.min(radii):g} .. {np.max(radii):g} (the discs' contact "
+                                  "metrics)" if (radii := f.read("radii", ...)).any() else
+                                  "not given"),
                      f"graph: {scene['graph']}" + (f" (radius {scene['connectivity_radius']:g})"
                                                    if scene["graph"] == "radius" else ""),
                      f"walls: box {scene['box']:g}" if scene["box"] else "walls: none",
@@ -344,6 +376,7 @@ def main(cfg: Any) -> dict[str, Path]:
     start = time.perf_counter()
     raw = read_trajectories(cfg.path, fmt=cfg.get("format"),
                             split_seed=int(cfg.get("split_seed", 0)))
+    raw = radii_from_types(raw, cfg.get("radii_by_type"))
     paths = import_dataset(raw, str(cfg.name), cfg.paths.data_dir, int(cfg.get("history", 5)),
                            bool(cfg.get("overwrite", False)), str(cfg.get("target")))
     print(describe(paths, time.perf_counter() - start))

@@ -151,6 +151,9 @@ class ImportKeys:
     overwrite: bool = False           # replace an earlier import of the same name
     history: int = 5                  # the window the import checks every trajectory holds
     target: str = "acceleration"      # velocity: contact data (a next-velocity target)
+    # radius of each particle type ([type 0's, type 1's, ...]) for sources that record types
+    # but no radii (the GNS layout): the discs' contact metrics need them
+    radii_by_type: list[float] | None = None
     paths: Any = None
 
 

@@ -344,3 +344,33 @@ def test_each_split_keeps_its_own_sizes(tmp_path):
     with pytest.raises(ConfigError, match="test split"):  # 9 frames: history 7 needs 10
         validate_train(_train_cfg("sizes", tmp_path, tmp_path / "run", "gns",
                                   "dataset.history=7"))
+
+
+def test_radii_by_type_gives_the_discs_their_radii_and_contact_metrics(tmp_path):
+    from bgn.data.importing import radii_from_types, validate_import
+    from bgn.rollout import evaluate_rollouts
+
+    raw = read_trajectories(_write("lagrangebench-h5", tmp_path))
+    for part in raw.splits.values():          # two types of disc
+        part.types = np.tile(np.arange(N) % 2, (len(part.positions), 1))
+    paths = import_dataset(radii_from_types(raw, [0.02, 0.03]), "discs", tmp_path / "data")
+    radii, types = (DatasetFile(paths["test"]).read(k, ...) for k in ("radii", "types"))
+    np.testing.assert_array_equal(radii, np.where(types == 0, 0.02, 0.03))
+    cfg = _train_cfg("discs", tmp_path / "data", tmp_path / "run", "gns")
+    datamodule, module = build(cfg)
+    metrics = evaluate_rollouts(module.model, datamodule.datasets["test"], n_steps=3,
+                                references=False)
+    assert {"rollout/speed_w1_type0", "rollout/speed_w1_type1",
+            "rollout/collision_rate_ratio"} <= set(metrics)
+    # without radii, no contact metrics
+    plain = import_dataset(raw, "plain", tmp_path / "data")
+    assert not DatasetFile(plain["test"]).read("radii", ...).any()
+    # bad input: each one error naming the fix
+    with pytest.raises(DataImportError, match="one radius per type"):
+        radii_from_types(raw, [0.02])
+    with pytest.raises(DataImportError, match="records its own radii"):
+        radii_from_types(radii_from_types(raw, [0.02, 0.03]), [0.02, 0.03])
+    for bad in ([], [0.02, -1.0], [float("nan")]):
+        with pytest.raises(ConfigError, match="radii_by_type"):
+            validate_import({"path": "x", "name": "discs", "target": "acceleration",
+                             "radii_by_type": bad})

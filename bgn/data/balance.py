@@ -15,10 +15,13 @@ the particles' normalised acceleration columns best, ``min ||A w||^2 / ||w||^2``
 one particle's second differences over the frames, scaled to unit length, so that no particle
 balances the others by accelerating little). 0: balanced by some positive masses; near 1: no
 mixture of the particles cancels. docs/design.md#choosing-a-structure says how ``auto`` uses it.
+
+    python -m bgn.data.balance data/imported/<name>/train.h5 [...]   # a markdown table
 """
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,7 +29,7 @@ import numpy as np
 
 # Imbalance above which the data do not conserve momentum (or angular momentum): orders of
 # magnitude above the float32 rounding of balanced frames, orders below the imbalance of a
-# field or of walls (docs/results.md#the-data-s-own-evidence-momentum-balance).
+# field or of walls (docs/results.md#what-the-data-conserve-momentum-balance).
 IMBALANCE_MAX = 1e-3
 SIMS = 8            # simulations of the split read (evenly spaced)
 FRAMES = 256        # frames of each simulation read (evenly spaced, consecutive triples)
@@ -124,3 +127,29 @@ def momentum_balance(file: Any, meta: Any, sims: int = SIMS, frames: int = FRAME
             both.append(imbalance(cols))
     return Balance(float(np.median(linear)), float(np.median(both)) if both else None,
                    len(picked), span)
+
+
+def _show(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2g}"
+
+
+def main(argv: list[str]) -> str:
+    """The markdown table of ``momentum_balance`` for each dataset file in ``argv``."""
+    from bgn.data.files import DatasetFile
+
+    if not argv:
+        raise SystemExit("usage: python -m bgn.data.balance <dataset .h5 file> [...]")
+    lines = ["| file | simulations x frames | momentum | with angular momentum | verdict |",
+             "|---|---|---|---|---|"]
+    for path in argv:
+        f = DatasetFile(path)
+        b = momentum_balance(f, f.meta)
+        f.close()
+        verdict = b.reason or b.breaks() or "balanced: central pair forces can make them"
+        lines.append(f"| {path} | {b.sims} x {b.frames} | {_show(b.linear)} | "
+                     f"{_show(b.angular)} | {verdict} |")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    print(main(sys.argv[1:]))

@@ -141,3 +141,15 @@ def test_auto_refuses_the_pair_force_head_where_the_data_do_not_balance():
     fine = Balance(linear=1e-9, angular=None, sims=4, frames=100)
     assert all(c.admitted for c in candidates(gas, 5, False, (), fine)
                if c.name.startswith("newton"))
+
+
+def test_the_command_tabulates_each_file(tmp_path):
+    from bgn.data import from_arrays
+    from bgn.data.balance import main
+
+    x = np.stack([trajectory(s, field=-1.0) for s in range(5)])
+    paths = from_arrays(x, 0.02, name="pulled", data_dir=tmp_path)
+    table = main([str(paths["train"])])
+    assert table.count("\n") == 2 and "total momentum changes" in table
+    with pytest.raises(SystemExit, match="usage"):
+        main([])

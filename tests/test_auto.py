@@ -192,7 +192,7 @@ def test_report_names_the_choice_and_shows_its_evidence(tmp_path):
     decoder = Result(Candidate("decoder", "the decoder", []), errors={10: 0.02, 50: 0.4},
                      failed_share=0.5, curve=[0.2] * 50, steps=30, wall_s=1.0)
     absent = Result(Candidate("impulse", "impulses", [], admitted=False, reason="no contacts"))
-    protocol = {"horizon": 50, "horizons": [10, 50], "sims": [0, 1], "starts": [6],
+    protocol = {"horizon": 50, "horizons": [10, 50], "sims": [0, 1, 2, 5], "starts": [6],
                 "rollouts": 2, "share": 0.5, "budget_each": {"max_steps": 30},
                 "budget_winner": {"max_steps": 70}, "masses_known": True,
                 "balance": {"linear": 2e-9, "angular": 3e-7, "sims": 8, "frames": 256}}
@@ -200,6 +200,7 @@ def test_report_names_the_choice_and_shows_its_evidence(tmp_path):
     assert "**newton_inertial**" in report and "4 times that" in report
     assert "no: no contacts" in report
     assert "momentum imbalance 2e-09" in report and "Verdict: balanced" in report
+    assert "simulations 0-2, 5 from" in report
     record = json.loads((tmp_path / "auto.json").read_text())
     assert record["choice"] == "newton_inertial" and record["margin"] == 4.0
     rows = (tmp_path / "auto.csv").read_text().splitlines()

@@ -354,6 +354,17 @@ def _fmt(value: float) -> str:
         else f"{value:.3g}"
 
 
+def _ranges(values: Sequence[int]) -> str:
+    """[0, 1, 2, 5, 7, 8] -> "0-2, 5, 7-8": long lists of simulations, short."""
+    parts: list[list[int]] = []
+    for v in sorted(values):
+        if parts and v == parts[-1][1] + 1:
+            parts[-1][1] = v
+        else:
+            parts.append([v, v])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in parts)
+
+
 def balance_lines(balance: Mapping[str, Any] | None) -> list[str]:
     """The report's paragraph on what the training split conserves (``bgn.data.balance``)."""
     if not balance:
@@ -405,8 +416,8 @@ def write_report(auto_dir: Path, results: Sequence[Result], winner: Result, marg
     h = protocol["horizon"]
     lines = ["# model.dynamics=auto: the structure chosen by evidence", "",
              f"Validation split ({protocol['rollouts']} rollouts: simulations "
-             f"{protocol['sims']} from frame(s) {protocol['starts']}), mean position error "
-             f"after each horizon, a failed rollout counted at the cap "
+             f"{_ranges(protocol['sims'])} from frame(s) {protocol['starts']}), mean "
+             f"position error after each horizon, a failed rollout counted at the cap "
              f"(bgn.metrics.capped_step_errors). Each candidate trained for "
              f"{protocol['budget_each']}; the winner then resumed to {protocol['budget_winner']}.",
              "", "| candidate | what it is given, what it writes in | admitted | may win | "

@@ -294,6 +294,8 @@ def test_auto_picks_the_structure_spring_was_made_with(tmp_path, shared_data_dir
         assert (run / "auto" / name).exists(), name
     top = json.loads((run / "metrics.json").read_text())
     assert top["auto"]["choice"] == record["choice"]
+    # the winner's config beside its checkpoints (bgn.render and bgn.laws read it there)
+    assert (run / "auto" / record["choice"] / "train_config.yaml").exists()
     print({n: (r["val_err@10"], r["val_err@50"]) for n, r in rows.items() if r["admitted"]})
 
 

@@ -670,6 +670,8 @@ def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[st
     last = out_dir / "checkpoints" / "last.ckpt"
     if last.exists():
         final.ckpt_path = str(last)
+    # beside its checkpoints, as a candidate's: bgn.render and bgn.laws read it there
+    write_atomic(out_dir / "train_config.yaml", OmegaConf.to_yaml(final, resolve=False))
     metrics = train(final, law_stage=law_stage)
     record = json.loads((out_dir / "metrics.json").read_text())
     record["auto"] = {"choice": winner.candidate.name, "label": winner.candidate.label,

@@ -129,3 +129,46 @@ def test_pymunk_granular_gns_layout(tmp_path):
         check_split(e["split"], 3)
         energy = e["energy"]
     assert np.isfinite(energy).all() and (energy[:, -1] < energy[:, 0]).all()  # dissipative
+
+
+def test_summary_aggregates_seeds_and_keeps_failures(tmp_path, monkeypatch):
+    """examples/engines/summary.py on two seeds' auto runs (files written by hand in the
+    layout bgn.train and bgn.evaluate write): the mean over seeds, the candidates beside the
+    winner, a failed share that is not hidden."""
+    monkeypatch.syspath_prepend(str(ENGINES))
+    import summary
+
+    def write(path: Path, text: str) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+
+    runs = []
+    for seed, (err, failed) in enumerate(((0.01, 0.0), (0.03, 0.5))):
+        run = tmp_path / f"s{seed}"
+        write(run / ".hydra" / "config.yaml", f"seed: {seed}\ndataset:\n  name: gas\n")
+        write(run / "auto" / "auto.json", json.dumps({
+            "choice": "newton_source", "margin": 2.0,
+            "protocol": {"horizon": 50, "balance": {"linear": 1e-9}},
+            "candidates": [{"candidate": c, "admitted": True, "val_err@50": v, "wall_s": 5.0}
+                           for c, v in (("decoder", 0.2), ("newton_source", 0.1))]}))
+        for cand, scale in (("newton_source", 1.0), ("decoder", 10.0)):
+            write(run / "auto" / cand / "eval" / "test" / "metrics.json", json.dumps({
+                "metrics": {"rollout/pos_err_mean@100": err * scale,
+                            "rollout/pos_err_mean@50": err * scale / 2,
+                            "rollout/failed_share": failed,
+                            "rollout_last/pos_err_mean@100": 1.0,
+                            "rollout_linear/pos_err_mean@100": 2.0}}))
+        runs.append(run)
+    tests, choices = [], []
+    for run in runs:
+        rows, choice = summary.rows_of(run)
+        tests += rows
+        choices.append(choice)
+    assert [r["model"] for r in tests[:2]] == ["chosen (newton)", "decoder (candidate)"]
+    assert tests[0]["ratio @100"] == pytest.approx(0.01)
+    md, _ = summary.table([r for r in tests if r["model"].startswith("chosen")],
+                          ["data", "model"])
+    assert "0.02 ± 0.01414 (0.01–0.03)" in md          # @100 over the two seeds
+    assert "0.25 ± 0.3536 (0–0.5)" in md               # the failed share, not hidden
+    md, _ = summary.table(choices, ["data"])
+    assert "newton_source" in md and "| 2 |" in md

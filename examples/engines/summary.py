@@ -1,0 +1,153 @@
+"""The tables of docs/results.md's "Data from other engines", from the runs themselves.
+
+    python examples/engines/summary.py <run> [<run> ...] [--out outputs/engines/summary]
+
+Each ``<run>`` is a ``python -m bgn.train dataset=imported dataset.name=<name> seed=<s>`` run
+directory (``model.dynamics=auto``: ``<run>/auto/auto.json``) or a single model's run (a
+baseline at the full budget); each evaluated by ``python -m bgn.evaluate`` (the auto run's
+winner, ``<run>/eval`` or ``<run>/auto/<choice>/eval``) and, for the auto candidates that were,
+``python -m bgn.evaluate <run>/auto/<candidate>``. Prints markdown (seeds aggregated: mean ±
+std (min-max)) and writes it with CSV files under ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from omegaconf import OmegaConf
+
+from bgn.studies.report import aggregate_rows, spread
+from bgn.tables import write_csv
+
+HORIZONS = (10, 50, 100)
+LB = ("mse@5", "mse@10", "mse@20", "mse@50", "mse@100", "sinkhorn", "e_kin_mse")
+INVERSE = ("relmass_r2", "coverage50", "coverage90", "info_gain")
+
+
+def _metrics(directory: Path) -> dict[str, Any] | None:
+    path = directory / "eval" / "test" / "metrics.json"
+    return json.loads(path.read_text())["metrics"] if path.exists() else None
+
+
+def _run_config(run: Path) -> Any:
+    for path in (run / ".hydra" / "config.yaml", run / "train_config.yaml"):
+        if path.exists():
+            return OmegaConf.load(path)
+    raise SystemExit(f"{run}: no run config (.hydra/config.yaml or train_config.yaml)")
+
+
+def _budget(directory: Path) -> float | None:
+    path = directory / "metrics.json"
+    if not path.exists():
+        return None
+    record = json.loads(path.read_text())
+    return record.get("wall_time_s", record.get("metrics", {}).get("wall_time_s"))
+
+
+def test_row(name: str, seed: int, model: str, metrics: dict[str, Any],
+             budget: float | None) -> dict[str, Any]:
+    """One model's test rollouts (mean over all rollouts, a failed one at the cap)."""
+    row: dict[str, Any] = {"data": name, "model": model, "seed": seed, "budget s": budget}
+    for h in HORIZONS:
+        row[f"@{h}"] = metrics.get(f"rollout/pos_err_mean@{h}")
+    row["median @100"] = metrics.get("rollout/pos_err_median@100")
+    row["failed"] = metrics.get("rollout/failed_share")
+    refs = [metrics.get(f"rollout_{r}/pos_err_mean@{h}") for r in ("last", "linear")
+            for h in (100,)]
+    best = min((r for r in refs if r is not None), default=None)
+    row["best no-learning @100"] = best
+    row["ratio @100"] = (row["@100"] / best) if best and row["@100"] is not None else None
+    refs50 = [metrics.get(f"rollout_{r}/pos_err_mean@50") for r in ("last", "linear")]
+    best50 = min((r for r in refs50 if r is not None), default=None)
+    row["ratio @50"] = (row["@50"] / best50) if best50 and row["@50"] is not None else None
+    for key in ("speed_w1_type0", "speed_w1_type1", "collision_rate_ratio"):
+        if f"rollout/{key}" in metrics:
+            row[key] = metrics[f"rollout/{key}"]
+    for key in LB:
+        row[f"lb {key}"] = metrics.get(f"lb/{key}")
+    for key in INVERSE:
+        row[key] = metrics.get(key)
+    return row
+
+
+def rows_of(run: Path) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
+    """The test rows of a run (the winner and every evaluated candidate, or the one model)
+    and, for an auto run, its choice row (validation evidence)."""
+    cfg = _run_config(run)
+    name, seed = str(cfg.dataset.get("name", cfg.dataset.get("scene"))), int(cfg.seed)
+    auto = run / "auto" / "auto.json"
+    if not auto.exists():
+        metrics = _metrics(run)
+        model = str(cfg.model.get("name", "model")) + " (full budget)"
+        return ([test_row(name, seed, model, metrics, _budget(run))] if metrics else []), None
+    record = json.loads(auto.read_text())
+    choice = record["choice"]
+    rows = []
+    winner = _metrics(run / "auto" / choice) or _metrics(run)
+    if winner:
+        rows.append(test_row(name, seed, f"chosen ({choice.split('_')[0]})", winner,
+                             _budget(run / "auto" / choice)))
+    choice_row: dict[str, Any] = {"data": name, "seed": seed, "chosen": choice,
+                                  "margin": record.get("margin")}
+    for c in record["candidates"]:
+        key = "formula" if c["candidate"].startswith("formula_") else c["candidate"]
+        h = record["protocol"]["horizon"]
+        choice_row[f"{key} @{h}"] = (c.get(f"val_err@{h}") if c["admitted"] else None)
+        metrics = _metrics(run / "auto" / c["candidate"])
+        if metrics and c["candidate"] != choice:
+            rows.append(test_row(name, seed, f"{c['candidate']} (candidate)", metrics,
+                                 c.get("wall_s")))
+    balance = record["protocol"].get("balance") or {}
+    choice_row["momentum imbalance"] = balance.get("linear")
+    return rows, choice_row
+
+
+def table(rows: list[dict[str, Any]], keys: list[str]) -> tuple[str, list[str]]:
+    merged = aggregate_rows([{k: v for k, v in r.items() if k != "seed"} | {"seed": r["seed"]}
+                             for r in rows], keys)
+    columns = keys + ["seeds"] + [c for c in dict.fromkeys(k for r in rows for k in r)
+                                  if c not in keys and c != "seed"]
+    lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
+    for row in merged:
+        lines.append("| " + " | ".join(str(row.get(c, "")) if c in keys or c == "seeds"
+                                        else spread(row, c) for c in columns) + " |")
+    return "\n".join(lines) + "\n", columns
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("--out", type=Path, default=Path("outputs/engines/summary"))
+    args = ap.parse_args()
+    tests, choices = [], []
+    for run in args.runs:
+        rows, choice = rows_of(run)
+        tests += rows
+        if choice:
+            choices.append(choice)
+    args.out.mkdir(parents=True, exist_ok=True)
+    keys = ["data", "model"]
+    lb = [f"lb {k}" for k in LB]
+    groups = {"choices": (choices, ["data"], None),
+              "rollouts": (tests, keys, lambda c: c not in lb and c not in INVERSE),
+              "lagrangebench": (tests, keys, lambda c: c in lb),
+              "masses": ([r for r in tests if r.get("relmass_r2") is not None], keys,
+                         lambda c: c in INVERSE)}
+    text = []
+    for stem, (rows, by, keep) in groups.items():
+        if not rows:
+            continue
+        kept = [{k: v for k, v in r.items() if k in by or k == "seed" or keep is None
+                 or keep(k)} for r in rows]
+        md, columns = table(kept, by)
+        write_csv(args.out / f"{stem}_per_seed.csv", ["seed", *columns], kept)
+        (args.out / f"{stem}.md").write_text(md)
+        text += [f"## {stem}", "", md]
+    print("\n".join(text))
+
+
+if __name__ == "__main__":
+    main()

@@ -237,6 +237,8 @@ def test_candidates_compose_from_the_real_configs(tmp_path):
     decoder = compose_candidate(base, pool["decoder"], tmp_path / "d", limits)
     assert decoder.model.dynamics == "decoder" and decoder.model.loss_weights.dynamics == 1
     assert decoder.model.target_prior == "none"              # the scene's defaults apply
+    # gravity_r2's law stage is for the pair-force head; the decoder has no law to read
+    assert decoder.model.law == "mlp" and newton.model.law == "auto"
     gns = compose_candidate(base, pool["gns"], tmp_path / "g", limits, test=True)
     assert gns.model.name == "gns" and "hidden" not in gns.model and gns.test is True
     pool = {c.name: c for c in candidates(make_scene("collisions").meta, 5, True, REFS)}

@@ -486,7 +486,8 @@ def compose_candidate(base: Sequence[str], cand: Candidate, out_dir: Path,
     those the candidate sets, and less its model options for a reference, which has other
     ones), the candidate's, its directory and budget. A dynamics loss weighted 0 (a scene
     that trains its pair-force head on the law alone) is weighted 1 for a candidate without
-    that head: it would otherwise learn nothing. Where the data record masses (``masses``)
+    that head: it would otherwise learn nothing; a law stage (``model.law``, gravity_r2's
+    default) is left to the candidates with that head. Where the data record masses (``masses``)
     and the law loss and the mass context are left at their defaults (0, ``pairs``), a pair-force
     candidate gets ``WITH_MASSES``: its law also learns with the recorded masses (through
     the window's fit alone its shape is barely pinned, docs/design.md#choosing-a-structure)
@@ -500,8 +501,11 @@ def compose_candidate(base: Sequence[str], cand: Candidate, out_dir: Path,
     cfg = compose_train([*kept, *own])
     weights = cfg.model.get("loss_weights") or {}
     extra: list[str] = []
-    if not cand.pair_force and not reference and weights.get("dynamics", 1.0) == 0:
-        extra = ["model.loss_weights.dynamics=1.0"]
+    if not cand.pair_force and not reference:
+        if weights.get("dynamics", 1.0) == 0:
+            extra.append("model.loss_weights.dynamics=1.0")
+        if cfg.model.get("law", "mlp") != "mlp":   # a law stage needs the pair-force head
+            extra.append("model.law=mlp")
     elif cand.pair_force and masses and not weights.get("law", 0.0) \
             and cfg.model.get("mass_context") == "pairs":
         extra = list(WITH_MASSES)

@@ -218,3 +218,6 @@ def test_the_old_quick_names_compose_the_configs_they_were_renamed_to():
     first_look = compose_config("experiments", ["preset=first_look"])
     assert first_look.preset.name == "first_look"
     assert compose_config("experiments", ["preset=quick"]) == first_look
+    pareto = compose_config("experiments", ["preset=pareto_first_look"])
+    assert pareto.preset.name == "pareto_first_look"
+    assert compose_config("experiments", ["preset=pareto_quick"]) == pareto

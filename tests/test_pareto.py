@@ -121,7 +121,7 @@ def test_a_fit_ended_early_keeps_its_last_weights_under_the_next_mark(tmp_path,
 
 
 # ----------------------------------------------------------------------------- the presets
-@pytest.mark.parametrize("name", ["pareto_tiny", "pareto_quick", "pareto_full"])
+@pytest.mark.parametrize("name", ["pareto_tiny", "pareto_first_look", "pareto_full"])
 def test_pareto_presets_plan_schedule_and_size_cells(name: str) -> None:
     cfg = preset_cfg(name)
     assert is_pareto(cfg)

@@ -2,7 +2,7 @@
 (``conf/experiments.yaml``).
 
 A grid preset (tiny | first_look | standard | full | reproduce | recheck) runs
-``bgn.studies.grid``; a Pareto preset (pareto_tiny | pareto_quick | pareto_full: checkpoints
+``bgn.studies.grid``; a Pareto preset (pareto_tiny | pareto_first_look | pareto_full: checkpoints
 on a time schedule) runs ``bgn.studies.pareto``. Every cell's train config is checked before
 the first cell trains.
 """

@@ -1,5 +1,5 @@
-"""Speed against error: ``python -m bgn.experiments preset=pareto_quick`` (presets:
-pareto_tiny | pareto_quick | pareto_full, ``conf/preset/``; ``bgn.studies.grid`` hands a
+"""Speed against error: ``python -m bgn.experiments preset=pareto_first_look`` (presets:
+pareto_tiny | pareto_first_look | pareto_full, ``conf/preset/``; ``bgn.studies.grid`` hands a
 preset with a ``schedule_s`` to ``run`` here).
 
 Every cost is set against one error: the rollout error after one simulated time unit (the mean

@@ -111,7 +111,7 @@ def momentum_balance(file: Any, meta: Any, sims: int = SIMS, frames: int = FRAME
     if "kinematic" in file.handle and np.asarray(file.read("kinematic", ...)).any():
         return Balance(None, None, 0, 0, "particles moved by the source push the others "
                        "without being pushed back in the files")
-    if meta.dim < 1 or file.n_frames < 3:
+    if file.n_frames < 3:
         return Balance(None, None, 0, 0, "fewer than 3 frames")
     angular = meta.dim in (2, 3) and not meta.periodic
     span = min(frames, file.n_frames)

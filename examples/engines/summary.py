@@ -47,6 +47,13 @@ def _budget(directory: Path) -> float | None:
     return record.get("wall_time_s", record.get("metrics", {}).get("wall_time_s"))
 
 
+def best_reference(metrics: dict[str, Any], h: int) -> float | None:
+    """The better no-learning reference's mean error after ``h`` steps (repeat the last
+    target, or extrapolate linearly)."""
+    refs = [metrics.get(f"rollout_{r}/pos_err_mean@{h}") for r in ("last", "linear")]
+    return min((r for r in refs if r is not None), default=None)
+
+
 def test_row(name: str, seed: int, model: str, metrics: dict[str, Any],
              budget: float | None) -> dict[str, Any]:
     """One model's test rollouts (mean over all rollouts, a failed one at the cap)."""
@@ -55,14 +62,10 @@ def test_row(name: str, seed: int, model: str, metrics: dict[str, Any],
         row[f"@{h}"] = metrics.get(f"rollout/pos_err_mean@{h}")
     row["median @100"] = metrics.get("rollout/pos_err_median@100")
     row["failed"] = metrics.get("rollout/failed_share")
-    refs = [metrics.get(f"rollout_{r}/pos_err_mean@{h}") for r in ("last", "linear")
-            for h in (100,)]
-    best = min((r for r in refs if r is not None), default=None)
-    row["best no-learning @100"] = best
-    row["ratio @100"] = (row["@100"] / best) if best and row["@100"] is not None else None
-    refs50 = [metrics.get(f"rollout_{r}/pos_err_mean@50") for r in ("last", "linear")]
-    best50 = min((r for r in refs50 if r is not None), default=None)
-    row["ratio @50"] = (row["@50"] / best50) if best50 and row["@50"] is not None else None
+    row["best no-learning @100"] = best_reference(metrics, 100)
+    for h in (100, 50):
+        best = best_reference(metrics, h)
+        row[f"ratio @{h}"] = row[f"@{h}"] / best if best and row[f"@{h}"] is not None else None
     for key in ("speed_w1_type0", "speed_w1_type1", "collision_rate_ratio"):
         if f"rollout/{key}" in metrics:
             row[key] = metrics[f"rollout/{key}"]
@@ -106,8 +109,7 @@ def rows_of(run: Path) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
 
 
 def table(rows: list[dict[str, Any]], keys: list[str]) -> tuple[str, list[str]]:
-    merged = aggregate_rows([{k: v for k, v in r.items() if k != "seed"} | {"seed": r["seed"]}
-                             for r in rows], keys)
+    merged = aggregate_rows(rows, keys)
     columns = keys + ["seeds"] + [c for c in dict.fromkeys(k for r in rows for k in r)
                                   if c not in keys and c != "seed"]
     lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]

@@ -35,6 +35,7 @@ from tests.conftest import SMALL, compose_config
 from tests.test_train import CLI_ENV, command_line
 
 REFS = ("gns", "cranmer_gn")
+PAIR_FORCE = ("newton_inertial", "newton_source", "newton_type")  # mass_law: each way
 
 
 def admitted(meta: SceneMeta, history: int = 5, radii: bool = True) -> list[str]:
@@ -44,13 +45,13 @@ def admitted(meta: SceneMeta, history: int = 5, radii: bool = True) -> list[str]
 # ----------------------------------------------------------------------------- candidates
 def test_candidates_of_the_built_in_scenes():
     spring = make_scene("spring").meta
-    assert admitted(spring) == ["decoder", "newton_inertial", "newton_source", *REFS]
+    assert admitted(spring) == ["decoder", *PAIR_FORCE, *REFS]
     assert admitted(make_scene("gravity_r2").meta) == admitted(spring)
     collisions = make_scene("collisions").meta
     assert admitted(collisions) == ["decoder", "impulse", *REFS]
     pool = candidates(spring, 5, True, REFS)
     assert [c.name for c in pool if c.eligible and c.admitted] == [
-        "decoder", "newton_inertial", "newton_source"]          # references never win
+        "decoder", *PAIR_FORCE]                                          # references never win
     impulse = next(c for c in pool if c.name == "impulse")
     assert "not contacts" in impulse.reason
     assert "history=2" in next(c.reason for c in candidates(spring, 2, True, ())
@@ -64,7 +65,7 @@ def test_imported_scenes_without_radii_or_forces_get_the_decoder():
     assert admitted(discs, radii=False) == ["decoder", *REFS]
     assert admitted(discs, radii=True) == ["decoder", "impulse", *REFS]
     bodies = SceneMeta("imported", 3, 5, 1, "unknown", "acceleration", "full")
-    assert admitted(bodies) == ["decoder", "newton_inertial", "newton_source", *REFS]
+    assert admitted(bodies) == ["decoder", *PAIR_FORCE, *REFS]
 
 
 def test_an_imported_short_range_gas_on_a_radius_graph_admits_the_pair_force_head():
@@ -72,7 +73,7 @@ def test_an_imported_short_range_gas_on_a_radius_graph_admits_the_pair_force_hea
     edges, the law learns to vanish at the cut-off (the ASE Morse gas)."""
     gas = SceneMeta("imported", 2, 64, 1, "unknown", "acceleration", "radius",
                     masses_known=False, period=(10.0, 10.0))
-    assert admitted(gas, radii=False) == ["decoder", "newton_inertial", "newton_source", *REFS]
+    assert admitted(gas, radii=False) == ["decoder", *PAIR_FORCE, *REFS]
     refused = {c.name: c.reason for c in candidates(replace(gas, target="velocity"), 5, False,
                                                     REFS) if not c.admitted}
     assert "velocity target" in refused["newton_inertial"]
@@ -94,9 +95,9 @@ def test_admitted_exactly_where_the_structured_head_builds(interaction, target, 
         builds = False
     names = admitted(meta, history, radii=True)
     assert "decoder" in names
-    structured = {"newton_inertial", "newton_source", "impulse"} & set(names)
+    structured = {*PAIR_FORCE, "impulse"} & set(names)
     assert bool(structured) == builds
-    assert not ({"newton_inertial", "newton_source"} & structured and "impulse" in structured)
+    assert not (set(PAIR_FORCE) & structured and "impulse" in structured)
 
 
 # ----------------------------------------------------------------------------- budget
@@ -188,7 +189,9 @@ def test_report_names_the_choice_and_shows_its_evidence(tmp_path):
                   errors={10: 0.01, 50: 0.1}, failed_share=0.0, curve=[0.05] * 50, steps=30,
                   wall_s=2.0, law={"s": s.tolist(), "sign": 1.0, "f": {"0-0": (1 - s).tolist()}},
                   masses={"true_log": true_log.tolist(), "fitted_log": (true_log + 1).tolist(),
-                          "relative_r2": 1.0, "median_fit": 0.5})
+                          "relative_r2": 1.0, "median_fit": 0.5},
+                  law_match={"val_error": 2e-4, "val_error_before": 0.99,
+                             "table_val_error": 5e-5, "kept": True})
     decoder = Result(Candidate("decoder", "the decoder", []), errors={10: 0.02, 50: 0.4},
                      failed_share=0.5, curve=[0.2] * 50, steps=30, wall_s=1.0)
     absent = Result(Candidate("impulse", "impulses", [], admitted=False, reason="no contacts"))
@@ -201,6 +204,8 @@ def test_report_names_the_choice_and_shows_its_evidence(tmp_path):
     assert "no: no contacts" in report
     assert "momentum imbalance 2e-09" in report and "Verdict: balanced" in report
     assert "simulations 0-2, 5 from" in report
+    assert "- newton_inertial: 0.0002 (the initial law: 0.99; the table it was fitted to: " \
+        "5e-05); kept" in report and "- decoder:" not in report
     record = json.loads((tmp_path / "auto.json").read_text())
     assert record["choice"] == "newton_inertial" and record["margin"] == 4.0
     rows = (tmp_path / "auto.csv").read_text().splitlines()
@@ -283,13 +288,13 @@ def test_auto_picks_the_structure_spring_was_made_with(tmp_path, shared_data_dir
     # the pair-force head, or its law as a formula (fine-tuned from it)
     assert record["choice"] in ("newton_inertial", "formula_newton_inertial")
     rows = {c["candidate"]: c for c in record["candidates"]}
-    assert set(rows) == {"decoder", "newton_inertial", "newton_source", "impulse",
-                         "formula_newton_inertial"}
+    assert set(rows) == {"decoder", *PAIR_FORCE, "impulse", "formula_newton_inertial"}
     assert not rows["impulse"]["admitted"]
-    assert all(rows[n]["steps"] == 200 for n in ("decoder", "newton_inertial", "newton_source"))
+    assert all(rows[n]["steps"] == 150 for n in ("decoder", *PAIR_FORCE))  # 600 steps / 4
     inertial = rows["newton_inertial"]["val_err@50"]
-    assert inertial < rows["newton_source"]["val_err@50"]
-    assert inertial < rows["decoder"]["val_err@50"]
+    # spring's masses differ: neither masses at the source nor one mass for all make it
+    assert inertial < min(rows[n]["val_err@50"] for n in ("decoder", "newton_source",
+                                                          "newton_type"))
     assert rows["newton_inertial"]["mass_relative_r2"] > 0.9
     for name in ("report.md", "auto.csv", "figures/pair_law.png",
                  "figures/masses_newton_inertial.png", "figures/validation_error.png"):
@@ -301,10 +306,13 @@ def test_auto_picks_the_structure_spring_was_made_with(tmp_path, shared_data_dir
     print({n: (r["val_err@10"], r["val_err@50"]) for n, r in rows.items() if r["admitted"]})
 
 
-def test_the_best_pair_force_law_becomes_a_formula_candidate(tmp_path, shared_data_dir):
+@pytest.mark.parametrize("law_init", ["random", "match"])
+def test_the_best_pair_force_law_becomes_a_formula_candidate(tmp_path, shared_data_dir,
+                                                             law_init):
     """A tiny BGN pair-force run stands for the best candidate: its law read back, fine-tuned
     and scored as a candidate of its own, eligible, its formula in its label, and its
-    checkpoint the one the winner would resume from (the composed config fits it)."""
+    checkpoint the one the winner would resume from (the composed config fits it). A matched
+    law (law_init=match) trained in a second parameter group; the formula's has one."""
     from omegaconf import OmegaConf
 
     from bgn.data.datamodule import ParticleDataModule
@@ -321,7 +329,8 @@ def test_the_best_pair_force_law_becomes_a_formula_candidate(tmp_path, shared_da
             "trainer.max_epochs=1", "+trainer.limit_train_batches=2",
             "trainer.limit_val_batches=1"]
     best = Candidate("newton_inertial", "pair-force head",
-                     ["model.dynamics=newton", "model.mass_law=inertial"], pair_force=True)
+                     ["model.dynamics=newton", "model.mass_law=inertial",
+                      f"model.law_init={law_init}"], pair_force=True)
     train(compose_candidate(base, best, auto_dir / best.name, {}), law_stage=law_stage)
     cfg = compose_config("train", base)
     dm = ParticleDataModule(cfg.dataset, cfg.fps, shared_data_dir, show_progress=False)
@@ -343,6 +352,8 @@ def test_the_best_pair_force_law_becomes_a_formula_candidate(tmp_path, shared_da
     assert final.model.law == "formula" and json.loads(final.model.law_formula) == tuned["tuned"]
     check_compatible(auto_dir / result.candidate.name / "checkpoints" / "last.ckpt", {},
                      OmegaConf.to_container(final.model, resolve=True))
+    ckpt = torch.load(auto_dir / best.name / "checkpoints" / "last.ckpt", weights_only=True)
+    assert len(ckpt["optimizer_states"][0]["param_groups"]) == (2 if law_init == "match" else 1)
 
 
 def test_imported_data_choose_their_structure_by_default(tmp_path) -> None:

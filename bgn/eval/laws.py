@@ -538,6 +538,8 @@ MASS_TEXT = {"inertial": "none: the force does not depend on the masses, a_i = s
                          "u_ij / m_i",
              "source": "both: the force is m_i m_j f(r_ij), so a_i = sum_j m_j f(r_ij) u_ij "
                        "(the receiver's own mass cancels)",
+             "type": "none: the force does not depend on the masses, a_i = sum_j f(r_ij) "
+                     "u_ij / m_i, one mass per particle type (learned)",
              "other": "neither law of bgn.model.newton"}
 
 
@@ -1328,13 +1330,16 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
         out.mkdir(parents=True, exist_ok=True)
         ckpt = read(checkpoint)
         # the run's optimiser settings kept for bgn.train ckpt_path, its moments dropped: they
-        # belonged to the network law's weights
+        # belonged to the network law's weights; one parameter group, the first's settings
+        # (a matched network law trained in a slower second group: the formula is not matched)
         n_params = len(list(module.parameters()))
         for state in ckpt.get("optimizer_states", []):
-            if len(state.get("param_groups", ())) != 1:
-                raise ValueError(f"checkpoint {checkpoint}: an optimiser with several parameter "
-                                 "groups; fine-tuning keeps one")
+            state["param_groups"] = state.get("param_groups", [{}])[:1]
             state["state"], state["param_groups"][0]["params"] = {}, list(range(n_params))
+        for state in ckpt.get("lr_schedulers", []):
+            for key in ("min_lrs", "_last_lr"):
+                if isinstance(state.get(key), list):
+                    state[key] = state[key][:1]
         ckpt["hyper_parameters"], ckpt["state_dict"] = hp, module.state_dict()
         tmp = out / ".formula.ckpt.tmp"  # then a rename: never a half-written checkpoint
         torch.save(ckpt, tmp)

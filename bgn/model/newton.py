@@ -14,7 +14,12 @@ learns only the force law:
   ``a_i = w_i sum_j F_ij`` with ``w_i = 1 / m_i`` the least-squares fit of the window's own
   accelerations to the same forces at the window's frames, ``w_i = sum_tau F_i.a_i /
   sum_tau |F_i|^2``; ``mass_law="source"`` (gravity-like, a particle's own mass cancels):
-  ``a_i = sum_j m_j F_ij`` with the masses fitted jointly per simulation.
+  ``a_i = sum_j m_j F_ij`` with the masses fitted jointly per simulation; ``mass_law="type"``
+  (the force does not depend on the masses, one mass per particle type, learned like the law:
+  all equal where there is one type): ``a_i = F_i / m_type(i)``, nothing fitted to the window.
+  A window fit reads masses off a few frames at every rollout step; where the masses are in
+  fact shared, its errors at stiff encounters feed energy into the rollout, which a fixed mass
+  cannot (docs/results.md, "Force matching").
 
 A window made by the model itself is consistent with the masses that made it, so the fit
 returns them: masses stay put in a rollout. The scale of ``f`` is free (the fitted masses
@@ -61,7 +66,8 @@ from bgn.model.ops import activation, mlp, scatter_sum
 from bgn.model.target import observed_targets
 from bgn.sim.scene import SceneMeta
 
-MASS_LAWS = ("inertial", "source")
+MASS_LAWS = ("inertial", "source", "type")
+LAW_INITS = ("random", "match")  # the MLP law's start (ForceLawOptions.law_init)
 DYNAMICS = ("decoder", "newton")  # BGN's dynamics head: Eq. 5's decoder or the structured head
 FIT_EPS = 1e-12  # keeps a mass fit finite when a particle feels no force over the window
 ROBUST_STEPS, ROBUST_SCALE = 2, 0.01  # reweighting of the gravity mass fit (source law)
@@ -78,17 +84,23 @@ class ForceLawOptions(OptionGroup):
     and of BGN with ``model.dynamics=newton`` (``NewtonOptions``)."""
 
     # how masses enter the forces: inertial, a = F / m (spring) | source, a = sum m_j F_ij
-    # (gravity); each scene sets its own (conf/dataset_model/)
+    # (gravity) | type, a = F / m with one learned mass per type; each scene sets its own
+    # (conf/dataset_model/)
     mass_law: str = "inertial"
     substeps: int = 1                  # 1: Numerov's weights; > 1: integrate the frame (shoot)
     law: str = "mlp"                   # mlp: f(s) a network | formula: law_formula | auto
     law_formula: str = ""              # the formula's JSON spec (bgn.eval.laws.formula_spec)
+    # random: the MLP law as initialised | match: its readout first fitted to the training
+    # frames by least squares (bgn.model.force_matching); imported data set match
+    law_init: str = "random"
 
     def __post_init__(self) -> None:
         super().__post_init__()
         check_positive_ints(self, ("substeps",))
         if self.mass_law not in MASS_LAWS:
             raise ValueError(f"mass_law={self.mass_law!r}; choose one of {MASS_LAWS}")
+        if self.law_init not in LAW_INITS:
+            raise ValueError(f"law_init={self.law_init!r}; choose one of {LAW_INITS}")
         check_law(self.law, self.law_formula)
 
 
@@ -204,6 +216,8 @@ class PairForceHead(nn.Module):
                  act: str, mass_law: str, substeps: int = 1, law_formula: str = "") -> None:
         super().__init__()  # mass_law: checked by the model configs (NewtonConfig, BGN's)
         self.mass_law, self.types, self.substeps = mass_law, meta.n_types, substeps
+        if mass_law == "type":  # log m per type; the law's free scale is type 0's mass
+            self.log_type_mass = nn.Parameter(torch.zeros(max(meta.n_types, 1)))
         # lengths in the units the model normalises relative positions by (a copy: the
         # normaliser belongs to the model)
         self.register_buffer("length_scale", normalizer.rel_position_scale.detach().clone())
@@ -216,22 +230,37 @@ class PairForceHead(nn.Module):
     def pair_terms(self, g: Graph, positions: torch.Tensor) -> torch.Tensor:
         """(E, F, D) ``f(s_ij) u_ij`` on every edge j -> i at each of the F frames of
         ``positions`` (N, F, D); relative positions in normalised units (the scale is free)."""
-        snd, rcv = g.edge_index
-        rel = edge_vector(positions, g) / self.length_scale                  # (E, F, D)
-        dist = torch.sqrt((rel * rel).sum(-1, keepdim=True) + DIRECTION_EPS**2)
+        rel, dist = self.separations(g, positions)
+        pair = self.pair_index(g)
         if isinstance(self.force_law, FormulaLaw):  # physical distances, physical law
-            pair = None
-            if self.types > 1:
-                lo = torch.minimum(g.types[snd], g.types[rcv])
-                pair = lo * self.types + torch.maximum(g.types[snd], g.types[rcv])
             return self.force_law(dist * self.length_scale, pair) * rel / dist
+        return self.force_law(self.law_input(dist, pair)) * rel / dist
+
+    def separations(self, g: Graph, positions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(E, F, D) relative positions of every edge j -> i at each frame of ``positions``
+        (N, F, D), in normalised units, and their lengths (E, F, 1)."""
+        rel = edge_vector(positions, g) / self.length_scale
+        return rel, torch.sqrt((rel * rel).sum(-1, keepdim=True) + DIRECTION_EPS**2)
+
+    def pair_index(self, g: Graph) -> torch.Tensor | None:
+        """(E,) each edge's unordered pair of types, ``lo * n_types + hi`` (None: one type)."""
+        if self.types <= 1:
+            return None
+        snd, rcv = g.edge_index
+        a, b = g.types[snd], g.types[rcv]
+        return torch.minimum(a, b) * self.types + torch.maximum(a, b)
+
+    def law_input(self, dist: torch.Tensor, pair: torch.Tensor | None) -> torch.Tensor:
+        """(E, F, 3 [+ types]) what the MLP law reads of each pair (``pair_index``) at each of
+        the F frames of ``dist`` (E, F, 1)."""
         # distance, its inverse and its log: a spring's linear law and gravity's 1/s^2 near
         # an encounter are then a few units of the MLP each, not a curve it must bend to
         feats = [dist, 1 / dist, torch.log(dist)]
-        if self.types > 1:  # symmetric in the pair: the law may differ per pair of types
-            pair = F.one_hot(g.types[snd], self.types) + F.one_hot(g.types[rcv], self.types)
-            feats.append(pair[:, None].expand(-1, dist.shape[1], -1).to(dist.dtype))
-        return self.force_law(torch.cat(feats, dim=-1)) * rel / dist
+        if pair is not None:  # symmetric in the pair: the law may differ per pair of types
+            both = F.one_hot(pair // self.types, self.types) + F.one_hot(pair % self.types,
+                                                                         self.types)
+            feats.append(both[:, None].expand(-1, dist.shape[1], -1).to(dist.dtype))
+        return torch.cat(feats, dim=-1)
 
     def forward(self, g: Graph, known_masses: bool = False) -> tuple[torch.Tensor, None]:
         """(N, D) predicted acceleration at frame t, physical units (and no contact logits:
@@ -240,7 +269,7 @@ class PairForceHead(nn.Module):
         raw, terms = self.window(g)
         if known_masses:
             mass = g.mass.to(terms.dtype)
-            fit = 1 / mass if self.mass_law == "inertial" else mass
+            fit = mass if self.mass_law == "source" else 1 / mass
         else:
             fit = self.fit(g, terms)
         return self.accelerate(g, raw, fit), None
@@ -255,7 +284,7 @@ class PairForceHead(nn.Module):
         """(N, D) the acceleration at frame t from the window's pair terms ``raw`` and the
         mass fit ``fit`` (``1 / m_i`` inertial, ``m_i`` source)."""
         snd, rcv = g.edge_index
-        if self.mass_law == "inertial":
+        if self.mass_law != "source":
             def combine(t: torch.Tensor) -> torch.Tensor:          # a_i = sum_j F_ij / m_i
                 return fit[:, None] * scatter_sum(t, rcv, g.pos.shape[0])
         else:
@@ -287,6 +316,9 @@ class PairForceHead(nn.Module):
         seen = observed_targets(g, "acceleration")[:, :terms.shape[1] - 1]  # a[t-1] .. a[t-k+1]
         if self.mass_law == "source":
             return self.source_masses(g, terms[:, 1:], seen, with_error)
+        if self.mass_law == "type":  # 1 / m of each particle's type, known exactly
+            fit = torch.exp(-self.log_type_mass.to(terms.dtype))[g.types]
+            return fit, torch.zeros_like(fit) if with_error else None
         past = scatter_sum(terms[:, 1:], g.edge_index[1], g.pos.shape[0])
         norm = (past * past).sum((1, 2)) + FIT_EPS
         fit = (past * seen).sum((1, 2)) / norm
@@ -307,7 +339,7 @@ class PairForceHead(nn.Module):
         if fit is None:
             fit = self.fit(g, self.window(g)[1])
         log_fit = torch.log(fit.abs() + FIT_EPS)
-        log_fit = -log_fit if self.mass_law == "inertial" else log_fit
+        log_fit = log_fit if self.mass_law == "source" else -log_fit
         if error is None:
             return log_fit
         return torch.stack([log_fit, torch.log(error / (fit.abs() + FIT_EPS) + REL_ERROR_FLOOR)],
@@ -396,7 +428,8 @@ def head_physics(head: nn.Module) -> str:
                 "event order (restitution learned, at most elastic); masses learned per radius")
     assert isinstance(head, PairForceHead)
     masses = {"inertial": "inertial masses fitted to the window, a = F / m",
-              "source": "masses at the source fitted per simulation, a_i = sum_j m_j F_ij"}
+              "source": "masses at the source fitted per simulation, a_i = sum_j m_j F_ij",
+              "type": "one mass per particle type, learned (equal where one type), a = F / m"}
     law = ""
     if isinstance(head.force_law, FormulaLaw):  # the law itself written in, as a formula
         terms = json.loads(head.force_law.spec())

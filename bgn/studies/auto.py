@@ -7,7 +7,7 @@ data admit is trained for a share of the budget (``auto.share`` of each of ``tra
 
 - the paper's decoder (Eq. 5): always; it writes no physics in, so it can express any;
 - the pair-force head (``bgn.model.newton``) with each way masses can enter (``mass_law``
-  inertial and source), where the scene has pairwise (or unknown) forces on a complete or
+  inertial, source and type), where the scene has pairwise (or unknown) forces on a complete or
   radius graph (short-range data: a pair beyond the radius has no edge and no force), an
   acceleration target and a window of at least 3 velocities (``newton.check_scene``), and
   whose training data conserve momentum and angular momentum (``bgn.data.balance``: what
@@ -92,12 +92,14 @@ def candidates(meta: SceneMeta, history: int, radii_given: bool,
 
     out = [Candidate("decoder", "BGN + the paper's decoder (Eq. 5): the window in, the "
                      "target out, no physics written in", ["model.dynamics=decoder"])]
-    for law, physics in (("inertial", "inertial masses, a_i = sum_j f(s_ij) u_ij / m_i "
-                                      "(spring-like)"),
-                         ("source", "masses at the source, a_i = sum_j m_j f(s_ij) u_ij "
-                                    "(gravity-like)")):
+    for law, physics in (("inertial", "inertial masses fitted to the window, a_i = sum_j "
+                                      "f(s_ij) u_ij / m_i (spring-like)"),
+                         ("source", "masses at the source fitted to the window, a_i = sum_j "
+                                    "m_j f(s_ij) u_ij (gravity-like)"),
+                         ("type", "one inertial mass per particle type, learned (all equal "
+                                  "where one type), a_i = sum_j f(s_ij) u_ij / m_i")):
         cand = Candidate(f"newton_{law}", "BGN + pair-force head (central, equal and opposite "
-                         f"forces f(s) learned, masses fitted to the window), {physics}",
+                         f"forces f(s) learned), {physics}",
                          ["model.dynamics=newton", f"model.mass_law={law}"], pair_force=True)
         if meta.interaction == "contact":
             cand.admitted, cand.reason = False, "a contact scene: impulses, not forces"
@@ -180,6 +182,7 @@ class Result:
     error: str = ""
     law: dict[str, Any] | None = None
     masses: dict[str, Any] | None = None
+    law_match: dict[str, Any] | None = None  # force matching's record (law_init=match)
 
     def score(self, horizon: int) -> float:
         value = self.errors.get(horizon, float("nan"))
@@ -381,6 +384,25 @@ def balance_lines(balance: Mapping[str, Any] | None) -> list[str]:
             f"{angular}. Verdict: {verdict}."]
 
 
+def match_lines(results: Sequence[Result]) -> list[str]:
+    """The report's lines on force matching (``bgn.model.force_matching``), one per candidate
+    whose law started from it."""
+    matched = [r for r in results if r.law_match]
+    if not matched:
+        return []
+    lines = ["Force matching (law_init=match): the pair law fitted to the training frames "
+             "before the first step; the relative squared error of the validation windows' "
+             "accelerations, equal masses (or the recorded ones where the law trains with "
+             "them):", ""]
+    for r in matched:
+        m = r.law_match or {}
+        lines.append(f"- {r.candidate.name}: {_fmt(m.get('val_error'))} (the initial law: "
+                     f"{_fmt(m.get('val_error_before'))}; the table it was fitted to: "
+                     f"{_fmt(m.get('table_val_error'))}); "
+                     + ("kept" if m.get("kept") else "not kept, the initial law trained"))
+    return [*lines, ""]
+
+
 def write_report(auto_dir: Path, results: Sequence[Result], winner: Result, margin: float,
                  protocol: dict[str, Any]) -> Path:
     """``report.md``, ``auto.csv``, ``auto.json`` and the figures in ``auto_dir``."""
@@ -437,6 +459,7 @@ def write_report(auto_dir: Path, results: Sequence[Result], winner: Result, marg
               f"{_fmt(margin)} times that." if math.isfinite(margin) else
               f"Chosen: **{winner.candidate.name}**, the one eligible candidate.", ""]
     lines += balance_lines(protocol.get("balance")) + [""]
+    lines += match_lines(results)
     failures = [r for r in results if r.error]
     for r in failures:
         lines.append(f"- {r.candidate.name} could not be trained or scored: {r.error}")
@@ -533,6 +556,9 @@ def train_candidate(cand: Candidate, cfg: DictConfig) -> Result:
     result.wall_s = float(metrics.get("wall_time_s", time.perf_counter() - start))
     last = out_dir / "checkpoints" / "last.ckpt"
     result.steps = int(read(last).get("global_step", 0)) if last.exists() else 0
+    record = out_dir / "metrics.json"
+    if record.exists():
+        result.law_match = json.loads(record.read_text()).get("law_match")
     return result
 
 

@@ -3,8 +3,10 @@
 
 Every model fulfils one contract (``bgn.model.PhysicsModel``): ``forward(g)``, ``loss_terms``,
 ``total_loss`` (Eq. 12), ``predict(g)`` (physical units), ``heads`` and, with an inverse head,
-``sample_mass(g, n)``; the module uses nothing else. Rollouts (the validation figure,
-animation and ``val/rollout_error``) come in as callables from the entry point.
+``sample_mass(g, n)``; the module uses nothing else, but for force matching before the first
+step of a pair-force head asked for it (``law_init=match``, ``bgn.model.force_matching``).
+Rollouts (the validation figure, animation and ``val/rollout_error``) come in as callables
+from the entry point.
 
 The optimiser and its learning-rate schedule are callables handed in by the entry point
 (``bgn.train`` instantiates ``conf/optimizer/`` and ``conf/scheduler/``, Hydra partials); without
@@ -13,8 +15,10 @@ them the module uses ``DEFAULT_OPTIMIZER`` and ``reduce_on_plateau`` on val/nmse
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Iterable, Mapping
 from functools import partial
+from itertools import islice
 from pathlib import Path
 from typing import Any
 
@@ -33,11 +37,14 @@ from torchmetrics.classification import (
 
 from bgn.graph import Graph
 from bgn.model import build_model
+from bgn.model.force_matching import MATCHED_LAW_LR, matched_law_parameters, prepare
 from bgn.sim import SceneMeta
 from bgn.train.checkpoints import CheckpointError, read
 from bgn.train.unroll import unrolled_loss
 
 STAGES = ("train", "val", "test")
+MATCH_BATCHES = (30, 10)  # training and validation batches of force matching (law_init=match)
+log = logging.getLogger("bgn.train")
 
 # What conf/optimizer/adamw.yaml and conf/scheduler/plateau.yaml give, for a module built
 # without them (a notebook, PhysicsModule.load_from_checkpoint).
@@ -123,6 +130,7 @@ class PhysicsModule(L.LightningModule):
         # "train" is taken by nn.Module.train, hence the suffix
         self.metrics = nn.ModuleDict({f"{stage}_": self._stage_metrics() for stage in STAGES})
         self._figure_batch: Graph | None = None
+        self.law_match: dict[str, Any] | None = None  # what force matching did (on_train_start)
 
     # -- metrics --------------------------------------------------------------------------
     def _stage_metrics(self) -> MetricCollection:
@@ -207,6 +215,39 @@ class PhysicsModule(L.LightningModule):
     def training_step(self, g: Graph, batch_idx: int) -> torch.Tensor:
         return self._step("train", self.model.corrupt(g))  # rollout noise: training only
 
+    def on_train_start(self) -> None:
+        """Force matching (``law_init=match``, ``bgn.model.force_matching``) before the first
+        step of a fresh run (a resumed one has its law already): the pair law fitted on
+        ``MATCH_BATCHES`` training batches, its smoothness chosen on validation ones. Where
+        it is not kept, the law trains at the full rate."""
+        if self.global_step > 0 or not matched_law_parameters(self.model):
+            return
+        datamodule = getattr(self.trainer, "datamodule", None)
+        result = None
+        if datamodule is not None:
+            def batches(loader: Iterable[Graph], n: int) -> Iterable[Graph]:
+                return (self.transfer_batch_to_device(g, self.device, 0)
+                        for g in islice(loader, n))
+            result = prepare(self.model,
+                             batches(datamodule.train_dataloader(), MATCH_BATCHES[0]),
+                             batches(datamodule.val_dataloader(), MATCH_BATCHES[1]))
+        if result is None or not result.kept:
+            optimizer = self.optimizers()
+            getattr(optimizer, "optimizer", optimizer).param_groups[-1]["lr"] /= MATCHED_LAW_LR
+            scheduler = self.lr_schedulers()
+            if isinstance(scheduler, torch.optim.lr_scheduler.ReduceLROnPlateau):
+                scheduler.min_lrs[-1] /= MATCHED_LAW_LR
+        if result is None:
+            log.info("law_init=match: no pairs to fit; the law starts as initialised")
+            return
+        self.law_match = result.as_dict()
+        log.info("law_init=match: the pair law fitted to %d acceleration components of the "
+                 "training split (relative squared error %.3g as a table, validation %.3g; "
+                 "the MLP fitted to it %.3g on validation, %.3g before): %s", result.rows,
+                 result.table_train_error, result.table_val_error, result.val_error,
+                 result.val_error_before,
+                 "kept" if result.kept else "not kept (no better than the initial law)")
+
     def on_before_optimizer_step(self, optimizer: torch.optim.Optimizer) -> None:
         """A finite loss can still give a non-finite gradient (a 0/0 in a backward): stop
         with one clear error before the optimiser writes it into the weights."""
@@ -247,7 +288,15 @@ class PhysicsModule(L.LightningModule):
         return batch.to(device)
 
     def configure_optimizers(self) -> dict[str, Any]:
-        optimizer = self.optimizer_factory(self.parameters())
+        law = matched_law_parameters(self.model)
+        if not law:
+            optimizer = self.optimizer_factory(self.parameters())
+        else:  # a law started from force matching trains slower (MATCHED_LAW_LR)
+            ids = {id(p) for p in law}
+            optimizer = self.optimizer_factory(
+                [{"params": [p for p in self.parameters() if id(p) not in ids]},
+                 {"params": law}])
+            optimizer.param_groups[1]["lr"] *= MATCHED_LAW_LR
         scheduler = self.scheduler_factory(optimizer)
         return {"optimizer": optimizer,
                 "lr_scheduler": {"scheduler": scheduler, **self.scheduler_config}}

@@ -175,9 +175,11 @@ def train(cfg: DictConfig, spec: DatasetSpec | None = None,
     loggers = [instantiate(c) for c in (cfg.get("logger") or {}).values() if c]
     trainer: L.Trainer = instantiate(cfg.trainer, callbacks=[*callbacks, stop], logger=loggers)
     law_record: dict[str, Any] = {}
+    law_match: dict[str, Any] | None = None
     try:
         trainer.fit(module, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=True)
         metrics = {k: float(v) for k, v in trainer.callback_metrics.items()}
+        law_match = module.law_match  # force matching (law_init=match) of this fit
         best = trainer.checkpoint_callback.best_model_path if trainer.checkpoint_callback \
             and not trainer.interrupted else ""
         tested, tested_ckpt = module, best or None
@@ -215,6 +217,8 @@ def train(cfg: DictConfig, spec: DatasetSpec | None = None,
               "dataset": cfg.dataset.scene, "fps": float(datamodule.spec.fps),
               "model": module.model.name,
               "variant": module.model.describe()}  # label, given, physics written in
+    if law_match:
+        record["law_match"] = law_match
     if law_record:  # model.law=auto: which law was tested, and the validation behind it
         record["law"] = {k: law_record.get(k) for k in ("choice", "tuned", "validation",
                                                         "rollout_substeps", "path", "report")}

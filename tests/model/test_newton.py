@@ -88,6 +88,27 @@ def test_inertial_fit_returns_the_true_masses(small_cfg):
     assert float((fitted / g.mass - 1).abs().median()) < 1e-4
 
 
+@pytest.mark.parametrize("config", [{"name": "newton"}, {"name": "bgn", "dynamics": "newton"}])
+def test_one_mass_per_type_is_the_inertial_law_with_those_masses(small_cfg, config):
+    """mass_law=type: spring's frames with the true law and each particle's mass set to its
+    type's learned one give the inertial law's prediction with those masses known; nothing is
+    read off the window, so the prediction is the same whatever the recorded masses."""
+    ds, g = frames(small_cfg, "spring")
+    model = build_model({**config, "mass_law": "type"}, ds.meta, ds.file.stats(),
+                        ds.history).double()
+    head = model.head if config["name"] == "newton" else model.force_head
+    head.force_law = TrueLaw(LAWS["spring"][1], float(model.normalizer.rel_position_scale))
+    with torch.no_grad():
+        head.log_type_mass.copy_(torch.linspace(0.0, 0.7, len(head.log_type_mass)))
+    by_type = replace(g, mass=torch.exp(head.log_type_mass)[g.types])
+    predicted = head(by_type)[0]
+    assert torch.allclose(predicted, head(by_type, known_masses=True)[0])
+    assert torch.equal(predicted, head(replace(g, mass=g.mass * 3))[0])
+    assert torch.allclose(head.fitted_log_mass(g), head.log_type_mass[g.types])
+    fit, error = head.least_squares(g, head.window(g)[1], with_error=True)
+    assert torch.equal(error, torch.zeros_like(fit))
+
+
 @pytest.mark.parametrize("scene", sorted(LAWS))
 def test_the_fitted_log_masses_of_the_true_law_are_the_masses(small_cfg, scene):
     """What mass_context=fit feeds the flow: with the true force law, the window's fit gives

@@ -1,0 +1,294 @@
+"""Force matching: the pair-force head's MLP law started from a least-squares fit of the pair
+law to the training frames, before any gradient step (``law_init=match``; docs/design.md,
+"Force matching").
+
+With equal masses (or the recorded ones), the head's acceleration ``a_i = sum_j f(s_ij) u_ij``
+is linear in the law ``f``. Written as a table over distances (piecewise linear in ``log s``,
+one table per pair of types), the law's values follow from the frames by linear least squares:
+the force matching of classical interatomic potentials (Ercolessi & Adams 1994), with a
+tabulated law as in MD codes' tabulated pair styles. The pair terms are weighted as the target
+sees them (``numerov``, at the window's past frames, whose accelerations are known), so the
+fit matches what the head predicts. The MLP is then fitted to the table (a one-dimensional
+regression), and gradient training starts from a law that already moves the particles, where
+a time budget otherwise spends most of its steps finding one (docs/results.md, "Force
+matching").
+
+Why a table and not the MLP's own last layer: the last layer's least-squares fit over the
+MLP's random features reaches the same error, but only by large coefficients that cancel,
+which the first gradient steps on the hidden layers undo. Masses: the recorded ones where
+the model trains with them (``known_masses``: its law loss), else all equal (the head's mass
+fit corrects the rest). The table's smoothness penalty is chosen on validation windows, and
+the MLP is kept only where it then beats its initial law there.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass
+
+import torch
+
+from bgn.graph import Graph
+from bgn.model.newton import PairForceHead, numerov, past_positions
+from bgn.model.ops import scatter_sum
+from bgn.model.target import observed_targets
+
+KNOTS = 48  # table knots per pair of types, evenly spaced in log distance
+# smoothness penalties tried (second differences of the table), relative to the mean
+# diagonal of the normal matrix
+SMOOTHING = tuple(10.0**-k for k in range(10, -1, -1))
+EDGE_ELEMENTS = 1 << 24  # entries of the per-edge design held at once (64 MiB in float32)
+# the matched law's learning rate relative to the optimiser's: Adam's first steps move every
+# weight by about the full rate, which undoes a law already fitted (docs/results.md)
+MATCHED_LAW_LR = 0.1
+DISTIL_STEPS, DISTIL_POINTS, DISTIL_LR = 3000, 256, 1e-2
+
+
+@dataclass
+class NormalEquations:
+    """``gram = X^T X``, ``moment = X^T y`` and ``total = y^T y`` of a least-squares problem
+    ``X c = y`` (float64), accumulated over batches; ``rows`` counts the rows."""
+
+    gram: torch.Tensor
+    moment: torch.Tensor
+    total: torch.Tensor
+    rows: int
+
+    def __add__(self, other: NormalEquations) -> NormalEquations:
+        return NormalEquations(self.gram + other.gram, self.moment + other.moment,
+                               self.total + other.total, self.rows + other.rows)
+
+    def relative_error(self, coef: torch.Tensor) -> float:
+        """``|X c - y|^2 / |y|^2`` of the coefficients ``coef``."""
+        sq = coef @ self.gram @ coef - 2 * self.moment @ coef + self.total
+        return float(sq.clamp_min(0) / self.total.clamp_min(torch.finfo(sq.dtype).tiny))
+
+
+@dataclass
+class Table:
+    """A pair law tabulated at ``KNOTS`` distances evenly spaced in ``log s`` from ``lo`` to
+    ``hi`` (normalised units), piecewise linear between them, one row per pair of types."""
+
+    lo: float
+    hi: float
+    values: torch.Tensor  # (pairs, KNOTS)
+
+    def knots(self) -> torch.Tensor:
+        return torch.linspace(math.log(self.lo), math.log(self.hi), self.values.shape[1],
+                              dtype=torch.float64)
+
+
+@dataclass
+class MatchResult:
+    """What force matching did: the chosen smoothness, the relative squared error of the
+    accelerations of the table on the training and validation windows, of the MLP fitted to
+    it and of the initial MLP on validation, and whether the fitted MLP was kept."""
+
+    smoothing: float
+    table_train_error: float
+    table_val_error: float
+    val_error: float
+    val_error_before: float
+    kept: bool
+    rows: int
+
+    def as_dict(self) -> dict[str, float | bool | int]:
+        return asdict(self)
+
+
+def matchable(head: object) -> bool:
+    """Whether force matching applies: a pair-force head whose law is an MLP (a formula law is
+    fitted by the law stage instead)."""
+    return isinstance(head, PairForceHead) and isinstance(head.force_law, torch.nn.Sequential)
+
+
+def hat_basis(log_dist: torch.Tensor, knots: torch.Tensor) -> torch.Tensor:
+    """(..., K) the piecewise-linear basis at ``log_dist`` (...): each value shared between its
+    two neighbouring knots; outside the knots, the end segments extended."""
+    step = knots[1] - knots[0]
+    x = (log_dist - knots[0]) / step
+    i = x.floor().clamp(0, len(knots) - 2)
+    w = (x - i)[..., None]
+    idx = i.long()[..., None]
+    basis = log_dist.new_zeros(*log_dist.shape, len(knots))
+    return basis.scatter_add(-1, idx, 1 - w).scatter_add(-1, idx + 1, w)
+
+
+def distance_range(head: PairForceHead, graphs: Iterable[Graph]) -> tuple[float, float] | None:
+    """The smallest and largest pair distance (normalised units) over the windows of
+    ``graphs``; None where they hold no pair."""
+    lo, hi = math.inf, 0.0
+    for g in graphs:
+        if g.edge_index.shape[1]:
+            dist = head.separations(g, past_positions(g))[1]
+            lo, hi = min(lo, float(dist.min())), max(hi, float(dist.max()))
+    return (lo, hi) if hi > lo > 0 else None
+
+
+def normal_equations(head: PairForceHead, g: Graph, knots: torch.Tensor, known_masses: bool,
+                     ) -> NormalEquations:
+    """The least-squares problem of one batch for the table's values (``pairs x KNOTS``)
+    against the window's past accelerations, one row per particle, frame and coordinate;
+    kinematic particles (moved by the source) left out."""
+    rel, dist = head.separations(g, past_positions(g))                       # (E, F, D)
+    n_frames = rel.shape[1] - 2  # numerov: frames t .. t-k+1; known accelerations: t-1 ..
+    seen = observed_targets(g, "acceleration")[:, :n_frames]                 # (N, F-2, D)
+    snd, rcv = g.edge_index
+    pair = head.pair_index(g)
+    n_pairs, k = max(head.types, 1) ** 2, len(knots)
+    width = n_pairs * k                                                      # P
+    design = rel.new_zeros(g.pos.shape[0], n_frames, rel.shape[2], width)    # (N, F-2, D, P)
+    step = max(1, EDGE_ELEMENTS // (rel.shape[1] * rel.shape[2] * width))   # edges per chunk
+    for lo in range(0, rel.shape[0], step):
+        part = slice(lo, lo + step)
+        basis = hat_basis(torch.log(dist[part, :, 0]).double(), knots).to(rel.dtype)
+        if pair is not None:  # each pair of types has its own table: its block of columns
+            cols = (pair[part] * k)[:, None, None] + torch.arange(k, device=rel.device)
+            basis = basis.new_zeros(*basis.shape[:2], width).scatter(
+                -1, cols.expand_as(basis), basis)
+        terms = numerov(basis[:, :, None, :] * (rel[part] / dist[part])[..., None])[:, 1:]
+        if known_masses and head.mass_law == "source":  # a_i = sum_j m_j f(s_ij) u_ij
+            terms = terms * g.mass.to(terms.dtype)[snd[part], None, None, None]
+        design.index_add_(0, rcv[part], terms)
+    if known_masses and head.mass_law != "source":      # m_i a_i = sum_j f(s_ij) u_ij
+        seen = seen * g.mass.to(seen.dtype)[:, None, None]
+    if g.kinematic is not None:
+        keep = ~g.kinematic
+        design, seen = design[keep], seen[keep]
+    x = design.reshape(-1, design.shape[-1]).double()
+    y = seen.reshape(-1).double()
+    return NormalEquations(x.T @ x, x.T @ y, y @ y, int(y.numel()))
+
+
+def accumulate(head: PairForceHead, graphs: Iterable[Graph], knots: torch.Tensor,
+               known_masses: bool) -> NormalEquations | None:
+    """``normal_equations`` summed over ``graphs`` (None when there are none)."""
+    total = None
+    for g in graphs:
+        eq = normal_equations(head, g, knots, known_masses)
+        total = eq if total is None else total + eq
+    return total
+
+
+def fit_table(fit: NormalEquations, check: NormalEquations, n_pairs: int,
+              ) -> tuple[torch.Tensor, float]:
+    """The table's values (pairs x KNOTS) of least squares on ``fit`` with a penalty on their
+    second differences, its weight (``SMOOTHING``) the best on ``check``."""
+    k = fit.gram.shape[0] // n_pairs
+    second = torch.diff(torch.eye(k, dtype=fit.gram.dtype), n=2, dim=0)
+    penalty = torch.block_diag(*[second.T @ second] * n_pairs)
+    # pairs of types never seen give zero rows: a small ridge keeps the system regular
+    scale = float(fit.gram.diagonal().mean())
+    ridge = 1e-12 * scale * torch.eye(len(penalty), dtype=penalty.dtype)
+    best = None
+    for weight in SMOOTHING:
+        coef = torch.linalg.solve(fit.gram + weight * scale * penalty + ridge, fit.moment)
+        error = check.relative_error(coef)
+        if best is None or error < best[0]:
+            best = (error, weight, coef)
+    assert best is not None
+    return best[2].view(n_pairs, k), best[1]
+
+
+def law_error(head: PairForceHead, graphs: Iterable[Graph], known_masses: bool) -> float:
+    """Relative squared error of the accelerations that the head's current law gives at the
+    windows' past frames (equal or recorded masses, as ``normal_equations``)."""
+    num = den = 0.0
+    for g in graphs:
+        terms = numerov(head.pair_terms(g, past_positions(g)))[:, 1:]
+        if known_masses and head.mass_law == "source":
+            terms = terms * g.mass.to(terms.dtype)[g.edge_index[0], None, None]
+        pred = scatter_sum(terms, g.edge_index[1], g.pos.shape[0])
+        seen = observed_targets(g, "acceleration")[:, :pred.shape[1]]
+        if known_masses and head.mass_law != "source":
+            seen = seen * g.mass.to(seen.dtype)[:, None, None]
+        if g.kinematic is not None:
+            pred, seen = pred[~g.kinematic], seen[~g.kinematic]
+        num += float(((pred - seen) ** 2).sum())
+        den += float((seen**2).sum())
+    return num / max(den, 1e-300)
+
+
+def distil(head: PairForceHead, table: Table) -> None:
+    """Fit the head's MLP law to ``table`` at ``DISTIL_POINTS`` distances per pair of types,
+    evenly spaced in log distance (Adam on the squared error relative to the table's mean
+    square)."""
+    n_pairs = table.values.shape[0]
+    u = torch.linspace(math.log(table.lo), math.log(table.hi), DISTIL_POINTS,
+                       dtype=torch.float64)
+    target = (hat_basis(u, table.knots()) @ table.values.T).T.reshape(-1, 1)  # (pairs*P, 1)
+    dist = torch.exp(u).repeat(n_pairs)[:, None, None]
+    pair = None if head.types <= 1 else torch.arange(n_pairs).repeat_interleave(DISTIL_POINTS)
+    param = next(head.force_law.parameters())
+    inputs = head.law_input(dist.to(param), None if pair is None else pair.to(param.device))
+    target = target.to(param)
+    scale = (target**2).mean().clamp_min(torch.finfo(param.dtype).tiny)
+    optimizer = torch.optim.Adam(head.force_law.parameters(), lr=DISTIL_LR)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, DISTIL_STEPS)
+    with torch.enable_grad():
+        for _ in range(DISTIL_STEPS):
+            optimizer.zero_grad()
+            loss = ((head.force_law(inputs)[:, 0] - target) ** 2).mean() / scale
+            loss.backward()
+            optimizer.step()
+            schedule.step()
+
+
+@torch.no_grad()
+def match_forces(head: PairForceHead, train: list[Graph], val: list[Graph],
+                 known_masses: bool = False) -> MatchResult | None:
+    """Fit a tabulated law to the ``train`` windows (its smoothness chosen on ``val``), fit
+    the head's MLP law to it, and keep that where it beats the initial law on ``val``. None
+    where nothing could be fitted (no windows or no pairs)."""
+    span = distance_range(head, train)
+    if span is None or not val:
+        return None
+    n_pairs = max(head.types, 1) ** 2
+    knots = Table(*span, torch.zeros(n_pairs, KNOTS)).knots()
+    fit = accumulate(head, train, knots, known_masses)
+    check = accumulate(head, val, knots, known_masses)
+    assert fit is not None and check is not None
+    if not torch.isfinite(fit.gram).all() or not float(fit.gram.diagonal().mean()) > 0:
+        return None
+    values, smoothing = fit_table(fit, check, n_pairs)
+    table = Table(*span, values)
+    before = law_error(head, val, known_masses)
+    state = {k: v.clone() for k, v in head.force_law.state_dict().items()}
+    distil(head, table)
+    after = law_error(head, val, known_masses)
+    kept = after < before
+    if not kept:
+        head.force_law.load_state_dict(state)
+    flat = values.reshape(-1)
+    return MatchResult(smoothing, fit.relative_error(flat), check.relative_error(flat), after,
+                       before, kept, fit.rows)
+
+
+def matched_head(model: torch.nn.Module) -> PairForceHead | None:
+    """A model's pair-force head where its config asks for force matching (``law_init=match``,
+    an MLP law): BGN with ``dynamics=newton`` and ``model=newton``; else None."""
+    head = getattr(model, "force_head", None) or getattr(model, "head", None)
+    if getattr(getattr(model, "cfg", None), "law_init", "random") != "match" \
+            or not matchable(head):
+        return None
+    assert isinstance(head, PairForceHead)
+    return head
+
+
+def matched_law_parameters(model: torch.nn.Module) -> list[torch.nn.Parameter]:
+    """The parameters of a matched law (``matched_head``), which train at ``MATCHED_LAW_LR``
+    times the optimiser's rate; empty where there is none."""
+    head = matched_head(model)
+    return [] if head is None else list(head.force_law.parameters())
+
+
+def prepare(model: torch.nn.Module, train: Iterable[Graph], val: Iterable[Graph],
+            ) -> MatchResult | None:
+    """Force matching of ``matched_head(model)``, with the recorded masses where the model
+    trains with them (its law loss). None where nothing was fitted."""
+    head = matched_head(model)
+    if head is None:
+        return None
+    return match_forces(head, list(train), list(val),
+                        known_masses="law" in getattr(model, "heads", ()))

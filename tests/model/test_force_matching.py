@@ -1,0 +1,116 @@
+"""Force matching (bgn.model.force_matching): the tabulated law's basis, the law it recovers from
+real frames, the MLP fitted to it, and the training run that starts from it."""
+
+import json
+import math
+from itertools import islice
+
+import pytest
+import torch
+
+from bgn.model import force_matching as fm
+from bgn.model.newton import LAW_INITS, NewtonConfig
+from bgn.train.module import PhysicsModule
+from bgn.train.run import build_module, train
+from tests.conftest import SMALL, compose_config
+from tests.test_train import tiny_train_cfg  # noqa: F401  (a fixture)
+
+SPRING = ("spring", "model.dynamics=newton")  # the inertial law, masses recorded
+
+
+def test_hat_basis_is_a_partition_of_unity_that_reproduces_lines():
+    knots = torch.linspace(-1.0, 2.0, 7, dtype=torch.float64)
+    u = torch.linspace(-1.5, 2.5, 101, dtype=torch.float64)  # beyond both ends too
+    basis = fm.hat_basis(u, knots)
+    assert torch.allclose(basis.sum(-1), torch.ones_like(u))
+    line = 0.3 - 1.7 * knots  # a law linear in log s is represented exactly, and extended
+    assert torch.allclose(basis @ line, 0.3 - 1.7 * u)
+    assert (basis[(u >= -1) & (u <= 2)] >= 0).all()
+
+
+def test_a_smoothed_least_squares_table_is_chosen_on_the_check_problem():
+    """fit_table solves the penalised normal equations; the check problem picks the penalty."""
+    gen = torch.Generator().manual_seed(0)
+    x = torch.randn(400, fm.KNOTS, generator=gen, dtype=torch.float64)
+    truth = torch.sin(torch.linspace(0, 3, fm.KNOTS, dtype=torch.float64))
+    y = x @ truth + 0.01 * torch.randn(400, generator=gen, dtype=torch.float64)
+    eq = fm.NormalEquations(x.T @ x, x.T @ y, y @ y, 400)
+    values, weight = fm.fit_table(eq, eq, 1)
+    assert values.shape == (1, fm.KNOTS) and weight in fm.SMOOTHING
+    assert torch.allclose(values[0], truth, atol=0.05)
+    assert eq.relative_error(values[0]) < 1e-3
+
+
+def head_and_batches(small_datamodules, *overrides: str):
+    dm = small_datamodules["spring"]
+    cfg = compose_config("train", ["dataset=spring", *SMALL["spring"], "model.dynamics=newton",
+                                   *overrides])
+    module = build_module(cfg, dict(vars(dm.meta)), {k: {n: v.tolist() for n, v in e.items()}
+                                                     for k, e in dm.stats().items()},
+                          dm.history)
+    return module.model, list(islice(dm.train_dataloader(), 6)), \
+        list(islice(dm.val_dataloader(), 3))
+
+
+def test_matching_recovers_the_spring_law_from_its_frames(small_datamodules):
+    """With the recorded masses, spring's frames pin its law: the MLP fitted to the table
+    predicts the validation accelerations far better than the initial law, and its values
+    follow -2 (s - 1) (SIMS.md) over the distances the data hold."""
+    model, train_batches, val_batches = head_and_batches(small_datamodules,
+                                                         "model.law_init=match")
+    head = fm.matched_head(model)
+    assert head is not None
+    result = fm.match_forces(head, train_batches, val_batches, known_masses=True)
+    assert result is not None and result.kept
+    assert result.table_val_error < 1e-2 and result.val_error < 1e-3
+    assert result.val_error < 1e-2 * result.val_error_before
+    lo, hi = fm.distance_range(head, train_batches)
+    s = torch.exp(torch.linspace(math.log(lo), math.log(hi), 50))[1:-1, None, None]
+    with torch.no_grad():
+        law = head.force_law(head.law_input(s.float(), None))[:, 0, 0].double()
+    r = s[:, 0, 0].double() * head.length_scale.double()
+    truth = -2 * (r + 0.01 - 1)
+    assert (law - truth).abs().max() < 0.05 * truth.abs().max()
+
+
+def test_a_law_that_does_not_improve_on_validation_is_not_kept(small_datamodules,
+                                                               monkeypatch):
+    model, train_batches, val_batches = head_and_batches(small_datamodules,
+                                                         "model.law_init=match")
+    head = fm.matched_head(model)
+    before = {k: v.clone() for k, v in head.force_law.state_dict().items()}
+    monkeypatch.setattr(fm, "distil",  # a law far off: a large constant force
+                        lambda head, table: head.force_law[-1].bias.data.fill_(1e3))
+    result = fm.match_forces(head, train_batches, val_batches, known_masses=True)
+    assert result is not None and not result.kept
+    assert all(torch.equal(before[k], v) for k, v in head.force_law.state_dict().items())
+
+
+def test_only_an_mlp_law_asked_for_is_matched(small_datamodules):
+    assert fm.matched_head(head_and_batches(small_datamodules)[0]) is None  # law_init=random
+    assert fm.matched_head(head_and_batches(small_datamodules, "model.law_init=match",
+                                            "model.dynamics=decoder")[0]) is None
+    with pytest.raises(ValueError, match="law_init='bogus'; choose one of"):
+        NewtonConfig(law_init="bogus")
+    assert LAW_INITS == ("random", "match")
+
+
+def test_a_run_with_law_init_match_records_the_fit_and_trains_the_law_slower(
+        tiny_train_cfg, tmp_path, monkeypatch):  # noqa: F811  (the fixture)
+    """The run fits the law before its first step, writes what it did to metrics.json, and
+    its optimiser holds the law at MATCHED_LAW_LR times the rate."""
+    rates = []
+    original = PhysicsModule.on_train_start
+
+    def on_train_start(self):
+        original(self)
+        optimizer = self.optimizers()
+        rates.extend(g["lr"] for g in getattr(optimizer, "optimizer", optimizer).param_groups)
+
+    monkeypatch.setattr(PhysicsModule, "on_train_start", on_train_start)
+    train(tiny_train_cfg(*SPRING, "model.law_init=match", "+trainer.max_steps=2",
+                         "val_rollout_steps=0"))
+    record = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    match = record["law_match"]
+    assert match["kept"] and match["val_error"] < match["val_error_before"]
+    assert rates == [rates[0], pytest.approx(rates[0] * fm.MATCHED_LAW_LR)]

@@ -10,8 +10,8 @@ tabulated law as in MD codes' tabulated pair styles. The pair terms are weighted
 sees them (``numerov``, at the window's past frames, whose accelerations are known), so the
 fit matches what the head predicts. The MLP is then fitted to the table (a one-dimensional
 regression), and gradient training starts from a law that already moves the particles, where
-a time budget otherwise spends most of its steps finding one (docs/results.md, "Force
-matching").
+a time budget otherwise spends most of its steps finding one (docs/notes/2026-11-26-force-
+matching.md).
 
 Why a table and not the MLP's own last layer: the last layer's least-squares fit over the
 MLP's random features reaches the same error, but only by large coefficients that cancel,
@@ -40,7 +40,8 @@ KNOTS = 48  # table knots per pair of types, evenly spaced in log distance
 SMOOTHING = tuple(10.0**-k for k in range(10, -1, -1))
 EDGE_ELEMENTS = 1 << 24  # entries of the per-edge design held at once (64 MiB in float32)
 # the matched law's learning rate relative to the optimiser's: Adam's first steps move every
-# weight by about the full rate, which undoes a law already fitted (docs/results.md)
+# weight by about the full rate, which undoes a law already fitted
+# (docs/notes/2026-11-26-force-matching.md)
 MATCHED_LAW_LR = 0.1
 DISTIL_STEPS, DISTIL_POINTS, DISTIL_LR = 3000, 256, 1e-2
 
@@ -75,8 +76,12 @@ class Table:
     values: torch.Tensor  # (pairs, KNOTS)
 
     def knots(self) -> torch.Tensor:
-        return torch.linspace(math.log(self.lo), math.log(self.hi), self.values.shape[1],
-                              dtype=torch.float64)
+        return log_knots(self.lo, self.hi, self.values.shape[1])
+
+
+def log_knots(lo: float, hi: float, k: int = KNOTS) -> torch.Tensor:
+    """(k,) log distances evenly spaced from ``log lo`` to ``log hi`` (float64)."""
+    return torch.linspace(math.log(lo), math.log(hi), k, dtype=torch.float64)
 
 
 @dataclass
@@ -126,6 +131,24 @@ def distance_range(head: PairForceHead, graphs: Iterable[Graph]) -> tuple[float,
     return (lo, hi) if hi > lo > 0 else None
 
 
+def mass_weights(head: PairForceHead, g: Graph, known_masses: bool,
+                 ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """How the recorded masses enter the fit where they are known: per edge, the sender's mass
+    (source law, ``a_i = sum_j m_j f u``), or per particle, its own mass on its target (the
+    other laws, ``m_i a_i = sum_j f u``); (None, None) where all masses count as equal."""
+    if not known_masses:
+        return None, None
+    mass = g.mass.to(g.pos.dtype)
+    return (mass[g.edge_index[0]], None) if head.mass_law == "source" else (None, mass)
+
+
+def without_kinematic(g: Graph, *node_values: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """``node_values`` (N, ...) without the particles the source moves (never predicted)."""
+    if g.kinematic is None:
+        return node_values
+    return tuple(v[~g.kinematic] for v in node_values)
+
+
 def normal_equations(head: PairForceHead, g: Graph, knots: torch.Tensor, known_masses: bool,
                      ) -> NormalEquations:
     """The least-squares problem of one batch for the table's values (``pairs x KNOTS``)
@@ -134,7 +157,8 @@ def normal_equations(head: PairForceHead, g: Graph, knots: torch.Tensor, known_m
     rel, dist = head.separations(g, past_positions(g))                       # (E, F, D)
     n_frames = rel.shape[1] - 2  # numerov: frames t .. t-k+1; known accelerations: t-1 ..
     seen = observed_targets(g, "acceleration")[:, :n_frames]                 # (N, F-2, D)
-    snd, rcv = g.edge_index
+    rcv = g.edge_index[1]
+    by_edge, by_node = mass_weights(head, g, known_masses)
     pair = head.pair_index(g)
     n_pairs, k = max(head.types, 1) ** 2, len(knots)
     width = n_pairs * k                                                      # P
@@ -148,14 +172,12 @@ def normal_equations(head: PairForceHead, g: Graph, knots: torch.Tensor, known_m
             basis = basis.new_zeros(*basis.shape[:2], width).scatter(
                 -1, cols.expand_as(basis), basis)
         terms = numerov(basis[:, :, None, :] * (rel[part] / dist[part])[..., None])[:, 1:]
-        if known_masses and head.mass_law == "source":  # a_i = sum_j m_j f(s_ij) u_ij
-            terms = terms * g.mass.to(terms.dtype)[snd[part], None, None, None]
+        if by_edge is not None:
+            terms = terms * by_edge[part].to(terms.dtype)[:, None, None, None]
         design.index_add_(0, rcv[part], terms)
-    if known_masses and head.mass_law != "source":      # m_i a_i = sum_j f(s_ij) u_ij
-        seen = seen * g.mass.to(seen.dtype)[:, None, None]
-    if g.kinematic is not None:
-        keep = ~g.kinematic
-        design, seen = design[keep], seen[keep]
+    if by_node is not None:
+        seen = seen * by_node.to(seen.dtype)[:, None, None]
+    design, seen = without_kinematic(g, design, seen)
     x = design.reshape(-1, design.shape[-1]).double()
     y = seen.reshape(-1).double()
     return NormalEquations(x.T @ x, x.T @ y, y @ y, int(y.numel()))
@@ -197,14 +219,14 @@ def law_error(head: PairForceHead, graphs: Iterable[Graph], known_masses: bool) 
     num = den = 0.0
     for g in graphs:
         terms = numerov(head.pair_terms(g, past_positions(g)))[:, 1:]
-        if known_masses and head.mass_law == "source":
-            terms = terms * g.mass.to(terms.dtype)[g.edge_index[0], None, None]
-        pred = scatter_sum(terms, g.edge_index[1], g.pos.shape[0])
-        seen = observed_targets(g, "acceleration")[:, :pred.shape[1]]
-        if known_masses and head.mass_law != "source":
-            seen = seen * g.mass.to(seen.dtype)[:, None, None]
-        if g.kinematic is not None:
-            pred, seen = pred[~g.kinematic], seen[~g.kinematic]
+        seen = observed_targets(g, "acceleration")[:, :terms.shape[1]]
+        by_edge, by_node = mass_weights(head, g, known_masses)
+        if by_edge is not None:
+            terms = terms * by_edge.to(terms.dtype)[:, None, None]
+        if by_node is not None:
+            seen = seen * by_node.to(seen.dtype)[:, None, None]
+        pred, seen = without_kinematic(g, scatter_sum(terms, g.edge_index[1], g.pos.shape[0]),
+                                       seen)
         num += float(((pred - seen) ** 2).sum())
         den += float((seen**2).sum())
     return num / max(den, 1e-300)
@@ -214,12 +236,14 @@ def distil(head: PairForceHead, table: Table) -> None:
     """Fit the head's MLP law to ``table`` at ``DISTIL_POINTS`` distances per pair of types,
     evenly spaced in log distance (Adam on the squared error relative to the table's mean
     square)."""
-    n_pairs = table.values.shape[0]
-    u = torch.linspace(math.log(table.lo), math.log(table.hi), DISTIL_POINTS,
-                       dtype=torch.float64)
-    target = (hat_basis(u, table.knots()) @ table.values.T).T.reshape(-1, 1)  # (pairs*P, 1)
-    dist = torch.exp(u).repeat(n_pairs)[:, None, None]
-    pair = None if head.types <= 1 else torch.arange(n_pairs).repeat_interleave(DISTIL_POINTS)
+    t = max(head.types, 1)
+    # the unordered pairs of types pair_index gives (lo * t + hi, lo <= hi): the table's
+    # other rows are never filled
+    pairs = torch.tensor([a * t + b for a in range(t) for b in range(a, t)])
+    u = log_knots(table.lo, table.hi, DISTIL_POINTS)
+    target = (hat_basis(u, table.knots()) @ table.values[pairs].T).T.reshape(-1, 1)
+    dist = torch.exp(u).repeat(len(pairs))[:, None, None]
+    pair = None if head.types <= 1 else pairs.repeat_interleave(DISTIL_POINTS)
     param = next(head.force_law.parameters())
     inputs = head.law_input(dist.to(param), None if pair is None else pair.to(param.device))
     target = target.to(param)
@@ -245,7 +269,7 @@ def match_forces(head: PairForceHead, train: list[Graph], val: list[Graph],
     if span is None or not val:
         return None
     n_pairs = max(head.types, 1) ** 2
-    knots = Table(*span, torch.zeros(n_pairs, KNOTS)).knots()
+    knots = log_knots(*span)
     fit = accumulate(head, train, knots, known_masses)
     check = accumulate(head, val, knots, known_masses)
     assert fit is not None and check is not None

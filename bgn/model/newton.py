@@ -19,7 +19,7 @@ learns only the force law:
   all equal where there is one type): ``a_i = F_i / m_type(i)``, nothing fitted to the window.
   A window fit reads masses off a few frames at every rollout step; where the masses are in
   fact shared, its errors at stiff encounters feed energy into the rollout, which a fixed mass
-  cannot (docs/results.md, "Force matching").
+  cannot (docs/notes/2026-11-26-force-matching.md).
 
 A window made by the model itself is consistent with the masses that made it, so the fit
 returns them: masses stay put in a rollout. The scale of ``f`` is free (the fitted masses
@@ -90,8 +90,8 @@ class ForceLawOptions(OptionGroup):
     substeps: int = 1                  # 1: Numerov's weights; > 1: integrate the frame (shoot)
     law: str = "mlp"                   # mlp: f(s) a network | formula: law_formula | auto
     law_formula: str = ""              # the formula's JSON spec (bgn.eval.laws.formula_spec)
-    # random: the MLP law as initialised | match: its readout first fitted to the training
-    # frames by least squares (bgn.model.force_matching); imported data set match
+    # random: the MLP law as initialised | match: first fitted to a least-squares table of
+    # the law on the training frames (bgn.model.force_matching); imported data set match
     law_init: str = "random"
 
     def __post_init__(self) -> None:

@@ -42,6 +42,29 @@ def test_a_smoothed_least_squares_table_is_chosen_on_the_check_problem():
     assert eq.relative_error(values[0]) < 1e-3
 
 
+def test_the_mlp_follows_each_pair_of_types_table():
+    """distil fits the MLP to the table of every unordered pair of types the head reads
+    (``pair_index``: lo * n + hi); the unread rows (hi < lo) stay out of the fit."""
+    from types import SimpleNamespace
+
+    from bgn.model.newton import PairForceHead
+    from tests.model.conftest import make_meta
+
+    torch.manual_seed(0)
+    head = PairForceHead(make_meta(n_types=2), SimpleNamespace(
+        rel_position_scale=torch.tensor(1.0)), 32, 2, "silu", "inertial")
+    table = fm.Table(0.5, 2.0, torch.zeros(4, fm.KNOTS, dtype=torch.float64))
+    u = table.knots()
+    table.values[0], table.values[1], table.values[3] = torch.exp(-2 * u), -1 + u, 0.5 * u
+    fm.distil(head, table)
+    s = torch.exp(torch.linspace(float(u[0]), float(u[-1]), 40))[:, None, None]
+    for pair in (0, 1, 3):
+        with torch.no_grad():
+            law = head.force_law(head.law_input(s, torch.full((40,), pair)))[:, 0, 0]
+        truth = (fm.hat_basis(torch.log(s[:, 0, 0]).double(), u) @ table.values[pair]).float()
+        assert (law - truth).abs().max() < 0.02 * table.values.abs().max(), pair
+
+
 def head_and_batches(small_datamodules, *overrides: str):
     dm = small_datamodules["spring"]
     cfg = compose_config("train", ["dataset=spring", *SMALL["spring"], "model.dynamics=newton",

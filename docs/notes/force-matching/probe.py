@@ -25,6 +25,9 @@ sys.path[:0] = ["tests", "examples/engines"]
 from conftest import compose_config  # noqa: E402
 
 from bgn.model import force_matching as fm  # noqa: E402
+from bgn.model.newton import numerov, past_positions  # noqa: E402
+from bgn.model.ops import scatter_sum  # noqa: E402
+from bgn.model.target import observed_targets  # noqa: E402
 from bgn.rollout import rollout_error, rollout_many  # noqa: E402
 from bgn.train.run import build  # noqa: E402
 
@@ -60,12 +63,12 @@ def readout() -> None:
     def equations(graphs):
         total = None
         for g in graphs:
-            rel, dist = head.separations(g, fm.past_positions(g))
+            rel, dist = head.separations(g, past_positions(g))
             h = body(head.law_input(dist, None))
             h = torch.cat([h, torch.ones_like(h[..., :1])], -1)
-            terms = fm.numerov(h[..., None, :] * (rel / dist)[..., None])[:, 1:]
-            x = fm.scatter_sum(terms, g.edge_index[1], g.pos.shape[0])
-            seen = fm.observed_targets(g, "acceleration")[:, :x.shape[1]]
+            terms = numerov(h[..., None, :] * (rel / dist)[..., None])[:, 1:]
+            x = scatter_sum(terms, g.edge_index[1], g.pos.shape[0])
+            seen = observed_targets(g, "acceleration")[:, :x.shape[1]]
             x, y = x.reshape(-1, x.shape[-1]).double(), seen.reshape(-1).double()
             eq = fm.NormalEquations(x.T @ x, x.T @ y, y @ y, len(y))
             total = eq if total is None else total + eq

@@ -438,6 +438,52 @@ def test_pruning_drops_a_negligible_term_whatever_the_loss():
     assert prune_terms(tune, 1.0, None, None, SPRING_AND_A_TAIL)[3] == SPRING_AND_A_TAIL
 
 
+# REBOUND's softened gravity as the formula stage once read it back on one seed: a small 1/r^2
+# repulsion beside the softened attraction, which takes over below r = 0.03
+SOFTENED_AND_A_CORE = _one_pair(("power", -2.0, 0.0616, None), ("plummer", -2.0, -1.063, 0.1226))
+
+
+def _morse(r0: float = 2 ** (1 / 6), rho0: float = 6.0) -> str:
+    a = rho0 / r0  # ASE's Morse force, 2 a (e^{-2a(r - r0)} - e^{-a(r - r0)}), as two exps
+    return _one_pair(("exp", 0.0, 2 * a * np.exp(2 * a * r0), 1 / (2 * a)),
+                     ("exp", 0.0, -2 * a * np.exp(a * r0), 1 / a))
+
+
+def test_a_term_that_turns_the_law_below_the_data_is_found():
+    from bgn.eval.laws import turning_term
+
+    # REBOUND's closest 0.1 % of training distances start at 0.10: the repulsion turns the
+    # law at 0.030, where no frame pins it
+    assert turning_term(SOFTENED_AND_A_CORE, 0.10) == 0
+    # data reaching 0.02 have seen the turn: the law keeps its sign below them, nothing goes
+    assert turning_term(SOFTENED_AND_A_CORE, 0.02) is None
+    # cores the data reach turn the law above the floor (the Morse gas's floor: 0.93, its
+    # well at 1.12; Lennard-Jones' at 1.12 sigma) and are kept
+    assert turning_term(_morse(), 0.93) is None
+    lj = _one_pair(("power", -13.0, 48.0, None), ("power", -7.0, -24.0, None))
+    assert turning_term(lj, 0.95) is None
+    # ... but a floor above the well sees the core as a turn below the data
+    assert turning_term(_morse(), 1.3) == 0
+    assert turning_term(lj, 1.5) == 0
+    # one term cannot be dropped; no floor, no test
+    assert turning_term(_one_pair(("log", 0.0, 1.0, None)), 10.0) is None
+    assert turning_term(SOFTENED_AND_A_CORE, None) is None
+
+
+def test_pruning_drops_a_turning_term_whatever_the_loss():
+    from bgn.eval.laws import prune_terms
+
+    def tune(spec: str) -> tuple[float, None, None, str]:  # the term less costs 4x the loss
+        return 0.002 * 4 ** (2 - len(json.loads(spec)[0]["terms"])), None, None, spec
+
+    loss, _, _, spec = prune_terms(tune, 0.002, None, None, SOFTENED_AND_A_CORE, floor=0.10)
+    assert [t["kind"] for t in json.loads(spec)[0]["terms"]] == ["plummer"]
+    assert loss == pytest.approx(0.008)
+    # the floor below the turn: only the loss decides, and it keeps the repulsion
+    assert prune_terms(tune, 0.002, None, None, SOFTENED_AND_A_CORE,
+                       floor=0.02)[3] == SOFTENED_AND_A_CORE
+
+
 def test_a_term_twice_starts_at_morses_two_scales_despite_a_cut_off_tail():
     """ASE's Morse force with its smooth cut-off: half the pairs lie where the force is near
     zero, which a relative fit lets decide; in absolute terms the two exponentials start near

@@ -924,6 +924,8 @@ TYPICAL_FLOOR = 1e-9      # added to each error before the geometric mean (an ex
 CANCELLING = 0.01         # a term twice whose amplitudes cancel to this is one term's derivative
 CLOSE_SHARE = 0.25        # of the tuning batch: the frames with the closest pairs
 ROBUST_SCALE = 0.1        # relative error at which law_objective's Cauchy loss bends
+TURN_QUANTILE = 1e-3      # of the training distances: below it the law may not turn (turning_term)
+BELOW_FLOOR = np.geomspace(1e-3, 1.0, 61)  # the distances turning_term checks, times its floor
 
 
 def formula_spec(report: LawReport) -> str:
@@ -1101,6 +1103,31 @@ def negligible_term(spec: str, reach: np.ndarray | None) -> int | None:
     return k if peak[k] < NEGLIGIBLE else None
 
 
+def turning_term(spec: str, floor: float | None) -> int | None:
+    """The term of a one-pair ``spec`` that turns the law's sign below ``floor`` (the closest
+    ``TURN_QUANTILE`` of the training distances), or None: the term pulling against the law's
+    sign at the floor that is largest at the closest distance where the law has turned. No
+    frame pins the law down there, so a turn there is the fit's extrapolation, not the data's
+    (REBOUND's softened attraction read back with a small 1/r^2 repulsion that takes over in
+    a close encounter; docs/design.md, "The formula stage"). A core the data reach (Morse,
+    Lennard-Jones) turns the law above the floor and is kept."""
+    from bgn.model.formula_law import FormulaLaw
+
+    pairs = json.loads(spec)
+    if floor is None or not floor > 0 or len(pairs) != 1 or len(pairs[0]["terms"]) < 2:
+        return None
+    r = torch.as_tensor(floor * BELOW_FLOOR, dtype=torch.float64)
+    with torch.no_grad():
+        values = FormulaLaw(spec).values(r).numpy()                      # (R, K), r ascending
+    law = values.sum(-1)
+    sign = np.sign(law[-1])
+    turned = np.flatnonzero(np.sign(law) == -sign) if sign != 0 else []
+    if len(turned) == 0:
+        return None
+    against = values[turned[0]] * sign < 0
+    return int(np.argmax(np.where(against, np.abs(values[turned[0]]), -np.inf)))
+
+
 def twice_form(pair: Any, term: Term) -> tuple[list[Term], np.ndarray] | None:
     """``term`` twice, each with its own c (Morse: two exponentials), fitted to ``pair``'s
     learned law in absolute terms: relative residuals are set by the many pairs where the law
@@ -1118,11 +1145,12 @@ def twice_form(pair: Any, term: Term) -> tuple[list[Term], np.ndarray] | None:
 
 def prune_terms(tune: Callable[[str], tuple[float, Any, Any, str]], loss: float, module: Any,
                 hp: Any, spec: str, reach: np.ndarray | None = None,
-                ) -> tuple[float, Any, Any, str]:
+                floor: float | None = None) -> tuple[float, Any, Any, str]:
     """Backward elimination on the frames: a negligible term (``negligible_term``, over the
-    distances the data ``reach``) is dropped, the rest tuned again, whatever the loss; else a
-    term is dropped while the loss rises by at most ``FORM_TOLERANCE``: a term the network's
-    law needed in its tails (where the frames barely pin it) goes."""
+    distances the data ``reach``) or one that turns the law's sign below the ``floor`` of the
+    training distances (``turning_term``) is dropped, the rest tuned again, whatever the loss;
+    else a term is dropped while the loss rises by at most ``FORM_TOLERANCE``: a term the
+    network's law needed in its tails (where the frames barely pin it) goes."""
     def without(k: int) -> str:
         pair = json.loads(spec)[0]
         return json.dumps([{**pair, "terms": [t for j, t in enumerate(pair["terms"]) if j != k]}])
@@ -1132,6 +1160,8 @@ def prune_terms(tune: Callable[[str], tuple[float, Any, Any, str]], loss: float,
         if len(pairs) != 1 or len(pairs[0]["terms"]) < 2:
             return loss, module, hp, spec
         drop = negligible_term(spec, reach)
+        if drop is None:
+            drop = turning_term(spec, floor)
         if drop is not None:
             loss, module, hp, spec = tune(without(drop))
             continue
@@ -1239,11 +1269,13 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     if start is None and report is None:
         report = read_law(network, train_split)
     batches = tuning_batches(train_split, batch_size, seed)
-    # where the data reach: the report's (one pair of types), else from the split's distances
+    # where the data reach: the report's (one pair of types), else from the split's distances;
+    # the floor below which the law may not turn, from the split's distances
+    seen = np.concatenate([np.zeros(0), *pair_distances(train_split).values()])
+    floor = float(np.quantile(seen, TURN_QUANTILE)) if seen.size else None
     if report is not None and len(report.pairs) == 1:
         reach = report.pairs[0].reach
     else:
-        seen = np.concatenate([np.zeros(0), *pair_distances(train_split).values()])
         reach = np.quantile(seen, DISTANCE_QUANTILES) if seen.size else None
     deadline = None if max_seconds is None else time.perf_counter() + max_seconds
     evaluations = [0, 0]  # loss evaluations, tunings (each at most `steps` evaluations)
@@ -1266,7 +1298,7 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     for spec in starts:
         try:
             loss, module, hp, tuned = tune(spec)
-            loss, module, hp, tuned = prune_terms(tune, loss, module, hp, tuned, reach)
+            loss, module, hp, tuned = prune_terms(tune, loss, module, hp, tuned, reach, floor)
         except _Budget:
             break
         forms.append({"start": json.loads(spec), "tuned": json.loads(tuned), "loss": loss,
@@ -1323,7 +1355,7 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
               "rollout_substeps": rollout_substeps,
               "formula_by_substeps": {str(k): v for k, v in by_substeps.items()},
               "start": json.loads(start_spec), "tuned": json.loads(spec),
-              "scale": scale, "loss": form["loss"], "polish": polish,
+              "scale": scale, "loss": form["loss"], "polish": polish, "floor": floor,
               "validation": scores, "choice": choice}
     if out_dir is not None:
         out = Path(out_dir)

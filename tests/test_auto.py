@@ -198,11 +198,14 @@ def test_report_names_the_choice_and_shows_its_evidence(tmp_path):
     protocol = {"horizon": 50, "horizons": [10, 50], "sims": [0, 1, 2, 5], "starts": [6],
                 "rollouts": 2, "share": 0.5, "budget_each": {"max_steps": 30},
                 "budget_winner": {"max_steps": 70}, "masses_known": True,
-                "balance": {"linear": 2e-9, "angular": 3e-7, "sims": 8, "frames": 256}}
+                "balance": {"linear": 2e-9, "angular": 3e-7, "sims": 8, "frames": 256},
+                "velocity": {"distance": 3e-4, "velocity": 2.9e-4, "sims": 8, "frames": 130}}
     report = write_report(tmp_path, [decoder, pair, absent], pair, 4.0, protocol).read_text()
     assert "**newton_inertial**" in report and "4 times that" in report
     assert "no: no contacts" in report
     assert "momentum imbalance 2e-09" in report and "Verdict: balanced" in report
+    assert "a law of the distance 0.0003, of the distance and the relative speed along the " \
+        "pair 0.00029. Verdict: no" in report
     assert "simulations 0-2, 5 from" in report
     assert "- newton_inertial: 0.0002 (the initial law: 0.99; the table it was fitted to: " \
         "5e-05); kept" in report and "- decoder:" not in report
@@ -304,6 +307,35 @@ def test_auto_picks_the_structure_spring_was_made_with(tmp_path, shared_data_dir
     # the winner's config beside its checkpoints (bgn.render and bgn.laws read it there)
     assert (run / "auto" / record["choice"] / "train_config.yaml").exists()
     print({n: (r["val_err@10"], r["val_err@50"]) for n, r in rows.items() if r["admitted"]})
+
+
+@pytest.mark.slow
+def test_auto_gives_centrally_damped_data_the_decoder(tmp_path):
+    """Springs damped along the line between the particles keep momentum and angular
+    momentum, so only the velocity test refuses the pair-force heads (a law of the
+    distance): through the command line, the decoder is the one structure trained and chosen."""
+    from bgn.data import from_arrays
+    from tests.model.test_force_matching import damped_springs
+
+    data, run = tmp_path / "data", tmp_path / "run"
+    from_arrays(damped_springs(0.5, sims=5, frames=200), 0.02, name="damped", data_dir=data,
+                splits={"train": [0, 1, 2], "val": [3], "test": [4]})
+    proc = subprocess.run(command_line(
+        "dataset=imported", "dataset.name=damped", f"paths.data_dir={data}",
+        f"hydra.run.dir={run}", "model.hidden=16", "model.decoder_hidden=16",
+        "model.flow_hidden=16", "figures=false", "val_rollout_steps=0", "animation_every=0",
+        "callbacks.progress_bar=null", "dataset.batch_size=16", "trainer.max_epochs=-1",
+        "+trainer.max_steps=40", "auto.references=[]", "test=false"),
+        env=CLI_ENV, capture_output=True, text=True, timeout=900)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    record = json.loads((run / "auto" / "auto.json").read_text())
+    assert record["choice"] == "decoder"
+    rows = {c["candidate"]: c for c in record["candidates"]}
+    for name in PAIR_FORCE:
+        assert not rows[name]["admitted"] and "depend on velocity" in rows[name]["reason"]
+    velocity = record["protocol"]["velocity"]
+    assert velocity["distance"] > 100 * velocity["velocity"]
+    assert "Verdict: the forces depend on velocity" in (run / "auto" / "report.md").read_text()
 
 
 @pytest.mark.parametrize("law_init", ["random", "match"])

@@ -16,6 +16,15 @@ one particle's second differences over the frames, scaled to unit length, so tha
 balances the others by accelerating little). 0: balanced by some positive masses; near 1: no
 mixture of the particles cancels. docs/design.md#choosing-a-structure says how ``auto`` uses it.
 
+Central forces that depend on velocity (drag or damping along the line between two
+particles) keep both, so the balance cannot see them. ``velocity_dependence`` asks the frames
+directly: the best central law of the distance alone, ``F_ij = f(r_ij) u_ij``, against the
+best law of the distance and the relative speed along the pair, ``(f(r_ij) + g(r_ij) w_ij)
+u_ij``, each a table in log r fitted by least squares to the training split's second
+differences and scored on the validation split's. Where the second explains the frames many
+times better, the forces depend on velocity, and no pair-force head (a law of the distance)
+can make the data.
+
     python -m bgn.data.balance data/imported/<name>/train.h5 [...]   # a markdown table
 """
 
@@ -23,6 +32,7 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -33,6 +43,15 @@ import numpy as np
 IMBALANCE_MAX = 1e-3
 SIMS = 8            # simulations of the split read (evenly spaced)
 FRAMES = 256        # frames of each simulation read (evenly spaced, consecutive triples)
+# Velocity dependence: the share of the validation accelerations a law of the distance leaves
+# unexplained must exceed UNEXPLAINED_MIN (a law of distance explaining the rest is a usable
+# structure) and be VELOCITY_GAIN times what a law of distance and relative speed leaves
+VELOCITY_GAIN = 10.0
+UNEXPLAINED_MIN = 0.01
+LAW_KNOTS = 24      # table knots per law and pair of types, evenly spaced in log r
+PAIRS_MAX = 1 << 17  # particle pairs of one simulation the all-pairs test reads at most
+PAIR_FRAMES = 1 << 18  # pairs x frames of one simulation read at most (memory)
+SMOOTHING = tuple(10.0**-k for k in range(10, -1, -1))  # second-difference penalties tried
 
 
 @dataclass(frozen=True)
@@ -57,6 +76,31 @@ class Balance:
         if self.angular is not None and self.angular > IMBALANCE_MAX:
             return (f"the data's angular momentum changes (imbalance {self.angular:.2g} > "
                     f"{IMBALANCE_MAX:g}): pair forces across the line between the particles act")
+        return ""
+
+
+@dataclass(frozen=True)
+class VelocityDependence:
+    """The share of the validation split's accelerations left unexplained by the best central
+    law of the distance (``distance``) and of the distance and the relative speed along the
+    pair (``velocity``); None with a ``reason`` where the test does not apply."""
+
+    distance: float | None
+    velocity: float | None
+    sims: int
+    frames: int
+    reason: str = ""
+
+    def breaks(self) -> str:
+        """Why a law of the distance cannot make these data ("" when it can, or untested)."""
+        if self.distance is None or self.velocity is None:
+            return ""
+        if self.distance > UNEXPLAINED_MIN and self.distance > VELOCITY_GAIN * self.velocity:
+            return (f"the forces depend on velocity: a central law of the distance leaves "
+                    f"{self.distance:.2g} of the validation accelerations unexplained, one of "
+                    f"the distance and the relative speed along the pair {self.velocity:.2g} "
+                    "(drag or damping between particles, which a law of the distance cannot "
+                    "express)")
         return ""
 
 
@@ -134,6 +178,128 @@ def momentum_balance(file: Any, meta: Any, sims: int = SIMS, frames: int = FRAME
                    len(picked), span)
 
 
+def hat_columns(log_r: np.ndarray, knots: np.ndarray) -> np.ndarray:
+    """(..., K) the piecewise-linear interpolation weights of ``log_r`` (...) on ``knots``
+    (constant beyond the ends)."""
+    return np.stack([np.interp(log_r, knots, unit) for unit in np.eye(len(knots))], -1)
+
+
+def pair_separations(x: np.ndarray, period: Any, cutoff: float,
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Every pair (i < j) of (T, N, D) positions: i, j, the separations (T, pairs, D) by the
+    minimum image and the distances (T, pairs), zero where a pair is beyond ``cutoff``."""
+    from bgn.data.edges import minimum_image
+
+    i, j = np.triu_indices(x.shape[1], k=1)
+    d = minimum_image(x[:, i] - x[:, j], period)
+    r = np.sqrt((d**2).sum(-1))
+    return i, j, d, np.where(r <= cutoff, r, 0.0)
+
+
+def law_columns(x: np.ndarray, types: np.ndarray, n_types: int, period: Any, cutoff: float,
+                knots: np.ndarray, moving: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One simulation's least-squares rows: (rows, 2 P K) the pair terms of a central law of
+    the distance (first P K columns: one table of ``knots`` per pair of types) and of the
+    distance times the relative speed along the pair (the rest), each particle's sum
+    Numerov-weighted as its second difference sees it (``(F_{t-1} + 10 F_t + F_{t+1}) / 12``),
+    and (rows,) the second differences; rows of particles the source moves left out."""
+    from scipy.sparse import csr_matrix
+
+    x = np.asarray(x, dtype=np.float64)
+    n, dim, k = x.shape[1], x.shape[2], len(knots)
+    acc, vel = x[2:] - 2 * x[1:-1] + x[:-2], 0.5 * (x[2:] - x[:-2])   # frames 1 .. T-2
+    i, j, d, r = pair_separations(x[1:-1], period, cutoff)
+    near = r > 0
+    u = d / np.where(near, r, 1.0)[..., None]
+    speed = ((vel[:, i] - vel[:, j]) * u).sum(-1)
+    basis = hat_columns(np.log(np.where(near, r, 1.0)), knots) * near[..., None]
+    blocks = n_types * n_types
+    pair = np.minimum(types[i], types[j]) * n_types + np.maximum(types[i], types[j])
+    forces = np.zeros((n, len(r), dim, 2 * blocks * k))                # (N, F, D, 2 P K)
+    for b in np.unique(pair):
+        on = np.flatnonzero(pair == b)
+        m = len(on)                # each pair pushes i along u and j against it
+        incidence = csr_matrix((np.r_[np.ones(m), -np.ones(m)],
+                                (np.r_[i[on], j[on]], np.r_[np.arange(m), np.arange(m)])),
+                               shape=(n, m))
+        for half, weight in enumerate((basis[:, on], basis[:, on] * speed[:, on, None])):
+            terms = u[:, on, :, None] * weight[:, :, None, :]           # (F, m, D, K)
+            summed = incidence @ terms.transpose(1, 0, 2, 3).reshape(m, -1)
+            start = (half * blocks + b) * k
+            forces[..., start:start + k] = summed.reshape(n, len(r), dim, k)
+    numerov = (forces[:, :-2] + 10 * forces[:, 1:-1] + forces[:, 2:]) / 12  # frames 2 .. T-3
+    rows, target = numerov[moving], acc[1:-1, moving].transpose(1, 0, 2)
+    return rows.reshape(-1, rows.shape[-1]), target.reshape(-1)
+
+
+def smoothed_error(fit: tuple[np.ndarray, np.ndarray, float],
+                   check: tuple[np.ndarray, np.ndarray, float], k: int) -> float:
+    """The lowest relative squared error on ``check`` of the least-squares tables fitted to
+    ``fit`` (each normal equations ``(X^T X, X^T y, y^T y)``), penalised on the second
+    differences of each block of ``k`` knots with a weight of ``SMOOTHING``."""
+    gram, moment, _ = fit
+    second = np.diff(np.eye(k), n=2, axis=0)
+    penalty = np.kron(np.eye(len(gram) // k), second.T @ second)
+    scale = max(float(np.mean(np.diag(gram))), 1e-300)
+    g, b, yy = check
+    best = np.inf
+    for weight in SMOOTHING:
+        coef = np.linalg.lstsq(gram + weight * scale * penalty, moment, rcond=None)[0]
+        best = min(best, float(coef @ g @ coef - 2 * b @ coef + yy) / max(yy, 1e-300))
+    return max(best, 0.0)
+
+
+def velocity_dependence(train: Any, val: Any, meta: Any, sims: int = SIMS,
+                        frames: int = FRAMES) -> VelocityDependence:
+    """``VelocityDependence`` of the ``train`` and ``val`` files (``DatasetFile``, scene record
+    ``meta``): ``sims`` evenly spaced simulations of each, consecutive frames from their
+    middle (``frames``, fewer where the pairs are many), every pair of particles within the
+    radius graph's reach (all pairs on a full graph); one table per pair of types."""
+    from bgn.data.frames import evenly_spaced
+
+    n = meta.n_particles
+    pairs = n * (n - 1) // 2
+    if pairs > PAIRS_MAX:
+        return VelocityDependence(None, None, 0, 0, f"{n} particles: more pairs than the "
+                                  f"all-pairs test reads ({PAIRS_MAX})")
+    span = min(frames, max(5, PAIR_FRAMES // max(pairs, 1)), train.n_frames, val.n_frames)
+    if span < 5:
+        return VelocityDependence(None, None, 0, 0, "fewer than 5 frames")
+    cutoff = np.inf
+    if meta.graph == "radius":
+        cutoff = float(train.margin) + 2 * float(np.max(train.read("radii", ...), initial=0.0))
+    files = {"train": train, "val": val}
+    reads = {name: [(s, np.asarray(f.read("positions", (s, slice(
+        (f.n_frames - span) // 2, (f.n_frames - span) // 2 + span))), dtype=np.float64))
+        for s in evenly_spaced(f.n_sims, sims)] for name, f in files.items()}
+    seen = np.concatenate([pair_separations(x, meta.period, cutoff)[3].ravel()
+                           for runs in reads.values() for _, x in runs])
+    seen = seen[seen > 0]
+    if seen.size == 0 or not seen.max() > seen.min():
+        return VelocityDependence(None, None, 0, span, "no pairs of particles within reach")
+    knots = np.linspace(np.log(seen.min()), np.log(seen.max()), LAW_KNOTS)
+    n_types = max(int(meta.n_types), 1)
+    sums = {}
+    for name, f in files.items():
+        gram, moment, total = 0.0, 0.0, 0.0
+        for s, x in reads[name]:
+            types = (np.asarray(f.read("types", s)) if n_types > 1
+                     else np.zeros(n, dtype=np.int64))
+            moving = (~np.asarray(f.read("kinematic", s), dtype=bool)
+                      if "kinematic" in f.handle else np.ones(n, dtype=bool))
+            rows, y = law_columns(x, types, n_types, meta.period, cutoff, knots, moving)
+            gram, moment, total = gram + rows.T @ rows, moment + rows.T @ y, total + y @ y
+        sums[name] = (gram, moment, float(total))
+    half = n_types * n_types * LAW_KNOTS   # the law of the distance alone: its columns
+
+    def distance_only(eq: tuple[np.ndarray, np.ndarray, float]) -> tuple[Any, ...]:
+        return eq[0][:half, :half], eq[1][:half], eq[2]
+
+    return VelocityDependence(
+        smoothed_error(distance_only(sums["train"]), distance_only(sums["val"]), LAW_KNOTS),
+        smoothed_error(sums["train"], sums["val"], LAW_KNOTS), len(reads["train"]), span)
+
+
 def rounding_share(positions: np.ndarray) -> float:
     """The squared size of the rounding in (T, N, D) positions' second differences against
     their own: positions exactly representable in float32 are taken as stored in float32.
@@ -151,21 +317,40 @@ def _show(value: float | None) -> str:
     return "-" if value is None else f"{value:.2g}"
 
 
+def validation_file(path: str | Path) -> Path | None:
+    """The validation split beside a training file (``train.h5`` -> ``val.h5``,
+    ``<scene>_train.h5`` -> ``<scene>_val.h5``), where there is one."""
+    path = Path(path)
+    if "train" not in path.name:
+        return None
+    val = path.with_name("val".join(path.name.rsplit("train", 1)))
+    return val if val.exists() else None
+
+
 def main(argv: list[str]) -> str:
-    """The markdown table of ``momentum_balance`` for each dataset file in ``argv``."""
+    """The markdown table of ``momentum_balance`` for each dataset file in ``argv``, and of
+    ``velocity_dependence`` where a training file has its validation split beside it."""
     from bgn.data.files import DatasetFile
 
     if not argv:
         raise SystemExit("usage: python -m bgn.data.balance <dataset .h5 file> [...]")
-    lines = ["| file | simulations x frames | momentum | with angular momentum | verdict |",
-             "|---|---|---|---|---|"]
+    lines = ["| file | simulations x frames | momentum | with angular momentum | law of the "
+             "distance / with velocity | verdict |", "|---|---|---|---|---|---|"]
     for path in argv:
         f = DatasetFile(path)
         b = momentum_balance(f, f.meta)
+        verdict = b.reason or b.breaks()
+        speed = "-"
+        if (val_path := validation_file(path)) is not None:
+            val = DatasetFile(val_path)
+            v = velocity_dependence(f, val, f.meta)
+            val.close()
+            speed = v.reason or f"{_show(v.distance)} / {_show(v.velocity)}"
+            verdict = verdict or v.breaks()
         f.close()
-        verdict = b.reason or b.breaks() or "balanced: central pair forces can make them"
+        verdict = verdict or "balanced: central pair forces can make them"
         lines.append(f"| {path} | {b.sims} x {b.frames} | {_show(b.linear)} | "
-                     f"{_show(b.angular)} | {verdict} |")
+                     f"{_show(b.angular)} | {speed} | {verdict} |")
     return "\n".join(lines)
 
 

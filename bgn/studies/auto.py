@@ -11,7 +11,9 @@ data admit is trained for a share of the budget (``auto.share`` of each of ``tra
   radius graph (short-range data: a pair beyond the radius has no edge and no force), an
   acceleration target and a window of at least 3 velocities (``newton.check_scene``), and
   whose training data conserve momentum and angular momentum (``bgn.data.balance``: what
-  central pair forces cannot break, so a field, walls, drag or friction rule them out);
+  central pair forces cannot break, so a field, walls, drag or friction rule them out) and
+  whose forces do not depend on velocity (``velocity_dependence``: a law of the distance and
+  the relative speed along the pair explains the frames no better than one of the distance);
 - the contact-impulse head (``bgn.model.impulse``) on contact scenes whose discs have radii;
 - the baselines (``auto.references``: GNS, Cranmer et al.'s GN) as references: trained and
   reported on the same protocol, never chosen.
@@ -47,7 +49,13 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from bgn.coerce import clock, seconds
-from bgn.data.balance import IMBALANCE_MAX, Balance, momentum_balance
+from bgn.data.balance import (
+    IMBALANCE_MAX,
+    Balance,
+    VelocityDependence,
+    momentum_balance,
+    velocity_dependence,
+)
 from bgn.metrics import SHORT_HORIZON, rollout_scores
 from bgn.sim.scene import SceneMeta
 from bgn.train.checkpoints import write_atomic
@@ -83,11 +91,13 @@ class Candidate:
 
 def candidates(meta: SceneMeta, history: int, radii_given: bool,
                references: Sequence[str] = ("gns", "cranmer_gn"),
-               balance: Balance | None = None) -> list[Candidate]:
+               balance: Balance | None = None,
+               velocity: VelocityDependence | None = None) -> list[Candidate]:
     """Every structure BGN has, each admitted or not (with the reason) by the scene's
     metadata, the window (``history`` past velocities), whether the discs' radii are given
     and what the data conserve (``balance``: a pair-force head cannot make data whose
-    momentum or angular momentum changes); then the references."""
+    momentum or angular momentum changes) and whether their forces depend on velocity
+    (``velocity``: a law of the distance cannot express them); then the references."""
     from bgn.model.newton import check_scene
 
     out = [Candidate("decoder", "BGN + the paper's decoder (Eq. 5): the window in, the "
@@ -108,8 +118,9 @@ def candidates(meta: SceneMeta, history: int, radii_given: bool,
                 check_scene(meta, history, "the pair-force head")
             except ValueError as err:
                 cand.admitted, cand.reason = False, str(err).split(": use model=")[0]
-            if cand.admitted and balance is not None and balance.breaks():
-                cand.admitted, cand.reason = False, balance.breaks()
+            for evidence in (balance, velocity):
+                if cand.admitted and evidence is not None and evidence.breaks():
+                    cand.admitted, cand.reason = False, evidence.breaks()
         out.append(cand)
     impulse = Candidate("impulse", "BGN + contact-impulse head (equal and opposite impulses "
                         "along the normal at the time of impact, masses learned from radii)",
@@ -384,6 +395,22 @@ def balance_lines(balance: Mapping[str, Any] | None) -> list[str]:
             f"{angular}. Verdict: {verdict}."]
 
 
+def velocity_lines(velocity: Mapping[str, Any] | None) -> list[str]:
+    """The report's paragraph on whether the forces depend on velocity
+    (``bgn.data.balance.velocity_dependence``)."""
+    if not velocity:
+        return []
+    if velocity.get("distance") is None:
+        return [f"Whether the forces depend on velocity: not tested ({velocity.get('reason')})."]
+    v = VelocityDependence(**velocity)
+    verdict = v.breaks() or "no: a law of the distance explains the frames as well"
+    return [f"Whether the forces depend on velocity (a central law in log r fitted to the "
+            f"training split's second differences, {v.sims} simulations x {v.frames} frames; "
+            f"the share of the validation accelerations it leaves unexplained): a law of the "
+            f"distance {v.distance:.2g}, of the distance and the relative speed along the pair "
+            f"{v.velocity:.2g}. Verdict: {verdict}."]
+
+
 def match_lines(results: Sequence[Result]) -> list[str]:
     """The report's lines on force matching (``bgn.model.force_matching``), one per candidate
     whose law started from it."""
@@ -459,6 +486,7 @@ def write_report(auto_dir: Path, results: Sequence[Result], winner: Result, marg
               f"{_fmt(margin)} times that." if math.isfinite(margin) else
               f"Chosen: **{winner.candidate.name}**, the one eligible candidate.", ""]
     lines += balance_lines(protocol.get("balance")) + [""]
+    lines += velocity_lines(protocol.get("velocity")) + [""]
     lines += match_lines(results)
     failures = [r for r in results if r.error]
     for r in failures:
@@ -647,9 +675,11 @@ def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[st
     datamodule.setup()
     val, train_split = datamodule.datasets["val"], datamodule.datasets["train"]
     balance = momentum_balance(train_split.file, datamodule.meta)
+    velocity = velocity_dependence(train_split.file, val.file, datamodule.meta)
     known = masses_known(val)
     pool = candidates(datamodule.meta, datamodule.history, radii_given(train_split),
-                      list(auto.get("references", ["gns", "cranmer_gn"]) or []), balance)
+                      list(auto.get("references", ["gns", "cranmer_gn"]) or []), balance,
+                      velocity)
     admitted = [c for c in pool if c.admitted]
     each, winner_limits = split_budget(cfg.trainer, share, len(admitted))
     n_steps = min(int(auto.get("horizon", 50)), val.file.n_frames - datamodule.history - 2)
@@ -690,7 +720,8 @@ def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[st
     protocol = {"horizon": n_steps, "horizons": horizons, "sims": sims, "starts": starts,
                 "rollouts": len(sims) * len(starts), "share": share,
                 "budget_each": each, "budget_winner": winner_limits,
-                "masses_known": known, "balance": asdict(balance)}
+                "masses_known": known, "balance": asdict(balance),
+                "velocity": asdict(velocity)}
     report = write_report(auto_dir, results, winner, margin, protocol)
     info(f"auto: chose {winner.candidate.name} (runner-up / winner at {n_steps} steps: "
          f"{margin:.3g}); report: {report}")

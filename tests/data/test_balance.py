@@ -8,7 +8,16 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from bgn.data.balance import IMBALANCE_MAX, Balance, imbalance, momentum_balance, simulation_columns
+from bgn.data.balance import (
+    IMBALANCE_MAX,
+    UNEXPLAINED_MIN,
+    Balance,
+    VelocityDependence,
+    imbalance,
+    momentum_balance,
+    simulation_columns,
+    velocity_dependence,
+)
 
 
 def trajectory(seed: int, field: float = 0.0, tangential: float = 0.0, dim: int = 2,
@@ -143,6 +152,100 @@ def test_auto_refuses_the_pair_force_head_where_the_data_do_not_balance():
                if c.name.startswith("newton"))
 
 
+def split_files(x: np.ndarray, tmp_path, name: str, **arrays) -> tuple:
+    from bgn.data import from_arrays
+    from bgn.data.files import DatasetFile
+
+    n = len(x)
+    paths = from_arrays(x, 0.02, name=name, data_dir=tmp_path, splits={
+        "train": list(range(n - 2)), "val": [n - 2], "test": [n - 1]}, **arrays)
+    return DatasetFile(paths["train"]), DatasetFile(paths["val"])
+
+
+@pytest.mark.parametrize("damping", [0.0, 0.2, 1.0])
+def test_central_damping_is_seen_by_the_law_fit_where_the_balance_cannot(tmp_path, damping):
+    """Springs with damping along the line between the particles keep momentum and angular
+    momentum; a law of the distance leaves the damping unexplained, one of the distance and
+    the relative speed along the pair does not."""
+    from tests.model.test_force_matching import damped_springs
+
+    train, val = split_files(damped_springs(damping, sims=5, frames=120), tmp_path, "damped")
+    assert momentum_balance(train, train.meta).breaks() == ""
+    v = velocity_dependence(train, val, train.meta)
+    assert v.velocity < 1e-2 and v.sims == 3 and v.frames == 120
+    if damping == 0:
+        assert v.distance < 1e-3 and v.breaks() == ""
+    else:
+        assert v.distance > 100 * v.velocity and "depend on velocity" in v.breaks()
+
+
+def test_unknown_masses_are_not_taken_for_velocity(tmp_path):
+    """Springs between particles of random masses (not recorded): a law with equal masses
+    leaves much unexplained, and a law with velocity no less, so nothing is refused."""
+    x = np.stack([trajectory(s) for s in range(5)])
+    train, val = split_files(x, tmp_path, "masses")
+    v = velocity_dependence(train, val, train.meta)
+    assert v.distance > UNEXPLAINED_MIN and v.velocity > v.distance / 2 and v.breaks() == ""
+
+
+def test_velocity_dependence_on_a_radius_graph_with_two_types(tmp_path):
+    """One table per pair of types, pairs beyond the graph's reach left out: springs whose
+    stiffness depends on the pair's types and that act only within the reach are explained
+    by the law of the distance."""
+    n, rng = 6, np.random.default_rng(0)
+    types = np.array([0, 0, 0, 1, 1, 1])
+    stiff = np.array([[1.0, 2.0], [2.0, 3.0]])[types[:, None], types[None]]
+    reach = 1.5
+
+    def accel(x):
+        d = x[:, None] - x[None]
+        r = np.linalg.norm(d, axis=-1) + np.eye(n)
+        f = -stiff * (r - 1.0) * (r <= reach) * (1 - np.eye(n))
+        return (f[..., None] * d / r[..., None]).sum(1)
+
+    sims = []
+    for _ in range(5):
+        x, v, out = rng.uniform(0, 2.0, (n, 2)), rng.normal(0, 0.3, (n, 2)), []
+        for _ in range(100):
+            out.append(x.copy())
+            for _ in range(20):  # velocity Verlet, 20 substeps of 0.001
+                v += 0.0005 * accel(x)
+                x += 0.001 * v
+                v += 0.0005 * accel(x)
+        sims.append(np.stack(out))
+    train, val = split_files(np.stack(sims), tmp_path, "typed", types=types,
+                             connectivity_radius=reach)
+    assert train.meta.graph == "radius" and train.meta.n_types == 2
+    v = velocity_dependence(train, val, train.meta)
+    assert v.distance < 1e-2 and v.velocity > v.distance / 2 and v.breaks() == ""
+
+
+def test_too_many_pairs_or_frames_leave_the_velocity_test_undone():
+    crowd = SimpleNamespace(n_particles=2000)
+    v = velocity_dependence(None, None, crowd)
+    assert v.distance is None and "more pairs" in v.reason and v.breaks() == ""
+    short = SimpleNamespace(n_frames=4)
+    v = velocity_dependence(short, short, SimpleNamespace(n_particles=5))
+    assert v.distance is None and "fewer than 5 frames" in v.reason
+
+
+def test_auto_refuses_the_pair_force_head_where_the_forces_depend_on_velocity():
+    from bgn.sim.scene import SceneMeta
+    from bgn.studies.auto import candidates
+
+    gas = SceneMeta("imported", 2, 8, 1, "unknown", "acceleration", "radius")
+    damped = VelocityDependence(distance=0.3, velocity=1e-5, sims=4, frames=100)
+    pool = {c.name: c for c in candidates(gas, 5, False, (), None, damped)}
+    assert pool["decoder"].admitted
+    for law in ("inertial", "source", "type"):
+        assert not pool[f"newton_{law}"].admitted
+        assert "depend on velocity" in pool[f"newton_{law}"].reason
+    # a law of the distance explaining 99.5 % is kept, however much better velocity does
+    close = VelocityDependence(distance=0.005, velocity=1e-7, sims=4, frames=100)
+    assert all(c.admitted for c in candidates(gas, 5, False, (), None, close)
+               if c.name.startswith("newton"))
+
+
 def test_the_command_tabulates_each_file(tmp_path):
     from bgn.data import from_arrays
     from bgn.data.balance import main
@@ -151,6 +254,8 @@ def test_the_command_tabulates_each_file(tmp_path):
     paths = from_arrays(x, 0.02, name="pulled", data_dir=tmp_path)
     table = main([str(paths["train"])])
     assert table.count("\n") == 2 and "total momentum changes" in table
+    # the validation split beside it: the velocity test's two errors
+    assert " / " in table.splitlines()[-1]
     with pytest.raises(SystemExit, match="usage"):
         main([])
 

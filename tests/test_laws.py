@@ -301,6 +301,16 @@ def test_fine_tuning_moves_a_perturbed_constant_back_and_writes_a_checkpoint(
     np.testing.assert_allclose([t["a"] for t in timed["tuned"][0]["terms"]],
                                [timed["scale"] * t["a"] for t in timed["start"][0]["terms"]],
                                rtol=1e-12)
+    # ... less a term that turns the law below the closest training distances (a pull that
+    # outgrows the spring's push at a third of the floor), which needs no evaluation
+    r = record["floor"] / 3
+    core = json.loads(spring_spec(1.5, -2.0))
+    core[0]["terms"].append({"kind": "power", "power": -6.0, "a": -2 * (1.5 - 2.0 * r) * r**6,
+                             "c": None})
+    timed = finetune_formula(ckpt, dm.datasets["train"], dm.datasets["val"],
+                             start=json.dumps(core), steps=40, substeps=4, horizon=20,
+                             max_seconds=0.0)
+    assert [t["kind"] for t in timed["tuned"][0]["terms"]] == ["const", "power"]
     scores = record["validation"]
     assert record["choice"] in scores and all(
         np.isfinite(list(s["errors"].values())).all() for s in scores.values())

@@ -1143,6 +1143,12 @@ def twice_form(pair: Any, term: Term) -> tuple[list[Term], np.ndarray] | None:
     return None
 
 
+def drop_term(spec: str, k: int) -> str:
+    """A one-pair ``spec`` without its term ``k``."""
+    pair = json.loads(spec)[0]
+    return json.dumps([{**pair, "terms": [t for j, t in enumerate(pair["terms"]) if j != k]}])
+
+
 def prune_terms(tune: Callable[[str], tuple[float, Any, Any, str]], loss: float, module: Any,
                 hp: Any, spec: str, reach: np.ndarray | None = None,
                 floor: float | None = None) -> tuple[float, Any, Any, str]:
@@ -1152,8 +1158,7 @@ def prune_terms(tune: Callable[[str], tuple[float, Any, Any, str]], loss: float,
     else a term is dropped while the loss rises by at most ``FORM_TOLERANCE``: a term the
     network's law needed in its tails (where the frames barely pin it) goes."""
     def without(k: int) -> str:
-        pair = json.loads(spec)[0]
-        return json.dumps([{**pair, "terms": [t for j, t in enumerate(pair["terms"]) if j != k]}])
+        return drop_term(spec, k)
 
     while True:
         pairs = json.loads(spec)
@@ -1303,10 +1308,14 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
             break
         forms.append({"start": json.loads(spec), "tuned": json.loads(tuned), "loss": loss,
                       "constants": n_constants(tuned), "module": module, "hp": hp})
-    if not forms:  # no time for even one evaluation: the form read back, as it was
-        module, hp = formula_module(checkpoint, starts[0], substeps)
-        forms.append({"start": json.loads(starts[0]), "tuned": json.loads(starts[0]),
-                      "loss": math.nan, "constants": n_constants(starts[0]),
+    if not forms:  # no time for even one evaluation: the form read back, untuned, less the
+        # terms that turn it below the data (turning_term: which needs no evaluation)
+        spec = starts[0]
+        while (drop := turning_term(spec, floor)) is not None:
+            spec = drop_term(spec, drop)
+        module, hp = formula_module(checkpoint, spec, substeps)
+        forms.append({"start": json.loads(starts[0]), "tuned": json.loads(spec),
+                      "loss": math.nan, "constants": n_constants(spec),
                       "module": module, "hp": hp})
     lowest = min(f["loss"] for f in forms)
     near = [f for f in forms if not f["loss"] > lowest * (1 + FORM_TOLERANCE)] or forms

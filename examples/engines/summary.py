@@ -66,6 +66,9 @@ def test_row(name: str, seed: int, model: str, metrics: dict[str, Any],
     for h in (100, 50):
         best = best_reference(metrics, h)
         row[f"ratio @{h}"] = row[f"@{h}"] / best if best and row[f"@{h}"] is not None else None
+    # the total momentum's change over the rollout against the sum of |m v|, the median over
+    # the rollouts (bgn.metrics.rollout_metrics; absent where the scene does not conserve it)
+    row["momentum drift @100 (median)"] = metrics.get("rollout/momentum_err@100")
     for key in ("speed_w1_type0", "speed_w1_type1", "collision_rate_ratio"):
         if f"rollout/{key}" in metrics:
             row[key] = metrics[f"rollout/{key}"]

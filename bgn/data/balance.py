@@ -39,7 +39,7 @@ import numpy as np
 
 # Imbalance above which the data do not conserve momentum (or angular momentum): orders of
 # magnitude above the float32 rounding of balanced frames, orders below the imbalance of a
-# field or of walls (docs/results.md#what-the-data-conserve-momentum-balance).
+# field or of walls (docs/results.md, "What the data conserve").
 IMBALANCE_MAX = 1e-3
 SIMS = 8            # simulations of the split read (evenly spaced)
 FRAMES = 256        # frames of each simulation read (evenly spaced, consecutive triples)

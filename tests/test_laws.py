@@ -462,13 +462,12 @@ def _morse(r0: float = 2 ** (1 / 6), rho0: float = 6.0) -> str:
 def test_a_term_that_turns_the_law_below_the_data_is_found():
     from bgn.eval.laws import turning_term
 
-    # REBOUND's closest 0.1 % of training distances start at 0.10: the repulsion turns the
-    # law at 0.030, where no frame pins it
+    # the repulsion turns this law at r = 0.030: below a floor of 0.10 no frame pins it
     assert turning_term(SOFTENED_AND_A_CORE, 0.10) == 0
     # data reaching 0.02 have seen the turn: the law keeps its sign below them, nothing goes
     assert turning_term(SOFTENED_AND_A_CORE, 0.02) is None
-    # cores the data reach turn the law above the floor (the Morse gas's floor: 0.93, its
-    # well at 1.12; Lennard-Jones' at 1.12 sigma) and are kept
+    # cores the data reach turn the law above the floor (both wells here at 2^(1/6)) and are
+    # kept
     assert turning_term(_morse(), 0.93) is None
     lj = _one_pair(("power", -13.0, 48.0, None), ("power", -7.0, -24.0, None))
     assert turning_term(lj, 0.95) is None

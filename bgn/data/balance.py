@@ -51,7 +51,6 @@ UNEXPLAINED_MIN = 0.01
 LAW_KNOTS = 24      # table knots per law and pair of types, evenly spaced in log r
 PAIRS_MAX = 1 << 17  # particle pairs of one simulation the all-pairs test reads at most
 PAIR_FRAMES = 1 << 18  # pairs x frames of one simulation read at most (memory)
-SMOOTHING = tuple(10.0**-k for k in range(10, -1, -1))  # second-difference penalties tried
 
 
 @dataclass(frozen=True)
@@ -178,12 +177,6 @@ def momentum_balance(file: Any, meta: Any, sims: int = SIMS, frames: int = FRAME
                    len(picked), span)
 
 
-def hat_columns(log_r: np.ndarray, knots: np.ndarray) -> np.ndarray:
-    """(..., K) the piecewise-linear interpolation weights of ``log_r`` (...) on ``knots``
-    (constant beyond the ends)."""
-    return np.stack([np.interp(log_r, knots, unit) for unit in np.eye(len(knots))], -1)
-
-
 def pair_separations(x: np.ndarray, period: Any, cutoff: float,
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Every pair (i < j) of (T, N, D) positions: i, j, the separations (T, pairs, D) by the
@@ -203,7 +196,10 @@ def law_columns(x: np.ndarray, types: np.ndarray, n_types: int, period: Any, cut
     distance times the relative speed along the pair (the rest), each particle's sum
     Numerov-weighted as its second difference sees it (``(F_{t-1} + 10 F_t + F_{t+1}) / 12``),
     and (rows,) the second differences; rows of particles the source moves left out."""
+    import torch
     from scipy.sparse import csr_matrix
+
+    from bgn.law_table import hat_basis
 
     x = np.asarray(x, dtype=np.float64)
     n, dim, k = x.shape[1], x.shape[2], len(knots)
@@ -212,7 +208,8 @@ def law_columns(x: np.ndarray, types: np.ndarray, n_types: int, period: Any, cut
     near = r > 0
     u = d / np.where(near, r, 1.0)[..., None]
     speed = ((vel[:, i] - vel[:, j]) * u).sum(-1)
-    basis = hat_columns(np.log(np.where(near, r, 1.0)), knots) * near[..., None]
+    basis = hat_basis(torch.from_numpy(np.log(np.where(near, r, 1.0))),
+                      torch.from_numpy(knots)).numpy() * near[..., None]
     blocks = n_types * n_types
     pair = np.minimum(types[i], types[j]) * n_types + np.maximum(types[i], types[j])
     forces = np.zeros((n, len(r), dim, 2 * blocks * k))                # (N, F, D, 2 P K)
@@ -234,19 +231,17 @@ def law_columns(x: np.ndarray, types: np.ndarray, n_types: int, period: Any, cut
 
 def smoothed_error(fit: tuple[np.ndarray, np.ndarray, float],
                    check: tuple[np.ndarray, np.ndarray, float], k: int) -> float:
-    """The lowest relative squared error on ``check`` of the least-squares tables fitted to
-    ``fit`` (each normal equations ``(X^T X, X^T y, y^T y)``), penalised on the second
-    differences of each block of ``k`` knots with a weight of ``SMOOTHING``."""
-    gram, moment, _ = fit
-    second = np.diff(np.eye(k), n=2, axis=0)
-    penalty = np.kron(np.eye(len(gram) // k), second.T @ second)
-    scale = max(float(np.mean(np.diag(gram))), 1e-300)
-    g, b, yy = check
-    best = np.inf
-    for weight in SMOOTHING:
-        coef = np.linalg.lstsq(gram + weight * scale * penalty, moment, rcond=None)[0]
-        best = min(best, float(coef @ g @ coef - 2 * b @ coef + yy) / max(yy, 1e-300))
-    return max(best, 0.0)
+    """The relative squared error on ``check`` of the tables fitted to ``fit`` (each normal
+    equations ``(X^T X, X^T y, y^T y)``, blocks of ``k`` knots), their smoothness chosen on
+    ``check`` (``bgn.law_table.fit_table``)."""
+    import torch
+
+    from bgn.law_table import NormalEquations, fit_table
+
+    fit_eq, check_eq = (NormalEquations(*(torch.as_tensor(v, dtype=torch.float64)
+                                          for v in eq), 0) for eq in (fit, check))
+    values, _ = fit_table(fit_eq, check_eq, len(fit[0]) // k)
+    return check_eq.relative_error(values.reshape(-1))
 
 
 def velocity_dependence(train: Any, val: Any, meta: Any, sims: int = SIMS,
@@ -256,6 +251,7 @@ def velocity_dependence(train: Any, val: Any, meta: Any, sims: int = SIMS,
     middle (``frames``, fewer where the pairs are many), every pair of particles within the
     radius graph's reach (all pairs on a full graph); one table per pair of types."""
     from bgn.data.frames import evenly_spaced
+    from bgn.law_table import log_knots
 
     n = meta.n_particles
     pairs = n * (n - 1) // 2
@@ -277,7 +273,7 @@ def velocity_dependence(train: Any, val: Any, meta: Any, sims: int = SIMS,
     seen = seen[seen > 0]
     if seen.size == 0 or not seen.max() > seen.min():
         return VelocityDependence(None, None, 0, span, "no pairs of particles within reach")
-    knots = np.linspace(np.log(seen.min()), np.log(seen.max()), LAW_KNOTS)
+    knots = log_knots(float(seen.min()), float(seen.max()), LAW_KNOTS).numpy()
     n_types = max(int(meta.n_types), 1)
     sums = {}
     for name, f in files.items():

@@ -1157,9 +1157,6 @@ def prune_terms(tune: Callable[[str], tuple[float, Any, Any, str]], loss: float,
     training distances (``turning_term``) is dropped, the rest tuned again, whatever the loss;
     else a term is dropped while the loss rises by at most ``FORM_TOLERANCE``: a term the
     network's law needed in its tails (where the frames barely pin it) goes."""
-    def without(k: int) -> str:
-        return drop_term(spec, k)
-
     while True:
         pairs = json.loads(spec)
         if len(pairs) != 1 or len(pairs[0]["terms"]) < 2:
@@ -1168,10 +1165,10 @@ def prune_terms(tune: Callable[[str], tuple[float, Any, Any, str]], loss: float,
         if drop is None:
             drop = turning_term(spec, floor)
         if drop is not None:
-            loss, module, hp, spec = tune(without(drop))
+            loss, module, hp, spec = tune(drop_term(spec, drop))
             continue
         for k in range(len(pairs[0]["terms"])):
-            result = tune(without(k))
+            result = tune(drop_term(spec, k))
             if not result[0] > loss * (1 + FORM_TOLERANCE):
                 loss, module, hp, spec = min(result[0], loss), *result[1:]
                 break

@@ -30,40 +30,18 @@ from dataclasses import asdict, dataclass
 import torch
 
 from bgn.graph import Graph
+from bgn.law_table import NormalEquations, fit_table, hat_basis, log_knots
 from bgn.model.newton import PairForceHead, numerov, past_positions
 from bgn.model.ops import scatter_sum
 from bgn.model.target import observed_targets
 
 KNOTS = 48  # table knots per pair of types, evenly spaced in log distance
-# smoothness penalties tried (second differences of the table), relative to the mean
-# diagonal of the normal matrix
-SMOOTHING = tuple(10.0**-k for k in range(10, -1, -1))
 EDGE_ELEMENTS = 1 << 24  # entries of the per-edge design held at once (64 MiB in float32)
 # the matched law's learning rate relative to the optimiser's: Adam's first steps move every
 # weight by about the full rate, which undoes a law already fitted
 # (docs/notes/2026-11-26-force-matching.md)
 MATCHED_LAW_LR = 0.1
 DISTIL_STEPS, DISTIL_POINTS, DISTIL_LR = 3000, 256, 1e-2
-
-
-@dataclass
-class NormalEquations:
-    """``gram = X^T X``, ``moment = X^T y`` and ``total = y^T y`` of a least-squares problem
-    ``X c = y`` (float64), accumulated over batches; ``rows`` counts the rows."""
-
-    gram: torch.Tensor
-    moment: torch.Tensor
-    total: torch.Tensor
-    rows: int
-
-    def __add__(self, other: NormalEquations) -> NormalEquations:
-        return NormalEquations(self.gram + other.gram, self.moment + other.moment,
-                               self.total + other.total, self.rows + other.rows)
-
-    def relative_error(self, coef: torch.Tensor) -> float:
-        """``|X c - y|^2 / |y|^2`` of the coefficients ``coef``."""
-        sq = coef @ self.gram @ coef - 2 * self.moment @ coef + self.total
-        return float(sq.clamp_min(0) / self.total.clamp_min(torch.finfo(sq.dtype).tiny))
 
 
 @dataclass
@@ -77,11 +55,6 @@ class Table:
 
     def knots(self) -> torch.Tensor:
         return log_knots(self.lo, self.hi, self.values.shape[1])
-
-
-def log_knots(lo: float, hi: float, k: int = KNOTS) -> torch.Tensor:
-    """(k,) log distances evenly spaced from ``log lo`` to ``log hi`` (float64)."""
-    return torch.linspace(math.log(lo), math.log(hi), k, dtype=torch.float64)
 
 
 @dataclass
@@ -106,18 +79,6 @@ def matchable(head: object) -> bool:
     """Whether force matching applies: a pair-force head whose law is an MLP (a formula law is
     fitted by the law stage instead)."""
     return isinstance(head, PairForceHead) and isinstance(head.force_law, torch.nn.Sequential)
-
-
-def hat_basis(log_dist: torch.Tensor, knots: torch.Tensor) -> torch.Tensor:
-    """(..., K) the piecewise-linear basis at ``log_dist`` (...): each value shared between its
-    two neighbouring knots; outside the knots, the end segments extended."""
-    step = knots[1] - knots[0]
-    x = (log_dist - knots[0]) / step
-    i = x.floor().clamp(0, len(knots) - 2)
-    w = (x - i)[..., None]
-    idx = i.long()[..., None]
-    basis = log_dist.new_zeros(*log_dist.shape, len(knots))
-    return basis.scatter_add(-1, idx, 1 - w).scatter_add(-1, idx + 1, w)
 
 
 def distance_range(head: PairForceHead, graphs: Iterable[Graph]) -> tuple[float, float] | None:
@@ -193,26 +154,6 @@ def accumulate(head: PairForceHead, graphs: Iterable[Graph], knots: torch.Tensor
     return total
 
 
-def fit_table(fit: NormalEquations, check: NormalEquations, n_pairs: int,
-              ) -> tuple[torch.Tensor, float]:
-    """The table's values (pairs x KNOTS) of least squares on ``fit`` with a penalty on their
-    second differences, its weight (``SMOOTHING``) the best on ``check``."""
-    k = fit.gram.shape[0] // n_pairs
-    second = torch.diff(torch.eye(k, dtype=fit.gram.dtype), n=2, dim=0)
-    penalty = torch.block_diag(*[second.T @ second] * n_pairs)
-    # pairs of types never seen give zero rows: a small ridge keeps the system regular
-    scale = float(fit.gram.diagonal().mean())
-    ridge = 1e-12 * scale * torch.eye(len(penalty), dtype=penalty.dtype)
-    best = None
-    for weight in SMOOTHING:
-        coef = torch.linalg.solve(fit.gram + weight * scale * penalty + ridge, fit.moment)
-        error = check.relative_error(coef)
-        if best is None or error < best[0]:
-            best = (error, weight, coef)
-    assert best is not None
-    return best[2].view(n_pairs, k), best[1]
-
-
 def law_error(head: PairForceHead, graphs: Iterable[Graph], known_masses: bool) -> float:
     """Relative squared error of the accelerations that the head's current law gives at the
     windows' past frames (equal or recorded masses, as ``normal_equations``)."""
@@ -269,7 +210,7 @@ def match_forces(head: PairForceHead, train: list[Graph], val: list[Graph],
     if span is None or not val:
         return None
     n_pairs = max(head.types, 1) ** 2
-    knots = log_knots(*span)
+    knots = log_knots(*span, KNOTS)
     fit = accumulate(head, train, knots, known_masses)
     check = accumulate(head, val, knots, known_masses)
     assert fit is not None and check is not None

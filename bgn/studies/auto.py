@@ -675,7 +675,9 @@ def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[st
     datamodule.setup()
     val, train_split = datamodule.datasets["val"], datamodule.datasets["train"]
     balance = momentum_balance(train_split.file, datamodule.meta)
-    velocity = velocity_dependence(train_split.file, val.file, datamodule.meta)
+    # the velocity test only where it could refuse a candidate still admitted
+    velocity = (None if balance.breaks() or datamodule.meta.interaction == "contact"
+                else velocity_dependence(train_split.file, val.file, datamodule.meta))
     known = masses_known(val)
     pool = candidates(datamodule.meta, datamodule.history, radii_given(train_split),
                       list(auto.get("references", ["gns", "cranmer_gn"]) or []), balance,
@@ -721,7 +723,7 @@ def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[st
                 "rollouts": len(sims) * len(starts), "share": share,
                 "budget_each": each, "budget_winner": winner_limits,
                 "masses_known": known, "balance": asdict(balance),
-                "velocity": asdict(velocity)}
+                "velocity": asdict(velocity) if velocity is not None else None}
     report = write_report(auto_dir, results, winner, margin, protocol)
     info(f"auto: chose {winner.candidate.name} (runner-up / winner at {n_steps} steps: "
          f"{margin:.3g}); report: {report}")

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from bgn.law_table import SMOOTHING
 from bgn.model import force_matching as fm
 from bgn.model.newton import LAW_INITS, NewtonConfig
 from bgn.train.module import PhysicsModule
@@ -37,7 +38,7 @@ def test_a_smoothed_least_squares_table_is_chosen_on_the_check_problem():
     y = x @ truth + 0.01 * torch.randn(400, generator=gen, dtype=torch.float64)
     eq = fm.NormalEquations(x.T @ x, x.T @ y, y @ y, 400)
     values, weight = fm.fit_table(eq, eq, 1)
-    assert values.shape == (1, fm.KNOTS) and weight in fm.SMOOTHING
+    assert values.shape == (1, fm.KNOTS) and weight in SMOOTHING
     assert torch.allclose(values[0], truth, atol=0.05)
     assert eq.relative_error(values[0]) < 1e-3
 

@@ -207,10 +207,14 @@ def test_checkpoint_reload_reproduces_predictions(tiny_train_cfg, tmp_path):
 @pytest.mark.parametrize("scene", ["spring", "gravity_r2", "collisions"])
 def test_trainer_gpu_trains_and_evaluates_end_to_end(tiny_train_cfg, tmp_path, scene):
     """trainer=gpu: training, validation rollouts, figures and the test evaluation of the best
-    checkpoint (rollouts included) all run with the model on the GPU."""
+    checkpoint (rollouts included) all run with the model on the GPU; gravity_r2's default
+    formula stage (model.law=auto) too, handed in as the command line does."""
+    from bgn.eval.laws import law_stage
+
     metrics = train(tiny_train_cfg(scene, "trainer=gpu", "trainer.max_epochs=1",
                                    "+trainer.limit_train_batches=3",
-                                   "trainer.limit_val_batches=2", "figures=true"))
+                                   "trainer.limit_val_batches=2", "figures=true"),
+                    law_stage=law_stage)
     assert np.isfinite(metrics["train/loss"]) and np.isfinite(metrics["val/rollout_error"])
     record = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert record["dataset"] == scene and np.isfinite(record["metrics"]["test/nmse"])

@@ -97,7 +97,8 @@ def coverage_curve(true_log: np.ndarray, sampled_log: np.ndarray,
     a calibrated posterior whatever S, and the truth is inside the central ``level`` interval
     when it lies within ``level / 2`` of 0.5. The interval between the samples' own
     quantiles is narrower than the posterior's by about (S - 1) / (S + 1), so it undercovers
-    (docs/results.md, "Recalibration, pooling over frames and the fitted masses")."""
+    (docs/notes/2026-11-26-results-history.md,
+    "Recalibration, pooling over frames and the fitted masses")."""
     true_log, sampled_log = _check_samples(true_log, sampled_log)
     rng = np.random.default_rng(seed)
     pit = (sbc_ranks(true_log, sampled_log, rng) + rng.random(len(true_log))) \

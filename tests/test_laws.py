@@ -159,7 +159,8 @@ def test_a_law_is_recovered_from_a_head_trained_on_springs(trained_spring):
     # the form of 2 (s - 1): a constant and r, nothing else
     assert set(found) == {Term("const"), Term("power", 1)}, pair.formula.text
     # constants: as close to the truth as the learned law itself is where most pairs are
-    # (its band errors; the measured figures: docs/results.md)
+    # (its band errors; the measured figures: docs/notes/2026-11-26-results-history.md,
+    # "Laws read back as formulas")
     assert found[Term("power", 1)] == pytest.approx(-2.0, rel=0.02)
     assert found[Term("const")] == pytest.approx(1.98, rel=0.02)
     assert pair.truth_in_form["residual_max"] < 1e-9

@@ -214,8 +214,9 @@ def main(argv: list[str] | None = None) -> int:
         result["train_s"] = timed(lambda: train_step(model, opt, g))
         result["train_peak_bytes"] = max(peak() - base, 0)
         # the timings out first: the FLOP count's dispatch keeps more alive than a plain
-        # step (docs/results.md, "The baselines' edge MLPs with their backward written out"), and a
-        # process killed there keeps its timings
+        # step (docs/notes/2026-11-26-results-history.md,
+        # "The baselines' edge MLPs with their backward written out"), and a process killed
+        # there keeps its timings
         json.dump(result, sys.stdout)
         print(flush=True)
         counter = FlopCounterMode(display=False,

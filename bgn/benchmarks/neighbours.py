@@ -67,9 +67,9 @@ def box_side(n: int, neighbours: float, dim: int = 2) -> float:
 def time_one(n: int, neighbours: float, repeats: int, rng: np.random.Generator) -> Row:
     positions = rng.uniform(0.0, box_side(n, neighbours), size=(n, 2))
     # The first call at a new size pays for first-touch page faults on memory the process (in a
-    # VM, even the guest) never used before: at 200k about as much as the search (docs/results.md,
-    # "Measurements behind the defaults"). Report it separately, and time the steady state a
-    # training loop sees.
+    # VM, even the guest) never used before: at 200k about as much as the search
+    # (docs/notes/2026-11-26-results-history.md, "Moved here from code comments and configs").
+    # Report it separately, and time the steady state a training loop sees.
     start = time.perf_counter()
     radius_graph(positions, cutoff=CUTOFF)
     first_call = time.perf_counter() - start

@@ -3,8 +3,9 @@ step, peak memory, fitted exponents, and the fraction of the machine's matmul ra
 
 Collisions-like frames at the scene's density (200 discs per 10 x 10 box, two types of radius
 0.1 and 0.2, equipartition speeds), edges from ``bgn.data.edges.radius_graph`` with a contact
-margin of ``--margin`` (1.25 gives the edge density of the measurements in docs/results.md,
-"Measurements behind the defaults"). Each model is its checkout's own config composed with
+margin of ``--margin`` (1.25 gives the edge density of the measurements in
+docs/notes/2026-11-26-results-history.md, "Moved here from code comments and configs").
+Each model is its checkout's own config composed with
 ``dataset=collisions`` (``conf/``), so BGN runs with the collisions defaults (vector contact
 message)::
 

@@ -34,8 +34,8 @@ from bgn.sim.nbody import NYQUIST_TURN, pair_turns
 
 SPLIT_IDS = {name: i for i, name in enumerate(SPLITS)}
 # share of a force scene's frames beyond the frame rate's Nyquist limit above which generation
-# warns; the default gravity_r2 training split stays below it at fps 10 and 50 (docs/results.md,
-# "Frames that alias")
+# warns; the default gravity_r2 training split stays below it at fps 10 and 50
+# (docs/notes/2026-11-26-results-history.md, "Frames that alias")
 ALIASED_WARN = 0.05
 
 

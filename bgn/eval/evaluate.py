@@ -206,8 +206,8 @@ def _point_metrics(estimate: np.ndarray, true_log: np.ndarray, particles: np.nda
     estimates of one particle pooled over the evaluated frames of its simulation, as masses
     do not change over time (docs/design.md#identifiability): the product of per-frame Gaussians of
     the posterior's mean and ``variance`` (``bgn.metrics.aggregate_gaussian``; sharp frames weigh
-    more, docs/results.md, "Recalibration, pooling over frames and the fitted masses"), a plain
-    mean without it."""
+    more, docs/notes/2026-11-26-results-history.md,
+    "Recalibration, pooling over frames and the fitted masses"), a plain mean without it."""
     _, index = np.unique(particles, return_inverse=True)
     _, pooled, _ = aggregate_gaussian(estimate, np.ones_like(estimate) if variance is None
                                       else variance, particles)

@@ -52,7 +52,8 @@ time: not possible without network. PySINDy (installs from PyPI, with scikit-lea
 libraries linear in their coefficients only: the softening ``c`` of ``(r + c)^p`` must be a
 fixed grid of columns, nearly collinear with each other and with the plain powers. Tried on
 this library (c on a grid) with the noisy laws of tests/test_laws.py, its STLSQ and SR3 kept
-tens of terms at any threshold tried, not the one or two of the law (docs/results.md). An
+tens of terms at any threshold tried, not the one or two of the law
+(docs/notes/2026-11-26-results-history.md, "Laws read back as formulas"). An
 exhaustive search over subsets of up to three terms is exact where a sparse relaxation is a
 heuristic, and takes seconds: numpy, scipy and sympy (already dependencies) suffice.
 """
@@ -1034,7 +1035,8 @@ def law_objective(model: Any, head: Any, g: Any) -> torch.Tensor:
     under a Cauchy loss, ``log(1 + rel / ROBUST_SCALE^2)``. A frame whose encounter the
     substeps do not resolve misses its target whatever the law; squared, those few frames
     would decide the constants (they favour a law softer than the truth), where the robust loss
-    lets the many resolved frames decide (docs/results.md, "The formula stage"). Else the
+    lets the many resolved frames decide (docs/notes/2026-11-26-results-history.md,
+    "The formula stage"). Else the
     model's dynamics loss (the law through the window's mass fit). The other tasks' losses are
     left out: the inverse model reads the head's mass fit (``mass_context=fit``), and its
     likelihood would pull the law towards masses that are easy to predict."""
@@ -1229,8 +1231,8 @@ def polish_constants(model: Any, head: Any, batches: list[tuple[float, Any]], st
     """The chosen form's constants tuned once more (``steps`` evaluations, as every form)
     through ``POLISH_FACTOR`` times finer substeps: through the coarser substeps the forms
     are compared with, the loss is rough at the scale of a softening constant, and its minimum
-    spans a band around the truth (docs/results.md, "The formula stage"). The substeps are put
-    back after. None where no time is left."""
+    spans a band around the truth (docs/notes/2026-11-26-results-history.md,
+    "The formula stage"). The substeps are put back after. None where no time is left."""
     coarse = head.substeps
     head.substeps = fine = POLISH_FACTOR * coarse
     try:
@@ -1339,7 +1341,8 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     n = scores["network"]["horizon"]
     # rolled out with the substeps it was tuned through and with the network's own: the
     # shooting's velocity estimate can cost more over a rollout than the substeps gain
-    # (docs/results.md); the better one is kept in the checkpoint
+    # (docs/notes/2026-11-26-results-history.md, "The formula stage"); the better one is
+    # kept in the checkpoint
     by_substeps = {}
     for k in sorted({substeps, pair_force_head(network)[1].substeps}):
         head.substeps = k
@@ -1352,7 +1355,8 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     scores["formula"] = by_substeps[rollout_substeps]
     # the law on the typical rollout (the geometric mean): the mean after many steps of a
     # chaotic scene is set by the few rollouts whose encounters diverge, whatever the law
-    # (docs/results.md, "The formula stage"); a failed rollout still counts, at the cap
+    # (docs/notes/2026-11-26-results-history.md, "The formula stage"); a failed rollout
+    # still counts, at the cap
     choice = min(scores, key=lambda k: (scores[k]["typical"].get(n, math.inf), k != "network"))
     record = {"checkpoint": str(checkpoint), "substeps": substeps,
               "steps": evaluations[0], "tunings": evaluations[1], "batch_size": batch_size,

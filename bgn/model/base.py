@@ -96,14 +96,15 @@ class DynamicsConfig(OptionGroup):
     # graphs with more than ``checkpoint_edges`` edges (and more than ``edge_chunk``) run in
     # chunks of ``edge_chunk`` edges and recompute their hidden layers in the backward pass.
     # The default never triggers in training on the paper's scenes (a few thousand edges per
-    # batch); on large radius graphs it cuts BGN's peak memory (docs/results.md,
-    # "Measurements behind the defaults"). The baselines, whose edge MLPs are most of their
-    # time, checkpoint only above a million edges. null: never.
+    # batch); on large radius graphs it cuts BGN's peak memory
+    # (docs/notes/2026-11-26-results-history.md, "Moved here from code comments and configs").
+    # The baselines, whose edge MLPs are most of their time, checkpoint only above a million
+    # edges. null: never.
     edge_chunk: int | None = 65_536
     checkpoint_edges: int | None = 65_536
     # The same threshold where the model runs on a GPU: there memory is ample and a step is
-    # bound by kernel launches, so recomputing costs more than it saves (docs/results.md,
-    # "On a GPU: one H100").
+    # bound by kernel launches, so recomputing costs more than it saves
+    # (docs/notes/2026-11-26-results-history.md, "On a GPU: one H100").
     checkpoint_edges_gpu: int | None = 2_097_152
 
     def __post_init__(self) -> None:

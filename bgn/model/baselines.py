@@ -63,8 +63,9 @@ class BaselineConfig(DynamicsConfig):
     checkpoint_edges: int | None = 1_000_000
     # On a CPU the edges run in blocks of this many (ops.EdgeMLP.fused with ReLU, else
     # EdgeMLP.blocks): no per-edge tensor of the whole graph. 8 192 was the fastest block size
-    # for GNS's training step on large scenes (docs/results.md, "The baselines' edge MLPs with
-    # their backward written out" and "Edge blocks for the baselines").
+    # for GNS's training step on large scenes (docs/notes/2026-11-26-results-history.md,
+    # "The baselines' edge MLPs with their backward written out" and "Edge blocks for the
+    # baselines").
     # null: one block.
     edge_block: int | None = 8192
 

@@ -220,7 +220,7 @@ class BGN(PhysicsModel):
                           self.cfg.velocity_increments)
         # the edge features feed the edge encoder and the contact head only (not BGN's
         # structured head on collisions, where they cost a share of every step on large scenes:
-        # docs/results.md, "Measurements behind the defaults")
+        # docs/notes/2026-11-26-results-history.md, "Moved here from code comments and configs")
         e = (edge_features(g, self.normalizer)
              if self.edge_encoder is not None or self.processor.contact is not None else None)
         h_v = self.node_encoder(x, g.edge_index)               # Eq. 1

@@ -59,7 +59,8 @@ TINY = 1e-20         # keeps roots, divisions and norms (and their gradients) fi
 # frames of the window replayed to recover the velocity at frame t (at most history - 1): a
 # replay starts from a backward difference, which is wrong when that frame held an impact, and
 # each frame further back dilutes the error: four gave the smallest energy error on the dense
-# gas (docs/results.md, "The replay without gradients, and four frames replayed")
+# gas (docs/notes/2026-11-26-results-history.md,
+# "The replay without gradients, and four frames replayed")
 REPLAY_FRAMES = 4
 LOG_MASS_RANGE = 5.0  # e-folds of mass per unit of the mass MLP's output
 RULE_LOGIT = 4.0      # the gates start at the time-of-impact rule: +-4 (probability 0.98)
@@ -366,7 +367,7 @@ class ContactImpulseHead(nn.Module):
         (an impact with a third disc can turn one towards the other). Elsewhere no contact is
         possible within the frame, and the MLP on every edge was a large share of a training step
         on big scenes, while few edges are candidates and few recorded contacts lie outside them
-        (docs/results.md, "BGN's bars met")."""
+        (docs/notes/2026-11-26-results-history.md, "BGN's bars met")."""
         snd, rcv = g.edge_index
         speed = torch.sqrt((v * v).sum(-1) + TINY)
         return hit | (gap < NEAR_FRAMES * (speed[rcv] + speed[snd]) * dt[rcv])
@@ -385,7 +386,8 @@ class ContactImpulseHead(nn.Module):
         unless a chain of impacts runs through discs further apart.
 
         A Jacobi sum of every impact a disc meets, each from the velocities at the frame's
-        start, creates energy whenever a disc is hit twice within a frame (docs/results.md,
+        start, creates energy whenever a disc is hit twice within a frame
+        (docs/notes/2026-11-26-results-history.md,
         "Impacts one at a time"); one impact at a time, an elastic impact conserves energy and
         every pair impact momentum, whatever the number of impacts. As in the simulator, a
         pair (or a wall) is not solved again right after its own impact, only once one of
@@ -562,7 +564,8 @@ class ContactImpulseHead(nn.Module):
         Without gradients: the replays only correct the input velocity. The gates, masses and
         restitution learn from the predicted frame and the contact loss; the replays' backward
         was a sizeable share of a default training step, and the default job trained without it is
-        as accurate (docs/results.md, "The replay without gradients")."""
+        as accurate (docs/notes/2026-11-26-results-history.md,
+        "The replay without gradients")."""
         depth, dt, x, v = self._replay_start(g)
         frames = []
         with torch.no_grad():

@@ -79,7 +79,8 @@ class InverseOptions(OptionGroup):
     mass_context: str = "pairs"
     mass_context_dropout: float = 0.0
     # mass_context=fit: also the fit's relative standard error, so the flow can tell a window
-    # that pins the masses from one that does not (gravity_r2: docs/results.md); where the
+    # that pins the masses from one that does not (gravity_r2:
+    # docs/notes/2026-11-26-results-history.md, "gravity_r2: the fit's own error"); where the
     # context is not a fit (bgn.model.bgn.BGN._conditioning) there is no fit error to read,
     # and it is unused
     mass_fit_error: bool = False
@@ -232,8 +233,9 @@ class InverseModel(nn.Module):
         ``noise`` (N,) is the base-distribution (standard normal) draw; pass it to make the
         sample reproducible (tests), else it is drawn here while training, and is 0 in eval
         mode: the posterior's median, so that Eq. 9-10 decode a point estimate of the relative
-        masses (a random draw adds the posterior's width to their error: docs/results.md,
-        "Measurements behind the defaults"). Returns ``(nll (N,), z (N,))``.
+        masses (a random draw adds the posterior's width to their error:
+        docs/notes/2026-11-26-results-history.md, "Moved here from code comments and configs").
+        Returns ``(nll (N,), z (N,))``.
         """
         dist = self.flow(context)  # the context network runs once for both uses
         nll = -dist.log_prob(log_mass[:, None])

@@ -13,7 +13,8 @@ sampled product, and the gradient of the sampled product is a product with ``A``
 direction gathers an (E, F) tensor, multiplies it and scatters it back, and neither goes
 through the accumulating ``index_put_`` behind ``x[index]``. Both run as CSR kernels
 (``torch.sparse.mm``, ``torch.sparse.sampled_addmm``): faster than a gather and ``index_add_``
-on large graphs, with no (E, F) memory (docs/results.md, "Measurements behind the defaults").
+on large graphs, with no (E, F) memory
+(docs/notes/2026-11-26-results-history.md, "Moved here from code comments and configs").
 
 CSR needs the edges sorted by receiver, which every graph builder here already returns
 (``bgn.data.edges``) and a batch keeps (``bgn.graph.collate``); other orders are sorted once
@@ -249,7 +250,8 @@ def edge_chunks(fn: Callable[..., torch.Tensor], chunk: int | None,
 
 # At most this many blocks per graph, larger blocks beyond: the backward of each block's
 # gathers makes node-sized gradients (N, F) of its own, so a fixed block size would cost
-# O(N E / block), quadratic in N (docs/results.md, "Edge blocks for the baselines").
+# O(N E / block), quadratic in N
+# (docs/notes/2026-11-26-results-history.md, "Edge blocks for the baselines").
 MAX_EDGE_BLOCKS = 32
 
 
@@ -263,8 +265,8 @@ def edge_blocks(n_edges: int, block: int | None,
     makes a per-edge tensor of the whole graph. On a CPU that is faster, not only smaller: a
     block's (8 192, 128) float32 tensors are 4 MB, which malloc recycles within the process
     and the caches hold between consecutive operations, where a (300 000, 128) tensor is
-    150 MB of fresh pages that the kernel zeroes at every allocation (docs/results.md,
-    "Edge blocks")."""
+    150 MB of fresh pages that the kernel zeroes at every allocation
+    (docs/notes/2026-11-26-results-history.md, "Edge blocks")."""
     if not block or n_edges <= block:
         return [slice(0, n_edges)]
     if max_blocks:

@@ -73,8 +73,8 @@ FIT_EPS = 1e-12  # keeps a mass fit finite when a particle feels no force over t
 ROBUST_STEPS, ROBUST_SCALE = 2, 0.01  # reweighting of the gravity mass fit (source law)
 REL_ERROR_FLOOR = 1e-6  # the log of a fit's relative error stays finite for an exact fit
 IMPLICIT_STEPS = 1  # fixed-point steps of the implicit Numerov prediction (more: no gain)
-# Newton steps of the shooting that finds the velocity at frame t (substeps > 1): with the true
-# law on gravity_r2 test frames, 3 and 8 give the same median and 90th percentile (results.md)
+# Newton steps of the shooting that finds the velocity at frame t (substeps > 1); how many
+# converge: docs/results.md, "Measurements behind the defaults", "Shooting iterations"
 SHOOTING_ITERATIONS = 4
 
 
@@ -150,8 +150,8 @@ def numerov(f: torch.Tensor) -> torch.Tensor:
     exact to O(dt^4), at frames t-1 .. t-F+2; at frame t, whose f[t+1] is not known yet, with
     f[t+1] extrapolated quadratically, ``(13 f[t] - 2 f[t-1] + f[t-2]) / 12``. Returns
     (., F-1, D), frames t .. t-F+2. With the true force law and masses this brings the
-    instantaneous force closer to the recorded target (docs/results.md, "Measurements behind the
-    defaults")."""
+    instantaneous force closer to the recorded target
+    (docs/notes/2026-11-26-results-history.md, "Moved here from code comments and configs")."""
     now = (13 * f[:, 0] - 2 * f[:, 1] + f[:, 2]) / 12
     centred = (f[:, :-2] + 10 * f[:, 1:-1] + f[:, 2:]) / 12
     return torch.cat([now[:, None], centred], dim=1)
@@ -182,7 +182,7 @@ def shoot(accel: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor, back: 
     the frame ahead is integrated from it. ``back``: (N, D) ``(x[t] - x[t-1]) / dt``; ``dt``:
     (N, 1). A close encounter within a frame, which one force evaluation per frame cannot
     follow, is integrated in substeps, which reproduce the recorded targets far more closely
-    (docs/results.md, "Gravity_r2: what frames allow")."""
+    (docs/notes/2026-11-26-results-history.md, "Gravity_r2: what frames allow")."""
     h = dt / steps
     v = back + 0.5 * dt * accel(x)
     for _ in range(iterations):
@@ -382,7 +382,8 @@ class PairForceHead(nn.Module):
             # within the window gets a finite mass, not a singular system. (A ridge relative
             # to the mean of the diagonal shrank the columns of heavy particles, whose pull
             # shows in the light ones' small, down-weighted rows: masses 1, 1e-3, 1e-3, 1e-3
-            # came out far off, now close: docs/results.md, "Gravity's mass fit"; tested)
+            # came out far off, now close: docs/notes/2026-11-26-results-history.md,
+            # "Gravity's mass fit"; tested)
             ridge = torch.diag_embed(1e-6 * gram.diagonal(dim1=1, dim2=2) + FIT_EPS)
             masses = torch.linalg.solve(gram + ridge, wd.transpose(1, 2) @ (target * weight))
             residual = (design @ masses - target) * weight
@@ -456,10 +457,11 @@ def law_loss(head: nn.Module, g: Graph, reduce: bool = True) -> torch.Tensor | N
     scored by its squared error relative to the target's own size (None for other heads). The
     fit absorbs any law's scale, and over the few frames of a window almost any shape: trained
     through the fit alone, gravity_r2's law came out nowhere near 1/s^2 while the one-step error
-    stayed small (docs/results.md, "Gravity_r2: what frames allow"). With the true
-    masses the law is identified; relative errors weigh every distance alike, where a squared
-    error is set by the few close encounters (docs/results.md, "Measurements behind the
-    defaults"). ``reduce=False``: the relative error of each particle, (N,)."""
+    stayed small (docs/notes/2026-11-26-results-history.md, "Gravity_r2: what frames allow").
+    With the true masses the law is identified; relative errors weigh every distance alike,
+    where a squared error is set by the few close encounters
+    (docs/notes/2026-11-26-results-history.md, "Moved here from code comments and configs").
+    ``reduce=False``: the relative error of each particle, (N,)."""
     if not isinstance(head, PairForceHead):
         return None
     predicted, target = head(g, known_masses=True)[0], g.target.to(g.pos.dtype)

@@ -63,8 +63,8 @@ class ContactOptions(OptionGroup):
     # (docs/design.md#departures-from-the-paper).
     force_transform: str = "log1p"     # "log1p" | "linear"
     # Contact scenes: weight of the positive class in the contact BCE. Few candidate edges
-    # touch; unweighted, the head learns to say "no contact" everywhere (docs/results.md,
-    # "Measurements behind the defaults").
+    # touch; unweighted, the head learns to say "no contact" everywhere
+    # (docs/notes/2026-11-26-results-history.md, "Moved here from code comments and configs").
     # "balanced" = (1 - p) / p with p the training split's contact fraction
     # (base.contact_pos_weight); a number sets it; 1 = the paper's plain BCE. Typed Any for
     # Hydra (OmegaConf's Union[str, float] refuses the int that `model.contact_pos_weight=1`

@@ -1,6 +1,6 @@
-"""Seeds, parallel cells, provenance and the results_md block of the study (issue 34, item
-2): the aggregation over seeds from hand-made per-seed records, the seeded cell plan, a
-failed cell named while the others are reported, the generated block rewritten in place."""
+"""Seeds, parallel cells, provenance and the results_md block of the study: the aggregation
+over seeds from hand-made per-seed records, the seeded cell plan, a failed cell named while
+the others are reported, the generated block rewritten in place."""
 
 from __future__ import annotations
 

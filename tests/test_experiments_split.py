@@ -1,4 +1,4 @@
-"""A study scored on the validation split (``preset.eval.split=val``, issue 34 item 3) and the
+"""A study scored on the validation split (``preset.eval.split=val``) and the
 grid's ``variants`` (the same scene and model with overrides A against B): the recheck
 preset's plan, its keys refused one at a time before any cell trains, every table and the
 provenance naming the split, a validation study's results_md block apart from the test one,

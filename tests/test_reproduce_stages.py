@@ -1,4 +1,4 @@
-"""The grid study's stability and Pareto stages (``bgn.studies.headline``, issue 34 item 2):
+"""The grid study's stability and Pareto stages (``bgn.studies.headline``):
 their config keys refused one at a time, the front from seed means, and a tiny
 reproduce-like preset with both stages that writes every table and fills each generated
 block of a copy of docs/results.md."""

@@ -38,7 +38,7 @@ from bgn.data.stats import summarize
 from bgn.eval.evaluate import r2_score
 from bgn.graph import Graph, collate
 from bgn.model.registry import build_model
-from bgn.model.target import observed_targets
+from bgn.model.target_coder import observed_targets
 from bgn.sim.scene import SceneMeta
 from bgn.tables import markdown_table, write_csv
 

@@ -54,7 +54,7 @@ def compute_stats(scene: Scene, arrays: dict[str, np.ndarray], dt: float,
         "target": summarize(target.reshape(-1, d)),
         # what is left of the target after the last observed value (diff1) or after a linear
         # extrapolation of the last two (diff2): the scales of the residual targets that a
-        # model with model.target_prior=last|linear predicts (bgn.model.target)
+        # model with model.target_prior=last|linear predicts (bgn.model.target_coder)
         "target_diff1": summarize(np.diff(target, n=1, axis=0).reshape(-1, d)),
         "target_diff2": summarize(np.diff(target, n=2, axis=0).reshape(-1, d)),
         "log_mass": summarize(log_mass.reshape(-1, 1)),

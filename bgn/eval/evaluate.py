@@ -40,7 +40,7 @@ from bgn.metrics import (
 )
 from bgn.model.encoder import approach_gap
 from bgn.model.impulse import ContactImpulseHead
-from bgn.model.target import extrapolate, observed_targets
+from bgn.model.target_coder import extrapolate, observed_targets
 from bgn.rollout import evaluate_rollouts, lb_prefix
 from bgn.train.checkpoints import CheckpointError, read
 from bgn.train.module import PhysicsModule, load_model

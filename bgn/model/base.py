@@ -31,7 +31,7 @@ from bgn.graph import Graph
 from bgn.model.message_passing import CheckpointEdges
 from bgn.model.noise import add_random_walk_noise
 from bgn.model.normalizer import Normalizer
-from bgn.model.target import LOSSES, PRIORS, TargetCoder
+from bgn.model.target_coder import LOSSES, PRIORS, TargetCoder
 from bgn.sim.scene import SceneMeta
 
 # "unroll": the dynamics loss of steps unrolled on the model's own frames (bgn.train.unroll);
@@ -79,7 +79,7 @@ class OptionGroup:
 @dataclass
 class DynamicsConfig(OptionGroup):
     """Options every model shares: what its dynamics head predicts and its loss
-    (``bgn.model.target``), so that all models train on equal terms.
+    (``bgn.model.target_coder``), so that all models train on equal terms.
     ``target_prior=none dynamics_loss=mse`` is the paper's (and the baselines' published)
     parameterisation; a scene may set its own default (``conf/dataset_model/``)."""
 

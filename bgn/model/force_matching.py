@@ -33,7 +33,7 @@ from bgn.graph import Graph
 from bgn.law_table import NormalEquations, fit_table, hat_basis, log_knots
 from bgn.model.newton import PairForceHead, numerov, past_positions
 from bgn.model.ops import scatter_sum
-from bgn.model.target import observed_targets
+from bgn.model.target_coder import observed_targets
 
 KNOTS = 48  # table knots per pair of types, evenly spaced in log distance
 EDGE_ELEMENTS = 1 << 24  # entries of the per-edge design held at once (64 MiB in float32)

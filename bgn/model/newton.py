@@ -63,7 +63,7 @@ from bgn.model.impulse import ContactImpulseHead
 from bgn.model.message_passing import edge_vector
 from bgn.model.normalizer import Normalizer
 from bgn.model.ops import activation, mlp, scatter_sum
-from bgn.model.target import observed_targets
+from bgn.model.target_coder import observed_targets
 from bgn.sim.scene import SceneMeta
 
 MASS_LAWS = ("inertial", "source", "type")

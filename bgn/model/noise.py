@@ -2,7 +2,7 @@
 
 A model trained on clean windows has never seen the small errors that its own predictions
 feed back into a rollout, and nothing teaches it to undo them: a residual on a history
-extrapolation (``bgn.model.target``) even carries them forward. Following Sanchez-Gonzalez
+extrapolation (``bgn.model.target_coder``) even carries them forward. Following Sanchez-Gonzalez
 et al. 2020 (their random-walk noise), every training window gets a random walk added to its
 velocities, the positions follow the noisy velocities, and the target is corrected so that
 the step lands on the *true* next velocity: the model learns to pull a perturbed state back

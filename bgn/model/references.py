@@ -14,7 +14,7 @@ from torch import nn
 
 from bgn.graph import Graph
 from bgn.model.newton import shoot
-from bgn.model.target import extrapolate, observed_targets
+from bgn.model.target_coder import extrapolate, observed_targets
 from bgn.sim.nbody import NBodyScene
 from bgn.sim.scene import SceneMeta
 

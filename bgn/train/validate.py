@@ -163,7 +163,7 @@ def validate_model(model: Any, scene: Scene, history: int) -> None:
     ``history`` past velocities feeds its target prior."""
     from bgn.model.base import config_from_params
     from bgn.model.registry import MODELS
-    from bgn.model.target import prior_hint, resolve_prior
+    from bgn.model.target_coder import prior_hint, resolve_prior
 
     name = _get(model, "name")
     if name not in MODELS:

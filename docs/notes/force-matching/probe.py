@@ -27,7 +27,7 @@ from conftest import compose_config  # noqa: E402
 from bgn.model import force_matching as fm  # noqa: E402
 from bgn.model.newton import numerov, past_positions  # noqa: E402
 from bgn.model.ops import scatter_sum  # noqa: E402
-from bgn.model.target import observed_targets  # noqa: E402
+from bgn.model.target_coder import observed_targets  # noqa: E402
 from bgn.rollout import rollout_error, rollout_many  # noqa: E402
 from bgn.train.run import build  # noqa: E402
 

@@ -1,4 +1,4 @@
-"""Target priors (bgn.model.target): exact on the motions they extrapolate, invertible, built
+"""Target priors (bgn.model.target_coder): exact on the motions they extrapolate, invertible, built
 from the input window only, and shared by BGN and the baselines."""
 
 from dataclasses import fields, replace
@@ -10,7 +10,7 @@ import torch
 from bgn.data.dataset import frame_graph
 from bgn.model import build_model
 from bgn.model.normalizer import Normalizer
-from bgn.model.target import TargetCoder, observed_targets
+from bgn.model.target_coder import TargetCoder, observed_targets
 from bgn.sim import make_scene
 
 DT = 0.05

@@ -1266,21 +1266,13 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     ``start``: a spec to start from in place of the law read back (tests). ``max_seconds``:
     the fit stops there too (a time budget: ``bgn.studies.auto``'s share).
     Returns the record (specs before and after, errors, choice)."""
-    from bgn.train.checkpoints import read, write_atomic
     from bgn.train.module import load_model
 
     network = load_model(checkpoint)
     if start is None and report is None:
         report = read_law(network, train_split)
     batches = tuning_batches(train_split, batch_size, seed)
-    # where the data reach: the report's (one pair of types), else from the split's distances;
-    # the floor below which the law may not turn, from the split's distances
-    seen = np.concatenate([np.zeros(0), *pair_distances(train_split).values()])
-    floor = float(np.quantile(seen, TURN_QUANTILE)) if seen.size else None
-    if report is not None and len(report.pairs) == 1:
-        reach = report.pairs[0].reach
-    else:
-        reach = np.quantile(seen, DISTANCE_QUANTILES) if seen.size else None
+    reach, floor = _data_reach(report, train_split)
     deadline = None if max_seconds is None else time.perf_counter() + max_seconds
     evaluations = [0, 0]  # loss evaluations, tunings (each at most `steps` evaluations)
 
@@ -1295,32 +1287,10 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
         evaluations[1] += 1
         return loss, module, hp, head.force_law.spec()
 
-    # every candidate form, each tuned on the frames and pruned of the terms the frames do
-    # not need; the lowest loss wins, the fewest constants among near ties
     starts = [start] if start is not None else candidate_specs(report)
-    forms = []
-    for spec in starts:
-        try:
-            loss, module, hp, tuned = tune(spec)
-            loss, module, hp, tuned = prune_terms(tune, loss, module, hp, tuned, reach, floor)
-        except _Budget:
-            break
-        forms.append({"start": json.loads(spec), "tuned": json.loads(tuned), "loss": loss,
-                      "constants": n_constants(tuned), "module": module, "hp": hp})
-    if not forms:  # no time for even one evaluation: the form read back, untuned, less the
-        # terms that turn it below the data (turning_term: which needs no evaluation)
-        spec = starts[0]
-        while (drop := turning_term(spec, floor)) is not None:
-            spec = drop_term(spec, drop)
-        module, hp = formula_module(checkpoint, spec, substeps)
-        forms.append({"start": json.loads(starts[0]), "tuned": json.loads(spec),
-                      "loss": math.nan, "constants": n_constants(spec),
-                      "module": module, "hp": hp})
-    lowest = min(f["loss"] for f in forms)
-    near = [f for f in forms if not f["loss"] > lowest * (1 + FORM_TOLERANCE)] or forms
-    form = min(near, key=lambda f: (f["constants"], f["loss"]))
+    forms = _tuned_forms(tune, starts, checkpoint, substeps, reach, floor)
+    form = _chosen_form(forms)
     module, hp = form["module"], form["hp"]
-    start_spec = json.dumps(form["start"])
     model, head = pair_force_head(module)
     polish = polish_constants(model, head, batches, steps, deadline, str(checkpoint)) \
         if math.isfinite(form["loss"]) else None
@@ -1337,58 +1307,121 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     spec = head.force_law.spec()
     hp["model_config"] = {**hp["model_config"], "law_formula": spec}
     history = int(hp["history"])
-    scores = {"network": validation_errors(network.model, val, history, horizon, val_sims)}
+    scores, by_substeps = _validated_laws(network, model, head, val, history, horizon,
+                                          val_sims, substeps)
+    hp["model_config"] = {**hp["model_config"], "substeps": head.substeps}
     n = scores["network"]["horizon"]
-    # rolled out with the substeps it was tuned through and with the network's own: the
-    # shooting's velocity estimate can cost more over a rollout than the substeps gain
-    # (docs/notes/2026-11-26-results-history.md, "The formula stage"); the better one is
-    # kept in the checkpoint
-    by_substeps = {}
-    for k in sorted({substeps, pair_force_head(network)[1].substeps}):
-        head.substeps = k
-        by_substeps[k] = validation_errors(model, val, history, horizon, val_sims)
-    # the integrator on the mean error: substeps are there for the rare close encounters,
-    # which a typical (geometric-mean) error discounts
-    rollout_substeps = min(by_substeps, key=lambda k: by_substeps[k]["errors"].get(n, math.inf))
-    head.substeps = rollout_substeps
-    hp["model_config"] = {**hp["model_config"], "substeps": rollout_substeps}
-    scores["formula"] = by_substeps[rollout_substeps]
     # the law on the typical rollout (the geometric mean): the mean after many steps of a
     # chaotic scene is set by the few rollouts whose encounters diverge, whatever the law
-    # (docs/notes/2026-11-26-results-history.md, "The formula stage"); a failed rollout
-    # still counts, at the cap
+    # (docs/notes/2026-11-26-results-history.md, "The formula stage"); a failed rollout still
+    # counts, at the cap
     choice = min(scores, key=lambda k: (scores[k]["typical"].get(n, math.inf), k != "network"))
     record = {"checkpoint": str(checkpoint), "substeps": substeps,
               "steps": evaluations[0], "tunings": evaluations[1], "batch_size": batch_size,
               "forms": [{k: f[k] for k in ("start", "tuned", "loss", "constants")}
                         for f in forms],
-              "rollout_substeps": rollout_substeps,
+              "rollout_substeps": head.substeps,
               "formula_by_substeps": {str(k): v for k, v in by_substeps.items()},
-              "start": json.loads(start_spec), "tuned": json.loads(spec),
+              "start": form["start"], "tuned": json.loads(spec),
               "scale": scale, "loss": form["loss"], "polish": polish, "floor": floor,
               "validation": scores, "choice": choice}
     if out_dir is not None:
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        ckpt = read(checkpoint)
-        # the run's optimiser settings kept for bgn.train ckpt_path, its moments dropped: they
-        # belonged to the network law's weights; one parameter group, the first's settings
-        # (a matched network law trained in a slower second group: the formula is not matched)
-        n_params = len(list(module.parameters()))
-        for state in ckpt.get("optimizer_states", []):
-            state["param_groups"] = state.get("param_groups", [{}])[:1]
-            state["state"], state["param_groups"][0]["params"] = {}, list(range(n_params))
-        for state in ckpt.get("lr_schedulers", []):
-            for key in ("min_lrs", "_last_lr"):
-                if isinstance(state.get(key), list):
-                    state[key] = state[key][:1]
-        ckpt["hyper_parameters"], ckpt["state_dict"] = hp, module.state_dict()
-        tmp = out / ".formula.ckpt.tmp"  # then a rename: never a half-written checkpoint
-        torch.save(ckpt, tmp)
-        tmp.replace(out / "formula.ckpt")
-        write_atomic(out / "formula.json", json.dumps(record, indent=2, default=float))
-        record["path"] = str(out / "formula.ckpt")
+        record["path"] = str(_write_formula(Path(out_dir), checkpoint, module, hp, record))
     return record
+
+
+def _data_reach(report: LawReport | None, train_split: Any) -> tuple[Any, float | None]:
+    """(reach, floor) of the training distances: where the data reach (the report's, for one
+    pair of types; else the split's distance quantiles), and the floor below which a law may
+    not turn (``TURN_QUANTILE``); None where the split has no pairs."""
+    seen = np.concatenate([np.zeros(0), *pair_distances(train_split).values()])
+    floor = float(np.quantile(seen, TURN_QUANTILE)) if seen.size else None
+    if report is not None and len(report.pairs) == 1:
+        reach = report.pairs[0].reach
+    else:
+        reach = np.quantile(seen, DISTANCE_QUANTILES) if seen.size else None
+    return reach, floor
+
+
+def _tuned_forms(tune: Callable[[str], tuple[float, Any, Any, str]], starts: list[str],
+                 checkpoint: Path, substeps: int, reach: Any,
+                 floor: float | None) -> list[dict[str, Any]]:
+    """Every candidate form, each tuned on the frames (``tune``) and pruned of the terms the
+    frames do not need, until the budget runs out; with no time for even one evaluation, the
+    form read back, untuned, less the terms that turn it below the data (``turning_term``
+    needs no evaluation)."""
+    forms = []
+    for spec in starts:
+        try:
+            loss, module, hp, tuned = tune(spec)
+            loss, module, hp, tuned = prune_terms(tune, loss, module, hp, tuned, reach, floor)
+        except _Budget:
+            break
+        forms.append({"start": json.loads(spec), "tuned": json.loads(tuned), "loss": loss,
+                      "constants": n_constants(tuned), "module": module, "hp": hp})
+    if not forms:
+        spec = starts[0]
+        while (drop := turning_term(spec, floor)) is not None:
+            spec = drop_term(spec, drop)
+        module, hp = formula_module(checkpoint, spec, substeps)
+        forms.append({"start": json.loads(starts[0]), "tuned": json.loads(spec),
+                      "loss": math.nan, "constants": n_constants(spec),
+                      "module": module, "hp": hp})
+    return forms
+
+
+def _chosen_form(forms: list[dict[str, Any]]) -> dict[str, Any]:
+    """The lowest loss wins, the fewest constants among those within ``FORM_TOLERANCE``."""
+    lowest = min(f["loss"] for f in forms)
+    near = [f for f in forms if not f["loss"] > lowest * (1 + FORM_TOLERANCE)] or forms
+    return min(near, key=lambda f: (f["constants"], f["loss"]))
+
+
+def _validated_laws(network: Any, model: Any, head: Any, val: Any, history: int, horizon: int,
+                    val_sims: int | None,
+                    substeps: int) -> tuple[dict[str, Any], dict[int, Any]]:
+    """Validation rollouts of the network law and of the formula (``scores``), the formula
+    rolled out with the substeps it was tuned through and with the network's own
+    (``by_substeps``); ``head.substeps`` is left at the better of the two on the mean error:
+    the shooting's velocity estimate can cost more over a rollout than the substeps gain
+    (docs/notes/2026-11-26-results-history.md, "The formula stage"), and substeps are there
+    for the rare close encounters, which a typical (geometric-mean) error discounts."""
+    scores = {"network": validation_errors(network.model, val, history, horizon, val_sims)}
+    n = scores["network"]["horizon"]
+    by_substeps = {}
+    for k in sorted({substeps, pair_force_head(network)[1].substeps}):
+        head.substeps = k
+        by_substeps[k] = validation_errors(model, val, history, horizon, val_sims)
+    head.substeps = min(by_substeps, key=lambda k: by_substeps[k]["errors"].get(n, math.inf))
+    scores["formula"] = by_substeps[head.substeps]
+    return scores, by_substeps
+
+
+def _write_formula(out: Path, checkpoint: Path, module: Any, hp: dict[str, Any],
+                   record: dict[str, Any]) -> Path:
+    """``formula.ckpt`` (the checkpoint with the formula law: loadable as any checkpoint) and
+    ``formula.json`` (the record) in ``out``; returns the checkpoint's path."""
+    from bgn.train.checkpoints import read, write_atomic
+
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt = read(checkpoint)
+    # the run's optimiser settings kept for bgn.train ckpt_path, its moments dropped: they
+    # belonged to the network law's weights; one parameter group, the first's settings
+    # (a matched network law trained in a slower second group: the formula is not matched)
+    n_params = len(list(module.parameters()))
+    for state in ckpt.get("optimizer_states", []):
+        state["param_groups"] = state.get("param_groups", [{}])[:1]
+        state["state"], state["param_groups"][0]["params"] = {}, list(range(n_params))
+    for state in ckpt.get("lr_schedulers", []):
+        for key in ("min_lrs", "_last_lr"):
+            if isinstance(state.get(key), list):
+                state[key] = state[key][:1]
+    ckpt["hyper_parameters"], ckpt["state_dict"] = hp, module.state_dict()
+    tmp = out / ".formula.ckpt.tmp"  # then a rename: never a half-written checkpoint
+    torch.save(ckpt, tmp)
+    tmp.replace(out / "formula.ckpt")
+    write_atomic(out / "formula.json", json.dumps(record, indent=2, default=float))
+    return out / "formula.ckpt"
 
 
 def finetune_markdown(record: dict[str, Any], level: int = 2) -> str:

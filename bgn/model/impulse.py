@@ -6,7 +6,8 @@ gas shows is mostly free flight, and an impact changes two velocities by
 ``dv_i = -(1 + e) m_j / (m_i + m_j) ((v_i - v_j) . n) n`` at the instant the discs touch (``n``
 the unit normal from j to i then, ``e`` the restitution, 1 for elastic). A generic network
 must learn that map from frames; an error of a light disc's impulse that leaks into a heavy
-disc's velocity (400 times the mass here) multiplies the gas's energy within a hundred steps.
+disc's velocity (400 times the mass here) soon multiplies the gas's energy in a rollout
+(docs/results.md, "Measurements behind the defaults").
 This head writes the structure down and learns only what the frames do not say:
 
 - when the window's free flight brings two discs (or a disc and a wall) into contact within
@@ -326,7 +327,8 @@ class ContactImpulseHead(nn.Module):
         and a ratio of radii has no unit)."""
         # log-radius in, log-mass out at LOG_MASS_RANGE e-folds per unit: the masses of a
         # scene's types differ by several e-folds (collisions: 6 for radii 0.1 and 0.2), which
-        # a unit-scale MLP of the radius reached only after thousands of steps
+        # a unit-scale MLP of the radius reached only slowly (docs/results.md, "Measurements
+        # behind the defaults")
         # once per distinct ratio (a scene's types: two), not per disc: the (N, hidden)
         # layer was the largest node-level cost of a step at 200 000 discs
         largest = g.radius.new_zeros(g.num_graphs).scatter_reduce_(0, g.batch, g.radius, "amax")

@@ -1,0 +1,82 @@
+"""Compare the generated blocks of two copies of docs/results.md, row by row.
+
+    python docs/notes/reproduce/compare_blocks.py OLD.md NEW.md \
+        reproduce,reproduce_stability,reproduce_pareto
+
+Every "mean ± std (min–max)" cell of a table is matched by its row's text columns; it is
+within when |new mean - old mean| <= old std + new std (the two runs' seed spreads summed).
+Timing columns are counted apart: they measure the machine as much as the model.
+"""
+import re
+import sys
+
+CELL = re.compile(r"^(-?[\d.e+-]+) ± ([\d.e+-]+|nan) \((.*)\)$")
+KEYS = ("scene", "fps", "model", "case", "source", "given", "metric", "overrides")
+TIMING = ("seconds_per_step", "s_per_step", "cell_minutes", "seconds_per_time_unit")
+
+
+def block(text: str, name: str) -> str:
+    return text[text.index(f"<!-- generated:{name}:begin"):text.index(f"<!-- generated:{name}:end")]
+
+
+def tables(text: str) -> dict:
+    found, title, lines = {}, None, text.splitlines()
+    for i, line in enumerate(lines):
+        if line.startswith("####"):
+            title = line.strip("# ").strip()
+        if line.startswith("|") and i + 1 < len(lines) and lines[i + 1].startswith("|---"):
+            head = [x.strip() for x in line.strip("|").split("|")]
+            rows = []
+            for row in lines[i + 2:]:
+                if not row.startswith("|"):
+                    break
+                rows.append([x.strip() for x in row.strip("|").split("|")])
+            found[title] = (head, rows)
+    return found
+
+
+def cell(text: str) -> tuple[float, float] | None:
+    m = CELL.match(text)
+    if not m:
+        return None
+    try:
+        return float(m.group(1)), 0.0 if m.group(2) == "nan" else float(m.group(2))
+    except ValueError:
+        return None
+
+
+def main(old_path: str, new_path: str, names: str) -> None:
+    old, new = open(old_path).read(), open(new_path).read()
+    counts = {False: [0, 0], True: [0, 0]}  # timing? -> [compared, outside]
+    outside = []
+    for name in names.split(","):
+        before, after = tables(block(old, name)), tables(block(new, name))
+        for title, (head, rows) in before.items():
+            if title not in after or after[title][0] != head:
+                print(f"{name}: table {title!r} missing or with other columns")
+                continue
+            def key(row, head=head):
+                return tuple(c for c, h in zip(row, head) if h in KEYS and cell(c) is None)
+
+            matched = {key(r): r for r in after[title][1]}
+            for row in rows:
+                other = matched.get(key(row))
+                if other is None:
+                    print(f"{name}: row {key(row)[:3]} missing in the new table")
+                    continue
+                for col, a, b in zip(head, row, other):
+                    pa, pb = cell(a), cell(b)
+                    if pa and pb:
+                        timing = col in TIMING
+                        counts[timing][0] += 1
+                        if abs(pa[0] - pb[0]) > pa[1] + pb[1] + 1e-12 * max(abs(pa[0]), 1):
+                            counts[timing][1] += 1
+                            outside.append(f"{title[:40]} | {key(row)[:3]} | {col} | {a} -> {b}")
+    for timing, label in ((False, "error, energy and mass cells"), (True, "timing cells")):
+        n, out = counts[timing]
+        print(f"{label}: {n - out} of {n} within the summed seed spread, {out} outside")
+    print("\n".join(outside))
+
+
+if __name__ == "__main__":
+    main(*sys.argv[1:4])

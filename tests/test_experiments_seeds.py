@@ -12,12 +12,11 @@ from typing import Any
 
 import pytest
 
+from bgn.provenance import block_markers, replace_block
 from bgn.studies.cells import Cell, cell_overrides, plan_cells
 from bgn.studies.grid import CellsFailed, run
 from bgn.studies.report import (
     aggregate_rows,
-    block_markers,
-    replace_block,
     rollout_table,
     spread,
     table1,

@@ -13,9 +13,10 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
+from bgn.provenance import block_markers
 from bgn.studies.cells import Cell, cell_overrides, compose_train, plan_cells
 from bgn.studies.grid import check_variant_cells, validate_grid
-from bgn.studies.report import block_markers, write_report
+from bgn.studies.report import write_report
 from bgn.train.validate import ConfigError, validate_train
 from tests.conftest import compose_config
 from tests.test_experiments_seeds import CELLS, RESULTS

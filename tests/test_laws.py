@@ -19,6 +19,7 @@ from omegaconf import OmegaConf
 
 from bgn.eval.laws import (
     Term,
+    against_truth,
     fit_formula,
     law_section,
     main,
@@ -513,3 +514,28 @@ def test_a_term_twice_starts_at_morses_two_scales_despite_a_cut_off_tail():
     terms, values = found
     assert terms == [Term("exp"), Term("exp")]
     np.testing.assert_allclose(sorted(values[2:]), [R0 / (2 * RHO), R0 / RHO], rtol=0.1)
+
+
+def test_laws_are_scored_against_the_truth_at_every_training_distance(trained_spring):
+    """The truth itself scores zero everywhere; a slope 10 % off keeps the truth's form with
+    its constants 10 % off; another form is not the truth's and has no constants to compare."""
+    module, data = trained_spring
+    report = read_law(module, data)
+    exact = against_truth(report, json.loads(spring_spec(1.98, -2.0)))
+    assert exact["tuned_max"] < 1e-9 and exact["tuned_form_is_truth"] == 1.0
+    assert exact["tuned_constants_vs_truth"] < 1e-9
+    off = against_truth(report, json.loads(spring_spec(1.98, -2.2)))
+    assert off["tuned_form_is_truth"] == 1.0
+    assert off["tuned_constants_vs_truth"] == pytest.approx(0.1, rel=1e-6)
+    assert off["tuned_max"] > 0.05 and off["tuned_max"] >= off["tuned_max_1_99"]
+    other = against_truth(report, [{"types": [0, 0], "terms": [
+        {"kind": "power", "power": -1.0, "a": 1.0, "c": None}]}])
+    assert other["tuned_form_is_truth"] == 0.0 and np.isnan(other["tuned_constants_vs_truth"])
+    # the network's own law: as far from the truth as its bands say, worst outside 1-99 %
+    worst_band = max(b["learned_vs_truth"]["max"] for b in report.pairs[0].bands)
+    assert exact["network_max"] == pytest.approx(worst_band, rel=0.5)
+    assert exact["network_max_1_99"] <= exact["network_max"]
+    assert "read_back_max" in exact
+    # no truth (imported data): nothing to score
+    report.truth_text = None
+    assert against_truth(report, json.loads(spring_spec(1.98, -2.0))) == {}

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
+from bgn.provenance import block_markers
 from bgn.studies.headline import mark_fronts, validate_stages
-from bgn.studies.report import block_markers
 from bgn.train.validate import ConfigError
 from tests.conftest import CONF_DIR, compose_config
 
@@ -28,12 +28,13 @@ def reproduce(**updates: object):
     return cfg
 
 
-def test_reproduce_preset_has_both_stages_and_its_blocks_exist() -> None:
+def test_reproduce_preset_has_its_stages_and_their_blocks_exist() -> None:
     preset = reproduce().preset
     validate_stages(preset)
     assert preset.stability.model in preset.models and preset.pareto is not None
+    assert preset.laws.model in preset.models
     text = RESULTS_MD.read_text()
-    for stage in ("stability", "pareto"):
+    for stage in ("stability", "pareto", "laws"):
         begin, end = block_markers(f"reproduce_{stage}")
         assert text.count(begin) == 1 and text.index(begin) < text.index(end)
 
@@ -47,6 +48,10 @@ def test_reproduce_preset_has_both_stages_and_its_blocks_exist() -> None:
     ("preset.pareto.simulator_repeats", 0, "preset.pareto.simulator_repeats"),
     ("preset.pareto.timing", 1, "preset.pareto.timing"),
     ("preset.eval.rollout_steps", 20, "pos_err_mean@50"),  # no error after one time unit
+    ("preset.laws.model", "gns", "preset.laws.model"),
+    ("preset.laws.seeds", [7], "preset.laws.seeds"),
+    ("preset.laws.max_seconds", 0, "preset.laws.max_seconds"),
+    ("preset.laws.horizon", 50, "preset.laws.horizon"),
 ])
 def test_a_bad_stage_key_is_one_error_naming_it(key: str, value: object, named: str) -> None:
     with pytest.raises(ConfigError, match=named.replace(".", r"\.")):
@@ -75,8 +80,8 @@ def csv_rows(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(fh))
 
 
-@pytest.mark.slow  # 8 tiny cells in two workers, the tiny stability suite, the Pareto stage
-def test_tiny_reproduce_with_stability_and_pareto(tmp_path: Path) -> None:
+@pytest.mark.slow  # 8 tiny cells in two workers, the tiny stability suite, Pareto and laws
+def test_tiny_reproduce_with_its_stages(tmp_path: Path) -> None:
     from bgn.studies.grid import run
 
     results_md = tmp_path / "results.md"
@@ -91,6 +96,8 @@ def test_tiny_reproduce_with_stability_and_pareto(tmp_path: Path) -> None:
     OmegaConf.update(cfg, "preset.stability", {"preset": "tiny", "model": "bgn", "fps": None,
                                                "seeds": None}, force_add=True)
     OmegaConf.update(cfg, "preset.pareto", {"simulator_repeats": 1}, force_add=True)
+    OmegaConf.update(cfg, "preset.laws", {"model": "bgn", "seeds": [0], "max_seconds": 5},
+                     force_add=True)
     validate_stages(cfg.preset)
     run(cfg)
 
@@ -101,7 +108,9 @@ def test_tiny_reproduce_with_stability_and_pareto(tmp_path: Path) -> None:
                  "stability/model_per_seed.csv", "stability/stability.png",
                  "pareto/report.md", "pareto/points.csv", "pareto/points_per_seed.csv",
                  "pareto/simulator.csv", "pareto/pareto_spring.png",
-                 "pareto/pareto_collisions.png"]:
+                 "pareto/pareto_collisions.png", "laws/report.md", "laws/laws.csv",
+                 "laws/formulas.csv", "laws/spring_fps10_bgn_full_s0/law.png",
+                 "laws/spring_fps10_bgn_full_s0/formula.json"]:
         assert (report / path).is_file(), path
 
     # stability: every case of the tiny stability preset, model rows of both seeds where the
@@ -133,15 +142,26 @@ def test_tiny_reproduce_with_stability_and_pareto(tmp_path: Path) -> None:
     assert ("spring", "yes") in fronts and ("collisions", "yes") in fronts
     assert {r["scene"] for r in csv_rows(pareto / "simulator.csv")} == {"spring", "collisions"}
 
+    # laws: spring's BGN cell of seed 0 (its pair-force head), scored against the truth;
+    # collisions' impulse head has no law to read and is named as left out
+    laws = csv_rows(report / "laws" / "formulas.csv")
+    assert [(r["scene"], r["seed"]) for r in laws] == [("spring", "0")]
+    assert "r" in laws[0]["fitted to the frames"] and "r" in laws[0]["truth"]
+    (scored,) = csv_rows(report / "laws" / "laws.csv")
+    assert float(scored["network vs truth"]) >= float(scored["network vs truth 1-99%"]) >= 0
+    assert float(scored["form is the truth's"]) in (0.0, 1.0)
+    assert "collisions: the" in (report / "laws" / "formulas.md").read_text()
+
     # the same provenance, and each generated block filled in place
     grid = json.loads((report / "provenance.json").read_text())
-    for stage in (stability, pareto):
+    for stage in (stability, pareto, report / "laws"):
         own = json.loads((stage / "provenance.json").read_text())
         assert {k: own[k] for k in grid} == grid and own["stage_wall_time_s"] >= 0
         assert f"`{grid['command']}`" in (stage / "report.md").read_text()
     after = results_md.read_text()
     for name, inside in [("reproduce", "Table 1"), ("reproduce_stability", "hard cases"),
-                         ("reproduce_pareto", "Speed against error")]:
+                         ("reproduce_pareto", "Speed against error"),
+                         ("reproduce_laws", "against the truth")]:
         begin, end = block_markers(name)
         assert after.count(begin) == 1 and after.count(end) == 1, name
         block = after[after.index(begin):after.index(end)]

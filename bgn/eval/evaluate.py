@@ -41,6 +41,7 @@ from bgn.metrics import (
 from bgn.model.encoder import approach_gap
 from bgn.model.impulse import ContactImpulseHead
 from bgn.model.target_coder import extrapolate, observed_targets
+from bgn.provenance import git_commit
 from bgn.rollout import evaluate_rollouts, lb_prefix
 from bgn.train.checkpoints import CheckpointError, read
 from bgn.train.module import PhysicsModule, load_model
@@ -583,24 +584,6 @@ def load_checked(ckpt: Path, run_cfg: Any, datamodule: Any) -> PhysicsModule:
                               "trained it")
     check_compatible(ckpt, run_provenance(run_cfg, datamodule), ckpt=record)
     return load_model(ckpt)
-
-
-def git_commit() -> str:
-    """``git rev-parse HEAD`` of the checkout bgn runs from, 'unknown' without git; where the
-    code is a copy (a cluster job's, a container's), ``$BGN_GIT_COMMIT`` as the copier set it
-    wins: a copy's git metadata, if any came along, may be stale."""
-    import os
-    import subprocess
-
-    given = os.environ.get("BGN_GIT_COMMIT", "unknown")
-    if given != "unknown":
-        return given
-    try:
-        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent,
-                             capture_output=True, text=True, timeout=10)
-    except (OSError, subprocess.SubprocessError):
-        return given
-    return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else given
 
 
 def provenance_record(cfg: Any, ckpt: Path, config: Path, run_cfg: Any) -> dict[str, Any]:

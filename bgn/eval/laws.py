@@ -703,6 +703,85 @@ def _in_form(formula: Formula, r: np.ndarray, density: np.ndarray, truth_f: Any,
             "residual_max": float(np.max(np.abs(res)))}
 
 
+TRUTH_FORM = 1e-3  # the truth fitted in a formula's terms leaves less: the form is the truth's
+
+
+def spec_formula(pair: dict[str, Any]) -> Formula:
+    """One pair of types of a ``model.law_formula`` spec (``pair_spec``'s entry) as a
+    ``Formula`` (no error estimates)."""
+    terms = [Term(t["kind"], t["power"]) for t in pair["terms"]]
+    values = np.array([t["a"] for t in pair["terms"]]
+                      + [t["c"] for t in pair["terms"] if Term(t["kind"], t["power"]).nonlinear],
+                      dtype=np.float64)
+    zeros = np.zeros_like(values)
+    return Formula(terms, values, zeros, zeros, 0.0, len(values))
+
+
+def against_truth(report: LawReport, tuned: list[dict[str, Any]] | None = None,
+                  ) -> dict[str, Any]:
+    """How far the laws are from the scene's true law at every training distance (empty
+    where the truth is unknown): the largest relative error (``_rel_error``) of the network's
+    law, of the formula read back from it and of the ``tuned`` spec (the formula fitted to
+    the frames, ``finetune_formula``'s ``tuned``) over the grid of the training pairs'
+    distances (``<law>_max``: all of them; ``<law>_max_1_99``: between their 1st and 99th
+    percentiles), the worst over the pairs of types. For the tuned formula also whether its
+    form is the truth's (``tuned_form_is_truth``: the truth fitted in its terms leaves a
+    relative residual below ``TRUTH_FORM``; 1 or 0) and the largest relative difference of
+    its constants from the truth's in that form (``tuned_constants_vs_truth``)."""
+    if report.truth_text is None:
+        return {}
+    r_sym = sympy.Symbol("r", positive=True)
+    truth_f = sympy.lambdify(r_sym, sympy.sympify(report.truth_text, locals={"r": r_sym}),
+                             "numpy")
+    tuned_by_types = {tuple(p["types"]): spec_formula(p) for p in tuned or []}
+    out: dict[str, Any] = {}
+
+    def worst(key: str, value: float) -> None:
+        out[key] = max(out.get(key, -math.inf), value)
+
+    for pair in report.pairs:
+        r = pair.r
+        true = np.broadcast_to(np.asarray(truth_f(r), np.float64), r.shape)
+        lo, hi = (pair.reach[0], pair.reach[-1]) if pair.reach is not None else (r[0], r[-1])
+        inner = (r >= lo) & (r <= hi)
+        laws = {"network": pair.learned, "read_back": pair.formula(r)}
+        formula = tuned_by_types.get(tuple(pair.types))
+        if formula is not None:
+            laws["tuned"] = formula(r)
+            in_form = _in_form(formula, r, pair.density, truth_f)
+            worst("tuned_form_is_truth_residual", in_form["residual_max"])
+            worst("tuned_constants_vs_truth", max(in_form["relative_difference"]))
+        for name, values in laws.items():
+            err = _rel_error(values, true, r)
+            worst(f"{name}_max", float(err.max()))
+            worst(f"{name}_max_1_99", float(err[inner].max()) if inner.any() else math.nan)
+    if "tuned_form_is_truth_residual" in out:
+        out["tuned_form_is_truth"] = float(out["tuned_form_is_truth_residual"] < TRUTH_FORM)
+        if not out["tuned_form_is_truth"]:  # constants of another form are not the truth's
+            out["tuned_constants_vs_truth"] = math.nan
+    return out
+
+
+def truth_markdown(truth: dict[str, Any], truth_text: str | None) -> list[str]:
+    """``against_truth``'s figures as a paragraph (none where the truth is unknown)."""
+    if not truth:
+        return []
+    laws = [(k, name) for k, name in (("network", "the network's"),
+                                      ("read_back", "the formula read back from it"),
+                                      ("tuned", "the fine-tuned formula"))
+            if f"{k}_max" in truth]
+    text = ("Against the scene's true law `" + str(truth_text) + "`, the largest relative "
+            "error over the training distances (between their 1st and 99th percentiles in "
+            "brackets): " + "; ".join(f"{name} {_g(truth[f'{k}_max'], 2)} "
+                                       f"({_g(truth[f'{k}_max_1_99'], 2)})" for k, name in laws)
+            + ".")
+    if "tuned_form_is_truth" in truth:
+        text += (f" The fine-tuned form is the truth's, its constants within "
+                 f"{_g(truth['tuned_constants_vs_truth'], 2)} of the truth's."
+                 if truth["tuned_form_is_truth"] else " The fine-tuned form is NOT the truth's.")
+    return [text, ""]
+
+
 # ----------------------------------------------------------------------------- presenting
 
 
@@ -752,7 +831,7 @@ def markdown(report: LawReport, figure: str | None = None, level: int = 2) -> st
                           f"{_g(pair.truth_in_form['residual_rms'])} (RMS), "
                           f"{_g(pair.truth_in_form['residual_max'])} (max): "
                           + ("the form is the truth's." if pair.truth_in_form["residual_max"]
-                             < 1e-3 else "the form is NOT the truth's.")]
+                             < TRUTH_FORM else "the form is NOT the truth's.")]
             lines += [""]
         header = "| constant | term | value | std. error (Jacobian) | std (bootstrap) |"
         rule = "|---|---|---|---|---|"
@@ -1324,7 +1403,10 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
               "formula_by_substeps": {str(k): v for k, v in by_substeps.items()},
               "start": form["start"], "tuned": json.loads(spec),
               "scale": scale, "loss": form["loss"], "polish": polish, "floor": floor,
-              "validation": scores, "choice": choice}
+              "validation": scores, "choice": choice,
+              "against_truth": {} if report is None else against_truth(report,
+                                                                        json.loads(spec)),
+              "truth": None if report is None else report.truth_text}
     if out_dir is not None:
         record["path"] = str(_write_formula(Path(out_dir), checkpoint, module, hp, record))
     return record
@@ -1443,7 +1525,7 @@ def finetune_markdown(record: dict[str, Any], level: int = 2) -> str:
              + " | failed |",
              "|---|---|" + "---|---|" * len(horizons) + "---|"]
     rows = [("network", "(MLP)", v["network"])] + [
-        (f"formula, substeps {k}", _spec_text(record["tuned"]), s)
+        (f"formula, substeps {k}", spec_text(record["tuned"]), s)
         for k, s in record["formula_by_substeps"].items()]
     for name, text, s in rows:
         typical = s.get("typical", {})
@@ -1456,9 +1538,9 @@ def finetune_markdown(record: dict[str, Any], level: int = 2) -> str:
                   "frames, then pruned of terms the frames do not need; the lowest loss wins, "
                   f"the fewest constants within {FORM_TOLERANCE:.0%} of it):",
                   "", "| from | tuned and pruned | constants | loss |", "|---|---|---|---|"]
-        lines += [f"| `{_spec_text(f['start'])}` | `{_spec_text(f['tuned'])}` | "
+        lines += [f"| `{spec_text(f['start'])}` | `{spec_text(f['tuned'])}` | "
                   f"{f['constants']} | {_g(f['loss'])} |" for f in record["forms"]]
-    lines += ["", f"Fitted before fine-tuning: `{_spec_text(record['start'])}`; the formula "
+    lines += ["", f"Fitted before fine-tuning: `{spec_text(record['start'])}`; the formula "
               f"rolls out with substeps {record['rollout_substeps']} (the lower mean error: "
               "substeps are for the rare close encounters).", ""]
     if record.get("polish"):
@@ -1469,6 +1551,7 @@ def finetune_markdown(record: dict[str, Any], level: int = 2) -> str:
         lines += [f"The tuned constants put in physical units by the factor {_g(record['scale'])} "
                   "(the loss through the window's mass fit leaves the law's scale free; "
                   "the forms above are before it).", ""]
+    lines += truth_markdown(record.get("against_truth") or {}, record.get("truth"))
     lines += [f"Chosen: **{record['choice']}** (the lower typical validation rollout error "
               f"after {horizons[-1]} steps)."]
     if record.get("path"):
@@ -1476,7 +1559,8 @@ def finetune_markdown(record: dict[str, Any], level: int = 2) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _spec_text(pairs: list[dict[str, Any]]) -> str:
+def spec_text(pairs: list[dict[str, Any]]) -> str:
+    """A ``model.law_formula`` spec (parsed) as text: each pair of types' law in r."""
     r = sympy.Symbol("r", positive=True)
     out = []
     for p in pairs:
@@ -1552,7 +1636,8 @@ def formula_stage(checkpoint: Path, train_split: Any, val: Any, config: Any,
                          if k in options})
     path = write_report(report, out_dir, title=f"Learned law of {checkpoint}")
     if not finetune:
-        return {"report": str(path)}
+        return {"report": str(path), "against_truth": against_truth(report),
+                "truth": report.truth_text}
     tuned = {k.split(".", 1)[1]: v for k, v in options.items() if k.startswith("finetune.")}
     record = finetune_formula(checkpoint, train_split, val, report, out_dir=out_dir, **tuned)
     section = finetune_markdown(record)

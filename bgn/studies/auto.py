@@ -627,7 +627,7 @@ def formula_candidate(results: Sequence[Result], auto_dir: Path, val: Any, train
     iterations, at most half the candidates' ``max_steps``) and scored as the others;
     eligible to win, and its best checkpoint the one the winner resumes from. None without a
     scored pair-force candidate."""
-    from bgn.eval.laws import FINETUNE_STEPS, FINETUNE_SUBSTEPS, _spec_text, finetune_formula
+    from bgn.eval.laws import FINETUNE_STEPS, FINETUNE_SUBSTEPS, finetune_formula, spec_text
     from bgn.train.checkpoints import best_checkpoint
 
     scored = [r for r in results if r.candidate.pair_force and not r.error and r.errors]
@@ -643,7 +643,7 @@ def formula_candidate(results: Sequence[Result], auto_dir: Path, val: Any, train
                               max_seconds=seconds(each.get("max_time")))
     spec = json.dumps(record["tuned"])
     cand = Candidate(out_dir.name, f"{best.candidate.label}; its law the formula "
-                     f"{_spec_text(record['tuned'])}, constants fine-tuned",
+                     f"{spec_text(record['tuned'])}, constants fine-tuned",
                      [*best.candidate.overrides, "model.law=formula",
                       f"model.law_formula='{spec}'",
                       f"model.substeps={record['rollout_substeps']}"],

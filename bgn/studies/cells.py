@@ -8,7 +8,10 @@ alike.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
+from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
@@ -160,3 +163,22 @@ def cell_datamodule(run_dir: Path, data_dir: str) -> Any:
                                     show_progress=False)
     datamodule.setup()
     return datamodule
+
+
+def set_threads(threads: int | None) -> None:
+    """torch's intra-op threads of this process (None: torch's default)."""
+    if threads:
+        import torch
+
+        torch.set_num_threads(int(threads))
+
+
+def map_in_processes(fn: Callable[..., Any], jobs: list[tuple[Any, ...]], workers: int,
+                     threads: int | None) -> list[Any]:
+    """``fn(*job)`` for every job, in order: in ``workers`` spawned processes with ``threads``
+    torch threads each, or in this process where one worker (or one job) is enough."""
+    if workers > 1 and len(jobs) > 1:
+        with ProcessPoolExecutor(workers, mp_context=get_context("spawn"),
+                                 initializer=set_threads, initargs=(threads,)) as pool:
+            return list(pool.map(fn, *zip(*jobs)))
+    return [fn(*job) for job in jobs]

@@ -35,6 +35,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from bgn.coerce import ConfigError
+from bgn.provenance import git_commit
 from bgn.studies.cells import (
     CONF_DIR,
     Cell,
@@ -43,6 +44,7 @@ from bgn.studies.cells import (
     compose_train,
     plan_cells,
     preset_seeds,
+    set_threads,
     train_cell,
 )
 from bgn.studies.headline import STAGES, run_stages
@@ -187,14 +189,6 @@ class CellsFailed(RuntimeError):
                          f"{report}")
 
 
-def set_threads(threads: int | None) -> None:
-    """torch's intra-op threads of this process (None: torch's default)."""
-    if threads:
-        import torch
-
-        torch.set_num_threads(int(threads))
-
-
 def cell_from_record(record: dict[str, Any]) -> Cell:
     """A Cell from ``asdict(cell)`` (its JSON form: tuples as lists)."""
     return Cell(**{**record, "groups": tuple(record["groups"]),
@@ -293,8 +287,6 @@ def train_all(cells: list[Cell], cfg: DictConfig, workers: int,
 def code_state() -> dict[str, Any]:
     """The git commit of the code and whether its tracked files had uncommitted changes
     (None: unknown), taken when the study starts (the code that trains)."""
-    from bgn.eval.evaluate import git_commit
-
     if os.environ.get("BGN_GIT_COMMIT"):  # a copy of the code: its git state is not known
         return {"git_commit": git_commit(), "git_dirty": None}
     try:

@@ -1,6 +1,6 @@
-"""The grid study's two further headline tables, fed from its trained cells: the stability
-suite and speed against error (``preset=reproduce``: its ``stability`` and ``pareto`` keys;
-``bgn.studies.grid.run`` calls ``run_stages`` after its own report).
+"""The grid study's further headline tables, fed from its trained cells: the stability suite,
+speed against error and the learned laws (``preset=reproduce``: its ``stability``, ``pareto``
+and ``laws`` keys; ``bgn.studies.grid.run`` calls ``run_stages`` after its own report).
 
 - **stability** (``preset.stability``): the hard cases of a stability preset
   (``conf/stability/preset/<preset>.yaml``, read through that config group) run by
@@ -16,6 +16,8 @@ suite and speed against error (``preset=reproduce``: its ``stability`` and ``par
   references; the Pareto front per scene and its figure. No training, no rollout of its own.
   Training compute is the preset's ``max_time`` for every cell, so the front is against
   inference time only (the training-time front is ``bgn.studies.pareto``'s study).
+- **laws** (``preset.laws``): the pair law of every cell with a pair-force head read back and
+  fitted as a formula, against the truth (``bgn.studies.law_stage``).
 
 Each writes report.md, its tables (md, csv) and figures under ``<report_dir>/<stage>/`` with
 the grid's provenance, and with ``results_md`` rewrites the block
@@ -27,17 +29,17 @@ from __future__ import annotations
 import functools
 import json
 import math
-import os
 import time
 import traceback
-from concurrent.futures import ProcessPoolExecutor
-from multiprocessing import get_context
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from omegaconf import DictConfig, OmegaConf
 
 from bgn.coerce import ConfigError, need_int
+from bgn.studies.cells import map_in_processes
+from bgn.studies.law_stage import laws_stage, validate_laws
+from bgn.studies.report import stage_provenance, write_stage
 from bgn.tables import fmt, write_table
 
 if TYPE_CHECKING:
@@ -48,7 +50,7 @@ STABILITY_KEYS = {"preset": "a stability preset (conf/stability/preset/<name>.ya
                   "fps": "the fps of those cells (one of preset.fps; null: the first)",
                   "seeds": "their seeds (a subset of preset.seeds; null: all)"}
 PARETO_KEYS = {"simulator_repeats": "timed runs of the exact simulator per scene (median)"}
-STAGES = ("stability", "pareto")
+STAGES = ("stability", "pareto", "laws")  # laws: bgn.studies.law_stage
 
 
 # ----------------------------------------------------------------------------- config
@@ -98,8 +100,8 @@ def stability_seeds(preset: DictConfig) -> list[int]:
 
 
 def validate_stages(preset: DictConfig) -> None:
-    """The ``stability`` and ``pareto`` keys of a grid preset (absent or null: that stage is
-    left out): unknown keys and bad values raise one ``ConfigError`` naming the key."""
+    """The ``stability``, ``pareto`` and ``laws`` keys of a grid preset (absent or null: a
+    stage is left out): unknown keys and bad values raise one ``ConfigError`` naming the key."""
     from bgn.metrics import ROLLOUT_HORIZONS
     from bgn.studies.cells import preset_seeds
 
@@ -132,6 +134,7 @@ def validate_stages(preset: DictConfig) -> None:
             raise ConfigError("preset.stability.seeds", list(seeds),
                               f"must be a subset of preset.seeds {preset_seeds(preset)} "
                               "(or null: all)")
+    validate_laws(preset)
     pa = preset.get("pareto")
     if pa is not None:
         _unknown(pa, PARETO_KEYS, "preset.pareto")
@@ -151,43 +154,6 @@ def steps_per_unit(fps: float) -> int:
     from bgn.studies.pareto import steps_per_unit as steps
 
     return steps(fps)
-
-
-# ----------------------------------------------------------------------------- provenance
-def stage_provenance(provenance: dict[str, Any], seconds: float) -> dict[str, Any]:
-    """The grid's provenance (its wall time: the cells') with this stage's wall time."""
-    return {**provenance, "stage_wall_time_s": round(seconds, 1)}
-
-
-def write_stage(out: Path, name: str, title: str, intro: list[str], tables: list[str],
-                figures: list[str], provenance: dict[str, Any], results_md: Any) -> Path:
-    """report.md and provenance.json of a stage under ``out``; with ``results_md``, its
-    block ``<preset>_<name>`` rewritten (figure links made relative to that file)."""
-    from bgn.studies.report import provenance_lines, regenerate_line, replace_block
-
-    (out / "provenance.json").write_text(json.dumps(provenance, indent=2, sort_keys=True)
-                                         + "\n")
-    def body(level: str, rel: str) -> list[str]:
-        lines = []
-        for text in tables:
-            lines += [level + text.rstrip("\n"), "", *regenerate_line(provenance)]
-        lines += [f"![{Path(f).stem}]({rel}{f})" for f in figures]
-        return lines
-
-    lines = [f"# {title}", "", "## Provenance", "", *provenance_lines(provenance), "",
-             *intro, "", *body("#", "")]
-    path = out / "report.md"
-    path.write_text("\n".join(lines) + "\n")
-    if results_md:
-        results = Path(results_md)
-        rel = Path(os.path.relpath(out.resolve(), results.resolve().parent)).as_posix() + "/"
-        block = ["_Written by the command below; do not edit by hand._", "",
-                 *provenance_lines(provenance), "", *intro, "", *body("###", rel)]
-        old = results.read_text() if results.exists() else ""
-        results.parent.mkdir(parents=True, exist_ok=True)
-        results.write_text(replace_block(old, f"{provenance['preset']}_{name}",
-                                         "\n".join(block)))
-    return path
 
 
 # ----------------------------------------------------------------------------- stability
@@ -222,13 +188,6 @@ def _load(ckpt: str) -> Any:
     return load_model(ckpt).model
 
 
-def _threads(threads: int | None) -> None:
-    if threads:
-        import torch
-
-        torch.set_num_threads(int(threads))
-
-
 def stability_models(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
                      ) -> dict[str, list[tuple[int, str, str]]]:
     """Per scene, (seed, checkpoint, label) of the grid's ``stability.model`` cells at
@@ -260,12 +219,7 @@ def stability_stage(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
     cases = [st.load_case(str(n)) for n in sp.cases]
     models = stability_models(cfg, cells, results)
     jobs = [(c.name, preset, models.get(c.scene, [])) for c in cases]
-    if workers > 1:
-        with ProcessPoolExecutor(workers, mp_context=get_context("spawn"),
-                                 initializer=_threads, initargs=(threads,)) as pool:
-            done = list(pool.map(_stability_job, *zip(*jobs)))
-    else:
-        done = [_stability_job(*job) for job in jobs]
+    done = map_in_processes(_stability_job, jobs, workers, threads)
     for case, (row, _) in zip(cases, done):
         state = "ok" if row["passed"] else f"FAILED {row['failed_checks']}"
         print(f"  stability {case.name}: {state}", flush=True)
@@ -461,6 +415,8 @@ def run_stages(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
         try:
             if stage == "stability":
                 path = stability_stage(cfg, cells, results, provenance, workers, threads)
+            elif stage == "laws":
+                path = laws_stage(cfg, cells, results, provenance, workers, threads)
             else:
                 path = pareto_stage(cfg, cells, results, provenance)
             print(f"  report: {path}", flush=True)

@@ -11,12 +11,14 @@ Table 1 values below, the only ones typed by hand. ``results`` maps a cell's nam
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from bgn.eval.columns import INVERSE_COLUMNS, INVERSE_REFERENCES, ROLLOUT_COLUMNS
+from bgn.provenance import write_block
 from bgn.tables import fmt, write_csv, write_table
 
 if TYPE_CHECKING:
@@ -524,10 +526,8 @@ def write_report(report_dir: str | Path, preset: str, cells_dir: str | Path,
     """Every report file under ``report_dir`` (with ``provenance``: provenance.json too, and
     its header in report.md), each table titled with ``split`` (the split the cells were
     scored on); with ``results_md``, that file's generated block of this preset and split
-    rewritten (``replace_block``, ``block_name``). Cells without a record (failed) are left
-    out. Returns report.md."""
-    import json
-
+    rewritten (``bgn.provenance.write_block``, ``block_name``). Cells without a record
+    (failed) are left out. Returns report.md."""
     report_dir = Path(report_dir)
     (report_dir / "figures").mkdir(parents=True, exist_ok=True)
     cells = [c for c in cells if c.name in results]
@@ -552,22 +552,6 @@ def block_name(preset: str, split: str = "test") -> str:
     return preset if split == "test" else f"{preset}_{split}"
 
 
-def block_markers(preset: str) -> tuple[str, str]:
-    """The markers around a preset's generated block in a results file."""
-    return (f"<!-- generated:{preset}:begin -->", f"<!-- generated:{preset}:end -->")
-
-
-def replace_block(text: str, preset: str, body: str) -> str:
-    """``text`` with the block between ``preset``'s markers replaced by ``body`` (the
-    markers kept); the block appended at the end where the markers are missing."""
-    begin, end = block_markers(preset)
-    block = f"{begin}\n{body.strip()}\n{end}"
-    start, stop = text.find(begin), text.find(end)
-    if start >= 0 and stop > start:
-        return text[:start] + block + text[stop + len(end):]
-    return (text.rstrip("\n") + "\n\n" if text.strip() else "") + block + "\n"
-
-
 def write_results_block(path: Path, preset: str, report_dir: Path, tables: dict[str, str],
                         provenance: dict[str, Any] | None) -> None:
     """Write the report's tables and provenance into ``path``'s generated block of
@@ -582,6 +566,36 @@ def write_results_block(path: Path, preset: str, report_dir: Path, tables: dict[
             continue
         text = text.replace("](figures/", f"]({rel}/figures/")
         body += ["###" + text.rstrip("\n"), "", *regenerate_line(provenance)]
-    old = path.read_text() if path.exists() else ""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(replace_block(old, preset, "\n".join(body)))
+    write_block(path, preset, "\n".join(body))
+
+
+# ----------------------------------------------------------------------------- provenance
+def stage_provenance(provenance: dict[str, Any], seconds: float) -> dict[str, Any]:
+    """The grid's provenance (its wall time: the cells') with this stage's wall time."""
+    return {**provenance, "stage_wall_time_s": round(seconds, 1)}
+
+
+def write_stage(out: Path, name: str, title: str, intro: list[str], tables: list[str],
+                figures: list[str], provenance: dict[str, Any], results_md: Any) -> Path:
+    """report.md and provenance.json of a stage under ``out``; with ``results_md``, its
+    block ``<preset>_<name>`` rewritten (figure links made relative to that file)."""
+    (out / "provenance.json").write_text(json.dumps(provenance, indent=2, sort_keys=True)
+                                         + "\n")
+    def body(level: str, rel: str) -> list[str]:
+        lines = []
+        for text in tables:
+            lines += [level + text.rstrip("\n"), "", *regenerate_line(provenance)]
+        lines += [f"![{Path(f).stem}]({rel}{f})" for f in figures]
+        return lines
+
+    lines = [f"# {title}", "", "## Provenance", "", *provenance_lines(provenance), "",
+             *intro, "", *body("#", "")]
+    path = out / "report.md"
+    path.write_text("\n".join(lines) + "\n")
+    if results_md:
+        results = Path(results_md)
+        rel = Path(os.path.relpath(out.resolve(), results.resolve().parent)).as_posix() + "/"
+        block = ["_Written by the command below; do not edit by hand._", "",
+                 *provenance_lines(provenance), "", *intro, "", *body("###", rel)]
+        write_block(results, f"{provenance['preset']}_{name}", "\n".join(block))
+    return path

@@ -246,9 +246,10 @@ def test_auto_refuses_the_pair_force_head_where_the_forces_depend_on_velocity():
                if c.name.startswith("newton"))
 
 
-def test_the_command_tabulates_each_file(tmp_path):
+def test_the_command_tabulates_each_file(tmp_path, capsys):
     from bgn.data import from_arrays
     from bgn.data.balance import main
+    from bgn.provenance import block_markers
 
     x = np.stack([trajectory(s, field=-1.0) for s in range(5)])
     paths = from_arrays(x, 0.02, name="pulled", data_dir=tmp_path)
@@ -256,8 +257,21 @@ def test_the_command_tabulates_each_file(tmp_path):
     assert table.count("\n") == 2 and "total momentum changes" in table
     # the validation split beside it: the velocity test's two errors
     assert " / " in table.splitlines()[-1]
-    with pytest.raises(SystemExit, match="usage"):
+    with pytest.raises(SystemExit):
         main([])
+    assert "usage" in capsys.readouterr().err
+    # --results-md: the table and the command that wrote it, in the file's block, in place
+    results = tmp_path / "results.md"
+    results.write_text("before\n<!-- generated:balance:begin -->\nold\n"
+                       "<!-- generated:balance:end -->\nafter\n")
+    again = main([str(paths["train"]), "--results-md", str(results)])
+    assert again.splitlines()[-1].rsplit("|", 2)[0] == table.splitlines()[-1].rsplit("|", 2)[0]
+    text = results.read_text()
+    begin, end = block_markers("balance")
+    block = text[text.index(begin):text.index(end)]
+    assert text.startswith("before\n") and text.endswith("after\n") and "old" not in block
+    assert "total momentum changes" in block and "python -m bgn.data.balance" in block
+    assert "commit" in block
 
 
 def test_frames_too_coarse_to_tell_leave_the_balance_untested():

@@ -1,0 +1,47 @@
+"""What regenerates a result: the commit of the code that made it, and the generated blocks of
+a results file (docs/results.md), which the commands that make the tables rewrite in place."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+
+
+def git_commit() -> str:
+    """``git rev-parse HEAD`` of the checkout bgn runs from, 'unknown' without git; where the
+    code is a copy (a cluster job's, a container's), ``$BGN_GIT_COMMIT`` as the copier set it
+    wins: a copy's git metadata, if any came along, may be stale."""
+    given = os.environ.get("BGN_GIT_COMMIT", "unknown")
+    if given != "unknown":
+        return given
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent,
+                             capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return given
+    return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else given
+
+
+def block_markers(name: str) -> tuple[str, str]:
+    """The markers around a generated block in a results file."""
+    return (f"<!-- generated:{name}:begin -->", f"<!-- generated:{name}:end -->")
+
+
+def replace_block(text: str, name: str, body: str) -> str:
+    """``text`` with the block between ``name``'s markers replaced by ``body`` (the markers
+    kept); the block appended at the end where the markers are missing."""
+    begin, end = block_markers(name)
+    block = f"{begin}\n{body.strip()}\n{end}"
+    start, stop = text.find(begin), text.find(end)
+    if start >= 0 and stop > start:
+        return text[:start] + block + text[stop + len(end):]
+    return (text.rstrip("\n") + "\n\n" if text.strip() else "") + block + "\n"
+
+
+def write_block(path: str | Path, name: str, body: str) -> None:
+    """Rewrite ``name``'s generated block of the results file ``path`` (made if missing)."""
+    results = Path(path)
+    old = results.read_text() if results.exists() else ""
+    results.parent.mkdir(parents=True, exist_ok=True)
+    results.write_text(replace_block(old, name, body))

@@ -1,0 +1,188 @@
+"""The grid study's laws stage (``preset.laws``; ``preset=reproduce``): the learned pair law
+of every grid cell with a pair-force head read back as a formula and fine-tuned on the
+training frames, then scored against the scene's true law at every training distance.
+
+Per cell of ``laws.model`` (``laws.seeds`` of its seeds), from its network checkpoint
+(``best_checkpoint``: the stage starts from the network law even where the cell's own
+``model.law=auto`` stage chose a formula, so every scene is treated alike):
+``bgn.eval.laws.formula_stage`` with ``finetune=true`` (``python -m bgn.laws <ckpt>
+finetune=true``), its fitting at most ``laws.max_seconds``, on the training and validation
+splits only; its report, law.png and formula checkpoint in ``<report_dir>/laws/<cell>/``.
+The table (``against_truth``): the law read back from the network and the formula fitted to
+the frames, the largest relative error of each against the truth over the training pairs'
+distances, whether the fitted form is the truth's and its constants' distance from the
+truth's, and the network law against the formula on the validation rollouts (the choice a
+``model.law=auto`` run makes). Cells without a pair-force head (the impulse head, the
+decoder, the baselines) are listed as left out. Cells run in ``workers`` processes.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from bgn.coerce import ConfigError
+from bgn.studies.cells import map_in_processes, preset_seeds
+from bgn.studies.report import stage_provenance, variant, write_stage
+from bgn.tables import write_table
+
+if TYPE_CHECKING:
+    from bgn.studies.cells import Cell
+
+LAWS_KEYS = {"model": "the grid model whose cells' laws are read (one of preset.models)",
+             "seeds": "their seeds (a subset of preset.seeds; null: all)",
+             "max_seconds": "each cell's fitting of the forms at most this (null: no limit)"}
+KEYS = ["scene", "model", "given", "physics written in", "truth"]  # one row per scene
+TEXT = ["read back from the network", "fitted to the frames"]
+VALUES = ["form is the truth's", "constants vs truth", "network vs truth",
+          "network vs truth 1-99%", "fitted vs truth", "fitted vs truth 1-99%",
+          "formula chosen", "network val error", "formula val error", "stage s"]
+
+
+def validate_laws(preset: DictConfig) -> None:
+    """``preset.laws`` (absent or null: the stage is left out): one ``ConfigError`` naming a
+    bad key."""
+    spec = preset.get("laws")
+    if spec is None:
+        return
+    if not isinstance(spec, DictConfig):
+        raise ConfigError("preset.laws", spec, "must be a mapping of " + ", ".join(LAWS_KEYS)
+                          + " (or null)")
+    for key in spec:
+        if key not in LAWS_KEYS:
+            raise ConfigError(f"preset.laws.{key}", spec[key],
+                              "unknown key; known: " + ", ".join(LAWS_KEYS))
+    if spec.get("model") not in list(preset.models):
+        raise ConfigError("preset.laws.model", spec.get("model"),
+                          f"must be one of preset.models {list(preset.models)}")
+    seeds = spec.get("seeds")
+    if seeds is not None and (not seeds or not set(map(int, seeds))
+                              <= set(preset_seeds(preset))):
+        raise ConfigError("preset.laws.seeds", list(seeds),
+                          f"must be a subset of preset.seeds {preset_seeds(preset)} (or null)")
+    limit = spec.get("max_seconds")
+    if limit is not None and not (isinstance(limit, (int, float)) and limit > 0):
+        raise ConfigError("preset.laws.max_seconds", limit, "must be a positive number of "
+                          "seconds (or null: no limit)")
+
+
+def _law_job(cell_dir: str, data_dir: str, out_dir: str,
+             max_seconds: float | None) -> dict[str, Any]:
+    """One cell's formula stage (in a pool process): its record and wall time, or
+    ``{"left_out": reason}`` where the cell's model has no pair-force head."""
+    from bgn.eval.laws import formula_stage, pair_force_head
+    from bgn.studies.cells import cell_datamodule
+    from bgn.train.checkpoints import best_checkpoint
+    from bgn.train.module import load_model
+
+    t0 = time.perf_counter()
+    best = best_checkpoint(Path(cell_dir))
+    try:
+        pair_force_head(load_model(best))
+    except ValueError as err:
+        return {"left_out": str(err).split(", so")[0]}
+    datamodule = cell_datamodule(Path(cell_dir), data_dir)
+    cfg = OmegaConf.load(Path(cell_dir) / "train_config.yaml")
+    options = {} if max_seconds is None else {"finetune.max_seconds": float(max_seconds)}
+    record = formula_stage(best, datamodule.datasets["train"], datamodule.datasets["val"],
+                           cfg, Path(out_dir), **options)
+    return {"record": record, "seconds": time.perf_counter() - t0}
+
+
+def law_row(record: dict[str, Any]) -> dict[str, Any]:
+    """A table row's values from a formula stage's record (``against_truth`` and the
+    validation rollouts: the typical error after the stage's horizon)."""
+    from bgn.eval.laws import spec_text
+
+    truth = record.get("against_truth") or {}
+    v = record["validation"]
+    n = v["network"]["horizon"]
+
+    def typical(law: str) -> float:
+        return float(v[law].get("typical", {}).get(n, math.nan))
+
+    def got(key: str) -> float:
+        return float(truth.get(key, math.nan))
+
+    read_back = json.loads(Path(record["report"]).with_name("law.json").read_text())
+    return {"truth": record.get("truth") or "unknown",
+            "read back from the network": "; ".join(p["formula"] for p in read_back["pairs"]),
+            "fitted to the frames": spec_text(record["tuned"]),
+            "form is the truth's": got("tuned_form_is_truth"),
+            "constants vs truth": got("tuned_constants_vs_truth"),
+            "network vs truth": got("network_max"),
+            "network vs truth 1-99%": got("network_max_1_99"),
+            "fitted vs truth": got("tuned_max"), "fitted vs truth 1-99%": got("tuned_max_1_99"),
+            "formula chosen": float(record["choice"] == "formula"),
+            "network val error": typical("network"), "formula val error": typical("formula"),
+            "horizon": n}
+
+
+def laws_stage(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
+               provenance: dict[str, Any], workers: int, threads: int | None) -> Path:
+    """The laws of the grid's cells (module doc); cells in ``workers`` processes."""
+    from bgn.studies.report import write_seeded_table
+
+    t0 = time.perf_counter()
+    spec = cfg.preset.laws
+    seeds = set(map(int, spec.seeds)) if spec.get("seeds") else set(preset_seeds(cfg.preset))
+    chosen = [c for c in cells if c.model == spec.model and "main" in c.groups
+              and c.seed in seeds and c.name in results]
+    out = Path(cfg.report_dir) / "laws"
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = [(str(Path(cfg.cells_dir) / c.name), str(cfg.data_dir), str(out / c.name),
+             spec.get("max_seconds")) for c in chosen]
+    done = map_in_processes(_law_job, jobs, workers, threads)
+    rows, left_out, figures, horizons = [], {}, [], set()
+    for cell, job in zip(chosen, done):
+        if "left_out" in job:
+            left_out.setdefault(cell.scene, job["left_out"])
+            continue
+        row = {"seed": cell.seed, "scene": cell.scene, **variant(results, cell),
+               **law_row(job["record"]), "stage s": job["seconds"]}
+        horizons.add(row.pop("horizon"))
+        print(f"  laws {cell.name}: {row['fitted to the frames']} ({row['truth']})",
+              flush=True)
+        rows.append(row)
+        if all(f"{cell.scene}_fps" not in f for f in figures):  # one figure per scene
+            figures.append(f"{cell.name}/law.png")
+    h = ", ".join(str(k) for k in sorted(horizons)) or "?"
+    limit = spec.get("max_seconds")
+    skipped = ("" if not left_out else " Left out (no law to read): "
+               + "; ".join(f"{s}: {r}" for s, r in left_out.items()) + ".")
+    formulas = write_table(
+        out, "formulas", ["scene", "seed", "truth", *TEXT], rows,
+        "Learned laws read back as formulas (every seed)",
+        "Each cell's network law read back as a formula over the training pairs' distances "
+        "(`read back from the network`), and the formula fitted to the training frames as "
+        "the model's law (`fitted to the frames`: every form of the fit's front and the "
+        "library's one-term forms tuned on the frames, the lowest loss kept, then polished; "
+        "`python -m bgn.laws <cell>/checkpoints/best.ckpt finetune=true`, "
+        + ("no time limit" if limit is None else f"its fitting at most {limit:g} s")
+        + "). Training and validation splits only." + skipped,
+        empty="(no cell with a pair-force head)")
+    table = write_seeded_table(
+        out, "laws", [*KEYS, *VALUES], KEYS, rows,
+        "Learned laws against the truth",
+        "`form is the truth's`: the truth fitted in the fitted formula's terms leaves a "
+        "relative residual below 1e-3 (the share of seeds); `constants vs truth`: the largest "
+        "relative difference of its constants from the truth's in that form; `... vs truth`: "
+        "the largest relative error against the true law over the training pairs' distances "
+        "(all of them, and between their 1st and 99th percentiles; near a zero crossing "
+        "relative to the law's change over 10 % of r). `formula chosen`: the share of seeds "
+        "whose formula validated better than the network law; the two validation errors: the "
+        f"typical (geometric-mean) position error after {h} steps over the validation "
+        "rollouts, a failed one at the cap.",
+        empty="(no cell with a pair-force head)")
+    now = time.perf_counter()
+    return write_stage(
+        out, "laws", f"Learned laws of the `{cfg.preset.name}` cells",
+        [f"The grid's `{spec.model}` cells of seeds {', '.join(map(str, sorted(seeds)))} "
+         "(their network checkpoints), read back and fitted by the formula stage, one cell "
+         f"per process ({workers} at once)."],
+        [formulas, table], figures, stage_provenance(provenance, now - t0), cfg.get("results_md"))

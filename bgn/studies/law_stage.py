@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import math
 import time
+import traceback
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -89,8 +90,12 @@ def _law_job(cell_dir: str, data_dir: str, out_dir: str,
     datamodule = cell_datamodule(Path(cell_dir), data_dir)
     cfg = OmegaConf.load(Path(cell_dir) / "train_config.yaml")
     options = {} if max_seconds is None else {"finetune.max_seconds": float(max_seconds)}
-    record = formula_stage(best, datamodule.datasets["train"], datamodule.datasets["val"],
-                           cfg, Path(out_dir), **options)
+    try:
+        record = formula_stage(best, datamodule.datasets["train"], datamodule.datasets["val"],
+                               cfg, Path(out_dir), **options)
+    except Exception as err:  # one cell's failure is named in the table, not the stage's end
+        traceback.print_exc()
+        return {"failed": f"{type(err).__name__}: {err}"}
     return {"record": record, "seconds": time.perf_counter() - t0}
 
 
@@ -138,10 +143,14 @@ def laws_stage(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
     jobs = [(str(Path(cfg.cells_dir) / c.name), str(cfg.data_dir), str(out / c.name),
              spec.get("max_seconds")) for c in chosen]
     done = map_in_processes(_law_job, jobs, workers, threads)
-    rows, left_out, figures, horizons = [], {}, [], set()
+    rows, left_out, failed, figures, horizons = [], {}, {}, [], set()
     for cell, job in zip(chosen, done):
         if "left_out" in job:
             left_out.setdefault(cell.scene, job["left_out"])
+            continue
+        if "failed" in job:
+            failed[cell.name] = job["failed"]
+            print(f"  laws {cell.name}: FAILED {job['failed']}", flush=True)
             continue
         row = {"seed": cell.seed, "scene": cell.scene, **variant(results, cell),
                **law_row(job["record"]), "stage s": job["seconds"]}
@@ -155,6 +164,8 @@ def laws_stage(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
     limit = spec.get("max_seconds")
     skipped = ("" if not left_out else " Left out (no law to read): "
                + "; ".join(f"{s}: {r}" for s, r in left_out.items()) + ".")
+    skipped += ("" if not failed else " FAILED (not in the tables): "
+                + "; ".join(f"{c}: {r}" for c, r in failed.items()) + ".")
     formulas = write_table(
         out, "formulas", ["scene", "seed", "truth", *TEXT], rows,
         "Learned laws read back as formulas (every seed)",
@@ -180,9 +191,13 @@ def laws_stage(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
         "rollouts, a failed one at the cap.",
         empty="(no cell with a pair-force head)")
     now = time.perf_counter()
-    return write_stage(
+    path = write_stage(
         out, "laws", f"Learned laws of the `{cfg.preset.name}` cells",
         [f"The grid's `{spec.model}` cells of seeds {', '.join(map(str, sorted(seeds)))} "
          "(their network checkpoints), read back and fitted by the formula stage, one cell "
          f"per process ({workers} at once)."],
         [formulas, table], figures, stage_provenance(provenance, now - t0), cfg.get("results_md"))
+    if failed:  # the tables of the others are written; the command still fails
+        raise RuntimeError(f"laws stage: {len(failed)} cell(s) failed ({', '.join(failed)}); "
+                           f"their tracebacks are above, the others' tables in {path}")
+    return path

@@ -172,3 +172,16 @@ def test_summary_aggregates_seeds_and_keeps_failures(tmp_path, monkeypatch):
     assert "0.25 ± 0.3536 (0–0.5)" in md               # the failed share, not hidden
     md, _ = summary.table(choices, ["data"])
     assert "newton_source" in md and "| 2 |" in md
+    # --results-md: the same tables, the command and the runs' evaluation commits, in the block
+    for run in runs:
+        path = run / "auto" / "decoder" / "eval" / "test" / "metrics.json"
+        record = json.loads(path.read_text())
+        path.write_text(json.dumps({**record, "provenance": {"git_commit": "a" * 40}}))
+    results = tmp_path / "results.md"
+    results.write_text("intro\n")
+    text = summary.main([*map(str, runs), "--out", str(tmp_path / "out"),
+                         "--results-md", str(results)])
+    block = results.read_text()
+    assert block.startswith("intro\n") and "<!-- generated:engines:begin -->" in block
+    assert "python examples/engines/summary.py" in block and "aaaaaaaaaa (2)" in block
+    assert "### rollouts" in block and text.split("## rollouts")[1].strip()[:200] in block

@@ -26,6 +26,9 @@ SMOKE = {
     "flow": (["--particles", "40", "--per-frame", "20", "--hidden", "8", "--steps", "3",
               "--pool", "2", "--repeat", "1", "--threads", "1"],
              ["flow.md", "flow.csv", "flow.png"]),
+    "shooting": (["--override", "dataset.n_sims=2", "dataset.n_frames=40", "--frames", "8",
+                  "--iterations", "1", "2", "--substeps", "4", "--data-dir", "{tmp}/data"],
+                 ["shooting.md", "shooting.csv"]),
 }
 
 NUMBER = re.compile(r"^-?[\d,]*\.?\d+(e[-+]?\d+)?( M)?$")
@@ -79,7 +82,7 @@ def numbers_of_markdown_tables(text: str) -> list[str]:
 def test_benchmark_writes_reports_with_finite_numbers(name, tmp_path, keep_threads) -> None:
     argv, files = SMOKE[name]
     main = importlib.import_module(f"bgn.benchmarks.{name}").main
-    assert main([*argv, "--out", str(tmp_path)]) == 0
+    assert main([*(a.format(tmp=tmp_path) for a in argv), "--out", str(tmp_path)]) == 0
     for file in files:
         assert (tmp_path / file).stat().st_size > 0, file
 
@@ -210,3 +213,16 @@ def test_scaling_frames_are_the_collisions_scenes_start() -> None:
     box = math.sqrt(2000 / DENSITY)
     assert ((g.pos - g.radius[:, None] >= 0) & (g.pos + g.radius[:, None] <= box)).all()
     assert set(g.types.tolist()) == {0, 1} and torch.isfinite(g.vel).all()
+
+
+def test_shooting_finds_the_fewest_iterations_within_the_tolerance() -> None:
+    """The fewest iterations whose three percentiles are all within the tolerance of the
+    most iterations' (per substeps)."""
+    from bgn.benchmarks.shooting import fewest
+
+    def row(k: int, it: int, median: float, p90: float, p99: float) -> dict:
+        return {"substeps": k, "iterations": it, "median": median, "p90": p90, "p99": p99}
+
+    rows = [row(16, 1, 2.0, 2.0, 2.0), row(16, 2, 1.0, 1.2, 1.0), row(16, 3, 1.0, 1.005, 1.0),
+            row(16, 8, 1.0, 1.0, 1.0), row(64, 1, 1.0, 1.0, 1.0), row(64, 4, 1.0, 1.0, 1.0)]
+    assert fewest(rows, 0.01) == {16: 3, 64: 1}

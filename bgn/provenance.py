@@ -1,9 +1,11 @@
-"""What regenerates a result: the commit of the code that made it, and the generated blocks of
-a results file (docs/results.md), which the commands that make the tables rewrite in place."""
+"""What regenerates a result: the commit of the code that made it, the machine it ran on, and
+the generated blocks of a results file (docs/results.md), which the commands that make the
+tables rewrite in place."""
 
 from __future__ import annotations
 
 import os
+import platform
 import subprocess
 from pathlib import Path
 
@@ -21,6 +23,19 @@ def git_commit() -> str:
     except (OSError, subprocess.SubprocessError):
         return given
     return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else given
+
+
+def machine(**versions: str) -> str:
+    """One line: platform, processor, logical CPUs, Python and numpy, then ``versions``
+    (library name -> version string) in the order given."""
+    import numpy as np
+
+    libs = {"numpy": np.__version__, **versions}
+    return (
+        f"{platform.platform()}, {platform.processor() or platform.machine()}, "
+        f"{os.cpu_count()} logical CPUs, Python {platform.python_version()}, "
+        + ", ".join(f"{name} {version}" for name, version in libs.items())
+    )
 
 
 def block_markers(name: str) -> tuple[str, str]:

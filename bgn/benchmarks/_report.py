@@ -1,25 +1,11 @@
-"""What every benchmark command shares: the machine line and the console table (their files
-use the package's table writer, ``bgn.tables``). A helper module, not a command (its name
-starts with ``_``, so the smoke tests that run every command in ``bgn.benchmarks`` skip it)."""
+"""What every benchmark command shares: the console table (their files use the package's
+table writer, ``bgn.tables``; the machine line is ``bgn.provenance.machine``). A helper
+module, not a command (its name starts with ``_``, so the smoke tests that run every command
+in ``bgn.benchmarks`` skip it)."""
 
 from __future__ import annotations
 
-import os
-import platform
 from collections.abc import Sequence
-
-import numpy as np
-
-
-def machine(**versions: str) -> str:
-    """One line: platform, processor, logical CPUs, Python and numpy, then ``versions``
-    (library name -> version string) in the order given."""
-    libs = {"numpy": np.__version__, **versions}
-    return (
-        f"{platform.platform()}, {platform.processor() or platform.machine()}, "
-        f"{os.cpu_count()} logical CPUs, Python {platform.python_version()}, "
-        + ", ".join(f"{name} {version}" for name, version in libs.items())
-    )
 
 
 def console():

@@ -33,12 +33,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from bgn.benchmarks._report import console, machine, print_table
+from bgn.benchmarks._report import console, print_table
 from bgn.data.stats import summarize
 from bgn.eval.evaluate import r2_score
 from bgn.graph import Graph, collate
 from bgn.model.registry import build_model
 from bgn.model.target_coder import observed_targets
+from bgn.provenance import machine
 from bgn.sim.scene import SceneMeta
 from bgn.tables import markdown_table, write_csv
 

@@ -24,8 +24,9 @@ from pathlib import Path
 import numpy as np
 import scipy
 
-from bgn.benchmarks._report import console, machine, print_table
+from bgn.benchmarks._report import console, print_table
 from bgn.data.edges import radius_graph
+from bgn.provenance import machine
 from bgn.tables import markdown_table, write_csv
 
 CUTOFF = 1.0

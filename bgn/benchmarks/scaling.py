@@ -50,11 +50,12 @@ import numpy as np
 import torch
 
 import bgn
-from bgn.benchmarks._report import console, machine, print_table
+from bgn.benchmarks._report import console, print_table
 from bgn.benchmarks.flow import synthetic_stats
 from bgn.data.edges import radius_graph
 from bgn.graph import Graph, window_graph
 from bgn.model.registry import MODELS
+from bgn.provenance import machine
 from bgn.sim.collisions import CollisionScene
 from bgn.sim.scene import SceneMeta
 from bgn.tables import fmt, markdown_table, write_csv

@@ -30,7 +30,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from bgn.benchmarks._report import console, machine, print_table
+from bgn.benchmarks._report import console, print_table
+from bgn.provenance import machine
 from bgn.tables import markdown_table, write_csv
 
 COLUMNS = ["substeps", "iterations", "median", "p90", "p99", "nmse", "seconds"]

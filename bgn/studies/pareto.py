@@ -351,8 +351,8 @@ def write_report(cfg: DictConfig, points: list[dict[str, Any]],
                  simulator: list[dict[str, Any]], scaling: list[dict[str, Any]],
                  wall_s: float) -> Path:
     """The plots, the tables and report.md under ``cfg.report_dir``."""
-    from bgn.benchmarks._report import machine
     from bgn.figures import pareto, save
+    from bgn.provenance import machine
 
     out = Path(cfg.report_dir)
     out.mkdir(parents=True, exist_ok=True)

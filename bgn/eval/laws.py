@@ -657,7 +657,7 @@ def read_law(module_or_model: Any, dataset: Any, max_terms: int = 3,
         if truth is not None:
             truth_f = sympy.lambdify(sympy.Symbol("r", positive=True), truth[0], "numpy")
             true = np.broadcast_to(np.asarray(truth_f(r), np.float64), r.shape).copy()
-            in_form = _in_form(formula, r, density, truth_f)
+            in_form = _in_form(formula, r, density, true)
         edges = np.geomspace(distances.min(), distances.max(), 61)
         pairs.append(PairLaw(
             types, r, learned, formula, true, density, edges, np.histogram(distances, edges)[0],
@@ -688,11 +688,11 @@ def _as_double(dataset: Any) -> Any:
     return Double()
 
 
-def _in_form(formula: Formula, r: np.ndarray, density: np.ndarray, truth_f: Any,
+def _in_form(formula: Formula, r: np.ndarray, density: np.ndarray, y: np.ndarray,
              ) -> dict[str, Any]:
-    """The truth fitted in the formula's own terms (same weights): its constants beside the
-    formula's and its relative residual there (about 0: the form is the truth's)."""
-    y = np.broadcast_to(np.asarray(truth_f(r), np.float64), r.shape)
+    """The truth ``y`` (at ``r``) fitted in the formula's own terms (same weights): its
+    constants beside the formula's and its relative residual there (about 0: the form is the
+    truth's)."""
     w = np.sqrt(density / density.mean()) / law_scale(r, y, smooth=False)
     values, _ = _refine(formula.terms, r, y, w, formula.values)
     res = _residual(formula.terms, r, y, w, values)
@@ -730,9 +730,6 @@ def against_truth(report: LawReport, tuned: list[dict[str, Any]] | None = None,
     its constants from the truth's in that form (``tuned_constants_vs_truth``)."""
     if report.truth_text is None:
         return {}
-    r_sym = sympy.Symbol("r", positive=True)
-    truth_f = sympy.lambdify(r_sym, sympy.sympify(report.truth_text, locals={"r": r_sym}),
-                             "numpy")
     tuned_by_types = {tuple(p["types"]): spec_formula(p) for p in tuned or []}
     out: dict[str, Any] = {}
 
@@ -740,15 +737,14 @@ def against_truth(report: LawReport, tuned: list[dict[str, Any]] | None = None,
         out[key] = max(out.get(key, -math.inf), value)
 
     for pair in report.pairs:
-        r = pair.r
-        true = np.broadcast_to(np.asarray(truth_f(r), np.float64), r.shape)
+        r, true = pair.r, pair.truth  # the truth on the grid (read_law)
         lo, hi = (pair.reach[0], pair.reach[-1]) if pair.reach is not None else (r[0], r[-1])
         inner = (r >= lo) & (r <= hi)
         laws = {"network": pair.learned, "read_back": pair.formula(r)}
         formula = tuned_by_types.get(tuple(pair.types))
         if formula is not None:
             laws["tuned"] = formula(r)
-            in_form = _in_form(formula, r, pair.density, truth_f)
+            in_form = _in_form(formula, r, pair.density, true)
             worst("tuned_form_is_truth_residual", in_form["residual_max"])
             worst("tuned_constants_vs_truth", max(in_form["relative_difference"]))
         for name, values in laws.items():
@@ -1636,8 +1632,7 @@ def formula_stage(checkpoint: Path, train_split: Any, val: Any, config: Any,
                          if k in options})
     path = write_report(report, out_dir, title=f"Learned law of {checkpoint}")
     if not finetune:
-        return {"report": str(path), "against_truth": against_truth(report),
-                "truth": report.truth_text}
+        return {"report": str(path)}
     tuned = {k.split(".", 1)[1]: v for k, v in options.items() if k.startswith("finetune.")}
     record = finetune_formula(checkpoint, train_split, val, report, out_dir=out_dir, **tuned)
     section = finetune_markdown(record)

@@ -158,6 +158,10 @@ def test_summary_aggregates_seeds_and_keeps_failures(tmp_path, monkeypatch):
                             "rollout/failed_share": failed,
                             "rollout_last/pos_err_mean@100": 1.0,
                             "rollout_linear/pos_err_mean@100": 2.0}}))
+        for key, worst in (("predicted", 0.02 * (seed + 1)), ("true", 1e-6)):
+            write(run / f"energy_{key}.json", json.dumps({  # engine_energy.py --json
+                "after": [10, 50, 100], "relative_change": [[0.0, 0.0, worst / 2],
+                                                            [0.0, 0.0, worst]]}))
         runs.append(run)
     tests, choices = [], []
     for run in runs:
@@ -185,3 +189,9 @@ def test_summary_aggregates_seeds_and_keeps_failures(tmp_path, monkeypatch):
     assert block.startswith("intro\n") and "<!-- generated:engines:begin -->" in block
     assert "python examples/engines/summary.py" in block and "aaaaaaaaaa (2)" in block
     assert "### rollouts" in block and text.split("## rollouts")[1].strip()[:200] in block
+    # the engine's energy: the worst trajectory per seed, the recorded frames beside it,
+    # kept out of the rollout tables
+    energy = text.split("## energy")[1]
+    assert "| gas | chosen (newton) | 2 | 0 | 0 | 0.03 ± 0.01414 (0.02–0.04) |" in energy
+    assert "| gas | recorded frames | 2 | 0 | 0 | 1e-06 |" in energy
+    assert "recorded frames" not in text.split("## energy")[0]

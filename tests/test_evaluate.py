@@ -51,8 +51,8 @@ def test_inverse_evaluation_with_references(scene: str, tmp_path: Path,
 
 
 # ----------------------------------------------------------------------------- the command
-TINY_RUN = ["dataset=spring", *SMALL["spring"], "model.hidden=8", "model.decoder_hidden=8",
-            "model.flow_hidden=8", "figures=false", "val_rollout_steps=0",
+TINY_RUN = ["dataset=spring", *SMALL["spring"], "dataset.test_samples=17", "model.hidden=8",
+            "model.decoder_hidden=8", "model.flow_hidden=8", "figures=false", "val_rollout_steps=0",
             "callbacks.progress_bar=null", "trainer.max_epochs=1",
             "+trainer.limit_train_batches=2", "trainer.limit_val_batches=1",
             "trainer.enable_model_summary=false"]
@@ -96,6 +96,21 @@ def test_the_test_phase_rollouts_can_be_skipped(tmp_path: Path, shared_data_dir:
                                              "test_rollouts=false"]))
     assert "test/nmse" in metrics
     assert not [k for k in metrics if "rollout" in k]
+
+
+def test_the_report_repeats_the_one_step_error_the_run_printed(trained_run,
+                                                                tmp_path: Path) -> None:
+    """By default the command scores the frames the run's test phase scored (its
+    dataset.test_samples, 17 of the ~110 here), so the NMSE a user saw at the end of
+    training is the report's; a fixed count scores other frames."""
+    run, metrics = trained_run
+    out = evaluate_main(evaluate_cfg(f"ckpt={run}", "max_frames=null", "figures=false",
+                                     f"out_dir={tmp_path / 'eval'}"))
+    report = json.loads((out / "metrics.json").read_text())["metrics"]
+    assert report["n_frames"] == 17
+    assert report["nmse"] == pytest.approx(metrics["test/nmse"], rel=1e-4)
+    assert report["median_relative_error"] == pytest.approx(
+        metrics["test/median_relative_error"], rel=1e-4)
 
 
 @pytest.mark.parametrize("given", ["run", "checkpoint"])

@@ -31,7 +31,7 @@ CELLS = MAIN + ABLATION + EFFICIENCY
 
 def record(cell: Cell) -> dict[str, Any]:
     metrics: dict[str, Any] = {"mse": 0.1, "nmse": 0.2, "median_relative_error": 0.3,
-                               "nmse_last_extrapolation": 1.5,
+                               "n_frames": 256, "nmse_last_extrapolation": 1.5,
                                "nmse_linear_extrapolation": 2.5}
     figure = None
     if cell.scene == "collisions":
@@ -113,6 +113,7 @@ def test_table1(tmp_path: Path) -> None:
         ("spring", "25", "bgn", ""),  # an older record: the cell's model name
         ("spring", "10", "BGN (paper decoder)", "-"), ("spring", "10", "GNS", "-")]
     assert rows[1]["NMSE"] == "0.2" and rows[1]["physics written in"] == "none"
+    assert rows[1]["frames"] == "256"  # NMSE is heavy-tailed: the frames it averages
     assert rows[0]["repeat-last NMSE"] == "1.5"
     # the paper's BGN is its decoder, its GNS reads no radii or types
     assert [r[PAPER_LABEL] for r in rows] == ["", "", "", "0.0007", "0.734"]

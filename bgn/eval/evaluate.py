@@ -555,7 +555,8 @@ def validate_evaluate(cfg: Any) -> tuple[Path, Path, Path]:
         raise ConfigError("calibration_split", cfg.calibration_split, (
             "the mass flow would be recalibrated on the split it is scored on; set "
             "calibration_split to another split (val for split=test, train for split=val)"))
-    need_int(cfg.max_frames, "max_frames", 1, optional=True, why=" (null: every frame)")
+    need_int(cfg.max_frames, "max_frames", 1, optional=True,
+             why=" (null: the run's own count, dataset.<split>_samples)")
     for key in ("mass_frames", "mass_samples", "batch_size"):
         need_int(cfg[key], key, 1)
     need_int(cfg.seed, "seed", 0, MAX_SEED)
@@ -797,6 +798,17 @@ def write_outputs(out_dir: Path, record: dict[str, Any], metrics: dict[str, Any]
     write_atomic(out_dir / "report.md", report_text(record, values, names, law))
 
 
+def one_step_frames(cfg: Any, datamodule: Any) -> int | None:
+    """How many frames the one-step metrics average: ``max_frames``, or where that is null
+    the frames the training run's own test (validation) phase scores, its dataset's
+    ``test_samples`` (``val_samples``; the latter for the train split too), so that the
+    report's NMSE is the one the run printed. NMSE is heavy-tailed: a few hundred frames
+    give a different figure from ten thousand (docs/design.md#metrics-and-protocols)."""
+    if cfg.max_frames is not None:
+        return int(cfg.max_frames)
+    return datamodule.samples.get(cfg.split, datamodule.samples["val"])
+
+
 def evaluate_run(cfg: Any, paths: tuple[Path, Path, Path]) -> Path:
     """The command's work: the run's data and checkpoint, every metric, the files; returns
     the output folder."""
@@ -824,7 +836,8 @@ def evaluate_run(cfg: Any, paths: tuple[Path, Path, Path]) -> Path:
     positions: dict[str, np.ndarray] = {}  # the model's rollouts, written as rollouts.npz
     try:
         metrics, arrays = evaluate_split(
-            module, dataset, datamodule.datasets[cfg.calibration_split], cfg.max_frames,
+            module, dataset, datamodule.datasets[cfg.calibration_split],
+            one_step_frames(cfg, datamodule),
             cfg.mass_frames, cfg.mass_samples, cfg.batch_size, int(cfg.seed),
             int(cfg.rollout.steps), int(cfg.rollout.starts_per_sim), cfg.rollout.max_sims,
             curves=curves, step=stages, sinkhorn_stride=int(cfg.rollout.sinkhorn_stride),

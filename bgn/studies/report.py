@@ -239,18 +239,20 @@ def table1(report_dir: Path, cells: list[Cell], results: Results, split: str = "
                      and about["physics written in"] == "none" else None)
             rows.append({SEED: c.seed, "scene": scene, "fps": fmt(fps), **about,
                          OVERRIDES: variant_overrides(c), "MSE": m["mse"],
-                         "NMSE": m["nmse"],
+                         "NMSE": m["nmse"], "frames": m.get("n_frames"),
                          # the same frames for every model of a scene x fps
                          **{column: m.get(f"nmse_{ref}_extrapolation")
                             for ref, column in REFERENCES.items()}, PAPER_LABEL: paper})
-    columns = ["scene", "fps", "model", *extra, *VARIANT_COLUMNS, "MSE", "NMSE",
+    columns = ["scene", "fps", "model", *extra, *VARIANT_COLUMNS, "MSE", "NMSE", "frames",
                *REFERENCES.values(), PAPER_LABEL]
     return write_seeded_table(
         report_dir, "table1", columns, ["scene", "fps", "model", *extra, *VARIANT_COLUMNS,
                                         PAPER_LABEL], rows,
         f"Table 1: one-step error on the {SPLIT_NAMES[split]} split",
         split_notes(split, "MSE of the forward target (next velocity for collisions, acceleration "
-        "otherwise) in physical units; NMSE = MSE / training target variance. model: the "
+        "otherwise) in physical units; NMSE = MSE / training target variance; frames: how "
+        "many frames, evenly spread over the split, they average (preset.eval.max_frames; "
+        "the targets are heavy-tailed, so the figure depends on it). model: the "
         "variant (BGN with the paper's decoder or a structured head; a baseline with the "
         "node inputs it is given); given: what it reads beyond the position window "
         "(radii, types, masses; - nothing); physics written in: the structure its "

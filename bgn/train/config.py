@@ -179,7 +179,8 @@ class EvaluateKeys:
     calibration_split: str = "val"    # the split the mass flow is recalibrated on
     out_dir: str | None = None        # null: <run>/eval/<split>
     data_dir: str | None = None       # null: the run's paths.data_dir
-    max_frames: int | None = 256      # one-step frames, evenly spread (null: all)
+    max_frames: int | None = None     # one-step frames, evenly spread (null: the frames the
+                                      # training run's own phase scores, dataset.<split>_samples)
     mass_frames: int = 32             # frames of the inverse metrics and of the calibration
     mass_samples: int = 32            # posterior samples per particle
     batch_size: int = 16

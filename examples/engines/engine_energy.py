@@ -22,6 +22,8 @@ from pathlib import Path
 import numpy as np
 from layouts import FILE_STEMS, minimum_image
 
+AFTER = (10, 50, 100)  # frames after the first with the five-point stencil
+
 
 def _pad3(x: np.ndarray) -> np.ndarray:
     """(..., N, D<=3) -> (..., N, 3) with zeros: both engines work in 3D."""
@@ -156,6 +158,9 @@ def main() -> None:
     ap.add_argument("--split", default="test", choices=["train", "val", "test"])
     ap.add_argument("--key", help="the array of --positions to read (default: positions, else "
                     "predicted; 'true' gives the recorded frames of the same rollouts)")
+    ap.add_argument("--json", type=Path, metavar="FILE",
+                    help="also write the changes there (examples/engines/summary.py's "
+                    "energy table reads <run>/energy_<key>.json)")
     args = ap.parse_args()
     engine = json.loads((args.data_dir / "engine.json").read_text())["engine"]
     if engine not in ("rebound", "ase"):
@@ -169,12 +174,18 @@ def main() -> None:
             key = args.key or ("positions" if "positions" in f else "predicted")
             positions = f[key]
             velocities = f["velocities"] if "velocities" in f else None
+    changes = []
     for s, e in enumerate(dataset_energy(args.data_dir, positions, velocities, args.split)):
         energy = e["energy"]
-        rel = [abs(energy[2 + k] - energy[2]) / abs(energy[2])
-               for k in (10, 50, 100) if 2 + k < len(energy) - 2]
+        rel = [float(abs(energy[2 + k] - energy[2]) / abs(energy[2]))
+               for k in AFTER if 2 + k < len(energy) - 2]
+        changes.append(rel)
         print(f"trajectory {s}: relative energy change after 10/50/100 frames "
               + " ".join(f"{r:.2e}" for r in rel))
+    if args.json is not None:
+        args.json.write_text(json.dumps({
+            "engine": engine, "split": args.split, "positions": str(args.positions),
+            "key": args.key, "after": list(AFTER), "relative_change": changes}, indent=1))
 
 
 if __name__ == "__main__":

@@ -7,7 +7,9 @@ Each ``<run>`` is a ``python -m bgn.train dataset=imported dataset.name=<name> s
 directory (``model.dynamics=auto``: ``<run>/auto/auto.json``) or a single model's run (a
 baseline at the full budget); each evaluated by ``python -m bgn.evaluate`` (the auto run's
 winner, ``<run>/eval`` or ``<run>/auto/<choice>/eval``) and, for the auto candidates that were,
-``python -m bgn.evaluate <run>/auto/<candidate>``. Prints markdown (seeds aggregated: mean ±
+``python -m bgn.evaluate <run>/auto/<candidate>``; the engine's own energy along the winner's
+rollouts where ``engine_energy.py ... --json <run>/energy_<key>.json`` wrote it
+(``regenerate.sh`` beside this script runs all of it). Prints markdown (seeds aggregated: mean ±
 std (min-max)) and writes it with CSV files under ``--out``; ``--results-md FILE`` also writes
 it, with this command and the commits the runs were evaluated at, into FILE's generated block
 ``<!-- generated:engines:... -->`` (``--block NAME``: another block, e.g. the built-in scenes'
@@ -116,7 +118,26 @@ def rows_of(run: Path) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
                                  c.get("wall_s")))
     balance = record["protocol"].get("balance") or {}
     choice_row["momentum imbalance"] = balance.get("linear")
+    rows += energy_rows(run, name, seed, f"chosen ({choice.split('_')[0]})")
     return rows, choice_row
+
+
+def energy_rows(run: Path, name: str, seed: int, model: str) -> list[dict[str, Any]]:
+    """The engine's own energy along the winner's test rollouts and along the recorded
+    frames of the same trajectories (``engine_energy.py ... --json <run>/energy_<key>.json``,
+    key predicted or true): the worst trajectory's relative change after each horizon."""
+    rows = []
+    for key, label in (("predicted", model), ("true", "recorded frames")):
+        path = run / f"energy_{key}.json"
+        if not path.exists():
+            continue
+        record = json.loads(path.read_text())
+        row: dict[str, Any] = {"data": name, "model": label, "seed": seed}
+        for i, h in enumerate(record["after"]):
+            changes = [t[i] for t in record["relative_change"] if len(t) > i]
+            row[f"energy @{h} (worst)"] = max(changes) if changes else None
+        rows.append(row)
+    return rows
 
 
 def table(rows: list[dict[str, Any]], keys: list[str]) -> tuple[str, list[str]]:
@@ -161,11 +182,14 @@ def main(argv: list[str] | None = None) -> str:
     args.out.mkdir(parents=True, exist_ok=True)
     keys = ["data", "model"]
     lb = [f"lb {k}" for k in LB]
+    rollouts = [r for r in tests if not any(k.startswith("energy @") for k in r)]
     groups = {"choices": (choices, ["data"], None),
-              "rollouts": (tests, keys, lambda c: c not in lb and c not in INVERSE),
-              "lagrangebench": (tests, keys, lambda c: c in lb),
+              "rollouts": (rollouts, keys, lambda c: c not in lb and c not in INVERSE),
+              "lagrangebench": (rollouts, keys, lambda c: c in lb),
               "masses": ([r for r in tests if r.get("relmass_r2") is not None], keys,
-                         lambda c: c in INVERSE)}
+                         lambda c: c in INVERSE),
+              "energy": ([r for r in tests if any(k.startswith("energy @") for k in r)],
+                         keys, lambda c: c.startswith("energy @"))}
     text = []
     for stem, (rows, by, keep) in groups.items():
         if not rows:

@@ -1,0 +1,68 @@
+#!/usr/bin/env bash
+# Every run behind docs/results.md's "Data from other engines" tables, then the tables:
+#
+#   bash examples/engines/regenerate.sh
+#
+# The datasets must be generated and imported first (README.md beside this script,
+# "Commands"). Per dataset of NAMES: the default job (model.dynamics=auto) for each seed of
+# SEEDS, evaluated on test with its decoder, GNS and Cranmer GN candidates, its rollouts
+# extended to 104 steps and measured by the engine's own energy (engine_energy.py, the
+# engines that conserve one); each model of BASELINES alone at the full budget (seed 0);
+# then summary.py writes the tables into RESULTS_MD's block `engines`. JOBS runs at a time,
+# each with OMP_NUM_THREADS torch threads. A finished run (its regenerate.done) is kept
+# (delete the folder to redo it); a failed run is named and the script exits non-zero
+# after the others, without writing the tables. Logs: OUT/<run>.log.
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+NAMES=${NAMES:-"rebound_nbody ase_morse_gas pymunk_granular"}
+SEEDS=${SEEDS:-"0 1 2"}
+BASELINES=${BASELINES:-"gns cranmer_gn"}
+JOBS=${JOBS:-2}
+OUT=${OUT:-outputs/engines}
+RESULTS_MD=${RESULTS_MD:-docs/results.md}
+DATA=${DATA:-data/external}
+export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} OUT DATA
+mkdir -p "$OUT"
+
+one() {  # <name> <seed> <model>: train, evaluate, the engine's energy
+  local name=$1 seed=$2 model=$3 run
+  if [ "$model" = bgn ]; then run=$OUT/${name}_s$seed; else run=$OUT/${name}_${model}_s$seed; fi
+  [ -f "$run/regenerate.done" ] && { echo "kept $run"; return 0; }
+  (
+    python -m bgn.train dataset=imported dataset.name="$name" model="$model" seed="$seed" \
+      hydra.run.dir="$run" || exit 1
+    python -m bgn.evaluate "$run" progress=false || exit 1
+    [ "$model" = bgn ] || exit 0
+    for c in decoder gns cranmer_gn; do  # the candidates auto trained beside the winner
+      [ -d "$run/auto/$c" ] || continue
+      python -m bgn.evaluate "$run/auto/$c" progress=false || exit 1
+    done
+    grep -Eq '"engine": *"(rebound|ase)"' "$DATA/$name/engine.json" || exit 0  # dissipative
+    python -m bgn.evaluate "$run" progress=false figures=false rollout.steps=104 \
+      out_dir="$run/eval_104" || exit 1
+    for key in predicted true; do
+      python examples/engines/engine_energy.py "$DATA/$name" --key "$key" \
+        --positions "$run/eval_104/rollouts.npz" --json "$run/energy_$key.json" || exit 1
+    done
+  ) > "$run.log" 2>&1 || { echo "FAILED $run (log: $run.log)"; return 1; }
+  touch "$run/regenerate.done"
+  echo "done $run"
+}
+export -f one
+
+jobs=()
+for seed in $SEEDS; do for name in $NAMES; do jobs+=("$name $seed bgn"); done; done
+for model in $BASELINES; do for name in $NAMES; do jobs+=("$name 0 $model"); done; done
+status=0
+printf '%s\n' "${jobs[@]}" | xargs -P "$JOBS" -L 1 bash -c 'one "$@"' _ || status=$?
+if [ "$status" -ne 0 ]; then
+  echo "some runs failed (above); the tables are not written" >&2
+  exit "$status"
+fi
+runs=()
+for name in $NAMES; do
+  for seed in $SEEDS; do runs+=("$OUT/${name}_s$seed"); done
+  for model in $BASELINES; do runs+=("$OUT/${name}_${model}_s0"); done
+done
+python examples/engines/summary.py "${runs[@]}" --out "$OUT/summary" \
+  --results-md "$RESULTS_MD"

@@ -62,14 +62,13 @@ class ContactOptions(OptionGroup):
     # the heavy tail of close encounters does not dominate; "linear" = paper MSE
     # (docs/design.md#departures-from-the-paper).
     force_transform: str = "log1p"     # "log1p" | "linear"
-    # Contact scenes: weight of the positive class in the contact BCE. Few candidate edges
-    # touch; unweighted, the head learns to say "no contact" everywhere
-    # (docs/notes/2026-11-26-results-history.md, "Moved here from code comments and configs").
-    # "balanced" = (1 - p) / p with p the training split's contact fraction
-    # (base.contact_pos_weight); a number sets it; 1 = the paper's plain BCE. Typed Any for
-    # Hydra (OmegaConf's Union[str, float] refuses the int that `model.contact_pos_weight=1`
-    # parses to); __post_init__ checks it.
-    contact_pos_weight: Any = "balanced"
+    # Contact scenes: weight of the positive class in the contact BCE. 1 = the paper's plain
+    # BCE, chosen on validation against "balanced" (docs/results.md, "The paper decoder's
+    # contact class weight re-checked on validation"); "balanced" = (1 - p) / p with p the
+    # training split's contact fraction (base.contact_pos_weight); a number sets it. Typed Any
+    # for Hydra (OmegaConf's Union[str, float] refuses the int that
+    # `model.contact_pos_weight=1` parses to); __post_init__ checks it.
+    contact_pos_weight: Any = 1.0
 
     def __post_init__(self) -> None:
         super().__post_init__()

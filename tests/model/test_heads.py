@@ -93,17 +93,18 @@ def test_contact_scene_uses_probabilities(meta, stats, graph):
 
 
 def test_contact_bce_balances_rare_contacts(meta, stats, graph):
-    """About 1 % of candidate edges touch: the positive class weighs (1 - p) / p."""
+    """About 1 % of candidate edges touch: with ``balanced`` the positive class weighs
+    (1 - p) / p; the default is the paper's plain BCE."""
     rare = stats()
     rare["contact"] = {**rare["contact"], "mean": np.array([0.01])}
-    model = BGN(meta(6, 2, "contact"), rare, 2, small()).double()
+    model = BGN(meta(6, 2, "contact"), rare, 2, small(contact_pos_weight="balanced")).double()
     assert float(model.contact_pos_weight) == pytest.approx(99.0)
     g = graph(6, contact=True)
     out = model(g)
     expected = torch.nn.functional.binary_cross_entropy_with_logits(
         out.contact, g.edge_contact, pos_weight=torch.tensor(99.0, dtype=torch.float64))
     torch.testing.assert_close(model.loss_terms(g, out)["contact"], expected)
-    plain = BGN(meta(6, 2, "contact"), rare, 2, small(contact_pos_weight=1.0))
+    plain = BGN(meta(6, 2, "contact"), rare, 2, small())
     assert float(plain.contact_pos_weight) == 1.0
     assert "contact_pos_weight" not in model.state_dict()  # rebuilt from the statistics
     with pytest.raises(ValueError, match="contact_pos_weight"):

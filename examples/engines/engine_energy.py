@@ -23,6 +23,7 @@ import numpy as np
 from layouts import FILE_STEMS, minimum_image
 
 AFTER = (10, 50, 100)  # frames after the first with the five-point stencil
+CONSERVATIVE = ("rebound", "ase")  # the engines whose data keep an energy (pymunk dissipates)
 
 
 def _pad3(x: np.ndarray) -> np.ndarray:
@@ -158,12 +159,17 @@ def main() -> None:
     ap.add_argument("--split", default="test", choices=["train", "val", "test"])
     ap.add_argument("--key", help="the array of --positions to read (default: positions, else "
                     "predicted; 'true' gives the recorded frames of the same rollouts)")
+    ap.add_argument("--conserved", action="store_true",
+                    help="only answer whether the engine conserves an energy (exit 0 if so, "
+                    "1 if not; regenerate.sh asks before it rolls out for this measurement)")
     ap.add_argument("--json", type=Path, metavar="FILE",
                     help="also write the changes there (examples/engines/summary.py's "
                     "energy table reads <run>/energy_<key>.json)")
     args = ap.parse_args()
     engine = json.loads((args.data_dir / "engine.json").read_text())["engine"]
-    if engine not in ("rebound", "ase"):
+    if args.conserved:
+        raise SystemExit(0 if engine in CONSERVATIVE else 1)
+    if engine not in CONSERVATIVE:
         raise SystemExit(f"{args.data_dir}/engine.json: engine {engine!r} conserves no energy "
                          "(dissipative); nothing to measure")
     velocities = None

@@ -37,7 +37,7 @@ one() {  # <name> <seed> <model>: train, evaluate, the engine's energy
       [ -d "$run/auto/$c" ] || continue
       python -m bgn.evaluate "$run/auto/$c" progress=false || exit 1
     done
-    grep -Eq '"engine": *"(rebound|ase)"' "$DATA/$name/engine.json" || exit 0  # dissipative
+    python examples/engines/engine_energy.py "$DATA/$name" --conserved || exit 0  # dissipative
     python -m bgn.evaluate "$run" progress=false figures=false rollout.steps=104 \
       out_dir="$run/eval_104" || exit 1
     for key in predicted true; do

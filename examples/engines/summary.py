@@ -140,6 +140,11 @@ def energy_rows(run: Path, name: str, seed: int, model: str) -> list[dict[str, A
     return rows
 
 
+def is_energy(row: dict[str, Any]) -> bool:
+    """An ``energy_rows`` row (its own table, not a rollout's)."""
+    return any(k.startswith("energy @") for k in row)
+
+
 def table(rows: list[dict[str, Any]], keys: list[str]) -> tuple[str, list[str]]:
     merged = aggregate_rows(rows, keys)
     columns = keys + ["seeds"] + [c for c in dict.fromkeys(k for r in rows for k in r)
@@ -182,14 +187,14 @@ def main(argv: list[str] | None = None) -> str:
     args.out.mkdir(parents=True, exist_ok=True)
     keys = ["data", "model"]
     lb = [f"lb {k}" for k in LB]
-    rollouts = [r for r in tests if not any(k.startswith("energy @") for k in r)]
+    rollouts = [r for r in tests if not is_energy(r)]
     groups = {"choices": (choices, ["data"], None),
               "rollouts": (rollouts, keys, lambda c: c not in lb and c not in INVERSE),
               "lagrangebench": (rollouts, keys, lambda c: c in lb),
-              "masses": ([r for r in tests if r.get("relmass_r2") is not None], keys,
+              "masses": ([r for r in rollouts if r.get("relmass_r2") is not None], keys,
                          lambda c: c in INVERSE),
-              "energy": ([r for r in tests if any(k.startswith("energy @") for k in r)],
-                         keys, lambda c: c.startswith("energy @"))}
+              "energy": ([r for r in tests if is_energy(r)], keys,
+                         lambda c: c.startswith("energy @"))}
     text = []
     for stem, (rows, by, keep) in groups.items():
         if not rows:

@@ -1,5 +1,5 @@
 """Validators of config values, numpy only, so that scenes (``bgn.sim``), data code and the
-commands' config checks (``bgn.train.validate``) share them without importing torch: a wrong
+commands' config checks (``bgn.training.validate``) share them without importing torch: a wrong
 value fails at once with its name, not deep inside. ``as_*`` raise a ``ValueError``;
 ``need_*`` a ``ConfigError`` naming the key, the value and what is accepted."""
 

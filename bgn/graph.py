@@ -30,7 +30,7 @@ class Graph:
     frame: torch.Tensor          # (G,) frame index t of each graph
     dt: torch.Tensor | None = None  # (G,) frame spacing (turns velocity windows into accelerations)
     # (N, S, D) true velocities v[t+2] .. v[t+S+1] after the target's: unrolled training
-    # (bgn.train.unroll); None unless the dataset was asked for them (dataset.unroll)
+    # (bgn.training.unroll); None unless the dataset was asked for them (dataset.unroll)
     future_vel: torch.Tensor | None = None
     # (N,) bool: particles the source moves (imported data's kinematic types): inputs only,
     # never scored (losses and metrics skip them) and set from the record in rollouts

@@ -4,7 +4,7 @@ scores.
 The bridge between the files (``FrameDataset``) and ``bgn.simulator.LearnedSimulator``: true
 windows and particles of chosen simulations in, predicted and true trajectories out;
 ``evaluate_rollouts`` scores them beside the no-learning references (``bgn.metrics``), and
-``test_rollouts`` is the training's test phase (``bgn.train.run``) and the evaluation's
+``test_rollouts`` is the training's test phase (``bgn.training.run``) and the evaluation's
 (``bgn.eval.evaluate``) common part.
 """
 

@@ -8,7 +8,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
-from bgn.train.config import register_configs
+from bgn.training.config import register_configs
 
 CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
 
@@ -52,7 +52,7 @@ def shared_data_dir(tmp_path_factory) -> Path:
 def small_datamodules(shared_data_dir: Path) -> dict:
     """The small DataModule of every scene in ``SMALL``, data generated and set up once per
     session (shared by the tests that read every scene)."""
-    from bgn.train.run import data_module
+    from bgn.training.run import data_module
 
     out = {}
     for scene in SMALL:

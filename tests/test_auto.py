@@ -30,7 +30,7 @@ from bgn.studies.auto import (
     split_budget,
     write_report,
 )
-from bgn.train.validate import ConfigError, validate_train
+from bgn.training.validate import ConfigError, validate_train
 from tests.conftest import SMALL, compose_config
 from tests.test_train import CLI_ENV, command_line
 
@@ -351,8 +351,8 @@ def test_the_best_pair_force_law_becomes_a_formula_candidate(tmp_path, shared_da
     from bgn.eval.laws import law_stage
     from bgn.rollout import rollout_starts
     from bgn.studies.auto import formula_candidate
-    from bgn.train.checkpoints import check_compatible
-    from bgn.train.run import train
+    from bgn.training.checkpoints import check_compatible
+    from bgn.training.run import train
 
     auto_dir = tmp_path / "auto"
     base = ["dataset=spring", *SMALL["spring"], f"paths.data_dir={shared_data_dir}",
@@ -391,7 +391,7 @@ def test_the_best_pair_force_law_becomes_a_formula_candidate(tmp_path, shared_da
 def test_imported_data_choose_their_structure_by_default(tmp_path) -> None:
     """dataset=imported composes with model.dynamics=auto (conf/dataset_model/imported_bgn.yaml),
     and train() alone refuses it with the way to run it (auto needs the run's overrides)."""
-    from bgn.train.run import train
+    from bgn.training.run import train
 
     cfg = compose_config("train", ["dataset=imported", "dataset.name=any",
                                    f"paths.output_dir={tmp_path}"])

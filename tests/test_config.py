@@ -15,8 +15,8 @@ from omegaconf import OmegaConf
 
 from bgn.data.spec import DatasetSpec
 from bgn.model.registry import MODELS
-from bgn.train.module import PhysicsModule
-from bgn.train.run import build_module, info, plain_stats
+from bgn.training.module import PhysicsModule
+from bgn.training.run import build_module, info, plain_stats
 from tests.conftest import CONF_DIR, compose_config
 from tests.model.conftest import fake_stats
 

@@ -22,7 +22,7 @@ from bgn.data.datamodule import ParticleDataModule
 from bgn.eval.evaluate import evaluate_model, mass_figure, path_override
 from bgn.eval.evaluate import main as evaluate_main
 from bgn.rollout import evaluate_rollouts, rollout_starts, rollout_summary
-from bgn.train.run import build, train
+from bgn.training.run import build, train
 from tests.conftest import SMALL, compose_config
 from tests.test_simulator import Oracle
 
@@ -62,7 +62,7 @@ FAST_EVAL = ["rollout.steps=20", "max_frames=8", "mass_frames=4", "mass_samples=
 
 @pytest.fixture(scope="module")
 def trained_run(tmp_path_factory, shared_data_dir: Path) -> tuple[Path, dict[str, float]]:
-    """A tiny spring run trained by ``bgn.train.run.train`` (its test phase included), with the
+    """A tiny spring run trained by ``bgn.training.run.train`` (its test phase included), with the
     config Hydra would have saved in ``.hydra/config.yaml``; returns (run dir, its metrics)."""
     run = tmp_path_factory.mktemp("run")
     cfg = compose_config("train", [*TINY_RUN, f"paths.data_dir={shared_data_dir}",

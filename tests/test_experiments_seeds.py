@@ -22,7 +22,7 @@ from bgn.studies.report import (
     table1,
     write_report,
 )
-from bgn.train.validate import ConfigError
+from bgn.training.validate import ConfigError
 from tests.conftest import compose_config
 
 SEEDS = (0, 1, 2)

@@ -17,7 +17,7 @@ from bgn.provenance import block_markers
 from bgn.studies.cells import Cell, cell_overrides, compose_train, plan_cells
 from bgn.studies.grid import check_variant_cells, validate_grid
 from bgn.studies.report import write_report
-from bgn.train.validate import ConfigError, validate_train
+from bgn.training.validate import ConfigError, validate_train
 from tests.conftest import compose_config
 from tests.test_experiments_seeds import CELLS, RESULTS
 
@@ -117,7 +117,7 @@ def test_tiny_study_of_two_variants_on_validation(tmp_path: Path, shared_data_di
     from bgn.eval.evaluate import evaluate_split
     from bgn.studies.cells import cell_datamodule
     from bgn.studies.grid import run
-    from bgn.train.module import load_model
+    from bgn.training.module import load_model
 
     cfg = compose_config("experiments", [
         "preset=tiny", "preset.scenes=[spring]", "preset.fps=[50]", "preset.models=[bgn]",

@@ -30,7 +30,7 @@ from bgn.eval.laws import (
 )
 from bgn.graph import collate
 from bgn.sim import make_scene
-from bgn.train.run import build, train
+from bgn.training.run import build, train
 from tests.conftest import SMALL, compose_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -279,7 +279,7 @@ def test_fine_tuning_moves_a_perturbed_constant_back_and_writes_a_checkpoint(
     from bgn.data.datamodule import ParticleDataModule
     from bgn.eval.laws import finetune_formula, finetune_markdown, validation_errors
     from bgn.model.formula_law import FormulaLaw
-    from bgn.train.module import load_model
+    from bgn.training.module import load_model
 
     ckpt = tiny_run(tmp_path, shared_data_dir, "newton", "model.hidden=16")
     cfg = OmegaConf.load(tmp_path / "newton" / "train_config.yaml")

@@ -9,7 +9,7 @@ from matplotlib.figure import Figure
 from bgn import figures
 from bgn.graph import collate
 from bgn.rollout import rollout
-from bgn.train.run import build
+from bgn.training.run import build
 from tests.conftest import SMALL, compose_config
 
 
@@ -60,7 +60,7 @@ def test_mass_density_draws_equal_laws_alike():
 
 
 def test_a_checkpoint_written_before_a_default_changed_keeps_its_old_value():
-    from bgn.train.module import with_changed_defaults
+    from bgn.training.module import with_changed_defaults
     assert with_changed_defaults({"name": "bgn"})["mass_context"] == "node"
     assert with_changed_defaults({"name": "bgn", "mass_context": "pairs"})["mass_context"] == \
         "pairs"

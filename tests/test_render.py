@@ -14,9 +14,9 @@ from PIL import Image
 
 from bgn.figures import rollout_animation
 from bgn.studies.render import main
-from bgn.train.checkpoints import CheckpointError
-from bgn.train.module import add_animation, load_model
-from bgn.train.run import train
+from bgn.training.checkpoints import CheckpointError
+from bgn.training.module import add_animation, load_model
+from bgn.training.run import train
 from tests.conftest import SMALL, compose_config
 
 

@@ -15,7 +15,7 @@ from omegaconf import OmegaConf
 
 from bgn.provenance import block_markers
 from bgn.studies.headline import mark_fronts, validate_stages
-from bgn.train.validate import ConfigError
+from bgn.training.validate import ConfigError
 from tests.conftest import CONF_DIR, compose_config
 
 RESULTS_MD = CONF_DIR.parent / "docs" / "results.md"

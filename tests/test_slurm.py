@@ -10,7 +10,7 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from bgn.train.config import register_configs
+from bgn.training.config import register_configs
 from tests.conftest import CONF_DIR
 
 pytest.importorskip("hydra_plugins.hydra_submitit_launcher")

@@ -102,11 +102,11 @@ def test_unknown_case_keys_are_errors(tmp_path):
     with pytest.raises(ValueError, match="known"):
         load_case("missing", tmp_path)
 def test_a_checkpoint_per_scene_is_used_and_must_match_its_scene(tmp_path, monkeypatch):
-    """``checkpoints.<scene>`` is loaded with ``bgn.train.module.load_model`` (stubbed here with a
-    small untrained model) and used for that scene's cases only."""
+    """``checkpoints.<scene>`` is loaded with ``bgn.training.module.load_model`` (stubbed here with
+    a small untrained model) and used for that scene's cases only."""
     import types
 
-    import bgn.train.module
+    import bgn.training.module
     from bgn.studies.stability import model_for
 
     cfg = compose_stability(["preset=tiny", f"report_dir={tmp_path}",
@@ -115,7 +115,7 @@ def test_a_checkpoint_per_scene_is_used_and_must_match_its_scene(tmp_path, monke
     scene, state, _, _ = build(case)
     traj = scene.simulate_from(state, np.arange(30) / case.fps)
     untrained, _ = model_for(case, scene, traj, cfg)
-    monkeypatch.setattr(bgn.train.module, "load_model",
+    monkeypatch.setattr(bgn.training.module, "load_model",
                         lambda path: types.SimpleNamespace(model=untrained))
     cfg.checkpoints.spring = "spring.ckpt"
     _, label = model_for(case, scene, traj, cfg)

@@ -17,9 +17,9 @@ import torch
 from lightning.pytorch.callbacks import Callback
 
 from bgn.graph import collate
-from bgn.train.checkpoints import CheckpointError
-from bgn.train.module import PhysicsModule
-from bgn.train.run import build, train
+from bgn.training.checkpoints import CheckpointError
+from bgn.training.module import PhysicsModule
+from bgn.training.run import build, train
 from tests.conftest import SMALL, compose_config
 
 ROOT = Path(__file__).resolve().parents[1]

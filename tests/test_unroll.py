@@ -1,5 +1,5 @@
-"""Unrolled training (bgn.train.unroll): samples carry the true future, an oracle's unrolled steps
-are the dataset's own next samples, and the unrolled loss trains every model."""
+"""Unrolled training (bgn.training.unroll): samples carry the true future, an oracle's unrolled
+steps are the dataset's own next samples, and the unrolled loss trains every model."""
 
 import pytest
 import torch
@@ -7,7 +7,7 @@ import torch
 from bgn.data.datamodule import ParticleDataModule
 from bgn.graph import collate
 from bgn.model import build_model
-from bgn.train.unroll import advance, unrolled_loss
+from bgn.training.unroll import advance, unrolled_loss
 
 UNROLL = 3
 

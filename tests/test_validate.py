@@ -1,5 +1,5 @@
 """Bad input is refused before any work, with one line naming the key, the value and what is
-accepted, and exit code 2 (bgn.train.validate, the schemas of bgn.train.config)."""
+accepted, and exit code 2 (bgn.training.validate, the schemas of bgn.training.config)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from hydra.core.global_hydra import GlobalHydra
 
-from bgn.train.validate import ConfigError, validate_generate, validate_train
+from bgn.training.validate import ConfigError, validate_generate, validate_train
 from tests.conftest import compose_config
 
 ROOT = Path(__file__).resolve().parents[1]

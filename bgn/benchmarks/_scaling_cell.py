@@ -42,7 +42,7 @@ def train_config(overrides: list[str]):
     from hydra import compose, initialize_config_dir
 
     try:
-        from bgn.train.config import register_configs
+        from bgn.training.config import register_configs
         register_configs()
     except ImportError:  # older checkouts had untyped configs
         pass
@@ -96,14 +96,14 @@ def train_step(model: Any, opt: torch.optim.Optimizer, g: Any) -> None:
 
 
 def training_throughput(overrides: list[str], steps: int, device: str = "cpu") -> dict:
-    """Samples/s of a real training run's parts (``bgn.train.run.build``): the data loader alone,
+    """Samples/s of a real training run's parts (``bgn.training.run.build``): the data loader alone,
     the model step alone (forward, backward, AdamW on batches already loaded), and Lightning's
     fit loop for ``steps`` steps (loader, step, logging, metrics, clipping; no validation),
     all on ``device``."""
     import lightning as L
     from hydra.utils import instantiate
 
-    from bgn.train.run import build
+    from bgn.training.run import build
 
     cfg = train_config(["dataset=collisions", "figures=false", *overrides])
     datamodule, module = build(cfg)

@@ -36,7 +36,7 @@ class ParticleDataModule(L.LightningDataModule):
                  generate_workers: int | None = None, show_progress: bool = True,
                  spec: DatasetSpec | None = None) -> None:
         super().__init__()
-        # ``spec``: the train split's, where the caller built it already (bgn.train.validate);
+        # ``spec``: the train split's, where the caller built it already (bgn.training.validate);
         # imported data (dataset=imported): the spec comes from the files under data_dir
         self.spec = spec or DatasetSpec.from_config(dataset, fps, "train", data_dir)
         if self.spec.scene == IMPORTED:
@@ -45,7 +45,7 @@ class ParticleDataModule(L.LightningDataModule):
                 f"{self.spec.dt:g} apart as recorded ({self.spec.fps:g} per time unit); the "
                 f"top-level fps={float(fps):g} is ignored")
         loader = LoaderOptions.from_config(dataset, self.spec.n_sims)  # checked: ConfigError
-        self.history, self.unroll = loader.history, loader.unroll  # unroll: bgn.train.unroll
+        self.history, self.unroll = loader.history, loader.unroll  # unroll: bgn.training.unroll
         self.batch_size, self.num_workers = loader.batch_size, loader.num_workers
         self.in_memory, self.train_sims = loader.in_memory, loader.train_sims
         self.samples: dict[str, int | None] = {"val": loader.val_samples,

@@ -27,7 +27,7 @@ class FrameDataset(Dataset):
 
     ``sims`` restricts the simulations used (e.g. the first 3 for a sample-efficiency run).
     ``unroll`` S > 0 adds the true velocities of the S frames after the target's to every
-    graph (``Graph.future_vel``, for unrolled training: ``bgn.train.unroll``); the last S
+    graph (``Graph.future_vel``, for unrolled training: ``bgn.training.unroll``); the last S
     frames of each simulation then start no sample.
     """
 

@@ -26,7 +26,7 @@ IMPORTED = "imported"  # the scene of imported data (bgn.sim.imported, bgn.data.
 
 def check_fps(value: Any) -> float:
     """``fps`` as a float > 0: the one home of the rule (the spec, and the config checks of
-    ``bgn.train.validate`` before any spec is built)."""
+    ``bgn.training.validate`` before any spec is built)."""
     return need_float(value, "fps", 0.0, why=" (frames per unit of simulated time)")
 
 
@@ -34,8 +34,8 @@ def check_fps(value: Any) -> float:
 class LoaderOptions:
     """How a dataset node says its frames are loaded (``LOADER_KEYS`` but the generation's
     ``generate_workers``): the one home of their defaults (the config schema
-    ``bgn.train.config.LoaderNode`` is this class) and of their rules (``from_config``, which
-    the DataModule and ``bgn.train.validate`` both call)."""
+    ``bgn.training.config.LoaderNode`` is this class) and of their rules (``from_config``, which
+    the DataModule and ``bgn.training.validate`` both call)."""
 
     history: int = 5                  # k previous velocities in the input window (>= 0)
     unroll: int = 0                   # training steps unrolled on the model's own frames

@@ -43,9 +43,9 @@ from bgn.model.impulse import ContactImpulseHead
 from bgn.model.target_coder import extrapolate, observed_targets
 from bgn.provenance import git_commit
 from bgn.rollout import evaluate_rollouts, lb_prefix
-from bgn.train.checkpoints import CheckpointError, read
-from bgn.train.module import PhysicsModule, load_model
-from bgn.train.validate import (
+from bgn.training.checkpoints import CheckpointError, read
+from bgn.training.module import PhysicsModule, load_model
+from bgn.training.validate import (
     DATA_EXIT,
     MAX_SEED,
     ConfigError,
@@ -501,12 +501,13 @@ def path_override(argv: list[str]) -> list[str]:
 
 def resolve_run(path: str, run_config: str | None = None) -> tuple[Path, Path, Path]:
     """``(checkpoint, run directory, run config)`` of a checkpoint or run directory: a run
-    directory gives its chosen checkpoint (``bgn.train.checkpoints.chosen_checkpoint``: best.ckpt,
-    the newest best-vN.ckpt, else last.ckpt), or ``laws/formula.ckpt`` where the run's
-    ``laws/formula.json`` chose the formula law on validation (``model.law=auto``, or
-    ``python -m bgn.laws <ckpt> finetune=true``); a checkpoint in ``<run>/checkpoints/`` its
+    directory gives its chosen checkpoint
+    (``bgn.training.checkpoints.chosen_checkpoint``: best.ckpt, the newest best-vN.ckpt, else
+    last.ckpt), or ``laws/formula.ckpt`` where the run's ``laws/formula.json`` chose the
+    formula law on validation (``model.law=auto``, or ``python -m bgn.laws <ckpt>
+    finetune=true``); a checkpoint in ``<run>/checkpoints/`` its
     run. Bad input: one ``ConfigError`` naming the path and the fix."""
-    from bgn.train.checkpoints import chosen_checkpoint, run_config_paths
+    from bgn.training.checkpoints import chosen_checkpoint, run_config_paths
 
     given = Path(path).expanduser()
     if not given.exists():
@@ -574,8 +575,8 @@ def load_checked(ckpt: Path, run_cfg: Any, datamodule: Any) -> PhysicsModule:
     """The checkpoint's module, refused in one line when its model is unknown to this bgn or
     it was trained on another scene or model than its run config says."""
     from bgn.model.registry import MODELS
-    from bgn.train.checkpoints import check_compatible
-    from bgn.train.run import run_provenance
+    from bgn.training.checkpoints import check_compatible
+    from bgn.training.run import run_provenance
 
     record = read(ckpt)
     name = ((record.get("hyper_parameters") or {}).get("model_config") or {}).get("name")
@@ -775,7 +776,7 @@ def write_outputs(out_dir: Path, record: dict[str, Any], metrics: dict[str, Any]
     import os
 
     from bgn.figures import save
-    from bgn.train.checkpoints import write_atomic
+    from bgn.training.checkpoints import write_atomic
 
     out_dir.mkdir(parents=True, exist_ok=True)
     names = []
@@ -886,7 +887,7 @@ def write_rollouts(path: Path, positions: dict[str, np.ndarray], dt: float) -> N
         tmp.unlink(missing_ok=True)
 
 
-@cli("evaluate")  # Hydra app; bad input: one line, exit 2 (bgn.train.validate)
+@cli("evaluate")  # Hydra app; bad input: one line, exit 2 (bgn.training.validate)
 def main(cfg: Any) -> Path:
     """``python -m bgn.evaluate <checkpoint or run directory> [split=test] ...``."""
     with reported():
@@ -904,7 +905,7 @@ def command() -> None:
     ``sys.argv`` (``path_override``)."""
     import sys
 
-    from bgn.train.config import register_configs
+    from bgn.training.config import register_configs
 
     register_configs(models=False)  # evaluate_base, before Hydra composes conf/evaluate.yaml
     _ARGV[:] = sys.argv

@@ -957,7 +957,7 @@ def write_report(report: LawReport, out_dir: str | Path, title: str | None = Non
     """report.md, law.csv (r, learned, formula, truth per pair of types), law.json and
     law.png in ``out_dir``; each file written whole or not at all."""
     from bgn.figures import save
-    from bgn.train.checkpoints import write_atomic
+    from bgn.training.checkpoints import write_atomic
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -1027,8 +1027,8 @@ def formula_module(checkpoint: Path, spec: str, substeps: int) -> Any:
     weight but the law's copied from the checkpoint; (module, its hyperparameters)."""
     import inspect
 
-    from bgn.train.checkpoints import read
-    from bgn.train.module import PhysicsModule
+    from bgn.training.checkpoints import read
+    from bgn.training.module import PhysicsModule
 
     saved = read(checkpoint)  # once: the fine-tuning rebuilds the model for every form
     hp = dict(saved.get("hyper_parameters") or {})
@@ -1341,7 +1341,7 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     ``start``: a spec to start from in place of the law read back (tests). ``max_seconds``:
     the fit stops there too (a time budget: ``bgn.studies.auto``'s share).
     Returns the record (specs before and after, errors, choice)."""
-    from bgn.train.module import load_model
+    from bgn.training.module import load_model
 
     network = load_model(checkpoint)
     if start is None and report is None:
@@ -1479,7 +1479,7 @@ def _write_formula(out: Path, checkpoint: Path, module: Any, hp: dict[str, Any],
                    record: dict[str, Any]) -> Path:
     """``formula.ckpt`` (the checkpoint with the formula law: loadable as any checkpoint) and
     ``formula.json`` (the record) in ``out``; returns the checkpoint's path."""
-    from bgn.train.checkpoints import read, write_atomic
+    from bgn.training.checkpoints import read, write_atomic
 
     out.mkdir(parents=True, exist_ok=True)
     ckpt = read(checkpoint)
@@ -1624,8 +1624,8 @@ def formula_stage(checkpoint: Path, train_split: Any, val: Any, config: Any,
     fine-tuning record (``{}`` without ``finetune``) with ``report`` (report.md's path)."""
     from omegaconf import OmegaConf, open_dict
 
-    from bgn.train.checkpoints import read, write_atomic
-    from bgn.train.module import load_model
+    from bgn.training.checkpoints import read, write_atomic
+    from bgn.training.module import load_model
 
     report = read_law(load_model(checkpoint), train_split,
                       **{k: options[k] for k in ("max_terms", "tolerance", "parsimony")
@@ -1656,7 +1656,7 @@ def formula_stage(checkpoint: Path, train_split: Any, val: Any, config: Any,
 
 def law_stage(cfg: Any, best: Path, datamodule: Any, output_dir: Path,
               world_size: int) -> dict[str, Any]:
-    """``model.law=auto``'s stage (``bgn.train.run.train``'s ``law_stage``): the best
+    """``model.law=auto``'s stage (``bgn.training.run.train``'s ``law_stage``): the best
     checkpoint's network law read back as a formula, the formula fine-tuned as the law and
     kept where it validates better on rollouts (``formula_stage``, in ``<run>/laws/``); run
     before the test, on the training and validation splits only. Returns its record
@@ -1685,8 +1685,8 @@ def run(checkpoint: Path, options: dict[str, Any]) -> Path:
     from omegaconf import OmegaConf
 
     from bgn.data.datamodule import ParticleDataModule
-    from bgn.train.checkpoints import run_config
-    from bgn.train.module import load_model
+    from bgn.training.checkpoints import run_config
+    from bgn.training.module import load_model
 
     pair_force_head(load_model(checkpoint))  # refused before any data are read
     config = Path(options["config"]) if "config" in options else run_config(checkpoint)
@@ -1708,8 +1708,8 @@ def run(checkpoint: Path, options: dict[str, Any]) -> Path:
 def main(argv: list[str] | None = None) -> Path:
     """The command line: one clear line and exit code 2 on bad input."""
     from bgn.data.files import DatasetFileError
-    from bgn.train.checkpoints import CheckpointError
-    from bgn.train.validate import CONFIG_EXIT, DATA_EXIT, fail, full_error
+    from bgn.training.checkpoints import CheckpointError
+    from bgn.training.validate import CONFIG_EXIT, DATA_EXIT, fail, full_error
 
     try:
         checkpoint, options = parse(sys.argv[1:] if argv is None else argv)

@@ -34,7 +34,7 @@ from bgn.model.normalizer import Normalizer
 from bgn.model.target_coder import LOSSES, PRIORS, TargetCoder
 from bgn.sim.scene import SceneMeta
 
-# "unroll": the dynamics loss of steps unrolled on the model's own frames (bgn.train.unroll);
+# "unroll": the dynamics loss of steps unrolled on the model's own frames (bgn.training.unroll);
 # "impulse_mass": the learned masses of the impulse head (bgn.model.impulse)
 # "law": the structured force head's prediction with the recorded masses (bgn.model.newton)
 LOSS_KEYS = ("dynamics", "contact", "type", "mass_nll", "relmass", "unroll", "impulse_mass",

@@ -133,7 +133,7 @@ def term_text(term: dict[str, Any], digits: int = 4) -> str:
 
 # auto: the network law is trained, then read back as a formula and fine-tuned after the fit,
 # and the one that validates better on rollouts is kept (bgn.eval.laws.law_stage, handed to
-# bgn.train.run.train); the model itself carries the network law
+# bgn.training.run.train); the model itself carries the network law
 LAWS = ("mlp", "formula", "auto")
 
 

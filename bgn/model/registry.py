@@ -2,7 +2,7 @@
 
 A model is a ``bgn.model.base.PhysicsModel`` subclass with a ``name`` and a ``config_class``
 (a dataclass of its options). To add one, write its module, list its class in ``MODELS``
-below and add ``conf/model/<name>.yaml`` on its ``<name>_base`` schema (``bgn.train.config``;
+below and add ``conf/model/<name>.yaml`` on its ``<name>_base`` schema (``bgn.training.config``;
 README, "Adding a model"). The optimiser is not a model option (``conf/optimizer/``).
 """
 

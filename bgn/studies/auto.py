@@ -58,7 +58,7 @@ from bgn.data.balance import (
 )
 from bgn.metrics import SHORT_HORIZON, rollout_scores
 from bgn.sim.scene import SceneMeta
-from bgn.train.checkpoints import write_atomic
+from bgn.training.checkpoints import write_atomic
 
 log = logging.getLogger("bgn.studies.auto")
 
@@ -570,10 +570,10 @@ def compose_candidate(base: Sequence[str], cand: Candidate, out_dir: Path,
 
 
 def train_candidate(cand: Candidate, cfg: DictConfig) -> Result:
-    """Train one candidate (``bgn.train.run.train``) in its own directory."""
+    """Train one candidate (``bgn.training.run.train``) in its own directory."""
     from bgn.eval.laws import law_stage
-    from bgn.train.checkpoints import read
-    from bgn.train.run import train
+    from bgn.training.checkpoints import read
+    from bgn.training.run import train
 
     out_dir = Path(cfg.paths.output_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -598,8 +598,8 @@ def score_candidate(result: Result, out_dir: Path, val: Any, train_split: Any,
     masses on validation windows."""
     from bgn.model.newton import PairForceHead
     from bgn.rollout import rollout_many
-    from bgn.train.checkpoints import best_checkpoint
-    from bgn.train.module import load_model
+    from bgn.training.checkpoints import best_checkpoint
+    from bgn.training.module import load_model
 
     module = load_model(best_checkpoint(out_dir))
     t = rollout_many(module.model, val, sims, starts, n_steps)
@@ -628,7 +628,7 @@ def formula_candidate(results: Sequence[Result], auto_dir: Path, val: Any, train
     eligible to win, and its best checkpoint the one the winner resumes from. None without a
     scored pair-force candidate."""
     from bgn.eval.laws import FINETUNE_STEPS, FINETUNE_SUBSTEPS, finetune_formula, spec_text
-    from bgn.train.checkpoints import best_checkpoint
+    from bgn.training.checkpoints import best_checkpoint
 
     scored = [r for r in results if r.candidate.pair_force and not r.error and r.errors]
     if not scored:
@@ -663,7 +663,7 @@ def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[st
     from bgn.data.frames import evenly_spaced
     from bgn.eval.laws import law_stage
     from bgn.rollout import rollout_starts
-    from bgn.train.run import data_module, info, train
+    from bgn.training.run import data_module, info, train
 
     base = run_overrides(overrides)
     run_dir = Path(cfg.paths.output_dir)

@@ -1,5 +1,5 @@
 """The cells of a study: one training run each, planned from a preset (per seed of its
-``seeds``), trained through the real ``train`` config (``bgn.train.run.train``) and read back.
+``seeds``), trained through the real ``train`` config (``bgn.training.run.train``) and read back.
 Shared by the grid study (``bgn.studies.grid``) and the Pareto study (``bgn.studies.pareto``),
 which plan their cells differently (``plan_cells`` here is the grid's) and train and read them
 alike.
@@ -18,7 +18,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from bgn.coerce import ConfigError
-from bgn.train.checkpoints import read_record, write_atomic
+from bgn.training.checkpoints import read_record, write_atomic
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 
@@ -122,7 +122,7 @@ def compose_train(overrides: list[str]) -> DictConfig:
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from bgn.train.config import register_configs
+    from bgn.training.config import register_configs
 
     register_configs()  # the model schemas the model yamls build on
     if GlobalHydra.instance().is_initialized():
@@ -134,7 +134,7 @@ def compose_train(overrides: list[str]) -> DictConfig:
 def train_cell(cell: Cell, cfg: DictConfig) -> tuple[dict[str, Any], bool]:
     """Train a cell unless its metrics.json exists; returns (the metrics record, trained?)."""
     from bgn.eval.laws import law_stage
-    from bgn.train.run import train
+    from bgn.training.run import train
 
     run_dir = Path(cfg.cells_dir) / cell.name
     metrics_path = run_dir / "metrics.json"

@@ -16,7 +16,7 @@ from omegaconf import DictConfig
 from bgn.studies import grid, pareto
 from bgn.studies.cells import cell_overrides, compose_train, plan_cells
 from bgn.studies.headline import validate_stages
-from bgn.train.validate import ConfigError, cli, validate_train
+from bgn.training.validate import ConfigError, cli, validate_train
 
 
 def is_pareto(cfg: DictConfig) -> bool:
@@ -27,7 +27,7 @@ def is_pareto(cfg: DictConfig) -> bool:
 
 def validate_cells(cfg: DictConfig) -> None:
     """The train config of every cell, checked before the first cell trains
-    (``bgn.train.validate.validate_train``): a bad preset fails at once, naming the cell."""
+    (``bgn.training.validate.validate_train``): a bad preset fails at once, naming the cell."""
     if not is_pareto(cfg):  # the grid's eval.split and variants, its stability and Pareto
         grid.validate_grid(cfg.preset)  # stages (bgn.studies.headline)
         grid.check_variant_cells(cfg)

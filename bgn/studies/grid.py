@@ -49,7 +49,7 @@ from bgn.studies.cells import (
 )
 from bgn.studies.headline import STAGES, run_stages
 from bgn.studies.report import CALIBRATION_SPLIT, write_report
-from bgn.train.checkpoints import chosen_checkpoint, read_record, write_atomic
+from bgn.training.checkpoints import chosen_checkpoint, read_record, write_atomic
 
 
 def eval_split(preset: DictConfig) -> str:
@@ -142,7 +142,7 @@ def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
     ``eval_files``), and its KDE figure under the report's figures/ when the model has an
     inverse head."""
     from bgn.eval.evaluate import evaluate_split, mass_figure
-    from bgn.train.module import load_model
+    from bgn.training.module import load_model
 
     run_dir = Path(cfg.cells_dir) / cell.name
     ckpt = chosen_checkpoint(run_dir)  # the formula where model.law=auto chose it
@@ -229,7 +229,7 @@ def cell_process(cell: Cell, cfg: DictConfig, threads: int | None) -> tuple[bool
 def prepare_datasets(cells: list[Cell], cfg: DictConfig) -> None:
     """Generate every dataset the cells read, once each, before parallel cells start (each
     with every core; the cells would otherwise wait on one another's file locks)."""
-    from bgn.train.run import data_module
+    from bgn.training.run import data_module
 
     seen: set[Path] = set()
     for cell in cells:

@@ -183,7 +183,7 @@ def _stability_job(name: str, preset: dict[str, Any],
 
 @functools.lru_cache(maxsize=32)
 def _load(ckpt: str) -> Any:
-    from bgn.train.module import load_model
+    from bgn.training.module import load_model
 
     return load_model(ckpt).model
 
@@ -192,7 +192,7 @@ def stability_models(cfg: DictConfig, cells: list[Cell], results: dict[str, Any]
                      ) -> dict[str, list[tuple[int, str, str]]]:
     """Per scene, (seed, checkpoint, label) of the grid's ``stability.model`` cells at
     ``stability.fps`` of the chosen seeds that trained and were evaluated."""
-    from bgn.train.checkpoints import chosen_checkpoint
+    from bgn.training.checkpoints import chosen_checkpoint
 
     preset, out = cfg.preset, {}
     seeds, fps = stability_seeds(preset), stability_fps(preset)
@@ -291,8 +291,8 @@ def pareto_points(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
     """Per seed, every main cell's point and (from the first cell of each scene x fps) the
     no-learning extrapolations', from the grid's eval.json and metrics.json."""
     from bgn.studies.report import REFERENCES, evaluation, training, variant
-    from bgn.train.checkpoints import chosen_checkpoint
-    from bgn.train.module import load_model
+    from bgn.training.checkpoints import chosen_checkpoint
+    from bgn.training.module import load_model
 
     rows = []
     main = [c for c in cells if "main" in c.groups and c.name in results]

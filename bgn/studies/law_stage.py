@@ -78,8 +78,8 @@ def _law_job(cell_dir: str, data_dir: str, out_dir: str,
     ``{"left_out": reason}`` where the cell's model has no pair-force head."""
     from bgn.eval.laws import formula_stage, pair_force_head
     from bgn.studies.cells import cell_datamodule
-    from bgn.train.checkpoints import best_checkpoint
-    from bgn.train.module import load_model
+    from bgn.training.checkpoints import best_checkpoint
+    from bgn.training.module import load_model
 
     t0 = time.perf_counter()
     best = best_checkpoint(Path(cell_dir))

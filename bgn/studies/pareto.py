@@ -43,7 +43,7 @@ from omegaconf import DictConfig
 from bgn.coerce import clock
 from bgn.studies.cells import Cell, cell_datamodule, train_cell
 from bgn.tables import fmt, write_table
-from bgn.train.checkpoints import read_record, write_atomic
+from bgn.training.checkpoints import read_record, write_atomic
 
 SCHEDULE = "schedule"    # the group of the cells with checkpoints on the time schedule
 SIZES = "sizes"          # the group of the cells at other model sizes
@@ -189,7 +189,7 @@ def evaluate_checkpoint(ckpt: Path, test: Any, fps: float, e: DictConfig) -> dic
     from bgn.eval.evaluate import evaluate_model
     from bgn.metrics import rollout_metrics
     from bgn.rollout import rollout_many, rollout_starts
-    from bgn.train.module import load_model
+    from bgn.training.module import load_model
 
     module = load_model(ckpt)
     forward, _ = evaluate_model(module, test, max_frames=e.max_frames, batch_size=e.batch_size,
@@ -271,7 +271,7 @@ def scaled_collisions(cells: list[Cell], cfg: DictConfig, n_particles: int,
     and fps) rolled out of the same true window: its time and its error after one time unit
     against the exact simulator."""
     from bgn.model.references import Extrapolation
-    from bgn.train.module import load_model
+    from bgn.training.module import load_model
 
     sc = cfg.preset.simulator
     cell = cells[0]

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from bgn.train.checkpoints import run_config
+from bgn.training.checkpoints import run_config
 
 
 def main(argv: list[str] | None = None) -> Path:
@@ -36,7 +36,7 @@ def main(argv: list[str] | None = None) -> Path:
     from bgn.data.datamodule import ParticleDataModule
     from bgn.figures import rollout_animation
     from bgn.rollout import REFERENCE_START, rollout
-    from bgn.train.module import load_model
+    from bgn.training.module import load_model
 
     if not args.checkpoint.exists():
         raise SystemExit(f"no checkpoint at {args.checkpoint}")

@@ -213,7 +213,7 @@ def model_for(case: Case, scene: Scene, traj: Trajectory, cfg: DictConfig
     the preset's untrained model with statistics of the default scene, else None."""
     ckpt = (cfg.get("checkpoints") or {}).get(case.scene)
     if ckpt:
-        from bgn.train.module import load_model
+        from bgn.training.module import load_model
 
         model = load_model(ckpt).model
         if model.meta.name != case.scene or model.meta.dim != scene.meta.dim:

@@ -1,7 +1,7 @@
 """``python -m bgn.train [dataset=spring] [fps=50] [model=bgn] ...``: train a model on a scene.
 
 Generates the dataset on first use, trains with Lightning, evaluates the best checkpoint on
-the test split and writes ``metrics.json`` in the run directory (``bgn.train.run``). The run's
+the test split and writes ``metrics.json`` in the run directory (``bgn.training.run``). The run's
 full config is saved by Hydra in ``<run>/.hydra/config.yaml``; ``python -m bgn.train
 --config-path <run>/.hydra --config-name config`` reproduces it. ``model.dynamics=auto`` is a
 study of several trainings (``bgn.studies.auto``), started from here.
@@ -11,12 +11,12 @@ from __future__ import annotations
 
 from omegaconf import DictConfig
 
-from bgn.train.checkpoints import CheckpointError
-from bgn.train.run import train
-from bgn.train.validate import cli, validate_train
+from bgn.training.checkpoints import CheckpointError
+from bgn.training.run import train
+from bgn.training.validate import cli, validate_train
 
 
-@cli("train")  # Hydra app; bad input: one line, exit 2 (bgn.train.validate)
+@cli("train")  # Hydra app; bad input: one line, exit 2 (bgn.training.validate)
 def main(cfg: DictConfig) -> float:
     spec = validate_train(cfg)  # once per run: the DatasetSpec is handed on to the DataModule
     try:

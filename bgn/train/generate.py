@@ -2,7 +2,7 @@
 dataset's train, val and test files (``bgn.data.generate``) without training.
 
 A command of the training stage: its config is the training's ``dataset`` node and ``fps``,
-typed by ``bgn.train.config`` and checked by ``bgn.train.validate`` before any simulation.
+typed by ``bgn.training.config`` and checked by ``bgn.training.validate`` before any simulation.
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from typing import Any
 
 from bgn.data.files import DatasetFile
 from bgn.data.generate import ensure_splits
-from bgn.train.config import register_configs
-from bgn.train.validate import cli, validate_generate
+from bgn.training.config import register_configs
+from bgn.training.validate import cli, validate_generate
 
 
 def main(cfg: Any) -> dict[str, Path]:

@@ -24,9 +24,9 @@ from bgn.data.raw import DataImportError
 from bgn.data.spec import DatasetSpec
 from bgn.model.noise import add_random_walk_noise
 from bgn.rollout import rollout
-from bgn.train.run import build, data_module, train
-from bgn.train.unroll import advance
-from bgn.train.validate import ConfigError, validate_train
+from bgn.training.run import build, data_module, train
+from bgn.training.unroll import advance
+from bgn.training.validate import ConfigError, validate_train
 from tests.conftest import SMALL, compose_config
 from tests.data.layouts import (
     write_arrays_h5,
@@ -305,7 +305,7 @@ def test_kinematic_particles_are_inputs_never_predicted_or_scored(tmp_path):
 
 
 def test_checkpoints_record_the_import_and_its_data(tmp_path):
-    from bgn.train.run import run_provenance
+    from bgn.training.run import run_provenance
 
     rng = np.random.default_rng(4)
     x = rng.normal(size=(10, 12, 3, 2)) * 0.01 + rng.normal(size=(1, 1, 3, 2))

@@ -12,8 +12,8 @@ import torch
 from bgn.law_table import SMOOTHING
 from bgn.model import force_matching as fm
 from bgn.model.newton import LAW_INITS, NewtonConfig
-from bgn.train.module import PhysicsModule
-from bgn.train.run import build_module, train
+from bgn.training.module import PhysicsModule
+from bgn.training.run import build_module, train
 from tests.conftest import SMALL, compose_config
 from tests.test_train import tiny_train_cfg  # noqa: F401  (a fixture)
 
@@ -177,7 +177,7 @@ def test_a_velocity_dependent_central_force_is_seen_by_the_law_fit_not_the_balan
     from bgn.data import from_arrays
     from bgn.data.balance import momentum_balance
     from bgn.data.files import DatasetFile
-    from bgn.train.run import data_module
+    from bgn.training.run import data_module
 
     paths = from_arrays(damped_springs(damping), 0.02, name="damped",
                         data_dir=tmp_path / "data", splits={"train": [0, 1, 2, 3],

@@ -21,7 +21,7 @@ from bgn.graph import Graph, collate
 from bgn.model.base import ModelOutput, PhysicsModel
 from bgn.rollout import particles, simulator, true_positions
 from bgn.simulator import Particles
-from bgn.train.run import build_module, plain_stats
+from bgn.training.run import build_module, plain_stats
 from tests.conftest import SMALL, compose_config
 
 SCENES = ["spring", "gravity_r1", "gravity_r2", "collisions"]

@@ -28,7 +28,7 @@ from bgn.model.ops import scatter_sum
 from bgn.sim.scene import SceneMeta
 from bgn.studies.stability import build as build_case
 from bgn.studies.stability import load_case
-from bgn.train.run import train
+from bgn.training.run import train
 from tests.conftest import compose_config
 from tests.test_train import SMALL_MODELS
 

@@ -29,7 +29,7 @@ from bgn.model.newton import numerov, past_positions  # noqa: E402
 from bgn.model.ops import scatter_sum  # noqa: E402
 from bgn.model.target_coder import observed_targets  # noqa: E402
 from bgn.rollout import rollout_error, rollout_many  # noqa: E402
-from bgn.train.run import build  # noqa: E402
+from bgn.training.run import build  # noqa: E402
 
 DATA, NAME = os.environ.get("DATA", "data"), os.environ.get("NAME", "ase_morse_gas")
 
@@ -129,8 +129,8 @@ def masses(run: str) -> None:
     from omegaconf import OmegaConf
 
     from bgn.data.datamodule import ParticleDataModule
-    from bgn.train.checkpoints import best_checkpoint
-    from bgn.train.module import load_model
+    from bgn.training.checkpoints import best_checkpoint
+    from bgn.training.module import load_model
 
     module = load_model(best_checkpoint(Path(run)))
     model = module.model.eval()

@@ -9,7 +9,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from bgn.tables import write_table
-from bgn.train.checkpoints import read_record
+from bgn.training.checkpoints import read_record
 
 SUMMARY_METRICS = ("val/nmse", "test/nmse", "test/mse", "test/median_relative_error",
                    "test/type_accuracy", "test/contact_f1", "test/contact_r2",

@@ -6,9 +6,10 @@ the test split and writes ``metrics.json`` in the run directory (sweeps gather t
 summary table). The run's full config is saved by Hydra in ``<run>/.hydra/config.yaml``;
 ``python -m bgn.train --config-path <run>/.hydra --config-name config`` reproduces it.
 
-Config: ``model`` (the model's options, typed by its dataclass: ``bgn.train.config``), ``optimizer``
-and ``scheduler`` (Hydra partials, instantiated here and handed to ``PhysicsModule``), and
-``dataset_model`` (a scene's own model defaults, ``conf/dataset_model/<scene>_<model>.yaml``).
+Config: ``model`` (the model's options, typed by its dataclass: ``bgn.training.config``),
+``optimizer`` and ``scheduler`` (Hydra partials, instantiated here and handed to
+``PhysicsModule``), and ``dataset_model`` (a scene's own model defaults,
+``conf/dataset_model/<scene>_<model>.yaml``).
 Messages go through ``logging`` from the rank-zero process only (DDP runs one process per
 device, each running this module).
 """
@@ -28,22 +29,22 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from bgn.train.checkpoints import (
+from bgn.training.checkpoints import (
     check_compatible,
     provenance,
     resolve_last,
     write_atomic,
 )
-from bgn.train.config import register_configs
-from bgn.train.validate import validate_train
+from bgn.training.config import register_configs
+from bgn.training.validate import validate_train
 
 if TYPE_CHECKING:  # Lightning and the data and model modules load when they are used, so
-    # that bad input is refused (bgn.train.validate) before the seconds their import takes
+    # that bad input is refused (bgn.training.validate) before the seconds their import takes
     from bgn.data.datamodule import ParticleDataModule
     from bgn.data.spec import DatasetSpec
-    from bgn.train.module import PhysicsModule
+    from bgn.training.module import PhysicsModule
 
-register_configs()  # the schemas (bgn.train.config), before Hydra composes conf/train.yaml
+register_configs()  # the schemas (bgn.training.config), before Hydra composes conf/train.yaml
 
 # model.law=auto's stage (bgn.eval.laws.law_stage): (cfg, best checkpoint, datamodule, run
 # directory, world size) -> its record, "choice" the law that validates better
@@ -83,7 +84,7 @@ def data_module(cfg: DictConfig, spec: DatasetSpec | None = None) -> ParticleDat
 
 
 def run_provenance(cfg: DictConfig, datamodule: ParticleDataModule) -> dict[str, Any]:
-    """What this run's checkpoints record of it (``bgn.train.checkpoints.provenance``)."""
+    """What this run's checkpoints record of it (``bgn.training.checkpoints.provenance``)."""
     spec = datamodule.spec
     return provenance(spec.scene, spec.generating_config()["params"], spec.fps,
                       str(cfg.model.get("name", "bgn")), datamodule.history)
@@ -116,7 +117,7 @@ def build_module(cfg: DictConfig, meta: dict[str, Any], stats: dict[str, Any], h
                  provenance: dict[str, Any] | None = None) -> PhysicsModule:
     """The LightningModule of a composed config: the model from ``cfg.model``, the optimiser
     and scheduler partials from ``cfg.optimizer`` and ``cfg.scheduler``."""
-    from bgn.train.module import PhysicsModule
+    from bgn.training.module import PhysicsModule
 
     model_config = OmegaConf.to_container(cfg.model, resolve=True)
     optimizer = scheduler = scheduler_config = None
@@ -143,7 +144,7 @@ def train(cfg: DictConfig, spec: DatasetSpec | None = None,
     handed in by the commands above this stage)."""
     import lightning as L
 
-    from bgn.train.signals import SignalCheckpoint, interrupted
+    from bgn.training.signals import SignalCheckpoint, interrupted
 
     if cfg.model.get("dynamics") == "auto":  # candidates are composed from the overrides
         raise ValueError("model.dynamics=auto is a study of several trainings: run it with "
@@ -189,7 +190,7 @@ def train(cfg: DictConfig, spec: DatasetSpec | None = None,
             law_record = law_stage(cfg, Path(best), datamodule, output_dir,
                                    trainer.world_size)
             if law_record.get("choice") == "formula":
-                from bgn.train.module import load_model
+                from bgn.training.module import load_model
 
                 tested, tested_ckpt = load_model(law_record["path"]), None
         if not cfg.test and law_record:

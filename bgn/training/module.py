@@ -39,8 +39,8 @@ from bgn.graph import Graph
 from bgn.model import build_model
 from bgn.model.force_matching import MATCHED_LAW_LR, matched_law_parameters, prepare
 from bgn.sim import SceneMeta
-from bgn.train.checkpoints import CheckpointError, read
-from bgn.train.unroll import unrolled_loss
+from bgn.training.checkpoints import CheckpointError, read
+from bgn.training.unroll import unrolled_loss
 
 STAGES = ("train", "val", "test")
 MATCH_BATCHES = (30, 10)  # training and validation batches of force matching (law_init=match)
@@ -108,8 +108,9 @@ class PhysicsModule(L.LightningModule):
         # scheduler callables are training settings (in the run's .hydra/config.yaml), and
         # hyperparameters of older checkpoints that __init__ no longer takes (lr, ...) are
         # dropped by Lightning when loading. All are plain types (checkpoints are read with
-        # weights_only=True). ``provenance``: the run that trained it (scene, scene parameters
-        # hash, fps, model, history: bgn.train.checkpoints.provenance), checked when a run resumes.
+        # weights_only=True). ``provenance``: the run that trained it (scene, scene
+        # parameters hash, fps, model, history: bgn.training.checkpoints.provenance), checked
+        # when a run resumes.
         self.save_hyperparameters(ignore=["rollout", "rollout_error", "optimizer", "scheduler"])
         self.meta = SceneMeta(**meta)
         stats_arrays = {g: {k: np.asarray(v, dtype=np.float64) for k, v in entries.items()}
@@ -350,7 +351,7 @@ def add_animation(experiment: Any, tag: str, result: dict[str, np.ndarray], step
 
 def load_model(ckpt: str | Path) -> PhysicsModule:
     """The LightningModule of a checkpoint, on the CPU, in eval mode; read with
-    ``weights_only=True``, and an unreadable file is named (``bgn.train.checkpoints.read``)."""
+    ``weights_only=True``, and an unreadable file is named (``bgn.training.checkpoints.read``)."""
     record = read(ckpt)  # a missing, truncated or foreign file: one CheckpointError naming it
     try:
         module = PhysicsModule.load_from_checkpoint(ckpt, map_location="cpu", weights_only=True)

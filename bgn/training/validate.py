@@ -1,7 +1,7 @@
 """Bad input, refused at once: config checks before any work, and the one-line exit.
 
-The typed schemas (``bgn.train.config``) fix the types at composition; here are the ranges and the
-cross-checks, run by every entry point (``bgn.train``, ``bgn.train.generate``,
+The typed schemas (``bgn.training.config``) fix the types at composition; here are the ranges and
+the cross-checks, run by every entry point (``bgn.train``, ``bgn.train.generate``,
 ``bgn.studies.grid``) before data are generated or a model is built:
 
 - ``fps`` > 0 and low enough that the frame spacing is resolved by the stored float64

@@ -13,7 +13,7 @@
 
 A composed node is then typed: ``model.hidden=abc`` or ``fps=abc`` is refused at composition
 and a typo (``model.hiden=3``) is an error. Ranges and cross-checks (``fps > 0``, enough
-frames for the window, ...) are ``bgn.train.validate``'s.
+frames for the window, ...) are ``bgn.training.validate``'s.
 
 Call ``register_configs()`` before composing a config (``bgn.train`` and
 ``bgn.train.generate`` do it at import, the tests in ``compose_config``); calling it again does

@@ -50,6 +50,26 @@ def test_inverse_evaluation_with_references(scene: str, tmp_path: Path,
     assert mass_figure(arrays, tmp_path / "mass.png").stat().st_size > 0
 
 
+def test_the_relmass_point_is_the_median_unless_a_draw_is_asked(shared_data_dir: Path) -> None:
+    """``relmass_decode=median`` decodes Eq. 9-10 at the flow's base draw 0: the same for any
+    seed; ``draw`` at a random posterior sample: it moves with the seed."""
+    cfg = compose_config("train", ["dataset=spring", *SMALL["spring"], *TINY_BGN,
+                                   f"paths.data_dir={shared_data_dir}", "figures=false",
+                                   "val_rollout_steps=0"])
+    datamodule, module = build(cfg)
+    test = datamodule.datasets["test"]
+
+    def r2(decode: str, seed: int) -> float:
+        metrics, _ = evaluate_model(module.eval(), test, max_frames=4, mass_frames=2,
+                                    mass_samples=2, batch_size=4, seed=seed,
+                                    relmass_decode=decode)
+        return metrics["relmass_r2"]
+
+    assert r2("median", 0) == r2("median", 1)
+    assert r2("draw", 0) != r2("draw", 1)
+    assert r2("draw", 0) != r2("median", 0)
+
+
 # ----------------------------------------------------------------------------- the command
 TINY_RUN = ["dataset=spring", *SMALL["spring"], "dataset.test_samples=17", "model.hidden=8",
             "model.decoder_hidden=8", "model.flow_hidden=8", "figures=false", "val_rollout_steps=0",
@@ -209,6 +229,10 @@ def test_bad_input_is_one_line(trained_run, tmp_path: Path, capsys) -> None:
         err = capsys.readouterr().err
         assert exit_.value.code == code, path
         assert len(err.strip().splitlines()) == 1 and words in err, err
+    with pytest.raises(SystemExit) as exit_:
+        evaluate_main(evaluate_cfg(f"ckpt={run}", "relmass_decode=mean"))
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and "relmass_decode" in err and "median" in err, err
 
 
 def test_the_path_is_the_first_positional_argument() -> None:

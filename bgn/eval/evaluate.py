@@ -94,14 +94,15 @@ def calibrate_mass_posterior(module: PhysicsModule, dataset: FrameDataset,
 def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int | None = 256,
                    mass_frames: int = 32, mass_samples: int = 32, batch_size: int = 16,
                    seed: int = 0, inverse: bool = True,
-                   calibration: FrameDataset | None = None,
+                   calibration: FrameDataset | None = None, relmass_decode: str = "median",
                    ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Metrics of one model on a test dataset, and the arrays behind the mass figure
     (``evaluate_inverse``; empty without an inverse head, or with ``inverse=False``: the
     forward error alone, as ``bgn.studies.pareto`` needs it per checkpoint). ``calibration``:
     the split the mass flow's calibration is fitted on first (``calibrate_mass_posterior``, on
     ``mass_frames`` of its frames; ``mass_calibration_scale50/90`` in the metrics); None keeps
-    the model's own (none after training)."""
+    the model's own (none after training). ``relmass_decode``: the flow's point behind
+    ``relmass_r2`` (``RELMASS_DECODES``)."""
     torch.manual_seed(seed)  # the flow's samples and relmass noise are random
     model = module.model
     heads = model.heads
@@ -125,7 +126,8 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
             contacts["true"].append(g.edge_contact > 0.5)
             contacts["toi_rule"].append(approach_gap(g) <= 0)
         if heads & {"type", "relmass", "contact"}:
-            out = model(g)
+            draw = relmass_decode == "draw" and "relmass" in heads
+            out = model(g, noise=torch.randn(len(g.mass)) if draw else None)
             if "contact" in heads and contact_scene:
                 contacts["head"].append(out.contact > 0)       # logit > 0: probability > 0.5
             if "type" in heads:
@@ -440,6 +442,7 @@ def evaluate_split(module: PhysicsModule, dataset: FrameDataset,
                    step: Callable[[str], None] | None = None, lagrangebench: bool = True,
                    sinkhorn_stride: int = 10, sinkhorn_rollouts: int | None = 4,
                    positions: dict[str, np.ndarray] | None = None,
+                   relmass_decode: str = "median",
                    ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Everything ``python -m bgn.evaluate`` and the study (``bgn.studies.grid``) score on one
     split: one-step, type and contact metrics and the inverse metrics with the flow
@@ -451,7 +454,8 @@ def evaluate_split(module: PhysicsModule, dataset: FrameDataset,
         step("one-step, type, contact and inverse metrics")
     metrics, arrays = evaluate_model(module, dataset, max_frames=max_frames,
                                      mass_frames=mass_frames, mass_samples=mass_samples,
-                                     batch_size=batch_size, seed=seed, calibration=calibration)
+                                     batch_size=batch_size, seed=seed, calibration=calibration,
+                                     relmass_decode=relmass_decode)
     metrics.update(evaluate_rollouts(module.model, dataset, n_steps=rollout_steps,
                                      starts_per_sim=rollout_starts, max_sims=rollout_sims,
                                      curves=curves, step=step, lagrangebench=lagrangebench,
@@ -474,6 +478,7 @@ def mass_figure(arrays: dict[str, np.ndarray], path: str | Path) -> Path:
 
 # ----------------------------------------------------------------------------- the command
 SPLITS = ("train", "val", "test")
+RELMASS_DECODES = ("median", "draw")  # evaluate_model's relmass_decode
 # Hydra options that take the next argument as their value (not a positional path)
 _VALUE_OPTIONS = {"-cp", "--config-path", "-cn", "--config-name", "-cd", "--config-dir",
                   "-c", "--cfg", "-p", "--package", "--experimental-rerun"}
@@ -561,6 +566,9 @@ def validate_evaluate(cfg: Any) -> tuple[Path, Path, Path]:
     for key in ("mass_frames", "mass_samples", "batch_size"):
         need_int(cfg[key], key, 1)
     need_int(cfg.seed, "seed", 0, MAX_SEED)
+    if cfg.relmass_decode not in RELMASS_DECODES:
+        raise ConfigError("relmass_decode", cfg.relmass_decode,
+                          f"choose one of {list(RELMASS_DECODES)}")
     need_int(cfg.rollout.steps, "rollout.steps", 1)
     need_int(cfg.rollout.starts_per_sim, "rollout.starts_per_sim", 1)
     need_int(cfg.rollout.max_sims, "rollout.max_sims", 1, optional=True,
@@ -842,7 +850,8 @@ def evaluate_run(cfg: Any, paths: tuple[Path, Path, Path]) -> Path:
             cfg.mass_frames, cfg.mass_samples, cfg.batch_size, int(cfg.seed),
             int(cfg.rollout.steps), int(cfg.rollout.starts_per_sim), cfg.rollout.max_sims,
             curves=curves, step=stages, sinkhorn_stride=int(cfg.rollout.sinkhorn_stride),
-            sinkhorn_rollouts=cfg.rollout.sinkhorn_rollouts, positions=positions)
+            sinkhorn_rollouts=cfg.rollout.sinkhorn_rollouts, positions=positions,
+            relmass_decode=str(cfg.relmass_decode))
         figures: dict[str, Any] = {}
         stages("the learned pair law")
         law, figures["law"] = law_text(module, datamodule.datasets["train"],

@@ -185,6 +185,9 @@ class EvaluateKeys:
     mass_samples: int = 32            # posterior samples per particle
     batch_size: int = 16
     seed: int = 0                     # the flow's samples
+    # Eq. 9-10's input z in relmass_r2: median (the flow's base draw 0, as the model decodes in
+    # eval mode) | draw (a random posterior sample, the paper's training-time decode)
+    relmass_decode: str = "median"
     figures: bool = True
     progress: bool = True             # a progress bar on the long parts
     rollout: EvaluateRolloutKeys = field(default_factory=EvaluateRolloutKeys)

@@ -44,7 +44,8 @@ def kde_modes(values: np.ndarray, grid: np.ndarray, min_prominence: float = 0.05
     values = np.asarray(values, dtype=np.float64)
     values = values[np.isfinite(values)]
     # a KDE costs len(values) x len(grid): every 1/k-th of millions of samples finds the
-    # same peaks, far faster (docs/results.md, "Measurements behind the defaults")
+    # same peaks, far faster
+    # (docs/notes/2026-11-26-results-history.md, "Measurements behind the defaults")
     values = values[::max(1, len(values) // KDE_MAX_VALUES)]
     if len(values) < 2 or np.ptp(values) == 0:
         return values[:1].copy()

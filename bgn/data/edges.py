@@ -141,7 +141,8 @@ def _symmetric_sorted(i: np.ndarray, j: np.ndarray, n: int) -> np.ndarray:
     # COO -> CSR is a counting sort by receiver (linear in E); rows then hold about the mean
     # degree each, so sorting senders within rows is cheap (scipy does it while canonicalising;
     # sort_indices() below makes that explicit and costs nothing then); faster than sorting a
-    # combined int64 key or np.lexsort (docs/results.md, "Measurements behind the defaults").
+    # combined int64 key or np.lexsort
+    # (docs/notes/2026-11-26-results-history.md, "Measurements behind the defaults").
     adjacency = sp.csr_matrix(
         (np.ones(senders.size, dtype=np.int8), (receivers, senders)), shape=(n, n)
     )

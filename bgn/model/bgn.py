@@ -70,7 +70,7 @@ class ModelConfig(NewtonOptions, ContactOptions, InverseOptions, DynamicsConfig)
     shared_decoder: bool = False
     # D^-1/2 Â D^-1/2 in every GCN layer. The paper's plain sums grow like (degree+1)^layers,
     # so contact logits explode at initialisation on large radius graphs and the flows do not
-    # train (docs/results.md, "Measurements behind the defaults").
+    # train (docs/notes/2026-11-26-results-history.md, "Measurements behind the defaults").
     degree_normalize: bool = True
     # Not in the paper: a separate weight on each node's own features in every GCN layer
     # (H' = s(Â H W + H W_self + Â H)). Eq. 1 alone gives every node of a clique the same

@@ -7,7 +7,7 @@ gas shows is mostly free flight, and an impact changes two velocities by
 the unit normal from j to i then, ``e`` the restitution, 1 for elastic). A generic network
 must learn that map from frames; an error of a light disc's impulse that leaks into a heavy
 disc's velocity (400 times the mass here) soon multiplies the gas's energy in a rollout
-(docs/results.md, "Measurements behind the defaults").
+(docs/notes/2026-11-26-results-history.md, "Measurements behind the defaults").
 This head writes the structure down and learns only what the frames do not say:
 
 - when the window's free flight brings two discs (or a disc and a wall) into contact within

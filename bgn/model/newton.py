@@ -74,7 +74,8 @@ ROBUST_STEPS, ROBUST_SCALE = 2, 0.01  # reweighting of the gravity mass fit (sou
 REL_ERROR_FLOOR = 1e-6  # the log of a fit's relative error stays finite for an exact fit
 IMPLICIT_STEPS = 1  # fixed-point steps of the implicit Numerov prediction (more: no gain)
 # Newton steps of the shooting that finds the velocity at frame t (substeps > 1); how many
-# converge: docs/results.md, "Measurements behind the defaults", "Shooting iterations"
+# converge: docs/notes/2026-11-26-results-history.md, "Measurements behind the defaults",
+# "Shooting iterations"
 SHOOTING_ITERATIONS = 4
 
 

@@ -235,6 +235,30 @@ def test_bad_input_is_one_line(trained_run, tmp_path: Path, capsys) -> None:
     assert exit_.value.code == 2 and "relmass_decode" in err and "median" in err, err
 
 
+def test_the_relmass_decode_recheck_writes_both_decodes_into_its_block(trained_run, tmp_path,
+                                                                      monkeypatch) -> None:
+    """``examples/recheck/relmass_decode.py`` on a run: both decodes evaluated on validation,
+    each in its own report folder, and the seeds' table written into the results file's
+    block (whatever else the file holds is kept)."""
+    run, _ = trained_run
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "examples" / "recheck"))
+    import relmass_decode
+
+    results = tmp_path / "results.md"
+    results.write_text("# Results\n\nkept\n")
+    text = relmass_decode.main([str(run), "--out", str(tmp_path / "out"),
+                                "--results-md", str(results)])
+    rows = [line for line in text.splitlines() if line.startswith("| spring")]
+    assert [row.split(" | ")[1] for row in rows] == ["median", "draw"]
+    for decode in ("median", "draw"):
+        metrics = json.loads((run / "eval" / f"val_relmass_{decode}" / "metrics.json").read_text())
+        assert metrics["provenance"]["split"] == "val"
+        assert metrics["provenance"]["calibration_split"] == "train"
+    written = results.read_text()
+    assert "kept" in written and "<!-- generated:recheck_relmass_decode_val:begin -->" in written
+    assert rows[0] in written and (tmp_path / "out" / "per_seed.csv").exists()
+
+
 def test_the_path_is_the_first_positional_argument() -> None:
     assert path_override(["x", "runs/a", "split=val"]) == ["x", "ckpt=runs/a", "split=val"]
     assert path_override(["x", "-cn", "evaluate", "r"]) == ["x", "-cn", "evaluate", "ckpt=r"]

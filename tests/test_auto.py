@@ -251,9 +251,9 @@ def test_candidates_compose_from_the_real_configs(tmp_path):
     assert gns.model.name == "gns" and "hidden" not in gns.model and gns.test is True
     pool = {c.name: c for c in candidates(make_scene("collisions").meta, 5, True, REFS)}
     impulse = compose_candidate(["dataset=collisions"], pool["impulse"], tmp_path / "i", limits)
-    assert impulse.model.dynamics == "newton" and impulse.model.loss_weights.contact == 0.1
-    assert "loss_weights" not in compose_candidate(["dataset=collisions"], pool["gns"],
-                                                   tmp_path / "j", limits).model
+    assert impulse.model.dynamics == "newton" and impulse.model.contact_message == "vector"
+    assert "contact_message" not in compose_candidate(["dataset=collisions"], pool["gns"],
+                                                      tmp_path / "j", limits).model
 
 
 def test_auto_is_a_config_value_only(tmp_path):

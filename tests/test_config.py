@@ -39,7 +39,7 @@ def test_collisions_gives_bgn_its_measured_defaults():
     assert model["contact_pos_weight"] == 1
     assert cfg.optimizer.lr == 1e-3  # every model's (3e-3 lost on validation)
     assert model["loss_weights"] == {"dynamics": 1.0, "unroll": 1.0, "impulse_mass": 1.0,
-                                     "law": 0.0, **dict.fromkeys(AUX, 0.1)}
+                                     "law": 0.0, **dict.fromkeys(AUX, 1.0)}  # the paper's
     assert model["target_prior"] == "auto"
 
 
@@ -88,10 +88,10 @@ def test_other_scenes_keep_the_papers_bgn(scene):
 
 def test_the_command_line_and_the_ablation_group_win():
     cfg = composed("dataset=collisions", "model.contact_message=linear", "optimizer.lr=0.01",
-                   "model.loss_weights.type=1.0", "ablation=no_contact")
+                   "model.loss_weights.type=0.5", "ablation=no_contact")
     assert (cfg.model.contact_message, cfg.optimizer.lr, cfg.model.loss_weights.type) == \
-        ("linear", 0.01, 1.0)
-    assert cfg.model.contact is False and cfg.model.loss_weights.contact == 0.1
+        ("linear", 0.01, 0.5)
+    assert cfg.model.contact is False and cfg.model.loss_weights.contact == 1.0
     assert composed("dataset=gravity_r2", "model=gns",
                     "model.target_prior=linear").model.target_prior == "linear"
 

@@ -86,8 +86,7 @@ class ModelConfig(NewtonOptions, ContactOptions, InverseOptions, DynamicsConfig)
     # Not in the paper: the decoder also sees the node's own input features (a skip past the
     # GCN layers, which mix each node with its neighbours).
     decoder_skip: bool = True
-    # Eq. 12 weights, one per task (keys: LOSS_KEYS); missing keys weigh 1. collisions
-    # down-weights the auxiliary tasks (conf/dataset_model/collisions_bgn.yaml).
+    # Eq. 12 weights, one per task (keys: LOSS_KEYS); missing keys weigh 1 (the paper's).
     # "law" (the structured force head with the recorded masses, newton.law_loss) is the one
     # task off unless weighted: gravity_r2 trains on it alone (conf/dataset_model/).
     loss_weights: dict[str, float] = field(

@@ -256,7 +256,7 @@ def test_the_relmass_decode_recheck_writes_both_decodes_into_its_block(trained_r
         assert metrics["provenance"]["calibration_split"] == "train"
     written = results.read_text()
     assert "kept" in written and "<!-- generated:recheck_relmass_decode_val:begin -->" in written
-    assert rows[0] in written and (tmp_path / "out" / "per_seed.csv").exists()
+    assert rows[0] in written and (tmp_path / "out" / "table.csv").exists()
 
 
 def test_the_path_is_the_first_positional_argument() -> None:

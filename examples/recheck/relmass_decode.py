@@ -27,8 +27,7 @@ from omegaconf import OmegaConf
 
 from bgn.eval.evaluate import RELMASS_DECODES, evaluate_run, validate_evaluate
 from bgn.provenance import git_commit, write_block
-from bgn.studies.report import aggregate_rows, spread
-from bgn.tables import write_csv
+from bgn.studies.report import write_seeded_table
 from bgn.training.config import register_configs
 
 CONF = Path(__file__).resolve().parents[2] / "conf"
@@ -69,15 +68,9 @@ def main(argv: list[str] | None = None) -> str:
     rows = [row_of(decode, evaluate(run, decode))
             for run in args.runs for decode in RELMASS_DECODES]
     args.out.mkdir(parents=True, exist_ok=True)
-    write_csv(args.out / "per_seed.csv", ["scene", "decode", "seed", *COLUMNS], rows)
-    keys = ["scene", "decode"]
-    lines = ["| " + " | ".join([*keys, "seeds", *COLUMNS]) + " |",
-             "|" + "---|" * (len(keys) + 1 + len(COLUMNS))]
-    for row in aggregate_rows(rows, keys):
-        lines.append("| " + " | ".join([*(str(row[k]) for k in keys), str(row["seeds"]),
-                                        *(spread(row, c) for c in COLUMNS)]) + " |")
-    text = "\n".join(lines) + "\n"
-    (args.out / "table.md").write_text(text)
+    # table.md / table.csv (mean, std, min, max, n) / table_per_seed.csv, as the studies write
+    text = write_seeded_table(args.out, "table", ["scene", "decode", *COLUMNS],
+                              ["scene", "decode"], rows, title="", notes="")
     print(text)
     if args.results_md:
         command = " ".join(["python examples/recheck/relmass_decode.py",

@@ -3,7 +3,8 @@
     python docs/notes/reproduce/compare_blocks.py OLD.md NEW.md \
         reproduce,reproduce_stability,reproduce_pareto
 
-Every "mean ± std (min–max)" cell of a table is matched by its row's text columns; it is
+Every "mean ± std (min–max)" cell of a table is matched by its row's text columns and its
+column's name (a column only one side has is named, not compared); it is
 within when |new mean - old mean| <= old std + new std (the two runs' seed spreads summed).
 Timing columns are counted apart: they measure the machine as much as the model.
 """
@@ -52,26 +53,36 @@ def main(old_path: str, new_path: str, names: str) -> None:
     for name in names.split(","):
         before, after = tables(block(old, name)), tables(block(new, name))
         for title, (head, rows) in before.items():
-            if title not in after or after[title][0] != head:
-                print(f"{name}: table {title!r} missing or with other columns")
+            if title not in after:
+                print(f"{name}: table {title!r} missing in the new block")
                 continue
-            def key(row, head=head):
+            new_head = after[title][0]
+            added = [h for h in new_head if h not in head]
+            gone = [h for h in head if h not in new_head]
+            if added or gone:  # columns are matched by name: a new one is not compared
+                print(f"{name}: table {title!r}: columns added {added}, gone {gone}")
+
+            def key(row, head):
                 return tuple(c for c, h in zip(row, head) if h in KEYS and cell(c) is None)
 
-            matched = {key(r): r for r in after[title][1]}
+            matched = {key(r, new_head): dict(zip(new_head, r)) for r in after[title][1]}
             for row in rows:
-                other = matched.get(key(row))
+                other = matched.get(key(row, head))
                 if other is None:
-                    print(f"{name}: row {key(row)[:3]} missing in the new table")
+                    print(f"{name}: row {key(row, head)[:3]} missing in the new table")
                     continue
-                for col, a, b in zip(head, row, other):
+                for col, a in zip(head, row):
+                    if col not in other:
+                        continue
+                    b = other[col]
                     pa, pb = cell(a), cell(b)
                     if pa and pb:
                         timing = col in TIMING
                         counts[timing][0] += 1
                         if abs(pa[0] - pb[0]) > pa[1] + pb[1] + 1e-12 * max(abs(pa[0]), 1):
                             counts[timing][1] += 1
-                            outside.append(f"{title[:40]} | {key(row)[:3]} | {col} | {a} -> {b}")
+                            where = f"{title[:40]} | {key(row, head)[:3]} | {col}"
+                            outside.append(f"{where} | {a} -> {b}")
     for timing, label in ((False, "error, energy and mass cells"), (True, "timing cells")):
         n, out = counts[timing]
         print(f"{label}: {n - out} of {n} within the summed seed spread, {out} outside")

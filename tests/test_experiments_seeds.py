@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 
 from bgn.provenance import block_markers, replace_block
-from bgn.studies.cells import Cell, cell_overrides, plan_cells
+from bgn.studies.cells import Cell, cell_overrides, compose_train, plan_cells
 from bgn.studies.grid import CellsFailed, run
 from bgn.studies.report import (
     aggregate_rows,
@@ -120,6 +120,21 @@ def test_plan_cells_per_seed_and_the_seed_override() -> None:
                                                                    one))
     with pytest.raises(ConfigError, match="seeds"):
         plan_cells(compose_config("experiments", ["preset=tiny", "preset.seeds=[1,1]"]).preset)
+
+
+def test_reproduce_cells_train_a_step_budget_per_scene_and_model() -> None:
+    """preset=reproduce budgets every cell in optimiser steps (preset.max_steps), so a rerun
+    trains the same steps whatever the machine's load; a bad budget is refused by name."""
+    cfg = compose_config("experiments", ["preset=reproduce"])
+    for cell in plan_cells(cfg.preset):
+        steps = cfg.preset.max_steps[cell.scene][cell.model]
+        assert compose_train(cell_overrides(cell, cfg)).trainer.max_steps == steps > 0
+    bad = compose_config("experiments", ["preset=reproduce",
+                                         "preset.max_steps.spring.bgn=0"])
+    with pytest.raises(ConfigError, match=r"preset\.max_steps\.spring\.bgn"):
+        cell_overrides(plan_cells(bad.preset)[0], bad)
+    tiny = compose_config("experiments", ["preset=tiny"])  # no step budget: none added
+    assert not any("max_steps" in o for o in cell_overrides(plan_cells(tiny.preset)[0], tiny))
 
 
 def test_results_block_is_replaced_in_place_and_idempotent() -> None:

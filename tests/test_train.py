@@ -105,6 +105,19 @@ def test_baselines_given_radii_and_types_run_fast_dev_run(tiny_train_cfg, tmp_pa
     assert record["variant"]["label"].endswith(" + radii/types")
 
 
+def test_a_step_budget_ending_mid_epoch_validates_its_last_steps(tiny_train_cfg, tmp_path):
+    """trainer.max_steps inside the first epoch: the run stops as a time budget does, so
+    its last steps are validated and checkpointed (Lightning alone would end with no
+    validation, so no best.ckpt)."""
+    train(tiny_train_cfg("spring", "+trainer.max_steps=3", "trainer.max_time=null",
+                         "dataset.batch_size=2",  # an epoch of many more than 3 batches
+                         "+trainer.num_sanity_val_steps=0", "trainer.limit_val_batches=1",
+                         "test=false"))
+    best = torch.load(tmp_path / "run" / "checkpoints" / "best.ckpt", map_location="cpu",
+                      weights_only=False)
+    assert best["global_step"] == 3 and best["epoch"] == 0  # mid-epoch: epoch 0 unfinished
+
+
 @pytest.mark.parametrize("scene", ["gravity_r2", "collisions"])  # spring: its default
 def test_bgn_with_the_structured_dynamics_head_trains(tiny_train_cfg, tmp_path, scene):
     metrics = train(tiny_train_cfg(scene, "model.dynamics=newton", "+trainer.fast_dev_run=true"))

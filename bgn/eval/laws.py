@@ -1668,7 +1668,11 @@ def law_stage(cfg: Any, best: Path, datamodule: Any, output_dir: Path,
         return {}
     from bgn.coerce import seconds
 
-    budget = seconds(cfg.trainer.get("max_time"))  # the fitting's share of the run's time
+    # the fitting's share of the run's time; a run budgeted in steps (trainer.max_steps) is
+    # bounded by the fit's own evaluation count instead, so it repeats on any machine
+    steps = cfg.trainer.get("max_steps")
+    budget = None if steps is not None and int(steps) > 0 else \
+        seconds(cfg.trainer.get("max_time"))
     log.info("model.law=auto: reading the learned law back as a formula and fine-tuning it")
     record = formula_stage(best, datamodule.datasets["train"], datamodule.datasets["val"],
                            cfg, output_dir / "laws", **({} if budget is None else {

@@ -94,6 +94,20 @@ def plan_cells(preset: DictConfig) -> list[Cell]:
     return [replace(c, seed=s, seeded=len(seeds) > 1) for s in seeds for c in cells.values()]
 
 
+def step_budget(cell: Cell, preset: DictConfig) -> list[str]:
+    """``trainer.max_steps`` of the cell from ``preset.max_steps`` (scene -> model -> steps),
+    or nothing where the preset gives none. A step budget repeats: the same config and seed
+    train the same steps on any machine, where ``max_time`` trains as many as the load
+    allows (``max_time`` stays as a cap)."""
+    steps = ((preset.get("max_steps") or {}).get(cell.scene) or {}).get(cell.model)
+    if steps is None:
+        return []
+    if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+        raise ConfigError(f"preset.max_steps.{cell.scene}.{cell.model}", steps,
+                          "must be a positive whole number of optimiser steps")
+    return [f"++trainer.max_steps={steps}"]
+
+
 def cell_overrides(cell: Cell, cfg: DictConfig) -> list[str]:
     """The ``train`` overrides of one cell: the preset's common and per-scene ones, then the
     cell's own choices (later overrides win)."""
@@ -101,6 +115,7 @@ def cell_overrides(cell: Cell, cfg: DictConfig) -> list[str]:
     fps = int(cell.fps) if float(cell.fps).is_integer() else cell.fps
     out = [f"dataset={cell.scene}", f"fps={fps}", f"model={cell.model}",
            f"ablation={cell.ablation}", f"trainer.max_time={preset.max_time}",
+           *step_budget(cell, preset),
            *preset.get("overrides", []),
            *(preset.get("model_overrides", {}) or {}).get(cell.model, []),
            *(preset.get("scene_overrides", {}) or {}).get(cell.scene, [])]

@@ -14,8 +14,9 @@ and ``laws`` keys; ``bgn.studies.grid.run`` calls ``run_stages`` after its own r
   ``rollout/seconds_per_step``, the batched rollout of the test simulations), with the
   no-learning extrapolations and the exact simulator (timed here, ``simulator_repeats``) as
   references; the Pareto front per scene and its figure. No training, no rollout of its own.
-  Training compute is the preset's ``max_time`` for every cell, so the front is against
-  inference time only (the training-time front is ``bgn.studies.pareto``'s study).
+  Training compute is the preset's budget for every cell (``max_steps`` per scene and model,
+  else ``max_time``), so the front is against inference time only (the training-time front is
+  ``bgn.studies.pareto``'s study).
 - **laws** (``preset.laws``): the pair law of every cell with a pair-force head read back and
   fitted as a formula, against the truth (``bgn.studies.law_stage``).
 
@@ -338,6 +339,19 @@ def mark_fronts(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return means
 
 
+def training_budget(preset: DictConfig) -> str:
+    """The sentence on what every cell trained: the preset's step budgets, else its time."""
+    steps = preset.get("max_steps")
+    if not steps:
+        return (f"Every cell trained for the same max_time ({preset.max_time}; cell_minutes: "
+                "the cell's whole run), so training compute is not an axis here.")
+    budgets = "; ".join(f"{scene}: " + ", ".join(f"{m} {n}" for m, n in models.items())
+                        for scene, models in steps.items())
+    return ("Every cell trained its preset step budget (max_steps per scene and model, the "
+            f"same for every seed: {budgets}; cell_minutes: the cell's whole run), so "
+            "training compute is not an axis here.")
+
+
 def pareto_stage(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
                  provenance: dict[str, Any]) -> Path:
     """Speed against error from the grid's cells (module doc)."""
@@ -372,9 +386,8 @@ def pareto_stage(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
         f"{provenance.get('threads_per_worker')} torch thread(s) per cell, "
         f"{provenance.get('workers')} cell(s) at once). on front: the model's mean over the "
         "seeds is on the scene's Pareto front of error against inference time (no model is "
-        "both faster and more accurate). Every cell trained for the same max_time "
-        f"({cfg.preset.max_time}; cell_minutes: the cell's whole run), so training compute "
-        "is not an axis here. The extrapolations learn nothing (one seed's cell); "
+        f"both faster and more accurate). {training_budget(cfg.preset)} "
+        "The extrapolations learn nothing (one seed's cell); "
         "parameters: the trained model's.")
     sim_text = write_table(
         out, "simulator", ["scene", "fps", "N", INFERENCE], simulator,

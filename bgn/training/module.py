@@ -249,6 +249,14 @@ class PhysicsModule(L.LightningModule):
                  result.val_error_before,
                  "kept" if result.kept else "not kept (no better than the initial law)")
 
+    def on_train_batch_end(self, outputs: Any, batch: Graph, batch_idx: int) -> None:
+        """At a step budget's end (``trainer.max_steps``) mid-epoch, stop as a time budget
+        does, so the last steps are validated (and can be ``best.ckpt``): Lightning ends a
+        step budget without validating the part epoch."""
+        max_steps = self.trainer.max_steps
+        if max_steps is not None and 0 < max_steps <= self.global_step:
+            self.trainer.should_stop = True
+
     def on_before_optimizer_step(self, optimizer: torch.optim.Optimizer) -> None:
         """A finite loss can still give a non-finite gradient (a 0/0 in a backward): stop
         with one clear error before the optimiser writes it into the weights."""

@@ -6,6 +6,7 @@
 Every "mean ± std (min–max)" cell of a table is matched by its row's text columns and its
 column's name (a column only one side has is named, not compared); it is
 within when |new mean - old mean| <= old std + new std (the two runs' seed spreads summed).
+Every matched cell, plain numbers too, is also counted as identical (the same text) or not.
 Timing columns are counted apart: they measure the machine as much as the model.
 """
 import re
@@ -49,6 +50,7 @@ def cell(text: str) -> tuple[float, float] | None:
 def main(old_path: str, new_path: str, names: str) -> None:
     old, new = open(old_path).read(), open(new_path).read()
     counts = {False: [0, 0], True: [0, 0]}  # timing? -> [compared, outside]
+    same = {False: [0, 0], True: [0, 0]}    # timing? -> [matched cells, identical text]
     outside = []
     for name in names.split(","):
         before, after = tables(block(old, name)), tables(block(new, name))
@@ -65,9 +67,12 @@ def main(old_path: str, new_path: str, names: str) -> None:
             def key(row, head):
                 return tuple(c for c, h in zip(row, head) if h in KEYS and cell(c) is None)
 
-            matched = {key(r, new_head): dict(zip(new_head, r)) for r in after[title][1]}
+            matched: dict = {}  # rows with the same key are matched in their order
+            for r in after[title][1]:
+                matched.setdefault(key(r, new_head), []).append(dict(zip(new_head, r)))
             for row in rows:
-                other = matched.get(key(row, head))
+                others = matched.get(key(row, head))
+                other = others.pop(0) if others else None
                 if other is None:
                     print(f"{name}: row {key(row, head)[:3]} missing in the new table")
                     continue
@@ -75,6 +80,9 @@ def main(old_path: str, new_path: str, names: str) -> None:
                     if col not in other:
                         continue
                     b = other[col]
+                    if col not in KEYS:
+                        same[col in TIMING][0] += 1
+                        same[col in TIMING][1] += a == b
                     pa, pb = cell(a), cell(b)
                     if pa and pb:
                         timing = col in TIMING
@@ -85,7 +93,8 @@ def main(old_path: str, new_path: str, names: str) -> None:
                             outside.append(f"{where} | {a} -> {b}")
     for timing, label in ((False, "error, energy and mass cells"), (True, "timing cells")):
         n, out = counts[timing]
-        print(f"{label}: {n - out} of {n} within the summed seed spread, {out} outside")
+        print(f"{label}: {n - out} of {n} within the summed seed spread, {out} outside; "
+              f"of all {same[timing][0]} such cells, {same[timing][1]} identical")
     print("\n".join(outside))
 
 

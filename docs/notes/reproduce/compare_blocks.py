@@ -14,7 +14,8 @@ import sys
 
 CELL = re.compile(r"^(-?[\d.e+-]+) ± ([\d.e+-]+|nan) \((.*)\)$")
 KEYS = ("scene", "fps", "model", "case", "source", "given", "metric", "overrides")
-TIMING = ("seconds_per_step", "s_per_step", "cell_minutes", "seconds_per_time_unit")
+TIMING = ("seconds_per_step", "s_per_step", "cell_minutes", "seconds_per_time_unit", "sim_s",
+          "stage s", "on front")  # "on front": read off the timings
 
 
 def block(text: str, name: str) -> str:

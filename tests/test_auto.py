@@ -381,7 +381,8 @@ def test_the_best_pair_force_law_becomes_a_formula_candidate(tmp_path, shared_da
     assert 0 < tuned["steps"] <= 3 * tuned["tunings"]
     assert "constants fine-tuned" in result.candidate.label
     final = compose_candidate(base, result.candidate, auto_dir / result.candidate.name, {})
-    assert final.model.law == "formula" and json.loads(final.model.law_formula) == tuned["tuned"]
+    assert final.model.law == "formula"
+    assert json.loads(final.model.law_formula) == tuned["model_tuned"]  # the model's scale
     check_compatible(auto_dir / result.candidate.name / "checkpoints" / "last.ckpt", {},
                      OmegaConf.to_container(final.model, resolve=True))
     ckpt = torch.load(auto_dir / best.name / "checkpoints" / "last.ckpt", weights_only=True)

@@ -1380,7 +1380,15 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
         with torch.no_grad():
             head.force_law.amplitude.mul_(scale)
     spec = head.force_law.spec()
-    hp["model_config"] = {**hp["model_config"], "law_formula": spec}
+    model_scale = 1.0
+    if scale != 1.0:
+        # the mass flow reads the window's fitted masses (mass_context=fit) in the network
+        # law's free scale, which it was trained on: the model keeps the formula in that
+        # scale (its rollouts are the same at any scale), the record in physical units
+        model_scale = 1 / calibrate_scale(pair_force_head(network)[1], train_split)[0]
+        with torch.no_grad():
+            head.force_law.amplitude.mul_(model_scale)
+    hp["model_config"] = {**hp["model_config"], "law_formula": head.force_law.spec()}
     history = int(hp["history"])
     scores, by_substeps = _validated_laws(network, model, head, val, history, horizon,
                                           val_sims, substeps)
@@ -1398,7 +1406,9 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
               "rollout_substeps": head.substeps,
               "formula_by_substeps": {str(k): v for k, v in by_substeps.items()},
               "start": form["start"], "tuned": json.loads(spec),
-              "scale": scale, "loss": form["loss"], "polish": polish, "floor": floor,
+              "scale": scale, "model_scale": model_scale,
+              "model_tuned": json.loads(hp["model_config"]["law_formula"]),
+              "loss": form["loss"], "polish": polish, "floor": floor,
               "validation": scores, "choice": choice,
               "against_truth": {} if report is None else against_truth(report,
                                                                         json.loads(spec)),
@@ -1546,7 +1556,9 @@ def finetune_markdown(record: dict[str, Any], level: int = 2) -> str:
     if record.get("scale", 1.0) != 1.0:
         lines += [f"The tuned constants put in physical units by the factor {_g(record['scale'])} "
                   "(the loss through the window's mass fit leaves the law's scale free; "
-                  "the forms above are before it).", ""]
+                  "the forms above are before it). The model keeps the formula times "
+                  f"{_g(record.get('model_scale', 1.0))}, the network law's scale, in which "
+                  "its mass flow reads the window's fitted masses.", ""]
     lines += truth_markdown(record.get("against_truth") or {}, record.get("truth"))
     lines += [f"Chosen: **{record['choice']}** (the lower typical validation rollout error "
               f"after {horizons[-1]} steps)."]

@@ -641,7 +641,7 @@ def formula_candidate(results: Sequence[Result], auto_dir: Path, val: Any, train
     record = finetune_formula(best_checkpoint(auto_dir / best.candidate.name), train_split,
                               val, steps=steps, substeps=FINETUNE_SUBSTEPS, out_dir=out_dir,
                               max_seconds=seconds(each.get("max_time")))
-    spec = json.dumps(record["tuned"])
+    spec = json.dumps(record["model_tuned"])  # the model's scale (finetune_formula)
     cand = Candidate(out_dir.name, f"{best.candidate.label}; its law the formula "
                      f"{spec_text(record['tuned'])}, constants fine-tuned",
                      [*best.candidate.overrides, "model.law=formula",

@@ -24,6 +24,11 @@ SMALL = {
                    "dataset.box=4.0", IN_PROCESS],
 }
 
+# spring's and gravity_r2's BGN read their law back as a formula after training
+# (model.law=auto), a stage the commands hand to bgn.training.run.train: a test of the
+# training alone, calling train() itself, keeps the network law
+NETWORK_LAW = "model.law=mlp"
+
 
 def compose_config(config_name: str, overrides: list[str]) -> DictConfig:
     register_configs()  # the model schemas (conf/model/<name>.yaml build on them)

@@ -23,7 +23,7 @@ from bgn.eval.evaluate import evaluate_model, mass_figure, path_override
 from bgn.eval.evaluate import main as evaluate_main
 from bgn.rollout import evaluate_rollouts, rollout_starts, rollout_summary
 from bgn.training.run import build, train
-from tests.conftest import SMALL, compose_config
+from tests.conftest import NETWORK_LAW, SMALL, compose_config
 from tests.test_simulator import Oracle
 
 TINY_BGN = ["model.hidden=8", "model.decoder_hidden=8", "model.flow_hidden=8",
@@ -71,8 +71,9 @@ def test_the_relmass_point_is_the_median_unless_a_draw_is_asked(shared_data_dir:
 
 
 # ----------------------------------------------------------------------------- the command
-TINY_RUN = ["dataset=spring", *SMALL["spring"], "dataset.test_samples=17", "model.hidden=8",
-            "model.decoder_hidden=8", "model.flow_hidden=8", "figures=false", "val_rollout_steps=0",
+TINY_RUN = ["dataset=spring", *SMALL["spring"], NETWORK_LAW, "dataset.test_samples=17",
+            "model.hidden=8", "model.decoder_hidden=8", "model.flow_hidden=8", "figures=false",
+            "val_rollout_steps=0",
             "callbacks.progress_bar=null", "trainer.max_epochs=1",
             "+trainer.limit_train_batches=2", "trainer.limit_val_batches=1",
             "trainer.enable_model_summary=false"]

@@ -17,7 +17,7 @@ from bgn.studies.render import main
 from bgn.training.checkpoints import CheckpointError
 from bgn.training.module import add_animation, load_model
 from bgn.training.run import train
-from tests.conftest import SMALL, compose_config
+from tests.conftest import NETWORK_LAW, SMALL, compose_config
 
 
 def fake_result(steps: int = 12, n: int = 5, box: float | None = None) -> dict:
@@ -55,7 +55,7 @@ def test_render_command_animates_a_trained_checkpoint(tmp_path: Path, shared_dat
     run = tmp_path / "run"
     cfg = compose_config("train", ["dataset=spring", *SMALL["spring"],
                                    f"paths.data_dir={shared_data_dir}",
-                                   f"paths.output_dir={run}", "model.hidden=16",
+                                   f"paths.output_dir={run}", "model.hidden=16", NETWORK_LAW,
                                    "trainer.max_epochs=1", "+trainer.limit_train_batches=2",
                                    "trainer.limit_val_batches=1", "test=false",
                                    "figures=false", "val_rollout_steps=0"])

@@ -20,7 +20,7 @@ from bgn.graph import collate
 from bgn.training.checkpoints import CheckpointError
 from bgn.training.module import PhysicsModule
 from bgn.training.run import build, train
-from tests.conftest import SMALL, compose_config
+from tests.conftest import NETWORK_LAW, SMALL, compose_config
 
 ROOT = Path(__file__).resolve().parents[1]
 ABLATIONS = ["full", "no_classifier", "no_contact", "no_inverse"]
@@ -72,6 +72,7 @@ def tiny_train_cfg(tmp_path: Path, shared_data_dir: Path):
         return compose_config("train", [
             f"dataset={scene}", *SMALL[scene], f"paths.data_dir={shared_data_dir}",
             f"paths.output_dir={tmp_path / 'run'}", f"model={model}", *SMALL_MODELS[model],
+            *([NETWORK_LAW] if (scene, model) == ("spring", "bgn") else []),
             "rollout_steps=3", "val_rollout_steps=5", *overrides])
 
     return make

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from typing import Any
 
 import torch
@@ -110,7 +111,9 @@ class FormulaLaw(nn.Module):
         """The spec with the current values of the constants (``bgn.eval.laws.formula_spec``'s
         format): what a fine-tuned law is, in a form a config can carry."""
         pairs: dict[int, dict[str, Any]] = {}
-        c = self.log_c.detach().double().exp().tolist()
+        # a constant the fit drove below exp(-745) underflows to 0, which no spec may hold:
+        # the least positive double is the same law to every digit
+        c = self.log_c.detach().double().exp().clamp_min(sys.float_info.min).tolist()
         a = self.amplitudes().detach().tolist()
         for k, (kind, p, pid) in enumerate(zip(self.kinds, self.powers, self.pair_ids)):
             entry = pairs.setdefault(pid, {"types": [pid // self.n_types, pid % self.n_types],

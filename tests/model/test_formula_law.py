@@ -106,3 +106,15 @@ def test_a_head_with_the_true_formula_predicts_the_frame_oracles_targets(small_c
     # the window's own mass fit: the recorded targets within the frame rate's error
     relative = (model.predict(g) - g.target).norm(dim=1) / g.target.norm(dim=1)
     assert float(relative.median()) < 1e-3
+
+
+def test_a_constant_driven_to_zero_still_writes_a_valid_spec():
+    """A fit can drive a shifted term's c below what a double holds (exp(log_c) = 0): the spec
+    written back must still parse (the formula stage rebuilds every tuned law from it)."""
+    law = FormulaLaw(json.dumps([{"types": [0, 0], "terms": [
+        {"kind": "shifted", "power": -1.0, "a": 1.0, "c": 0.5}]}]))
+    with torch.no_grad():
+        law.log_c.fill_(-1000.0)
+    again = FormulaLaw(law.spec())  # refused before: c = 0.0
+    r = torch.tensor([0.5, 1.0, 2.0], dtype=torch.float64)
+    torch.testing.assert_close(again.values(r), law.values(r))

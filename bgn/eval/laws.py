@@ -1372,22 +1372,20 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     if polish:
         evaluations[0] += polish["evaluations"]
         evaluations[1] += 1
-    scale = 1.0
+    scale, model_scale = 1.0, 1.0
     if "law" not in getattr(model, "heads", ()):
         # tuned through the window's mass fit, which absorbs the law's scale (law_objective):
-        # the constants put back in physical units, as the law read back is (calibrate_scale)
-        scale = calibrate_scale(head, train_split)[0]
-        with torch.no_grad():
-            head.force_law.amplitude.mul_(scale)
-    spec = head.force_law.spec()
-    model_scale = 1.0
-    if scale != 1.0:
-        # the mass flow reads the window's fitted masses (mass_context=fit) in the network
+        # the constants put back in physical units, as the law read back is (calibrate_scale).
+        # The mass flow reads the window's fitted masses (mass_context=fit) in the network
         # law's free scale, which it was trained on: the model keeps the formula in that
         # scale (its rollouts are the same at any scale), the record in physical units
+        scale = calibrate_scale(head, train_split)[0]
         model_scale = 1 / calibrate_scale(pair_force_head(network)[1], train_split)[0]
-        with torch.no_grad():
-            head.force_law.amplitude.mul_(model_scale)
+    with torch.no_grad():
+        head.force_law.amplitude.mul_(scale)
+    spec = head.force_law.spec()
+    with torch.no_grad():
+        head.force_law.amplitude.mul_(model_scale)
     hp["model_config"] = {**hp["model_config"], "law_formula": head.force_law.spec()}
     history = int(hp["history"])
     scores, by_substeps = _validated_laws(network, model, head, val, history, horizon,

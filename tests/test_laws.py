@@ -569,3 +569,31 @@ def test_law_stage_fits_by_the_clock_only_under_a_time_budget(monkeypatch, tmp_p
     laws.law_stage(OmegaConf.create({"trainer": trainer}), tmp_path / "best.ckpt", datamodule,
                    tmp_path, world_size=1)
     assert seen.get("finetune.max_seconds") == deadline
+
+
+def test_a_non_finite_loss_is_a_worse_point_for_the_tuning_not_a_crash(monkeypatch):
+    """tune_constants steps away from constants where the law's loss is not finite (a tiny
+    run's formula stage ended on one in the slow tier); a form with no finite point returns an
+    infinite loss, so it loses to the others instead of ending the stage."""
+    from types import SimpleNamespace
+
+    import bgn.eval.laws as laws
+    from bgn.model.formula_law import FormulaLaw
+
+    law = FormulaLaw(json.dumps([{"types": [0, 0], "terms": [
+        {"kind": "const", "power": 0, "a": 1.0, "c": None}]}]))
+    head = SimpleNamespace(force_law=law)
+
+    def bowl_with_a_hole(model, head, batch):  # minimum at a = 1.2, not finite above 1.25
+        a = float(head.force_law.amplitude[0])
+        return torch.tensor(math.nan if a > 1.25 else (a - 1.2) ** 2)
+
+    monkeypatch.setattr(laws, "law_objective", bowl_with_a_hole)
+    loss, n = laws.tune_constants(None, head, [(1.0, None)], 200, None, "test")
+    assert n > 0 and loss < 1e-6 and abs(float(law.amplitude[0]) - 1.2) < 1e-3
+
+    monkeypatch.setattr(laws, "law_objective", lambda model, head, batch: torch.tensor(math.inf))
+    with torch.no_grad():
+        law.amplitude.fill_(1.0)
+    loss, n = laws.tune_constants(None, head, [(1.0, None)], 50, None, "test")
+    assert loss == math.inf and n > 0 and float(law.amplitude[0]) == 1.0

@@ -1259,7 +1259,9 @@ def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], step
     weighted ``batches``, derivative-free (Nelder-Mead, at most ``steps`` evaluations): the
     law's loss through the substeps of the closest encounters is smooth at the scale of the
     constants' errors but rough at a quasi-Newton step's (its gradient jumps), where L-BFGS
-    stalls. Returns (the lowest loss, evaluations); ``_Budget`` past ``deadline`` before any."""
+    stalls. A trial point where the loss is not finite counts as infinitely worse (a form
+    with no finite point returns inf and loses). Returns (the lowest loss, evaluations);
+    ``_Budget`` past ``deadline`` before any."""
     from bgn.model.formula_law import NONLINEAR
 
     law = head.force_law
@@ -1278,10 +1280,9 @@ def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], step
         place(x)
         with torch.no_grad():
             loss = float(sum(w * law_objective(model, head, g) for w, g in batches))
-        if not math.isfinite(loss):
-            raise ValueError(f"fine-tuning the formula of {name}: the loss is not finite at "
-                             f"evaluation {count[0]}")
         count[0] += 1
+        if not math.isfinite(loss):  # constants the law cannot take: a worse point, not a stop
+            return math.inf
         if loss < best[0]:
             best[:] = [loss, x.copy()]
         return loss
@@ -1295,9 +1296,9 @@ def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], step
                  options={"initial_simplex": simplex, "maxfev": steps, "xatol": 1e-3,
                           "fatol": 1e-6})
     except _Budget:
-        if best[1] is None:
+        if best[1] is None and count[0] == 0:
             raise
-    place(best[1])
+    place(x0 if best[1] is None else best[1])  # no finite point: the form loses (loss inf)
     return best[0], count[0]
 
 

@@ -589,11 +589,11 @@ def test_a_non_finite_loss_is_a_worse_point_for_the_tuning_not_a_crash(monkeypat
         return torch.tensor(math.nan if a > 1.25 else (a - 1.2) ** 2)
 
     monkeypatch.setattr(laws, "law_objective", bowl_with_a_hole)
-    loss, n = laws.tune_constants(None, head, [(1.0, None)], 200, None, "test")
+    loss, n = laws.tune_constants(None, head, [(1.0, None)], 200, None)
     assert n > 0 and loss < 1e-6 and abs(float(law.amplitude[0]) - 1.2) < 1e-3
 
     monkeypatch.setattr(laws, "law_objective", lambda model, head, batch: torch.tensor(math.inf))
     with torch.no_grad():
         law.amplitude.fill_(1.0)
-    loss, n = laws.tune_constants(None, head, [(1.0, None)], 50, None, "test")
+    loss, n = laws.tune_constants(None, head, [(1.0, None)], 50, None)
     assert loss == math.inf and n > 0 and float(law.amplitude[0]) == 1.0

@@ -1254,7 +1254,7 @@ def prune_terms(tune: Callable[[str], tuple[float, Any, Any, str]], loss: float,
 
 
 def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], steps: int,
-                   deadline: float | None, name: str) -> tuple[float, int]:
+                   deadline: float | None) -> tuple[float, int]:
     """The constants of ``head``'s formula law fitted in place to ``law_objective`` on the
     weighted ``batches``, derivative-free (Nelder-Mead, at most ``steps`` evaluations): the
     law's loss through the substeps of the closest encounters is smooth at the scale of the
@@ -1303,7 +1303,7 @@ def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], step
 
 
 def polish_constants(model: Any, head: Any, batches: list[tuple[float, Any]], steps: int,
-                     deadline: float | None, name: str) -> dict[str, Any] | None:
+                     deadline: float | None) -> dict[str, Any] | None:
     """The chosen form's constants tuned once more (``steps`` evaluations, as every form)
     through ``POLISH_FACTOR`` times finer substeps: through the coarser substeps the forms
     are compared with, the loss is rough at the scale of a softening constant, and its minimum
@@ -1312,7 +1312,7 @@ def polish_constants(model: Any, head: Any, batches: list[tuple[float, Any]], st
     coarse = head.substeps
     head.substeps = fine = POLISH_FACTOR * coarse
     try:
-        loss, n = tune_constants(model, head, batches, steps, deadline, name)
+        loss, n = tune_constants(model, head, batches, steps, deadline)
     except _Budget:
         return None
     finally:
@@ -1358,7 +1358,7 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
         model, head = pair_force_head(module)
         model.requires_grad_(False)
         model.eval()  # no dropout in the inverse model: the loss is one function
-        loss, n = tune_constants(model, head, batches, steps, deadline, str(checkpoint))
+        loss, n = tune_constants(model, head, batches, steps, deadline)
         evaluations[0] += n
         evaluations[1] += 1
         return loss, module, hp, head.force_law.spec()
@@ -1368,7 +1368,7 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     form = _chosen_form(forms)
     module, hp = form["module"], form["hp"]
     model, head = pair_force_head(module)
-    polish = polish_constants(model, head, batches, steps, deadline, str(checkpoint)) \
+    polish = polish_constants(model, head, batches, steps, deadline) \
         if math.isfinite(form["loss"]) else None
     if polish:
         evaluations[0] += polish["evaluations"]

@@ -279,7 +279,7 @@ def test_fine_tuning_moves_a_perturbed_constant_back_and_writes_a_checkpoint(
         tmp_path, shared_data_dir):
     from bgn.data.datamodule import ParticleDataModule
     from bgn.eval.laws import finetune_formula, finetune_markdown, validation_errors
-    from bgn.model.formula_law import FormulaLaw
+    from bgn.model.formula_law import FormulaLaw, term_text
     from bgn.training.module import load_model
 
     ckpt = tiny_run(tmp_path, shared_data_dir, "newton", "model.hidden=16")
@@ -323,6 +323,9 @@ def test_fine_tuning_moves_a_perturbed_constant_back_and_writes_a_checkpoint(
     law = module.model.head.force_law
     assert isinstance(law, FormulaLaw)
     assert module.model.head.substeps == record["rollout_substeps"] in (1, 4)
+    # ... its label in physical units, as the record (law_scale)
+    assert module.model.physics.endswith(" + ".join(term_text(t)
+                                                    for t in record["tuned"][0]["terms"]))
     # ... in the network law's scale (the record's constants in physical units): the window's
     # fitted masses, the mass flow's context (mass_context=fit), are the network's
     np.testing.assert_allclose([t["a"] for t in json.loads(law.spec())[0]["terms"]],

@@ -1033,7 +1033,7 @@ def formula_module(checkpoint: Path, spec: str, substeps: int) -> Any:
     saved = read(checkpoint)  # once: the fine-tuning rebuilds the model for every form
     hp = dict(saved.get("hyper_parameters") or {})
     hp["model_config"] = {**hp["model_config"], "law": "formula", "law_formula": spec,
-                          "substeps": int(substeps)}
+                          "law_scale": 1.0, "substeps": int(substeps)}
     keep = inspect.signature(PhysicsModule.__init__).parameters
     module = PhysicsModule(**{k: v for k, v in hp.items() if k in keep})
     old = saved["state_dict"]
@@ -1387,7 +1387,8 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     spec = head.force_law.spec()
     with torch.no_grad():
         head.force_law.amplitude.mul_(model_scale)
-    hp["model_config"] = {**hp["model_config"], "law_formula": head.force_law.spec()}
+    hp["model_config"] = {**hp["model_config"], "law_formula": head.force_law.spec(),
+                          "law_scale": 1 / model_scale}  # its labels in physical units
     history = int(hp["history"])
     scores, by_substeps = _validated_laws(network, model, head, val, history, horizon,
                                           val_sims, substeps)
@@ -1659,7 +1660,7 @@ def formula_stage(checkpoint: Path, train_split: Any, val: Any, config: Any,
     tuned_cfg = copy.deepcopy(config)
     hp = read(record["path"])["hyper_parameters"]["model_config"]
     with open_dict(tuned_cfg):
-        for key in ("law", "law_formula", "substeps"):
+        for key in ("law", "law_formula", "law_scale", "substeps"):
             tuned_cfg.model[key] = hp[key]
     write_atomic(Path(out_dir) / "train_config.yaml", OmegaConf.to_yaml(tuned_cfg))
     return {**record, "report": str(path)}

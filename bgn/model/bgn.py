@@ -148,7 +148,7 @@ class BGN(PhysicsModel):
             self.force_head: nn.Module | None = build_head(
                 meta, self.normalizer, history, cfg.decoder_hidden, 2, cfg.activation,
                 cfg.mass_law, "model.dynamics=newton", cfg.substeps,
-                cfg.law_formula if cfg.law == "formula" else "")
+                cfg.law_formula if cfg.law == "formula" else "", cfg.law_scale)
             self.decoder = None
         else:
             self.force_head = None

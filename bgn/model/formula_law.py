@@ -140,8 +140,12 @@ def term_text(term: dict[str, Any], digits: int = 4) -> str:
 LAWS = ("mlp", "formula", "auto")
 
 
-def check_law(law: str, law_formula: str) -> None:
-    """The ``law`` / ``law_formula`` options of a model config, refused in one line."""
+def check_law(law: str, law_formula: str, law_scale: float = 1.0) -> None:
+    """The ``law`` / ``law_formula`` / ``law_scale`` options of a model config, refused in one
+    line."""
+    if not (isinstance(law_scale, (int, float)) and math.isfinite(law_scale) and law_scale > 0):
+        raise ValueError(f"law_scale={law_scale!r} must be a finite number > 0 (1: the formula "
+                         "is in physical units)")
     if law not in LAWS:
         raise ValueError(f"law={law!r}; choose one of {LAWS}")
     if law == "formula":

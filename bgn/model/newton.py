@@ -91,6 +91,10 @@ class ForceLawOptions(OptionGroup):
     substeps: int = 1                  # 1: Numerov's weights; > 1: integrate the frame (shoot)
     law: str = "mlp"                   # mlp: f(s) a network | formula: law_formula | auto
     law_formula: str = ""              # the formula's JSON spec (bgn.eval.laws.formula_spec)
+    # what puts law_formula's amplitudes in physical units where the model keeps the formula in
+    # the network law's free scale (inertial masses fitted to the window absorb any scale; the
+    # formula stage sets it): read by the model's labels only, never by its predictions
+    law_scale: float = 1.0
     # random: the MLP law as initialised | match: first fitted to a least-squares table of
     # the law on the training frames (bgn.model.force_matching); imported data set match
     law_init: str = "random"
@@ -102,7 +106,7 @@ class ForceLawOptions(OptionGroup):
             raise ValueError(f"mass_law={self.mass_law!r}; choose one of {MASS_LAWS}")
         if self.law_init not in LAW_INITS:
             raise ValueError(f"law_init={self.law_init!r}; choose one of {LAW_INITS}")
-        check_law(self.law, self.law_formula)
+        check_law(self.law, self.law_formula, self.law_scale)
 
 
 @dataclass
@@ -214,9 +218,11 @@ class PairForceHead(nn.Module):
     of a graph -> its acceleration at frame t in physical units, (N, D)."""
 
     def __init__(self, meta: SceneMeta, normalizer: Normalizer, hidden: int, layers: int,
-                 act: str, mass_law: str, substeps: int = 1, law_formula: str = "") -> None:
+                 act: str, mass_law: str, substeps: int = 1, law_formula: str = "",
+                 law_scale: float = 1.0) -> None:
         super().__init__()  # mass_law: checked by the model configs (NewtonConfig, BGN's)
         self.mass_law, self.types, self.substeps = mass_law, meta.n_types, substeps
+        self.law_scale = law_scale  # labels only (ForceLawOptions.law_scale)
         if mass_law == "type":  # log m per type; the law's free scale is type 0's mass
             self.log_type_mass = nn.Parameter(torch.zeros(max(meta.n_types, 1)))
         # lengths in the units the model normalises relative positions by (a copy: the
@@ -401,7 +407,8 @@ class PairForceHead(nn.Module):
 
 def build_head(meta: SceneMeta, normalizer: Normalizer, history: int, hidden: int, layers: int,
                act: str, mass_law: str, option: str, substeps: int = 1,
-               law_formula: str = "") -> PairForceHead | ContactImpulseHead:
+               law_formula: str = "", law_scale: float = 1.0
+               ) -> PairForceHead | ContactImpulseHead:
     """The structured dynamics head of a scene: pair forces (``PairForceHead``) or pair
     impulses at the time of impact (``bgn.model.impulse``); ``head(g)`` gives the physical
     target and the contact gate's logits (None for forces). ``option`` names the setting in
@@ -411,7 +418,8 @@ def build_head(meta: SceneMeta, normalizer: Normalizer, history: int, hidden: in
             raise ValueError(f"{option} on a contact scene needs a next-velocity target")
         return ContactImpulseHead(meta, hidden, act)
     check_scene(meta, history, option)
-    return PairForceHead(meta, normalizer, hidden, layers, act, mass_law, substeps, law_formula)
+    return PairForceHead(meta, normalizer, hidden, layers, act, mass_law, substeps, law_formula,
+                         law_scale)
 
 
 def head_given(head: nn.Module) -> tuple[str, ...]:
@@ -436,7 +444,7 @@ def head_physics(head: nn.Module) -> str:
     if isinstance(head.force_law, FormulaLaw):  # the law itself written in, as a formula
         terms = json.loads(head.force_law.spec())
         law = "; the pair law a fitted formula " + "; ".join(
-            " + ".join(term_text(t) for t in p["terms"]) + (
+            " + ".join(term_text({**t, "a": t["a"] * head.law_scale}) for t in p["terms"]) + (
                 f" (types {p['types']})" if head.types > 1 else "") for p in terms)
     return (f"central pair forces, equal and opposite; {masses[head.mass_law]} "
             f"(mass_law={head.mass_law}){law}")
@@ -493,7 +501,7 @@ class Newton(PhysicsModel):
     def build(self, cfg: NewtonConfig, stats: Mapping[str, Any]) -> None:
         self.head = build_head(self.meta, self.normalizer, self.history, cfg.hidden, cfg.layers,
                                cfg.activation, cfg.mass_law, "model=newton", cfg.substeps,
-                               cfg.law_formula if cfg.law == "formula" else "")
+                               cfg.law_formula if cfg.law == "formula" else "", cfg.law_scale)
         if self.meta.interaction == "contact":
             self.heads = frozenset({"dynamics", "contact", "impulse_mass"})
             self.register_buffer("contact_pos_weight", torch.tensor(

@@ -646,6 +646,7 @@ def formula_candidate(results: Sequence[Result], auto_dir: Path, val: Any, train
                      f"{spec_text(record['tuned'])}, constants fine-tuned",
                      [*best.candidate.overrides, "model.law=formula",
                       f"model.law_formula='{spec}'",
+                      f"model.law_scale={1 / record['model_scale']!r}",
                       f"model.substeps={record['rollout_substeps']}"],
                      pair_force=True)
     (out_dir / "checkpoints").mkdir(parents=True, exist_ok=True)

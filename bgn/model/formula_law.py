@@ -143,9 +143,10 @@ LAWS = ("mlp", "formula", "auto")
 def check_law(law: str, law_formula: str, law_scale: float = 1.0) -> None:
     """The ``law`` / ``law_formula`` / ``law_scale`` options of a model config, refused in one
     line."""
-    if not (isinstance(law_scale, (int, float)) and math.isfinite(law_scale) and law_scale > 0):
-        raise ValueError(f"law_scale={law_scale!r} must be a finite number > 0 (1: the formula "
-                         "is in physical units)")
+    # the window's mass fit leaves the law's sign free as well as its size: any finite k != 0
+    if not (isinstance(law_scale, (int, float)) and math.isfinite(law_scale) and law_scale != 0):
+        raise ValueError(f"law_scale={law_scale!r} must be a finite non-zero number (1: the "
+                         "formula is in physical units)")
     if law not in LAWS:
         raise ValueError(f"law={law!r}; choose one of {LAWS}")
     if law == "formula":

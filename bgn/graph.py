@@ -38,6 +38,9 @@ class Graph:
     # (G, D) box length per periodic dimension of each graph (0: not periodic), or None for
     # scenes without periodic boundaries (SceneMeta.period): edge vectors are minimum-image
     period: torch.Tensor | None = None
+    # (N,) the pair-force head's mass fit a rollout holds from its first window
+    # (rollout_masses=held), set by the learned simulator; None: fitted to this graph's window
+    mass_fit: torch.Tensor | None = None
 
     @property
     def num_graphs(self) -> int:

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import torch
@@ -31,7 +31,9 @@ from bgn.sim.scene import SceneMeta
 
 class Predictor(Protocol):
     """What the simulator needs of a model: every ``bgn.model.PhysicsModel`` has it, and so
-    do the no-learning references (``bgn.model.references``)."""
+    do the no-learning references (``bgn.model.references``). A model may also have
+    ``held_mass_fit(g)``: what a rollout fits once, to its first window, and holds
+    (``PhysicsModel.held_mass_fit``)."""
 
     meta: SceneMeta
     history: int
@@ -140,9 +142,14 @@ class LearnedSimulator(nn.Module):
 
     # ------------------------------------------------------------------ stepping
     def next_frame(self, window: torch.Tensor, particles: Particles,
-                   frame: int | torch.Tensor = 0) -> torch.Tensor:
-        """x[t+1] (B, N, D) from the windows ending at frame t (differentiable)."""
-        target = self.model.predict(self.graph(window, particles, frame))
+                   frame: int | torch.Tensor = 0, mass_fit: torch.Tensor | None = None,
+                   ) -> torch.Tensor:
+        """x[t+1] (B, N, D) from the windows ending at frame t (differentiable). ``mass_fit``
+        (B * N,): a mass fit held from an earlier window (``held_mass_fit``), or None."""
+        g = self.graph(window, particles, frame)
+        if mass_fit is not None:
+            g = replace(g, mass_fit=mass_fit)
+        target = self.model.predict(g)
         target = target.to(window.dtype).reshape(window.shape[0], -1, self.meta.dim)
         velocity = (window[:, -1] - window[:, -2]) / self.dt
         position, _ = step(window[:, -1], velocity, target, self.dt, self.meta.target)
@@ -155,7 +162,8 @@ class LearnedSimulator(nn.Module):
 
         A simulation whose frame becomes non-finite stops there (NaN from then on); the others
         go on in the same batch. ``driven`` (B, n_steps, N, D): the recorded positions of the
-        steps, which ``particles.kinematic`` particles take (the source moves them).
+        steps, which ``particles.kinematic`` particles take (the source moves them). A model
+        with ``held_mass_fit`` fits its masses once, to these first windows, and keeps them.
         """
         if n_steps < 1:
             raise ValueError(f"n_steps={n_steps} must be at least 1")
@@ -171,9 +179,13 @@ class LearnedSimulator(nn.Module):
         out[:, 0] = window[:, -1]
         first_bad = torch.full((b,), -1, dtype=torch.long)
         alive = torch.arange(b, device=device)
+        hold = getattr(self.model, "held_mass_fit", None)
+        held = None if hold is None else hold(self.graph(window, particles, frame))
+        held = None if held is None else held.reshape(b, -1)  # (B, N): a row per simulation
         start = time.perf_counter()
         for i in range(n_steps):
-            nxt = self.next_frame(window, particles.select(alive), frame + i)
+            nxt = self.next_frame(window, particles.select(alive), frame + i,
+                                  None if held is None else held[alive].reshape(-1))
             if kinematic is not None:
                 nxt = torch.where(kinematic[alive, :, None], driven[alive, i], nxt)
             finite = torch.isfinite(nxt).flatten(1).all(1)

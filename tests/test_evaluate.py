@@ -183,6 +183,37 @@ def test_the_command_writes_report_csv_json_and_figures(trained_run, tmp_path: P
     assert not list(out.glob(".*tmp*"))  # nothing half-written
 
 
+def test_rollout_masses_changes_the_rollouts_alone_and_the_label_says_so(trained_run,
+                                                                       tmp_path: Path) -> None:
+    """``rollout.masses=held`` on a checkpoint trained with the window's fit: one-step metrics
+    as before (the first window's fit is the window's), the rollouts after the first step
+    not, and the record's label says the masses are held."""
+    run, _ = trained_run
+    records = {}
+    for masses in ("window", "held"):
+        out = evaluate_main(evaluate_cfg(f"ckpt={run}", f"out_dir={tmp_path / masses}",
+                                         f"rollout.masses={masses}", "figures=false",
+                                         "rollout.steps=10"))
+        records[masses] = json.loads((out / "metrics.json").read_text())
+    window, held = (records[k]["metrics"] for k in ("window", "held"))
+    assert window["nmse"] == held["nmse"]
+    assert window["rollout/pos_err_mean@10"] != held["rollout/pos_err_mean@10"]
+    assert "held" in records["held"]["provenance"]["model"]["label"]
+    assert "held" not in records["window"]["provenance"]["model"]["label"]
+
+
+def test_rollout_masses_is_refused_for_a_model_without_a_pair_force_head(
+        shared_data_dir: Path) -> None:
+    from bgn.eval.evaluate import set_rollout_masses
+    from bgn.training.validate import ConfigError
+
+    cfg = compose_config("train", ["dataset=spring", *SMALL["spring"], "model=gns",
+                                   f"paths.data_dir={shared_data_dir}"])
+    _, module = build(cfg)
+    with pytest.raises(ConfigError, match="no pair-force head"):
+        set_rollout_masses(module.model, "held")
+
+
 def test_the_default_output_folder_is_beside_the_run(trained_run) -> None:
     run, _ = trained_run
     out = evaluate_main(evaluate_cfg(f"ckpt={run}", "split=val", "calibration_split=train",
@@ -230,10 +261,12 @@ def test_bad_input_is_one_line(trained_run, tmp_path: Path, capsys) -> None:
         err = capsys.readouterr().err
         assert exit_.value.code == code, path
         assert len(err.strip().splitlines()) == 1 and words in err, err
-    with pytest.raises(SystemExit) as exit_:
-        evaluate_main(evaluate_cfg(f"ckpt={run}", "relmass_decode=mean"))
-    err = capsys.readouterr().err
-    assert exit_.value.code == 2 and "relmass_decode" in err and "median" in err, err
+    for key, value, words in (("relmass_decode", "mean", "median"),
+                              ("rollout.masses", "fixed", "held")):
+        with pytest.raises(SystemExit) as exit_:
+            evaluate_main(evaluate_cfg(f"ckpt={run}", f"{key}={value}"))
+        err = capsys.readouterr().err
+        assert exit_.value.code == 2 and key in err and words in err, err
 
 
 def test_the_relmass_decode_recheck_writes_both_decodes_into_its_block(trained_run, tmp_path,
@@ -250,14 +283,33 @@ def test_the_relmass_decode_recheck_writes_both_decodes_into_its_block(trained_r
     text = relmass_decode.main([str(run), "--out", str(tmp_path / "out"),
                                 "--results-md", str(results)])
     rows = [line for line in text.splitlines() if line.startswith("| spring")]
-    assert [row.split(" | ")[1] for row in rows] == ["median", "draw"]
+    assert [row.split(" | ")[2] for row in rows] == ["median", "draw"]
     for decode in ("median", "draw"):
-        metrics = json.loads((run / "eval" / f"val_relmass_{decode}" / "metrics.json").read_text())
+        metrics = json.loads((run / "eval" / f"val_relmass_decode_{decode}" / "metrics.json")
+                             .read_text())
         assert metrics["provenance"]["split"] == "val"
         assert metrics["provenance"]["calibration_split"] == "train"
     written = results.read_text()
     assert "kept" in written and "<!-- generated:recheck_relmass_decode_val:begin -->" in written
     assert rows[0] in written and (tmp_path / "out" / "table.csv").exists()
+
+
+def test_the_rollout_masses_recheck_evaluates_both_fits_of_the_same_checkpoint(
+        trained_run, tmp_path, monkeypatch) -> None:
+    """``examples/recheck/rollout_masses.py``: the same checkpoint rolled out on validation
+    with the window's fit and with the held one, a row each, labelled by what it holds."""
+    run, _ = trained_run
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "examples" / "recheck"))
+    import rollout_masses
+
+    text = rollout_masses.main([str(run), "--out", str(tmp_path / "out")])
+    rows = [line.split(" | ") for line in text.splitlines() if line.startswith("| spring")]
+    assert [row[2] for row in rows] == ["window", "held"]
+    assert "held" in rows[1][1] and "held" not in rows[0][1]
+    assert rows[0][3:] != rows[1][3:]  # the rollouts differ
+    metrics = json.loads((run / "eval" / "val_masses_held" / "metrics.json").read_text())
+    assert metrics["provenance"]["split"] == "val"
+    assert metrics["provenance"]["calibration_split"] == "train"
 
 
 def test_the_path_is_the_first_positional_argument() -> None:

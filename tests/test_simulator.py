@@ -102,6 +102,43 @@ def test_a_failed_rollout_is_counted_and_the_others_go_on(datasets):
     assert np.isfinite(single["predicted"]).all()
 
 
+@pytest.mark.parametrize("scene,mass_law", [("spring", "inertial"), ("gravity_r1", "source")])
+def test_a_held_mass_fit_is_the_first_windows_kept_along_the_rollout(datasets, scene, mass_law):
+    """``rollout_masses=held``: the masses are fitted once, to each rollout's first window
+    (the first frame is the window mode's, bit for bit), then kept: no refit from predicted
+    frames, each simulation its own row (batch = alone), also after another one failed."""
+    ds = datasets[scene]
+    torch.manual_seed(0)
+    model = build_model({"name": "bgn", "dynamics": "newton", "mass_law": mass_law,
+                         "hidden": 16, "decoder_hidden": 16, "flow_hidden": 16,
+                         "rollout_masses": "held"}, ds.meta, ds.train_stats, ds.history).eval()
+    head, fit = model.force_head, model.force_head.fit
+    calls = []
+    head.fit = lambda g, terms: calls.append(g.num_graphs) or fit(g, terms)
+    sim_, start, steps = simulator(model, ds), ds.history + 1, 5
+    windows, parts = start_windows(ds, [0, 1], start), particles(ds, [0, 1])
+    held = sim_.rollout(windows, parts, steps, start)
+    assert calls == [2]                          # one fit, of both first windows together
+    head.rollout_masses = "window"
+    calls.clear()
+    refit = sim_.rollout(windows, parts, steps, start)
+    assert calls == [2] * steps                  # a refit at every step
+    assert torch.equal(held.positions[:, 1], refit.positions[:, 1])
+    assert not torch.equal(held.positions[:, -1], refit.positions[:, -1])
+    head.rollout_masses = "held"
+    assert f"masses {mass_law} held" in model.label and "held" in model.physics
+    for b in (0, 1):
+        alone = sim_.rollout(start_windows(ds, [b], start), particles(ds, [b]), steps, start)
+        torch.testing.assert_close(held.positions[b], alone.positions[0], rtol=1e-6, atol=1e-9)
+    # simulation 0 fails from its third step: simulation 1 keeps its own held masses
+    predict = model.predict
+    model.predict = lambda g: predict(g) * torch.where(
+        (g.sim[g.batch] == 0) & (g.frame[g.batch] >= start + 2), np.inf, 1.0)[:, None]
+    failed = sim_.rollout(windows, parts, steps, start)
+    assert failed.first_non_finite.tolist() == [3, -1]
+    torch.testing.assert_close(failed.positions[1], held.positions[1], rtol=1e-6, atol=1e-9)
+
+
 @pytest.mark.parametrize("scene", ["spring", "collisions"])
 @pytest.mark.parametrize("name", ["bgn", "gns"])
 def test_a_model_rolls_out_the_same_alone_and_in_a_batch(datasets, scene, name):

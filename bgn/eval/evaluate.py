@@ -40,6 +40,7 @@ from bgn.metrics import (
 )
 from bgn.model.encoder import approach_gap
 from bgn.model.impulse import ContactImpulseHead
+from bgn.model.newton import ROLLOUT_MASSES, pair_force_head_of
 from bgn.model.target_coder import extrapolate, observed_targets
 from bgn.provenance import git_commit
 from bgn.rollout import evaluate_rollouts, lb_prefix
@@ -576,6 +577,9 @@ def validate_evaluate(cfg: Any) -> tuple[Path, Path, Path]:
     need_int(cfg.rollout.sinkhorn_stride, "rollout.sinkhorn_stride", 1)
     need_int(cfg.rollout.sinkhorn_rollouts, "rollout.sinkhorn_rollouts", 1, optional=True,
              why=" (null: every rollout)")
+    if cfg.rollout.masses is not None and cfg.rollout.masses not in ROLLOUT_MASSES:
+        raise ConfigError("rollout.masses", cfg.rollout.masses,
+                          f"choose one of {list(ROLLOUT_MASSES)}, or null (the checkpoint's own)")
     return resolve_run(str(cfg.ckpt), cfg.get("run_config"))
 
 
@@ -594,6 +598,17 @@ def load_checked(ckpt: Path, run_cfg: Any, datamodule: Any) -> PhysicsModule:
                               "trained it")
     check_compatible(ckpt, run_provenance(run_cfg, datamodule), ckpt=record)
     return load_model(ckpt)
+
+
+def set_rollout_masses(model: Any, masses: str) -> None:
+    """``rollout.masses``: the mass fit the model's pair-force head holds along a rollout
+    (``model.rollout_masses``), refused in one line for a model without that head."""
+    head = pair_force_head_of(model)
+    if head is None:
+        raise ConfigError("rollout.masses", masses,
+                          f"{model.label} has no pair-force head, whose mass fit this sets; "
+                          "leave it null")
+    head.rollout_masses = masses
 
 
 def provenance_record(cfg: Any, ckpt: Path, config: Path, run_cfg: Any) -> dict[str, Any]:
@@ -836,6 +851,9 @@ def evaluate_run(cfg: Any, paths: tuple[Path, Path, Path]) -> Path:
                                     generate_workers=run_cfg.dataset.get("generate_workers"),
                                     show_progress=bool(cfg.progress))
     module = load_checked(ckpt, run_cfg, datamodule)  # before any data are generated
+    if cfg.rollout.masses is not None:
+        with reported():  # a model without the head: one line
+            set_rollout_masses(module.model, str(cfg.rollout.masses))
     datamodule.prepare_data()  # the run's data, generated again where they are missing
     datamodule.setup()
     dataset = datamodule.datasets[cfg.split]

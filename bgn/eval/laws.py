@@ -430,12 +430,11 @@ def fit_formula(r: np.ndarray, y: np.ndarray, weight: np.ndarray | None = None,
 def pair_force_head(module_or_model: Any) -> tuple[Any, Any]:
     """(model, its ``PairForceHead``) of a LightningModule or model; a model without one is
     refused in one line."""
-    from bgn.model.newton import PairForceHead
+    from bgn.model.newton import pair_force_head_of
 
     model = getattr(module_or_model, "model", module_or_model)
-    head = getattr(model, "force_head", None)
-    head = getattr(model, "head", None) if head is None else head
-    if not isinstance(head, PairForceHead):
+    head = pair_force_head_of(model)
+    if head is None:
         name = getattr(model, "name", type(model).__name__)
         scene = getattr(getattr(model, "meta", None), "name", "?")
         raise ValueError(f"the {name} model of {scene} has no pair-force head, so it has no "

@@ -261,6 +261,12 @@ class PhysicsModel(nn.Module, ABC):
         Wrap in ``torch.no_grad()`` for rollouts."""
         return self.target_coder.decode(g, self.forward_target(g))
 
+    def held_mass_fit(self, g: Graph) -> torch.Tensor | None:
+        """(N,) what a rollout fits once to its first window ``g`` and holds along it (the
+        learned simulator sets it as each later graph's ``mass_fit``): the pair-force head's
+        mass fit with ``rollout_masses=held``; None, the default: nothing held."""
+        return None
+
     def sample_mass(self, g: Graph, n_samples: int) -> torch.Tensor:
         """Samples of every particle's mass in physical units, (n_samples, N)."""
         raise RuntimeError(f"{self.label} has no inverse head")

@@ -44,6 +44,7 @@ from bgn.model.newton import (
     head_given,
     head_label,
     head_physics,
+    held_fit,
     impulse_mass_loss,
     law_loss,
 )
@@ -148,7 +149,8 @@ class BGN(PhysicsModel):
             self.force_head: nn.Module | None = build_head(
                 meta, self.normalizer, history, cfg.decoder_hidden, 2, cfg.activation,
                 cfg.mass_law, "model.dynamics=newton", cfg.substeps,
-                cfg.law_formula if cfg.law == "formula" else "", cfg.law_scale)
+                cfg.law_formula if cfg.law == "formula" else "", cfg.law_scale,
+                cfg.rollout_masses)
             self.decoder = None
         else:
             self.force_head = None
@@ -272,6 +274,9 @@ class BGN(PhysicsModel):
                                                        self.inverse.fit_error)
             fitted = self.force_head.fitted_log_mass(g, fit, error)
         return self.inverse.context(p.h_tilde_v, g, fitted)
+
+    def held_mass_fit(self, g: Graph) -> torch.Tensor | None:
+        return held_fit(self.force_head, g)
 
     def forward_target(self, g: Graph) -> torch.Tensor:
         """The dynamics head alone (no flow): what ``predict`` and rollouts run."""

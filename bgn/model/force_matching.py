@@ -31,7 +31,7 @@ import torch
 
 from bgn.graph import Graph
 from bgn.law_table import NormalEquations, fit_table, hat_basis, log_knots
-from bgn.model.newton import PairForceHead, numerov, past_positions
+from bgn.model.newton import PairForceHead, numerov, pair_force_head_of, past_positions
 from bgn.model.ops import scatter_sum
 from bgn.model.target_coder import observed_targets
 
@@ -233,11 +233,10 @@ def match_forces(head: PairForceHead, train: list[Graph], val: list[Graph],
 def matched_head(model: torch.nn.Module) -> PairForceHead | None:
     """A model's pair-force head where its config asks for force matching (``law_init=match``,
     an MLP law): BGN with ``dynamics=newton`` and ``model=newton``; else None."""
-    head = getattr(model, "force_head", None) or getattr(model, "head", None)
+    head = pair_force_head_of(model)
     if getattr(getattr(model, "cfg", None), "law_init", "random") != "match" \
             or not matchable(head):
         return None
-    assert isinstance(head, PairForceHead)
     return head
 
 

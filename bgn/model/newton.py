@@ -68,6 +68,7 @@ from bgn.sim.scene import SceneMeta
 
 MASS_LAWS = ("inertial", "source", "type")
 LAW_INITS = ("random", "match")  # the MLP law's start (ForceLawOptions.law_init)
+ROLLOUT_MASSES = ("window", "held")  # a rollout's mass fit (ForceLawOptions.rollout_masses)
 DYNAMICS = ("decoder", "newton")  # BGN's dynamics head: Eq. 5's decoder or the structured head
 FIT_EPS = 1e-12  # keeps a mass fit finite when a particle feels no force over the window
 ROBUST_STEPS, ROBUST_SCALE = 2, 0.01  # reweighting of the gravity mass fit (source law)
@@ -98,10 +99,19 @@ class ForceLawOptions(OptionGroup):
     # random: the MLP law as initialised | match: first fitted to a least-squares table of
     # the law on the training frames (bgn.model.force_matching); imported data set match
     law_init: str = "random"
+    # the mass fit along a rollout: window, refitted at every step to the window, which after
+    # the first step holds the rollout's own predicted frames | held, fitted once to the
+    # rollout's first (observed) window and kept: masses do not change along a simulation, and
+    # a refit from predicted frames feeds their error back into the masses. One-step
+    # predictions (training, Table 1) are the same either way.
+    rollout_masses: str = "window"
 
     def __post_init__(self) -> None:
         super().__post_init__()
         check_positive_ints(self, ("substeps",))
+        if self.rollout_masses not in ROLLOUT_MASSES:
+            raise ValueError(f"rollout_masses={self.rollout_masses!r}; choose one of "
+                             f"{ROLLOUT_MASSES}")
         if self.mass_law not in MASS_LAWS:
             raise ValueError(f"mass_law={self.mass_law!r}; choose one of {MASS_LAWS}")
         if self.law_init not in LAW_INITS:
@@ -219,9 +229,10 @@ class PairForceHead(nn.Module):
 
     def __init__(self, meta: SceneMeta, normalizer: Normalizer, hidden: int, layers: int,
                  act: str, mass_law: str, substeps: int = 1, law_formula: str = "",
-                 law_scale: float = 1.0) -> None:
+                 law_scale: float = 1.0, rollout_masses: str = "window") -> None:
         super().__init__()  # mass_law: checked by the model configs (NewtonConfig, BGN's)
         self.mass_law, self.types, self.substeps = mass_law, meta.n_types, substeps
+        self.rollout_masses = rollout_masses  # ForceLawOptions.rollout_masses
         self.law_scale = law_scale  # labels only (ForceLawOptions.law_scale)
         if mass_law == "type":  # log m per type; the law's free scale is type 0's mass
             self.log_type_mass = nn.Parameter(torch.zeros(max(meta.n_types, 1)))
@@ -272,14 +283,25 @@ class PairForceHead(nn.Module):
     def forward(self, g: Graph, known_masses: bool = False) -> tuple[torch.Tensor, None]:
         """(N, D) predicted acceleration at frame t, physical units (and no contact logits:
         the interface of ``build_head``'s heads). ``known_masses``: the graph's recorded
-        masses in place of the window's fit (training only: ``law_loss``)."""
+        masses in place of the window's fit (training only: ``law_loss``); a graph's
+        ``mass_fit``, where a rollout holds one (``held_fit``), in place of the window's."""
         raw, terms = self.window(g)
         if known_masses:
             mass = g.mass.to(terms.dtype)
             fit = mass if self.mass_law == "source" else 1 / mass
+        elif g.mass_fit is not None:
+            fit = g.mass_fit.to(terms.dtype)
         else:
             fit = self.fit(g, terms)
         return self.accelerate(g, raw, fit), None
+
+    def held_fit(self, g: Graph) -> torch.Tensor | None:
+        """(N,) the fit a rollout holds from its first window ``g`` (``rollout_masses=held``;
+        the learned simulator passes it back as the graph's ``mass_fit``), else None. One
+        learned mass per type (``mass_law=type``) is held by construction: None."""
+        if self.rollout_masses != "held" or self.mass_law == "type":
+            return None
+        return self.fit(g, self.window(g)[1])
 
     def window(self, g: Graph) -> tuple[torch.Tensor, torch.Tensor]:
         """The pair terms of the window's frames t, t-1, .., t-k (E, k+1, D) and what a
@@ -407,7 +429,7 @@ class PairForceHead(nn.Module):
 
 def build_head(meta: SceneMeta, normalizer: Normalizer, history: int, hidden: int, layers: int,
                act: str, mass_law: str, option: str, substeps: int = 1,
-               law_formula: str = "", law_scale: float = 1.0
+               law_formula: str = "", law_scale: float = 1.0, rollout_masses: str = "window"
                ) -> PairForceHead | ContactImpulseHead:
     """The structured dynamics head of a scene: pair forces (``PairForceHead``) or pair
     impulses at the time of impact (``bgn.model.impulse``); ``head(g)`` gives the physical
@@ -419,7 +441,7 @@ def build_head(meta: SceneMeta, normalizer: Normalizer, history: int, hidden: in
         return ContactImpulseHead(meta, hidden, act)
     check_scene(meta, history, option)
     return PairForceHead(meta, normalizer, hidden, layers, act, mass_law, substeps, law_formula,
-                         law_scale)
+                         law_scale, rollout_masses)
 
 
 def head_given(head: nn.Module) -> tuple[str, ...]:
@@ -446,8 +468,10 @@ def head_physics(head: nn.Module) -> str:
         law = "; the pair law a fitted formula " + "; ".join(
             " + ".join(term_text({**t, "a": t["a"] * head.law_scale}) for t in p["terms"]) + (
                 f" (types {p['types']})" if head.types > 1 else "") for p in terms)
+    held = ("; in a rollout fitted once, to its first window, and held"
+            if head.rollout_masses == "held" and head.mass_law != "type" else "")
     return (f"central pair forces, equal and opposite; {masses[head.mass_law]} "
-            f"(mass_law={head.mass_law}){law}")
+            f"(mass_law={head.mass_law}){held}{law}")
 
 
 def head_label(head: nn.Module) -> str:
@@ -457,8 +481,20 @@ def head_label(head: nn.Module) -> str:
         return "impulse head (radii)"
     assert isinstance(head, PairForceHead)
     law = ", law a formula" if isinstance(head.force_law, FormulaLaw) else ""
+    held = " held" if head.rollout_masses == "held" and head.mass_law != "type" else ""
     return (f"pair-force head ({'types, ' if head.types > 1 else ''}masses {head.mass_law}"
-            f"{law})")
+            f"{held}{law})")
+
+
+def pair_force_head_of(model: nn.Module) -> PairForceHead | None:
+    """A model's pair-force head (BGN's ``force_head``, ``model=newton``'s ``head``), or None."""
+    head = getattr(model, "force_head", None) or getattr(model, "head", None)
+    return head if isinstance(head, PairForceHead) else None
+
+
+def held_fit(head: nn.Module | None, g: Graph) -> torch.Tensor | None:
+    """``PairForceHead.held_fit`` of a model's structured head (None for other heads)."""
+    return head.held_fit(g) if isinstance(head, PairForceHead) else None
 
 
 def law_loss(head: nn.Module, g: Graph, reduce: bool = True) -> torch.Tensor | None:
@@ -501,7 +537,8 @@ class Newton(PhysicsModel):
     def build(self, cfg: NewtonConfig, stats: Mapping[str, Any]) -> None:
         self.head = build_head(self.meta, self.normalizer, self.history, cfg.hidden, cfg.layers,
                                cfg.activation, cfg.mass_law, "model=newton", cfg.substeps,
-                               cfg.law_formula if cfg.law == "formula" else "", cfg.law_scale)
+                               cfg.law_formula if cfg.law == "formula" else "", cfg.law_scale,
+                               cfg.rollout_masses)
         if self.meta.interaction == "contact":
             self.heads = frozenset({"dynamics", "contact", "impulse_mass"})
             self.register_buffer("contact_pos_weight", torch.tensor(
@@ -518,6 +555,9 @@ class Newton(PhysicsModel):
     @property
     def physics(self) -> str:
         return head_physics(self.head)
+
+    def held_mass_fit(self, g: Graph) -> torch.Tensor | None:
+        return held_fit(self.head, g)
 
     def forward(self, g: Graph) -> ModelOutput:
         self.check(g)

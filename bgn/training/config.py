@@ -166,6 +166,9 @@ class EvaluateRolloutKeys:
     max_sims: int | None = None       # simulations rolled out (null: every one of the split)
     sinkhorn_stride: int = 10         # LagrangeBench's Sinkhorn on every n-th step ...
     sinkhorn_rollouts: int | None = 4  # ... of this many rollouts (null: all; it is the costly one)
+    # the pair-force head's mass fit along a rollout (model.rollout_masses): null, the
+    # checkpoint's own | window | held; one-step and inverse metrics do not depend on it
+    masses: str | None = None
 
 
 @dataclass

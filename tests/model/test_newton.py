@@ -204,6 +204,29 @@ def test_pair_forces_are_equal_and_opposite(small_cfg):
     assert float(net.abs().max()) < 1e-10 * float(terms.abs().max())
 
 
+@pytest.mark.parametrize("mass_law", MASS_LAWS)
+def test_a_held_mass_fit_stands_in_for_the_windows(small_cfg, mass_law):
+    """A graph's ``mass_fit`` replaces the window's fit: the fit itself gives the same
+    prediction bit for bit, the recorded masses the known-mass prediction; held
+    masses are offered only under rollout_masses=held, never for one learned mass per type."""
+    ds, g = frames(small_cfg, "gravity_r1")
+    model = build_model({"name": "newton", "mass_law": mass_law, "rollout_masses": "held"},
+                        ds.meta, ds.file.stats(), ds.history).double()
+    head = model.head
+    fit = model.held_mass_fit(g)
+    if mass_law == "type":
+        assert fit is None and "held" not in model.label
+        return
+    assert torch.equal(fit, head.fit(g, head.window(g)[1]))
+    assert torch.equal(head(replace(g, mass_fit=fit))[0], head(g)[0])
+    recorded = g.mass if mass_law == "source" else 1 / g.mass
+    assert torch.equal(head(replace(g, mass_fit=recorded))[0], head(g, known_masses=True)[0])
+    assert not torch.equal(head(replace(g, mass_fit=recorded))[0], head(g)[0])
+    assert f"masses {mass_law} held" in model.label
+    head.rollout_masses = "window"
+    assert model.held_mass_fit(g) is None and "held" not in model.label
+
+
 def test_scenes_without_pairwise_forces_and_short_windows_are_refused(small_cfg):
     ds, _ = frames(small_cfg, "spring")
     with pytest.raises(ValueError, match="history"):
@@ -217,6 +240,10 @@ def test_scenes_without_pairwise_forces_and_short_windows_are_refused(small_cfg)
                 ds.file.stats(), ds.history)
     with pytest.raises(ValueError, match="mass_law"):
         build_model({"name": "bgn", "mass_law": "magic"}, ds.meta, ds.file.stats(), ds.history)
+    for name in ("bgn", "newton"):
+        with pytest.raises(ValueError, match="rollout_masses='fixed'; choose one of"):
+            build_model({"name": name, "rollout_masses": "fixed"}, ds.meta, ds.file.stats(),
+                        ds.history)
     # without the pair-force head there is no fit: the flow reads the pair terms alone
     decoder = build_model({"name": "bgn", "mass_context": "fit"}, ds.meta, ds.file.stats(),
                           ds.history)

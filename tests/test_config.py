@@ -51,6 +51,13 @@ def test_gravity_trains_the_structured_law_on_the_recorded_masses(scene):
     assert model["mass_context"] == "fit"
 
 
+@pytest.mark.parametrize("scene", ["spring", "gravity_r1", "gravity_r2"])
+def test_pair_force_scenes_hold_the_first_windows_masses_and_read_their_law_as_a_formula(scene):
+    model = model_of(f"dataset={scene}")
+    assert (model["rollout_masses"], model["law"]) == ("held", "auto")
+    assert model_of(f"dataset={scene}", "model=newton")["rollout_masses"] == "window"
+
+
 def test_every_scene_gives_bgn_the_structured_head_and_the_command_line_wins():
     assert model_of("dataset=spring", "model=bgn")["dynamics"] == "newton"
     assert model_of("dataset=spring", "model=bgn", "model.dynamics=decoder")["dynamics"] == \

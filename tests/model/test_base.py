@@ -27,12 +27,17 @@ CASES = {
         ("BGN (paper decoder)", ("radii",), "none"),
     ("gravity_r2", "model=bgn_decoder"): ("BGN (paper decoder)", (), "none"),
     ("collisions", "model=bgn_decoder"): ("BGN (paper decoder)", (), "none"),
-    ("spring", "model=bgn"):  # the scene's default: the pair-force head, inertial masses
-        ("BGN + pair-force head (masses inertial)", (), f"{PAIR_FORCES}; inertial masses"),
+    ("spring", "model=bgn"):  # the scene's default: the pair-force head, inertial masses held
+        ("BGN + pair-force head (masses inertial held)", (),
+         f"{PAIR_FORCES}; inertial masses"),
     ("spring", "model=bgn", "model.mass_law=source"):
-        ("BGN + pair-force head (masses source)", (), f"{PAIR_FORCES}; masses at the source"),
+        ("BGN + pair-force head (masses source held)", (),
+         f"{PAIR_FORCES}; masses at the source"),
+    ("spring", "model=bgn", "model.rollout_masses=window"):
+        ("BGN + pair-force head (masses inertial)", (), f"{PAIR_FORCES}; inertial masses"),
     ("gravity_r2", "model=bgn"):
-        ("BGN + pair-force head (masses source)", (), "(mass_law=source)"),
+        ("BGN + pair-force head (masses source held)", (),
+         "(mass_law=source); in a rollout fitted once, to its first window, and held"),
     ("collisions", "model=bgn"):  # the scene's default: the impulse head
         ("BGN + impulse head (radii)", ("radii",), IMPULSES),
     ("spring", "model=newton"):
@@ -80,7 +85,7 @@ def test_the_pair_force_head_reads_types_on_a_scene_of_several() -> None:
     model = build_model(OmegaConf.to_container(cfg.model, resolve=True),
                         make_meta(6, 3), fake_stats(), cfg.dataset.history)
     assert model.given == ("types",)
-    assert model.label == "BGN + pair-force head (types, masses source)"
+    assert model.label == "BGN + pair-force head (types, masses source held)"
 
 
 @pytest.mark.parametrize("scene", ["spring", "gravity_r1", "gravity_r2", "collisions"])

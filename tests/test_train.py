@@ -72,7 +72,9 @@ def tiny_train_cfg(tmp_path: Path, shared_data_dir: Path):
         return compose_config("train", [
             f"dataset={scene}", *SMALL[scene], f"paths.data_dir={shared_data_dir}",
             f"paths.output_dir={tmp_path / 'run'}", f"model={model}", *SMALL_MODELS[model],
-            *([NETWORK_LAW] if (scene, model) == ("spring", "bgn") else []),
+            # the network law where the scene's BGN default reads it back as a formula (a stage
+            # train() runs only when handed it, as bgn.train does)
+            *([NETWORK_LAW] if model == "bgn" and scene in ("spring", "gravity_r1") else []),
             "rollout_steps=3", "val_rollout_steps=5", *overrides])
 
     return make

@@ -44,6 +44,21 @@ def test_inverse_evaluation_with_references(scene: str, tmp_path: Path,
         assert np.isfinite(metrics[key]), key
     if scene == "collisions":  # the contact head's per-simulation impact solve beside the flow's
         assert np.isfinite(metrics["sim_mass_rel_err_flow"])
+        # the type-only reference: its gain over the mixture is what the type tells (two
+        # types 400x apart, half each: ln 2), and the model's gain over it is its own gain
+        # less that, on the same particles
+        assert metrics["type_prior/info_gain"] == pytest.approx(np.log(2), abs=1e-3)
+        assert metrics["info_gain_over_type"] == pytest.approx(
+            metrics["info_gain"] - metrics["type_prior/info_gain"], rel=1e-9, abs=1e-9)
+        assert 0.4 < metrics["type_prior/coverage50"] < 0.6
+        # the estimator falls back to the disc's type's law, so it is never worse than that
+        # by much; its shares of discs estimated are counted
+        assert metrics["physical/mass_rel_err"] < 2 * metrics["type_prior/mass_rel_err"] < 0.5
+        assert 0 <= metrics["physical/identified"] <= metrics["physical/sim_identified"] <= 1
+        assert "coverage_type" in arrays
+    else:  # one mass law for every particle: the type says nothing, no such reference
+        assert not any(k.startswith("type_prior/") for k in metrics)
+        assert "info_gain_over_type" not in metrics
     if scene != "collisions":  # O(dt^2) finite differences of the adaptive integrator's frames
         assert metrics["physical/mass_rel_err"] < 0.01
         assert metrics["physical/identified"] == 1.0

@@ -66,6 +66,49 @@ def test_mass_prior_of_each_scene() -> None:
     assert gas.mean == pytest.approx(0.5 * (np.log(0.001) + np.log(0.4)))
 
 
+def test_the_type_only_law_tells_what_the_type_does() -> None:
+    """The gas's two types draw masses 400x apart, half each: knowing a disc's type tells
+    ln 2 nats of its log-mass, and the type-only sampler draws from that type's law."""
+    rng = np.random.default_rng(3)
+    gas = MassPrior.of_scene(make_scene("collisions"))
+    assert gas.typed
+    types = rng.integers(0, 2, 20000)
+    draws = gas.type_sample(types, (20000,), rng)
+    np.testing.assert_allclose([draws[types == k].mean() for k in (0, 1)], gas.means, atol=0.01)
+    np.testing.assert_allclose([draws[types == k].std() for k in (0, 1)], gas.stds, rtol=0.03)
+    gain = np.mean(gas.type_log_pdf(draws, types) - gas.log_pdf(draws))
+    assert gain == pytest.approx(np.log(2), abs=1e-6)
+    np.testing.assert_array_equal(gas.type_mean(types), gas.means[types])
+    spring = MassPrior.of_scene(make_scene("spring"))   # one component: no per-type law
+    assert not spring.typed
+    np.testing.assert_array_equal(spring.type_mean(np.zeros(3, int)), np.zeros(3))
+    with pytest.raises(ValueError, match="per-type law"):
+        spring.type_log_pdf(np.zeros(3), np.zeros(3, int))
+
+
+def test_impacts_placed_by_the_discs_types() -> None:
+    """Given the discs' types, the estimator places each group of discs linked by impacts at
+    the precision-weighted agreement of their types' laws (the mixture's most probable shift
+    without them): the ratios as before, the scale within the type's spread over the group."""
+    scene = make_scene("collisions", n_particles=30)
+    traj = scene.simulate(np.random.default_rng(1), np.arange(300) * 0.1)
+    prior = MassPrior.of_scene(scene)
+    typed = physical_log_mass(scene, prior, traj.positions[None], 0.1, [traj.contacts],
+                              traj.types)
+    plain = physical_log_mass(scene, prior, traj.positions[None], 0.1, [traj.contacts])
+    seen = np.isfinite(typed)
+    np.testing.assert_array_equal(seen, np.isfinite(plain))
+    mean, std = prior.type_law(traj.types)
+    np.testing.assert_allclose(typed, impact_log_mass(prior, traj.positions[None], 0.1,
+                                                      [traj.contacts], gauge=(mean, std ** 2)))
+    err = typed[seen] - np.log(traj.masses[seen])
+    assert np.ptp(err) < 1e-8                       # one linked group: one shift
+    # the shift: minus the mean of the group's draws from their types' laws (std 0.1 each)
+    expected = -np.mean(np.log(traj.masses[seen]) - mean[seen])
+    assert err[0] == pytest.approx(expected, abs=1e-8)
+    assert abs(err[0]) < 4 * 0.1 / np.sqrt(seen.sum())
+
+
 def test_a_scene_without_a_mass_law_takes_the_training_masses_and_estimates_nothing() -> None:
     """Imported data have no mass law and no force law: the prior is the log-normal of the
     training split's masses, and the physical estimator says nothing (NaN) rather than guess."""

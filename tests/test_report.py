@@ -41,6 +41,9 @@ def record(cell: Cell) -> dict[str, Any]:
                         "coverage90": 0.9, "info_gain": 1.5, "prior/coverage50": 0.5,
                         "prior/info_gain": 0.0, "physical/sim_mass_rel_err": 0.001})
         figure = f"/elsewhere/figures/mass_{cell.name}.png"
+        if cell.scene == "collisions":  # each type its own mass law: the type-only sampler
+            metrics.update({"info_gain_over_type": 0.81, "type_prior/info_gain": 0.69,
+                            "physical/identified": 0.2})
     if cell.train_sims is not None:
         metrics["nmse"] = 1.0 / cell.train_sims
     for key, err in (("rollout", 0.01), ("rollout_last", 0.5), ("rollout_linear", 0.2),
@@ -122,13 +125,17 @@ def test_table1(tmp_path: Path) -> None:
 def test_inverse_table_lists_full_cells_with_a_figure(tmp_path: Path) -> None:
     text = inverse_table(tmp_path, CELLS, RESULTS)
     rows = csv_rows(tmp_path / "inverse.csv")
-    # each model row, then its two references on the same particles
+    # each model row, then its references on the same particles: the type-only sampler
+    # only where it was evaluated (each type its own mass law)
     assert [(r["scene"], r["fps"], r["model"]) for r in rows] == [
-        (scene, fps, label) for scene, fps in (("collisions", "10"), ("spring", "25"))
-        for label in ("bgn", *INVERSE_REFERENCES.values())]
+        ("collisions", "10", label) for label in ("bgn", *INVERSE_REFERENCES.values())] + [
+        ("spring", "25", label) for label in ("bgn", INVERSE_REFERENCES["prior"],
+                                              INVERSE_REFERENCES["physical"])]
     assert rows[0]["figure"] == f"figures/mass_{MAIN[0].name}.png"
     assert (rows[0]["info_gain"], rows[1]["info_gain"]) == ("1.5", "0.0")
-    assert rows[2]["sim_mass_rel_err"] == "0.001" and rows[2]["figure"] == ""
+    assert (rows[0]["info_gain_over_type"], rows[2]["info_gain"]) == ("0.81", "0.69")
+    assert rows[3]["sim_mass_rel_err"] == "0.001" and rows[3]["figure"] == ""
+    assert rows[3]["identified"] == "0.2"
     assert f"![mass_{MAIN[0].name}](figures/mass_{MAIN[0].name}.png)" in text
 
 

@@ -2,11 +2,13 @@
 study's report (``bgn.studies.report``) both print, in one place so that the two agree."""
 
 INVERSE_COLUMNS = ["coverage50", "coverage90", "coverage_max_dev", "sbc_p", "tarp_atc",
-                   "info_gain", "relmass_r2", "relmass_r2_estimate", "mass_rel_err",
-                   "sim_mass_rel_err", "sim_mass_rel_err_flow", "welch_p", "wasserstein1",
-                   "modes_true", "modes_recovered"]
-# the references evaluated beside each inverse model (bgn.eval.evaluate.evaluate_inverse)
+                   "info_gain", "info_gain_over_type", "relmass_r2", "relmass_r2_estimate",
+                   "mass_rel_err", "sim_mass_rel_err", "sim_mass_rel_err_flow", "identified",
+                   "sim_identified", "welch_p", "wasserstein1", "modes_true", "modes_recovered"]
+# the references evaluated beside each inverse model (bgn.eval.evaluate.evaluate_inverse);
+# the type-only sampler only where the mass law has one component per type
 INVERSE_REFERENCES = {"prior": "prior-only sampler",
+                      "type_prior": "type-only sampler (the true type's mass law)",
                       "physical": "physical estimator (force law, no learning)"}
 
 

@@ -31,6 +31,7 @@ from bgn.metrics import (
     calibration_metrics,
     coverage_curve,
     fit_radius_map,
+    information_gain,
     inverse_metrics,
     kde_modes,
     r2_score,
@@ -235,12 +236,19 @@ def window_and_contacts(dataset: FrameDataset, index: int) -> tuple[np.ndarray,
     return window, np.column_stack([rows[:, 1] - first, rows[:, 2], rows[:, 3]])
 
 
-def _physical(dataset: FrameDataset, prior: MassPrior,
+def _types(dataset: FrameDataset, prior: MassPrior, sim: int) -> np.ndarray | None:
+    """Simulation ``sim``'s particle types (N,) where the mass law has one component per
+    type (what the type-only references and the estimator read), else None."""
+    return np.asarray(dataset.file.read("types", sim)) if prior.typed else None
+
+
+def _physical(dataset: FrameDataset, prior: MassPrior, sim: int,
               views: list[tuple[np.ndarray, np.ndarray | None]]) -> np.ndarray:
-    """The force-law estimate (N,) from the windows (and contacts) of one simulation."""
+    """The force-law estimate (N,) from the windows (and contacts) of simulation ``sim``."""
     windows = np.stack([w for w, _ in views])
     contacts = None if views[0][1] is None else [c for _, c in views]
-    return physical_log_mass(dataset.scene, prior, windows, dataset.dt, contacts)
+    return physical_log_mass(dataset.scene, prior, windows, dataset.dt, contacts,
+                             _types(dataset, prior, sim))
 
 
 def _impact_solve_error(dataset: FrameDataset, prior: MassPrior,
@@ -281,13 +289,14 @@ def _window_rows(rows: torch.Tensor, g: Graph, b: int, first_node: torch.Tensor,
 
 class _MassArrays(NamedTuple):
     """``_MassDraws`` concatenated: per particle and frame the true log-mass (P,), the draws
-    (S, P) and their log-density, the particle's key, the force-law estimate (P,); the frames'
-    edges (2, E) and their true relative log-masses (E,)."""
+    (S, P) and their log-density, the particle's key and type, the force-law estimate (P,);
+    the frames' edges (2, E) and their true relative log-masses (E,)."""
 
     true_log: np.ndarray
     sampled: np.ndarray
     log_post: np.ndarray
     particles: np.ndarray
+    types: np.ndarray
     physical: np.ndarray
     edges: np.ndarray
     edge_rel: np.ndarray
@@ -302,6 +311,7 @@ class _MassDraws:
     sampled: list[np.ndarray] = field(default_factory=list)
     log_post: list[np.ndarray] = field(default_factory=list)
     particles: list[np.ndarray] = field(default_factory=list)
+    types: list[np.ndarray] = field(default_factory=list)
     physical: list[np.ndarray] = field(default_factory=list)
     edges: list[np.ndarray] = field(default_factory=list)
     edge_rel: list[np.ndarray] = field(default_factory=list)
@@ -320,6 +330,7 @@ class _MassDraws:
         first_node = torch.cumsum(g.num_nodes, 0) - g.num_nodes
         node_index = torch.arange(len(g.mass)) - first_node[g.batch]
         self.particles.append((g.sim[g.batch] * 1_000_000 + node_index).numpy())
+        self.types.append(g.types.numpy())
         self.edges.append(g.edge_index.numpy() + self.offset)
         self.edge_rel.append(g.edge_rel_log_mass.double().numpy())
         self.offset += len(g.mass)
@@ -334,7 +345,7 @@ class _MassDraws:
             window, contacts = window_and_contacts(dataset, i)
             sim = dataset.locate(i)[0]
             self.per_sim.setdefault(sim, []).append((window, contacts))
-            self.physical.append(_physical(dataset, prior, [(window, contacts)]))
+            self.physical.append(_physical(dataset, prior, sim, [(window, contacts)]))
             if rows is not None:
                 self.model_contacts.setdefault(sim, []).append(
                     _window_rows(rows, g, b, first_node, len(window)))
@@ -343,8 +354,8 @@ class _MassDraws:
         """The batches concatenated."""
         return _MassArrays(np.concatenate(self.true_log), np.concatenate(self.sampled, axis=1),
                            np.concatenate(self.log_post), np.concatenate(self.particles),
-                           np.concatenate(self.physical), np.concatenate(self.edges, axis=1),
-                           np.concatenate(self.edge_rel))
+                           np.concatenate(self.types), np.concatenate(self.physical),
+                           np.concatenate(self.edges, axis=1), np.concatenate(self.edge_rel))
 
 
 def _gather_draws(model: Any, dataset: FrameDataset, prior: MassPrior, indices: np.ndarray,
@@ -367,9 +378,14 @@ def _model_mass_metrics(dataset: FrameDataset, prior: MassPrior, draws: _MassDra
                         a: _MassArrays, log_prior: np.ndarray) -> dict[str, Any]:
     """The model's inverse metrics: its posterior's and its posterior means'; with a contact
     head, ``sim_mass_rel_err`` from the per-simulation impact solve (the flow's pooled one as
-    ``sim_mass_rel_err_flow``)."""
+    ``sim_mass_rel_err_flow``); where the mass law has one component per type,
+    ``info_gain_over_type``: its information beyond the type's (the type-only reference's
+    density in place of the prior's; below 0, the posterior tells less than the type)."""
     metrics: dict[str, Any] = _posterior_metrics(a.true_log, a.sampled, a.log_post, log_prior,
                                                  a.particles)
+    if prior.typed:
+        metrics["info_gain_over_type"] = information_gain(
+            a.log_post, prior.type_log_pdf(a.true_log, a.types))
     metrics.update(_point_metrics(a.sampled.mean(axis=0), a.true_log, a.particles, a.edges,
                                   a.edge_rel, a.sampled.var(axis=0)))
     if draws.model_contacts:
@@ -382,20 +398,38 @@ def _model_mass_metrics(dataset: FrameDataset, prior: MassPrior, draws: _MassDra
 
 def _physical_reference(dataset: FrameDataset, prior: MassPrior, draws: _MassDraws,
                         a: _MassArrays) -> dict[str, float]:
-    """The force-law estimator's metrics: on each frame's window (the prior's mean where it
-    says nothing; ``identified`` the share it could estimate) and per simulation, one
-    least-squares fit of all its windows (``sim_identified``)."""
-    pooled = {sim: _physical(dataset, prior, views) for sim, views in draws.per_sim.items()}
+    """The force-law estimator's metrics: on each frame's window and per simulation, one
+    least-squares fit of all its windows. Where the frames say nothing of a particle it falls
+    back to the mean log-mass of the particle's type (of the whole law where it has one
+    component); ``identified`` and ``sim_identified``: the shares it estimated, the rest
+    fell back."""
+    pooled = {sim: _physical(dataset, prior, sim, views) for sim, views in draws.per_sim.items()}
     sim_estimate = np.concatenate(list(pooled.values()))
     sim_true = np.log(np.concatenate([dataset.file.read("masses", sim) for sim in pooled]))
+    sim_types = np.concatenate([dataset.file.read("types", sim) for sim in pooled])
     return {
-        **_point_metrics(np.where(np.isfinite(a.physical), a.physical, prior.mean), a.true_log,
-                         a.particles, a.edges, a.edge_rel),
+        **_point_metrics(np.where(np.isfinite(a.physical), a.physical,
+                                  prior.type_mean(a.types)),
+                         a.true_log, a.particles, a.edges, a.edge_rel),
         "identified": float(np.mean(np.isfinite(a.physical))),
         # per simulation: one least-squares fit of all its windows, not a mean of estimates
         "sim_mass_rel_err": relative_mass_error(
-            np.where(np.isfinite(sim_estimate), sim_estimate, prior.mean), sim_true),
+            np.where(np.isfinite(sim_estimate), sim_estimate, prior.type_mean(sim_types)),
+            sim_true),
         "sim_identified": float(np.mean(np.isfinite(sim_estimate)))}
+
+
+def _type_reference(prior: MassPrior, a: _MassArrays, log_prior: np.ndarray,
+                    rng: np.random.Generator) -> tuple[dict[str, float], np.ndarray]:
+    """The type-only sampler's metrics (draws from each particle's own type's mass law, its
+    exact density: all that knowing the type tells) and its draws."""
+    samples = prior.type_sample(a.types, a.sampled.shape, rng)
+    metrics = {**_posterior_metrics(a.true_log, samples,
+                                    prior.type_log_pdf(a.true_log, a.types), log_prior,
+                                    a.particles),
+               **_point_metrics(prior.type_mean(a.types), a.true_log, a.particles, a.edges,
+                                a.edge_rel)}
+    return metrics, samples
 
 
 @torch.no_grad()
@@ -425,12 +459,15 @@ def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: 
     references = {"prior": _posterior_metrics(a.true_log, prior_samples, log_prior, log_prior,
                                               a.particles),
                   "physical": _physical_reference(dataset, prior, draws, a)}
-    for name, values in references.items():
-        metrics.update({f"{name}/{k}": v for k, v in values.items()})
     arrays = {"true_mass": np.exp(a.true_log), "sampled_mass": np.exp(a.sampled),
               "coverage_levels": COVERAGE_LEVELS,
               "coverage": coverage_curve(a.true_log, a.sampled),
               "coverage_prior": coverage_curve(a.true_log, prior_samples)}
+    if prior.typed:
+        references["type_prior"], type_samples = _type_reference(prior, a, log_prior, rng)
+        arrays["coverage_type"] = coverage_curve(a.true_log, type_samples)
+    for name, values in references.items():
+        metrics.update({f"{name}/{k}": v for k, v in values.items()})
     return metrics, arrays
 
 
@@ -466,15 +503,24 @@ def evaluate_split(module: PhysicsModule, dataset: FrameDataset,
     return metrics, arrays
 
 
-def mass_figure(arrays: dict[str, np.ndarray], path: str | Path) -> Path:
-    """Write the KDE of true vs sampled masses beside the coverage curves of the model and
-    the prior-only sampler (``figures.mass_calibration``) as a PNG."""
-    from bgn.figures import mass_calibration, save
+def mass_plot(arrays: dict[str, np.ndarray]) -> Any:
+    """The KDE of true vs sampled masses beside the coverage curves of the model, the
+    prior-only sampler and, where there is one, the type-only sampler
+    (``figures.mass_calibration``)."""
+    from bgn.figures import mass_calibration
 
-    return save(mass_calibration(arrays["true_mass"], arrays["sampled_mass"].ravel(),
-                                 arrays["coverage_levels"],
-                                 {"model": arrays["coverage"],
-                                  "prior-only sampler": arrays["coverage_prior"]}), path)
+    curves = {"model": arrays["coverage"], "prior-only sampler": arrays["coverage_prior"]}
+    if "coverage_type" in arrays:
+        curves["type-only sampler"] = arrays["coverage_type"]
+    return mass_calibration(arrays["true_mass"], arrays["sampled_mass"].ravel(),
+                            arrays["coverage_levels"], curves)
+
+
+def mass_figure(arrays: dict[str, np.ndarray], path: str | Path) -> Path:
+    """Write ``mass_plot`` as a PNG."""
+    from bgn.figures import save
+
+    return save(mass_plot(arrays), path)
 
 
 # ----------------------------------------------------------------------------- the command
@@ -763,14 +809,16 @@ def report_text(record: dict[str, Any], metrics: dict[str, Any], figures: list[s
     if "coverage50" in metrics:
         rows = [{"source": "model", **{c: metrics.get(c) for c in INVERSE_COLUMNS}}]
         rows += [{"source": label, **{c: metrics.get(f"{key}/{c}") for c in INVERSE_COLUMNS}}
-                 for key, label in INVERSE_REFERENCES.items()]
+                 for key, label in INVERSE_REFERENCES.items()
+                 if any(f"{key}/{c}" in metrics for c in INVERSE_COLUMNS)]
+        columns = [c for c in INVERSE_COLUMNS if any(r[c] is not None for r in rows)]
         lines += ["## Inverse model", "",
                   f"{metrics.get('mass_particles')} particle masses in evenly spaced frames "
                   f"(bgn.eval.evaluate.evaluate_inverse); the flow recalibrated on the "
                   f"{record['calibration_split']} split first (scale at 50 % / 90 %: "
                   f"{metrics.get('mass_calibration_scale50', float('nan')):.3g} / "
                   f"{metrics.get('mass_calibration_scale90', float('nan')):.3g}).", "",
-                  markdown_table(["source", *INVERSE_COLUMNS], rows)]
+                  markdown_table(["source", *columns], rows)]
     if "posterior/particles" in metrics:
         lines += ["## Inverse model (no recorded masses)", "",
                   "The data carry no masses, so the posterior is reported, not scored "
@@ -882,12 +930,7 @@ def evaluate_run(cfg: Any, paths: tuple[Path, Path, Path]) -> Path:
             figures["rollout_error"] = rollout_errors(labelled, metrics.get("rollout/rollout_cap"))
             figures["energy_drift"] = energy_drift(labelled)
             if arrays:
-                from bgn.figures import mass_calibration
-
-                figures["mass"] = mass_calibration(
-                    arrays["true_mass"], arrays["sampled_mass"].ravel(),
-                    arrays["coverage_levels"], {"model": arrays["coverage"],
-                                                "prior-only sampler": arrays["coverage_prior"]})
+                figures["mass"] = mass_plot(arrays)
     finally:
         stages.close()
     out_dir = Path(cfg.out_dir) if cfg.out_dir else run_dir / "eval" / str(cfg.split)

@@ -87,6 +87,40 @@ class MassPrior:
     def mean(self) -> float:
         return float(np.sum(self.weights * self.means) / self.weights.sum())
 
+    @property
+    def typed(self) -> bool:
+        """One component per particle type (collisions): a particle's type, which its radius
+        shows, says which component its mass was drawn from."""
+        return len(self.weights) > 1
+
+    def type_law(self, types: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per particle, the mean and std of log-mass of its type's component."""
+        if not self.typed:
+            raise ValueError("a mass law of one component has no per-type law")
+        k = np.asarray(types, dtype=np.int64)
+        return self.means[k], self.stds[k]
+
+    def type_log_pdf(self, log_mass: np.ndarray, types: np.ndarray) -> np.ndarray:
+        """Log-density of log-masses under each particle's own type's component (the
+        type-only reference: what knowing the type alone tells of the mass)."""
+        mean, std = self.type_law(types)
+        z = (np.asarray(log_mass, dtype=np.float64) - mean) / std
+        return -0.5 * z ** 2 - np.log(std * np.sqrt(2 * np.pi))
+
+    def type_sample(self, types: np.ndarray, shape: tuple[int, ...],
+                    rng: np.random.Generator) -> np.ndarray:
+        """Draws (shape: (..., P)) of log-mass from each particle's own type's component,
+        ignoring everything else (the type-only sampler)."""
+        mean, std = self.type_law(types)
+        return mean + std * rng.standard_normal(shape)
+
+    def type_mean(self, types: np.ndarray) -> np.ndarray:
+        """Per particle, the mean log-mass of its type's component, or of the whole law
+        where it has one component: the guess of an estimator the frames tell nothing."""
+        if not self.typed:
+            return np.full(np.shape(types), self.mean)
+        return self.type_law(types)[0]
+
 
 def _second_differences(windows: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
     """Positions (W, F, N, D) -> (the interior frames (W, F-2, N, D), their accelerations)."""
@@ -156,8 +190,8 @@ def impact_log_mass(prior: MassPrior, windows: np.ndarray, dt: float,
     antiparallel (no wall bounce in between): then ``m_i dv_i = -m_j dv_j``. The equations of
     a simulation are solved by least squares; each group of discs linked by impacts is
     shifted to the most probable place under ``prior`` (only ratios are observable), or, given
-    a ``gauge`` (per-disc mean and variance (N,) of log-mass: a model's own posteriors), to the
-    precision-weighted agreement with it."""
+    a ``gauge`` (per-disc mean and variance (N,) of log-mass: a model's own posteriors, or
+    each disc's type's law), to the precision-weighted agreement with it."""
     n = windows.shape[2]
     rows, rhs = [], []
     for x, table in zip(windows, contacts):
@@ -202,15 +236,24 @@ def impact_log_mass(prior: MassPrior, windows: np.ndarray, dt: float,
 
 
 def physical_log_mass(scene: Scene, prior: MassPrior, windows: np.ndarray, dt: float,
-                      contacts: list[np.ndarray] | None = None) -> np.ndarray:
+                      contacts: list[np.ndarray] | None = None,
+                      types: np.ndarray | None = None) -> np.ndarray:
     """Natural log-mass (N,) of every particle from position windows (W, F, N, D) of one
     simulation (W = 1: one frame's window, as the model sees it; more: pooled over frames),
-    by the scene's force law; NaN where the windows say nothing about a particle."""
+    by the scene's force law; NaN where the windows say nothing about a particle.
+
+    ``types`` (N,), where the mass law has one component per type: the impacts' groups of
+    discs are placed by their members' own types' laws (as the radius shows them), not by
+    the mixture, so the estimator uses all it is given, as the models with radii do."""
     windows = np.asarray(windows, dtype=np.float64)
     if isinstance(scene, CollisionScene):
         if contacts is None:
             raise ValueError("collisions: the estimator needs the windows' contacts")
-        return impact_log_mass(prior, windows, dt, contacts)
+        gauge = None
+        if types is not None and prior.typed:
+            mean, std = prior.type_law(types)
+            gauge = (mean, std ** 2)
+        return impact_log_mass(prior, windows, dt, contacts, gauge=gauge)
     potential = getattr(scene, "potential", None)
     if potential is None:  # no force law written down (imported data): nothing to estimate
         return np.full(windows.shape[2], np.nan)

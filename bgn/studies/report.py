@@ -306,7 +306,10 @@ def inverse_table(report_dir: Path, cells: list[Cell], results: Results,
         "of simulation-based-calibration ranks; tarp_atc, TARP's area between its coverage "
         "curve and the diagonal above 0.5 (< 0: overconfident); the two tests count each "
         "distinct particle once. info_gain: mean log posterior density of the true log-mass "
-        "minus the prior's (nats; 0 = learned nothing). relmass_r2: the relative-mass head "
+        "minus the prior's (nats; 0 = learned nothing); info_gain_over_type, where each type "
+        "has its own mass law (collisions): minus the type-only sampler's density instead, "
+        "what the posterior tells beyond the type (below 0: less than the type alone). "
+        "relmass_r2: the relative-mass head "
         "(Eq. 9-10); relmass_r2_estimate: of the posterior means' differences on the same "
         "edges; mass_rel_err: median |m_hat / m - 1| of one frame's posterior mean; "
         "sim_mass_rel_err: of each particle's per-frame posteriors pooled (their Gaussian "
@@ -317,10 +320,15 @@ def inverse_table(report_dir: Path, cells: list[Cell], results: Results,
         "and modes (KDE peaks of the true log-masses, how many have a sampled peak within "
         "0.5) compare pooled samples, which a sampler of the prior also passes. References "
         "on the same particles: the prior-only sampler (draws from the scene's mass law: "
-        "calibrated, "
-        "zero information) and the physical estimator (the known force law on the "
-        "window's finite differences; collisions: momentum exchange at impacts, which one "
-        "window rarely holds; its per-simulation value pools the windows of a simulation)."),
+        "calibrated, zero information); on collisions the type-only sampler (draws from each "
+        "disc's own type's mass law: calibrated, all that the type, which the radius shows, "
+        "tells); and the physical estimator (the known force law on the window's finite "
+        "differences; collisions: momentum exchange at impacts, which one window rarely "
+        "holds, each group of discs linked by impacts placed by its members' types' mass "
+        "laws; its per-simulation value pools the windows of a simulation). Where the frames "
+        "say nothing of a particle the estimator falls back to its type's mean log-mass "
+        "(the law's mean with one type): identified and sim_identified are the shares it "
+        "estimated, per frame and per simulation, the rest fell back."),
         images=("figure",))
 
 

@@ -7,9 +7,9 @@ import csv
 from pathlib import Path
 from typing import Any
 
+from bgn.eval.columns import INVERSE_REFERENCE_VARIANTS, INVERSE_REFERENCES
 from bgn.studies.cells import Cell
 from bgn.studies.report import (
-    INVERSE_REFERENCES,
     PAPER_LABEL,
     ablations_table,
     inverse_table,
@@ -127,10 +127,14 @@ def test_inverse_table_lists_full_cells_with_a_figure(tmp_path: Path) -> None:
     rows = csv_rows(tmp_path / "inverse.csv")
     # each model row, then its references on the same particles: the type-only sampler
     # only where it was evaluated (each type its own mass law)
+    # (the model's label says what it is: older records without it show the cell's model)
     assert [(r["scene"], r["fps"], r["model"]) for r in rows] == [
-        ("collisions", "10", label) for label in ("bgn", *INVERSE_REFERENCES.values())] + [
+        ("collisions", "10", label) for label in (VARIANTS["bgn"]["label"],
+                                                  *INVERSE_REFERENCES.values())] + [
         ("spring", "25", label) for label in ("bgn", INVERSE_REFERENCES["prior"],
                                               INVERSE_REFERENCES["physical"])]
+    assert [r["given"] for r in rows[:4]] == ["radii", "-", "types",
+                                              INVERSE_REFERENCE_VARIANTS["physical"]["given"]]
     assert rows[0]["figure"] == f"figures/mass_{MAIN[0].name}.png"
     assert (rows[0]["info_gain"], rows[1]["info_gain"]) == ("1.5", "0.0")
     assert (rows[0]["info_gain_over_type"], rows[2]["info_gain"]) == ("0.81", "0.69")

@@ -10,6 +10,14 @@ INVERSE_COLUMNS = ["coverage50", "coverage90", "coverage_max_dev", "sbc_p", "tar
 INVERSE_REFERENCES = {"prior": "prior-only sampler",
                       "type_prior": "type-only sampler (the true type's mass law)",
                       "physical": "physical estimator (force law, no learning)"}
+# what each reference reads beyond the position window, and the physics written into it
+# (the columns a model's row has from its PhysicsModel.describe)
+INVERSE_REFERENCE_VARIANTS = {
+    "prior": {"given": "-", "physics written in": "the scene's mass law"},
+    "type_prior": {"given": "types", "physics written in": "each type's mass law"},
+    "physical": {"given": "collisions: the recorded contacts, types",
+                 "physics written in": "the scene's force law (collisions: momentum exchange "
+                                       "at impacts) and mass law"}}
 
 
 ROLLOUT_COLUMNS = ["pos_err_mean@1", "pos_err_mean@10", "pos_err_mean@50", "pos_err_mean@100",

@@ -17,7 +17,12 @@ import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from bgn.eval.columns import INVERSE_COLUMNS, INVERSE_REFERENCES, ROLLOUT_COLUMNS
+from bgn.eval.columns import (
+    INVERSE_COLUMNS,
+    INVERSE_REFERENCE_VARIANTS,
+    INVERSE_REFERENCES,
+    ROLLOUT_COLUMNS,
+)
 from bgn.provenance import write_block
 from bgn.tables import fmt, write_csv, write_table
 
@@ -271,11 +276,14 @@ def table1(report_dir: Path, cells: list[Cell], results: Results, split: str = "
 def inverse_table(report_dir: Path, cells: list[Cell], results: Results,
                   split: str = "test") -> str:
     """Inverse model: every full-model cell with a mass head (main grid first), its sample,
-    calibration and information metrics and figure on ``split``, with the prior-only sampler
-    and the force-law estimator on the same particles below it."""
+    calibration and information metrics and figure on ``split``, with the prior-only sampler,
+    the type-only sampler (where each type has its own mass law) and the force-law estimator
+    on the same particles below it; each row says what it is given and the physics written
+    in."""
     main = _main(cells)
     extra = override_columns(main)
-    columns = ["scene", "fps", "model", *extra, *INVERSE_COLUMNS, "mass_calibration_scale50",
+    keys = ["scene", "fps", "model", *extra, *VARIANT_COLUMNS]
+    columns = [*keys, *INVERSE_COLUMNS, "mass_calibration_scale50",
                "mass_calibration_scale90", "mass_particles", "figure"]
     rows = []
     for c in main + [c for c in cells if "main" not in c.groups]:
@@ -283,15 +291,16 @@ def inverse_table(report_dir: Path, cells: list[Cell], results: Results,
         if c.ablation == "full" and c.train_sims is None and figure:
             m = evaluation(results, c)
             rows.append({SEED: c.seed, "scene": c.scene, "fps": fmt(c.fps),
-                         "model": c.model, OVERRIDES: variant_overrides(c), **m,
+                         **variant(results, c), OVERRIDES: variant_overrides(c), **m,
                          "figure": f"figures/{Path(figure).name}"})
             for key, label in INVERSE_REFERENCES.items():
                 values = {k: m.get(f"{key}/{k}") for k in INVERSE_COLUMNS}
                 if any(v is not None for v in values.values()):
                     rows.append({SEED: c.seed, "scene": c.scene, "fps": fmt(c.fps),
-                                 "model": label, OVERRIDES: variant_overrides(c), **values})
+                                 "model": label, **INVERSE_REFERENCE_VARIANTS[key],
+                                 OVERRIDES: variant_overrides(c), **values})
     return write_seeded_table(
-        report_dir, "inverse", columns, ["scene", "fps", "model", *extra], rows,
+        report_dir, "inverse", columns, keys, rows,
         f"Inverse model: sampled vs true masses ({SPLIT_NAMES[split]} split)",
         split_notes(split, f"Log-masses (natural log) of every particle of a subset of "
         f"{SPLIT_NAMES[split]} frames, the flow recalibrated first on as many "
@@ -335,12 +344,12 @@ def inverse_table(report_dir: Path, cells: list[Cell], results: Results,
 def types_table(report_dir: Path, cells: list[Cell], results: Results,
                 split: str = "test") -> str:
     """Particle types: accuracy and AUROC on ``split`` of every full-model cell with a type
-    head."""
-    rows = [{SEED: c.seed, "scene": c.scene, "fps": fmt(c.fps), "model": c.model,
+    head (its variant, what it is given, the physics written in)."""
+    rows = [{SEED: c.seed, "scene": c.scene, "fps": fmt(c.fps), **variant(results, c),
              OVERRIDES: variant_overrides(c), **evaluation(results, c)}
             for c in cells if c.ablation == "full" and c.train_sims is None
             and "type_accuracy" in evaluation(results, c)]
-    keys = ["scene", "fps", "model", *override_columns(cells)]
+    keys = ["scene", "fps", "model", *override_columns(cells), *VARIANT_COLUMNS]
     return write_seeded_table(
         report_dir, "types", [*keys, "type_accuracy", "type_auroc"], keys, rows,
         f"Particle-type classification ({SPLIT_NAMES[split]} split)",

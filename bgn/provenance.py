@@ -38,6 +38,36 @@ def machine(**versions: str) -> str:
     )
 
 
+# the libraries whose versions change trained numbers (a run on another build of one of them,
+# or on another processor, is not expected to match a table to the digit)
+NUMERIC_LIBRARIES = ("torch", "lightning", "zuko", "numpy", "scipy", "h5py")
+
+
+def processor() -> str:
+    """The processor's model name (``/proc/cpuinfo`` on Linux), else what platform says."""
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def library_versions() -> str:
+    """``NUMERIC_LIBRARIES`` and their installed versions, one string."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    def installed(name: str) -> str:
+        try:
+            return version(name)
+        except PackageNotFoundError:
+            return "not installed"
+
+    return ", ".join(f"{name} {installed(name)}" for name in NUMERIC_LIBRARIES)
+
+
 def block_markers(name: str) -> tuple[str, str]:
     """The markers around a generated block in a results file."""
     return (f"<!-- generated:{name}:begin -->", f"<!-- generated:{name}:end -->")

@@ -188,7 +188,8 @@ def test_the_command_writes_report_csv_json_and_figures(trained_run, tmp_path: P
         assert err == pytest.approx(metrics["rollout/pos_err_mean@10"], rel=1e-6)
     report = (out / "report.md").read_text()
     for text in ("best.ckpt", record["provenance"]["run_config_hash"], "git commit",
-                 "torch threads", "## Rollouts", "## Inverse model", "rollout_error.png",
+                 "torch threads", "- libraries: torch ", "## Rollouts", "## Inverse model",
+                 "rollout_error.png",
                  "## LagrangeBench metrics", "| mse@5 | mse@10 | mse@20 | mse@all | sinkhorn",
                  "## The learned pair law (bgn on spring)", "f(r) = ",
                  "![learned law, formula and truth](law.png)"):

@@ -206,6 +206,9 @@ def test_a_failed_cell_is_named_and_the_others_reported(tmp_path: Path, monkeypa
     assert f"FAILED: {broken}" in capsys.readouterr().out
     provenance = json.loads((tmp_path / "report" / "provenance.json").read_text())
     assert provenance["failed_cells"] == [broken] and provenance["seeds"] == [0, 1]
+    # what a run on another machine needs to know to expect the same digits or not
+    assert provenance["processor"] and "torch " in provenance["libraries"]
+    assert "zuko " in provenance["libraries"]
     listed = (tmp_path / "report" / "report.md").read_text()
     assert all((f"| {c.name} |" in listed) == (c.name != broken) for c in cells)
 

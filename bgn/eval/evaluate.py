@@ -43,7 +43,7 @@ from bgn.model.encoder import approach_gap
 from bgn.model.impulse import ContactImpulseHead
 from bgn.model.newton import ROLLOUT_MASSES, pair_force_head_of
 from bgn.model.target_coder import extrapolate, observed_targets
-from bgn.provenance import git_commit
+from bgn.provenance import git_commit, library_versions, processor
 from bgn.rollout import evaluate_rollouts, lb_prefix
 from bgn.training.checkpoints import CheckpointError, read
 from bgn.training.module import PhysicsModule, load_model
@@ -669,6 +669,7 @@ def provenance_record(cfg: Any, ckpt: Path, config: Path, run_cfg: Any) -> dict[
             "run_config_hash": hashlib.sha256(config.read_bytes()).hexdigest()[:10],
             "git_commit": git_commit(),
             "machine": f"{platform.platform()}, {platform.processor() or platform.machine()}",
+            "processor": processor(), "libraries": library_versions(),
             "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
             "seeds": {"evaluation": int(cfg.seed), "training": run_cfg.get("seed"),
                       "data": run_cfg.dataset.get("seed")},
@@ -787,8 +788,9 @@ def report_text(record: dict[str, Any], metrics: dict[str, Any], figures: list[s
              f"- checkpoint: `{record['checkpoint']}`",
              f"- run config: `{record['run_config']}` (hash {record['run_config_hash']})",
              f"- git commit: {record['git_commit']}",
-             f"- machine: {record['machine']}; {record['cpu_count']} CPUs, "
-             f"{record['torch_threads']} torch threads",
+             f"- machine: {record['machine']}; {record.get('processor', 'unknown')}; "
+             f"{record['cpu_count']} CPUs, {record['torch_threads']} torch threads",
+             f"- libraries: {record.get('libraries', 'unknown')}",
              f"- seeds: {seeds}; mass flow recalibrated on the {record['calibration_split']} "
              f"split; wall time {record['wall_time_s']:.1f} s", "",
              "## One step", "",

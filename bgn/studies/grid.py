@@ -35,7 +35,7 @@ from typing import Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from bgn.coerce import ConfigError
-from bgn.provenance import git_commit
+from bgn.provenance import git_commit, library_versions, processor
 from bgn.studies.cells import (
     CONF_DIR,
     Cell,
@@ -321,7 +321,8 @@ def study_provenance(cfg: DictConfig, workers: int, threads: int | None, wall_s:
             .hexdigest()[:12],
             **code,
             "machine": f"{platform.platform()}, {platform.processor() or platform.machine()}",
-            "cpu_count": os.cpu_count(), "torch": torch.__version__, "device": device,
+            "processor": processor(), "cpu_count": os.cpu_count(),
+            "torch": torch.__version__, "libraries": library_versions(), "device": device,
             "workers": workers, "threads_per_worker": threads or torch.get_num_threads(),
             "seeds": preset_seeds(cfg.preset), "eval_split": eval_split(cfg.preset),
             "calibration_split": CALIBRATION_SPLIT[eval_split(cfg.preset)],

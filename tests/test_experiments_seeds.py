@@ -259,3 +259,6 @@ def test_seeds_of_one_model_config_are_one_row_whatever_their_fitted_law() -> No
     assert one[text] == ("pair forces; the law a formula (per seed: -1.003*(r + "
                          "0.0107)**-2; -0.9996*(r + 0.0097)**-2)")
     assert merged_text(["same", "same"]) == "same"
+    # seeds that share a formula's start: the split stays outside its brackets
+    assert merged_text(["law -1*(r + 0.009994)**-1", "law -1*(r + 0.009992)**-1"]) == (
+        "law (per seed: -1*(r + 0.009994)**-1; -1*(r + 0.009992)**-1)")

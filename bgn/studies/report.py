@@ -105,12 +105,16 @@ def _group_key(row: dict[str, Any], keys: list[str]) -> tuple[Any, ...]:
 def merged_text(values: list[Any]) -> Any:
     """One cell for a text column whose seeds differ: the common start, then each seed's
     rest (``a, formula x`` and ``a, formula y``: ``a, formula (per seed: x; y)``: no ``|``,
-    which would split a markdown table's cell)."""
+    which would split a markdown table's cell). The start ends at a space outside
+    parentheses, so no seed's formula is cut inside a bracket."""
     distinct = list(dict.fromkeys(values))
     if len(distinct) < 2 or not all(isinstance(v, str) for v in distinct):
         return distinct[0] if distinct else None
     head = os.path.commonprefix(distinct)
-    head = head[:max(head.rfind(" "), 0) + 1] if head else ""
+    cut = head.rfind(" ")
+    while cut > 0 and head[:cut].count("(") != head[:cut].count(")"):
+        cut = head.rfind(" ", 0, cut)
+    head = head[:max(cut, 0) + 1] if head else ""
     return f"{head}(per seed: {'; '.join(v[len(head):] for v in values)})"
 
 

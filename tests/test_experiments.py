@@ -70,14 +70,19 @@ def test_tiny_preset_end_to_end_and_resumes(tmp_path: Path, capsys) -> None:
         if not row["model"].startswith("predictability"):
             assert float(row["seconds_per_step"]) > 0
     inverse = csv_rows(out / "inverse.csv")
-    models = [r for r in inverse if r["model"] == "bgn"]  # each followed by its two references
-    assert len(models) == len(preset.scenes) * len(preset.fps) == len(inverse) // 3
+    references = set(INVERSE_REFERENCES.values())
+    models = [r for r in inverse if r["model"] not in references]  # each with its references
+    assert len(models) == len(preset.scenes) * len(preset.fps)
+    assert all(r["model"].startswith("BGN") and r["given"] for r in models)  # labelled
+    # the prior-only sampler and the physical estimator under every model, the type-only
+    # sampler where each type has its own mass law (collisions)
+    assert len(inverse) == 3 * len(models) + sum(r["scene"] == "collisions" for r in models)
     for row in models:
         assert 0 <= float(row["coverage90"]) <= 1
         assert float(row["info_gain"]) == float(row["info_gain"])  # a number, not blank
         assert (out / row["figure"]).exists()
         assert f"({row['figure']})" in (out / "inverse.md").read_text()
-    assert {r["model"] for r in inverse} == {"bgn", *INVERSE_REFERENCES.values()}
+    assert {r["model"] for r in inverse} - {r["model"] for r in models} == references
     types = (out / "types.md").read_text()
     assert types.count("| collisions |") == len(preset.fps)
     ablations = (out / "ablations.md").read_text()

@@ -236,19 +236,15 @@ def window_and_contacts(dataset: FrameDataset, index: int) -> tuple[np.ndarray,
     return window, np.column_stack([rows[:, 1] - first, rows[:, 2], rows[:, 3]])
 
 
-def _types(dataset: FrameDataset, prior: MassPrior, sim: int) -> np.ndarray | None:
-    """Simulation ``sim``'s particle types (N,) where the mass law has one component per
-    type (what the type-only references and the estimator read), else None."""
-    return np.asarray(dataset.file.read("types", sim)) if prior.typed else None
-
-
-def _physical(dataset: FrameDataset, prior: MassPrior, sim: int,
-              views: list[tuple[np.ndarray, np.ndarray | None]]) -> np.ndarray:
-    """The force-law estimate (N,) from the windows (and contacts) of simulation ``sim``."""
+def _physical(dataset: FrameDataset, prior: MassPrior,
+              views: list[tuple[np.ndarray, np.ndarray | None]],
+              types: np.ndarray) -> np.ndarray:
+    """The force-law estimate (N,) from the windows (and contacts) of one simulation, whose
+    particles have ``types`` (N,): read where the mass law has one component per type."""
     windows = np.stack([w for w, _ in views])
     contacts = None if views[0][1] is None else [c for _, c in views]
     return physical_log_mass(dataset.scene, prior, windows, dataset.dt, contacts,
-                             _types(dataset, prior, sim))
+                             types if prior.typed else None)
 
 
 def _impact_solve_error(dataset: FrameDataset, prior: MassPrior,
@@ -316,6 +312,7 @@ class _MassDraws:
     edges: list[np.ndarray] = field(default_factory=list)
     edge_rel: list[np.ndarray] = field(default_factory=list)
     per_sim: dict[int, list[tuple[np.ndarray, np.ndarray | None]]] = field(default_factory=dict)
+    sim_types: dict[int, np.ndarray] = field(default_factory=dict)   # each simulation's (N,)
     model_contacts: dict[int, list[np.ndarray]] = field(default_factory=dict)
     offset: int = 0     # particles gathered so far: where the next batch's edges start
 
@@ -345,7 +342,10 @@ class _MassDraws:
             window, contacts = window_and_contacts(dataset, i)
             sim = dataset.locate(i)[0]
             self.per_sim.setdefault(sim, []).append((window, contacts))
-            self.physical.append(_physical(dataset, prior, sim, [(window, contacts)]))
+            # the graph's own types: the same in every frame of a simulation
+            types = self.sim_types.setdefault(
+                sim, g.types[first_node[b]:first_node[b] + g.num_nodes[b]].numpy())
+            self.physical.append(_physical(dataset, prior, [(window, contacts)], types))
             if rows is not None:
                 self.model_contacts.setdefault(sim, []).append(
                     _window_rows(rows, g, b, first_node, len(window)))
@@ -403,10 +403,11 @@ def _physical_reference(dataset: FrameDataset, prior: MassPrior, draws: _MassDra
     back to the mean log-mass of the particle's type (of the whole law where it has one
     component); ``identified`` and ``sim_identified``: the shares it estimated, the rest
     fell back."""
-    pooled = {sim: _physical(dataset, prior, sim, views) for sim, views in draws.per_sim.items()}
+    pooled = {sim: _physical(dataset, prior, views, draws.sim_types[sim])
+              for sim, views in draws.per_sim.items()}
     sim_estimate = np.concatenate(list(pooled.values()))
     sim_true = np.log(np.concatenate([dataset.file.read("masses", sim) for sim in pooled]))
-    sim_types = np.concatenate([dataset.file.read("types", sim) for sim in pooled])
+    sim_types = np.concatenate([draws.sim_types[sim] for sim in pooled])
     return {
         **_point_metrics(np.where(np.isfinite(a.physical), a.physical,
                                   prior.type_mean(a.types)),

@@ -22,24 +22,42 @@ types, the frame spacing, the box, the kinematic types, the source files and the
   per-step ``step_context`` (a global input of some datasets) is not read.
 
 Periodic data come back unwrapped (continuous positions, :func:`unwrap_periodic`), so finite
-differences are minimum-image displacements.
+differences are minimum-image displacements. Files are opened without unpickling: a GNS ``.npz``
+whose trajectories are pickled Python objects (GNS writes them so) is read only when the caller
+says ``allow_pickle`` (unpickling can run code). Keys a layout does not read are named in a
+``DataImportWarning`` (with the known key they are closest to: a misspelt ``masse``).
 """
 
 from __future__ import annotations
 
+import difflib
 import hashlib
 import json
 import struct
+import warnings
+import zipfile
+import zlib
 from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
 import h5py
 import numpy as np
 
-from bgn.data.raw import IMPORT_SPLITS, DataImportError, RawTrajectories, SplitArrays
+from bgn.data.raw import (
+    IMPORT_SPLITS,
+    DataImportError,
+    DataImportWarning,
+    RawTrajectories,
+    SplitArrays,
+)
 
 FORMATS = ("gns-npz", "lagrangebench-h5", "arrays-npz", "arrays-h5", "tfrecord")
+# Other names of the layouts (underscores, the projects' names); "arrays" is told by the suffix
+FORMAT_ALIASES = {"gns": "gns-npz", "lagrangebench": "lagrangebench-h5", "lagrangebench-hdf5":
+                  "lagrangebench-h5", "learning-to-simulate": "tfrecord", "arrays-hdf5":
+                  "arrays-h5"}
 # The file stems of the folder layouts for bgn's splits (all three projects say "valid").
 SPLIT_STEMS = {"train": "train", "val": "valid", "test": "test"}
 FOLDER_SUFFIX = {"gns-npz": ".npz", "lagrangebench-h5": ".h5", "tfrecord": ".tfrecord"}
@@ -53,8 +71,29 @@ COINCIDENT_RTOL = 1e-12  # two particles closer than this times the coordinates'
 TIMES_RTOL = 1e-6  # allowed relative spread of the spacing of given times
 ARRAY_KEYS = ("positions", "dt", "masses", "radii", "types", "velocities", "box", "periodic",
               "times", "split")
+# metadata.json keys some reader uses: a near miss of one of them is warned about
+METADATA_KEYS = ("dt", "bounds", "dim", "default_connectivity_radius", "write_every",
+                 "periodic_boundary_conditions")
+# The models compute in float32 (largest 3.4e38, smallest normal 1.2e-38): positions and the
+# typical velocity and acceleration of the frames (finite differences over dt) must lie well
+# inside, or squared distances overflow and targets vanish
+PLAUSIBLE = (1e-30, 1e30)
 SPLIT_CODES = {"train": "train", "val": "val", "valid": "val", "validation": "val",
                "test": "test", 0: "train", 1: "val", 2: "test"}
+
+
+def format_name(fmt: str, path: str | Path | None = None) -> str:
+    """The layout ``fmt`` names (``gns_npz``, ``lagrangebench``: other spellings accepted;
+    ``arrays``: npz or h5 by the suffix of ``path``); refused with the choices."""
+    name = str(fmt).strip().lower().replace("_", "-")
+    name = FORMAT_ALIASES.get(name, name)
+    if name == "arrays":
+        name = "arrays-h5" if path is not None and Path(path).suffix in (".h5", ".hdf5") \
+            else "arrays-npz"
+    if name not in FORMATS:
+        raise DataImportError(f"format={fmt!r} is not a layout bgn reads; choose one of "
+                              f"{', '.join(FORMATS)}, or leave it out (null) to detect it")
+    return name
 
 
 # ---------------------------------------------------------------------------------------------
@@ -72,12 +111,12 @@ def detect_format(path: str | Path) -> str:
                               f"holds the trajectories ({looked_for})")
     if p.is_file():
         if p.suffix == ".npz":
-            with np.load(p, allow_pickle=False) as f:
+            with open_npz(p) as f:
                 if "positions" in f.files:
                     return "arrays-npz"
                 found = ", ".join(f.files[:8])
         elif p.suffix in (".h5", ".hdf5"):
-            with h5py.File(p, "r") as f:
+            with open_h5(p) as f:
                 if isinstance(f.get("positions"), h5py.Dataset):
                     return "arrays-h5"
                 found = ", ".join(list(f.keys())[:8])
@@ -92,7 +131,7 @@ def detect_format(path: str | Path) -> str:
         if not present:
             continue
         if fmt == "lagrangebench-h5":
-            with h5py.File(present[0], "r") as f:
+            with open_h5(present[0]) as f:
                 groups = [k for k in f if isinstance(f[k], h5py.Group)]
                 if not groups or "position" not in f[groups[0]]:
                     raise DataImportError(
@@ -106,27 +145,34 @@ def detect_format(path: str | Path) -> str:
 
 def read_trajectories(path: str | Path, fmt: str | None = None, split_seed: int = 0,
                       split_fractions: tuple[float, float, float] = (0.8, 0.1, 0.1),
-                      ) -> RawTrajectories:
-    """Read ``path`` in layout ``fmt`` (detected when None) into checked ``RawTrajectories``.
+                      allow_pickle: bool = False) -> RawTrajectories:
+    """Read ``path`` in layout ``fmt`` (detected when None; other spellings:
+    :func:`format_name`) into checked ``RawTrajectories``.
 
     Splits the files lack are carved from the training trajectories by
-    :func:`split_by_trajectory` with ``split_seed``. ``gns-npz`` files are pickled tuples and
-    are loaded with ``allow_pickle=True``: only import files you trust."""
+    :func:`split_by_trajectory` with ``split_seed``. A ``gns-npz`` file of pickled tuples (GNS
+    writes them so) is refused unless ``allow_pickle``: unpickling a file can run code, so only
+    files you trust."""
     p = Path(path)
     if not p.exists():
         raise DataImportError(f"{p}: no such file or folder; give the path of the trajectories")
-    fmt = detect_format(p) if fmt is None else fmt
-    if fmt not in FORMATS:
-        raise DataImportError(f"{p}: unknown format '{fmt}'; choose one of {', '.join(FORMATS)}")
+    fmt = detect_format(p) if fmt is None else format_name(fmt, p)
     if p.is_dir() != (fmt in FOLDER_SUFFIX):
         raise DataImportError(f"{p}: format {fmt} is read from a "
                               f"{'folder' if fmt in FOLDER_SUFFIX else 'file'}, and this is "
                               f"{'a folder' if p.is_dir() else 'not one'}; give the right path "
                               f"or leave the format out to detect it")
-    reader = {"gns-npz": _read_gns, "lagrangebench-h5": _read_lagrangebench,
-              "arrays-npz": _read_arrays, "arrays-h5": _read_arrays,
-              "tfrecord": _read_tfrecord}[fmt]
-    raw, split_files = reader(p, fmt, split_seed, split_fractions)
+    try:
+        if fmt == "gns-npz":  # the one layout that may hold pickled objects
+            raw, split_files = _read_gns(p, split_seed, split_fractions, allow_pickle)
+        else:
+            reader = {"lagrangebench-h5": _read_lagrangebench, "arrays-npz": _read_arrays,
+                      "arrays-h5": _read_arrays, "tfrecord": _read_tfrecord}[fmt]
+            raw, split_files = reader(p, fmt, split_seed, split_fractions)
+    except DataImportError as err:  # every message names the source (splitting's do not)
+        if str(p) in str(err):
+            raise
+        raise DataImportError(f"{p}: {err}") from None
     root = p if p.is_dir() else p.parent
     used = sorted({f for files in split_files.values() for f in files}
                   | ({p / "metadata.json"} if (p / "metadata.json").is_file() else set()))
@@ -148,7 +194,7 @@ def read_trajectories(path: str | Path, fmt: str | None = None, split_seed: int 
 Read = tuple[RawTrajectories, dict[str, list[Path]]]
 
 
-def _read_gns(p: Path, fmt: str, seed: int, fractions: Sequence[float]) -> Read:
+def _read_gns(p: Path, seed: int, fractions: Sequence[float], allow_pickle: bool) -> Read:
     meta = _metadata(p)
     splits, files, material = {}, {}, {}
     for split, stem in SPLIT_STEMS.items():
@@ -156,7 +202,7 @@ def _read_gns(p: Path, fmt: str, seed: int, fractions: Sequence[float]) -> Read:
         if not f.is_file():
             continue
         names, trajs, mats = [], [], []
-        for name, item in _gns_items(f):
+        for name, item in _gns_items(f, allow_pickle):
             pos, ptype, mat = _gns_trajectory(item, f, name)
             names.append(name)
             trajs.append((pos, ptype))
@@ -175,15 +221,71 @@ def _read_gns(p: Path, fmt: str, seed: int, fractions: Sequence[float]) -> Read:
     return _fill_splits(raw, files, p / "train.npz", seed, fractions)
 
 
-def _gns_items(f: Path) -> Iterator[tuple[str, Any]]:
-    """(name, trajectory) of a GNS npz; pickled objects, hence allow_pickle (trusted files)."""
-    with np.load(f, allow_pickle=True) as data:
+def _gns_items(f: Path, allow_pickle: bool) -> Iterator[tuple[str, Any]]:
+    """(name, trajectory) of a GNS npz, unpickled only with ``allow_pickle``."""
+    with open_npz(f, allow_pickle) as data:
         if "gns_data" in data.files:
-            for i, item in enumerate(data["gns_data"]):
+            for i, item in enumerate(_npz_member(data, "gns_data", f)):
                 yield f"gns_data[{i}]", item
         else:
             for name in data.files:
-                yield name, data[name]
+                yield name, _npz_member(data, name, f)
+
+
+@contextmanager
+def open_npz(f: Path, allow_pickle: bool = False) -> Iterator[Any]:
+    """``np.load`` of a ``.npz`` archive, refused in one line when it is none (empty, cut
+    short, text): numpy would take such a file for a pickle."""
+    size = f.stat().st_size
+    if size == 0:
+        raise DataImportError(f"{f}: the file is empty (0 bytes); copy it again or give the "
+                              f"file that holds the trajectories")
+    if not zipfile.is_zipfile(f):
+        with open(f, "rb") as fh:
+            head = fh.read(4)
+        what = ("a zip archive cut short (its directory at the end is missing)"
+                if head.startswith(b"PK") else "not a .npz archive (no zip signature)")
+        raise DataImportError(f"{f}: {what}; the file is damaged or incomplete, or not numpy's "
+                              f".npz: copy it again or write it with numpy.savez")
+    try:
+        data = np.load(f, allow_pickle=allow_pickle)
+    except (OSError, ValueError, zipfile.BadZipFile) as err:
+        raise DataImportError(f"{f}: cannot be read as a .npz archive ({err}); copy it "
+                              f"again or write it with numpy.savez") from None
+    with data:
+        yield data
+
+
+def _npz_member(data: Any, key: str, f: Path) -> Any:
+    """One array of an open ``.npz``; damaged bytes and pickled objects refused in one line."""
+    try:
+        return data[key]
+    except ValueError as err:
+        if "allow_pickle" not in str(err):
+            raise DataImportError(f"{f}: key '{key}' cannot be read ({err}); the file is "
+                                  f"damaged: copy it again") from None
+        raise DataImportError(
+            f"{f}: key '{key}' holds pickled Python objects, and unpickling a file can run "
+            f"code; if you trust the file, import it with allow_pickle=true") from None
+    except (OSError, EOFError, zlib.error, zipfile.BadZipFile) as err:
+        raise DataImportError(f"{f}: key '{key}' cannot be read ({err}); the file is damaged "
+                              f"or incomplete: copy it again") from None
+
+
+@contextmanager
+def open_h5(f: Path) -> Iterator[h5py.File]:
+    """``h5py.File(f, "r")``, refused in one line when it is no readable HDF5 file."""
+    try:
+        handle = h5py.File(f, "r")
+    except OSError as err:
+        raise DataImportError(f"{f}: not a readable HDF5 file ({err}); the file is damaged, "
+                              f"incomplete or not HDF5: copy it again") from None
+    with handle:
+        try:
+            yield handle
+        except OSError as err:  # a damaged dataset inside a file that opens
+            raise DataImportError(f"{f}: cannot be read ({err}); the file is damaged or "
+                                  f"incomplete: copy it again") from None
 
 
 def _gns_trajectory(item: Any, f: Path, name: str) -> tuple[np.ndarray, np.ndarray, Any]:
@@ -201,7 +303,11 @@ def _gns_trajectory(item: Any, f: Path, name: str) -> tuple[np.ndarray, np.ndarr
     if pos is None or ptype is None:
         raise DataImportError(f"{f}: trajectory '{name}' is not (positions, particle_type "
                               f"[, material_property]); write each key as that tuple")
-    pos = np.asarray(pos, dtype=np.float64)
+    if isinstance(pos, list | tuple) or (isinstance(pos, np.ndarray) and pos.dtype.kind == "O"
+                                         and pos.ndim == 1):  # frames one by one
+        _equal_counts(pos, f, name)
+        pos = np.stack([np.asarray(x) for x in pos]) if len(pos) else np.zeros((0, 0, 0))
+    pos = floats(pos, f"{f}: trajectory '{name}' positions")
     if pos.ndim != 3:
         raise DataImportError(f"{f}: trajectory '{name}' positions have shape {pos.shape}, "
                               f"not (T, N, D); write positions per frame, particle, dimension")
@@ -216,13 +322,13 @@ def _read_lagrangebench(p: Path, fmt: str, seed: int, fractions: Sequence[float]
         if not f.is_file():
             continue
         names, trajs = [], []
-        with h5py.File(f, "r") as h:
+        with open_h5(f) as h:
             for name in sorted(h.keys()):
                 g = h[name]
                 if not isinstance(g, h5py.Group) or "position" not in g:
                     raise DataImportError(f"{f}: '{name}' is not a trajectory group with "
                                           f"'position'; LagrangeBench files hold only those")
-                pos = np.asarray(g["position"][()], dtype=np.float64)
+                pos = floats(g["position"][()], f"{f}: trajectory '{name}' position")
                 if pos.ndim != 3:
                     raise DataImportError(f"{f}: trajectory '{name}' position has shape "
                                           f"{pos.shape}, not (T, N, D)")
@@ -259,7 +365,7 @@ def _read_lagrangebench(p: Path, fmt: str, seed: int, fractions: Sequence[float]
 
 def _read_arrays(p: Path, fmt: str, seed: int, fractions: Sequence[float]) -> Read:
     arrays = _load_arrays(p, fmt)
-    pos = np.asarray(arrays["positions"], dtype=np.float64)
+    pos = floats(arrays["positions"], f"{p}: positions")
     if pos.ndim == 3:
         pos = pos[None]  # one trajectory given as (T, N, D)
     if pos.ndim != 4:
@@ -273,7 +379,7 @@ def _read_arrays(p: Path, fmt: str, seed: int, fractions: Sequence[float]) -> Re
             per_particle[key] = _per_trajectory_particles(arrays[key], s, n, p, key, dtype)
     vel = None
     if "velocities" in arrays:
-        vel = np.asarray(arrays["velocities"], dtype=np.float64)
+        vel = floats(arrays["velocities"], f"{p}: velocities")
         vel = vel[None] if vel.ndim == 3 else vel
         if vel.shape != pos.shape:
             raise DataImportError(f"{p}: velocities have shape {vel.shape}, positions "
@@ -305,11 +411,13 @@ def _read_arrays(p: Path, fmt: str, seed: int, fractions: Sequence[float]) -> Re
 
 def _load_arrays(p: Path, fmt: str) -> dict[str, Any]:
     if fmt == "arrays-npz":
-        with np.load(p, allow_pickle=False) as f:
-            arrays = {k: f[k] for k in f.files if k in ARRAY_KEYS}
+        with open_npz(p) as f:
+            arrays = {k: _npz_member(f, k, p) for k in f.files if k in ARRAY_KEYS}
+            ignored = [k for k in f.files if k not in ARRAY_KEYS]
     else:
-        with h5py.File(p, "r") as f:
+        with open_h5(p) as f:
             arrays = {k: f[k][()] for k in ARRAY_KEYS if isinstance(f.get(k), h5py.Dataset)}
+            ignored = [k for k in f if k not in arrays]
             if "dt" not in arrays and "dt" in f.attrs:
                 arrays["dt"] = f.attrs["dt"]  # bgn's own files keep dt as an attribute
             if "split" in arrays and arrays["split"].dtype.kind == "O":
@@ -317,16 +425,34 @@ def _load_arrays(p: Path, fmt: str) -> dict[str, Any]:
                                               for v in arrays["split"]])
     if "positions" not in arrays:
         raise DataImportError(f"{p}: no 'positions' array; write positions (S, T, N, D)")
+    warn_ignored(ignored, ARRAY_KEYS, str(p))
     return arrays
 
 
+def warn_ignored(keys: Sequence[str], known: Sequence[str], where: str,
+                 near_misses_only: bool = False) -> None:
+    """A ``DataImportWarning`` naming the ``keys`` no reader uses, each with the known key it
+    is closest to (a misspelling would otherwise drop the data: ``masse``). Sources with
+    many keys of their own (metadata.json) warn only of near misses."""
+    notes = []
+    for key in keys:
+        close = difflib.get_close_matches(str(key), known, n=1, cutoff=0.75)
+        if close:
+            notes.append(f"'{key}' (did you mean '{close[0]}'?)")
+        elif not near_misses_only:
+            notes.append(f"'{key}'")
+    if notes:
+        warnings.warn(f"{where}: ignored {', '.join(notes)}; bgn reads {', '.join(known)}",
+                      DataImportWarning, stacklevel=2)
+
+
 def _arrays_dt(arrays: dict[str, Any], p: Path, n_frames: int) -> float:
-    dt = float(np.asarray(arrays["dt"]).reshape(-1)[0]) if "dt" in arrays else None
+    dt = float(floats(arrays["dt"], f"{p}: dt").reshape(-1)[0]) if "dt" in arrays else None
     if "dt" in arrays and np.size(arrays["dt"]) != 1:
         raise DataImportError(f"{p}: dt has {np.size(arrays['dt'])} values; give one frame "
                               f"spacing (a scalar)")
     if "times" in arrays:
-        times = np.asarray(arrays["times"], dtype=np.float64).reshape(-1, n_frames) \
+        times = floats(arrays["times"], f"{p}: times").reshape(-1, n_frames) \
             if np.size(arrays["times"]) % n_frames == 0 else None
         if times is None or n_frames < 2:
             raise DataImportError(f"{p}: times have shape {np.shape(arrays['times'])} for "
@@ -355,7 +481,7 @@ def _arrays_dt(arrays: dict[str, Any], p: Path, n_frames: int) -> float:
 def _arrays_box(arrays: dict[str, Any], p: Path, d: int) -> tuple[Any, Any]:
     bounds = None
     if "box" in arrays:
-        box = np.asarray(arrays["box"], dtype=np.float64)
+        box = floats(arrays["box"], f"{p}: box")
         if box.shape == (d,):
             bounds = np.stack([np.zeros(d), box], axis=1)
         elif box.shape == (d, 2):
@@ -511,6 +637,8 @@ def _metadata(folder: Path) -> dict[str, Any]:
             from None
     if not isinstance(meta, dict):
         raise DataImportError(f"{f}: holds {type(meta).__name__}, not an object of keys")
+    warn_ignored([k for k in meta if k not in METADATA_KEYS], METADATA_KEYS, str(f),
+                 near_misses_only=True)
     return meta
 
 
@@ -528,7 +656,7 @@ def _meta_dt(meta: dict[str, Any], folder: Path) -> float:
 def _meta_bounds(meta: dict[str, Any], folder: Path) -> np.ndarray | None:
     if meta.get("bounds") is None:
         return None
-    b = np.asarray(meta["bounds"], dtype=np.float64)
+    b = floats(meta["bounds"], f"{folder / 'metadata.json'}: bounds")
     if b.ndim != 2 or b.shape[1] != 2 or not np.isfinite(b).all() or (b[:, 1] <= b[:, 0]).any():
         raise DataImportError(f"{folder / 'metadata.json'}: bounds {meta['bounds']} are not "
                               f"[[low, high], ...] with high > low per dimension")
@@ -540,16 +668,63 @@ def _meta_float(meta: dict[str, Any], key: str) -> float | None:
 
 
 def _per_particle(value: Any, n: int, f: Path, name: str, key: str) -> np.ndarray:
-    v = np.asarray(value)
+    v = types_of(value, f"{f}: trajectory '{name}' {key}")
     if v.size not in (1, n):
         raise DataImportError(f"{f}: trajectory '{name}' has {v.size} {key} values for {n} "
                               f"particles; give one per particle")
-    return np.broadcast_to(v.reshape(-1), (n,)).astype(np.int64)
+    return np.broadcast_to(v.reshape(-1), (n,)).copy()
+
+
+def _equal_counts(frames: Any, f: Path, name: str) -> None:
+    """Frames given one by one (an object array or list) must hold one particle count."""
+    shapes = [np.shape(np.asarray(x, dtype=object)) for x in frames]
+    for frame, shape in enumerate(shapes):
+        if shape != shapes[0]:
+            raise DataImportError(
+                f"{f}: trajectory '{name}', frame {frame} holds {shape[0] if shape else 0} "
+                f"particles, frame 0 {shapes[0][0] if shapes[0] else 0}: a trajectory keeps "
+                f"its particles in every frame; cut it where the count changes and import "
+                f"parts of one count (the equal-count rule, docs/usage.md 'Your own "
+                f"trajectories')")
+
+
+def floats(value: Any, what: str) -> np.ndarray:
+    """``value`` as float64, refused in one line naming ``what`` when it is no numbers."""
+    try:
+        v = np.asarray(value)
+        if v.dtype.kind not in "biufO":  # text is refused, even "0.5"
+            raise TypeError(v.dtype)
+        return v.astype(np.float64)
+    except (TypeError, ValueError):
+        example = np.asarray(value, dtype=object).reshape(-1)[:1]
+        raise DataImportError(f"{what} are not numbers (e.g. {example[0]!r}); write them as "
+                              f"floats") from None
+
+
+def types_of(value: Any, what: str) -> np.ndarray:
+    """Particle types as int64: integers >= 0 (or floats of whole values), refused in one line
+    naming ``what`` otherwise (text, fractions and negatives were once cast silently)."""
+    v = np.asarray(value)
+    if v.dtype.kind not in "biuf":
+        first = v.reshape(-1)[0].item() if v.size else None
+        kind = "text" if v.dtype.kind in "US" else v.dtype.name
+        raise DataImportError(f"{what} are {kind} (e.g. {first!r}), not integers; "
+                              f"number the particle types 0, 1, 2, ... in the source data "
+                              f"(GNS: 3 marks kinematic particles)")
+    for bad, problem in ((~np.isfinite(v) | (v != np.round(v)) if v.dtype.kind == "f"
+                          else np.zeros(v.shape, bool), "not a whole number"),
+                         (v < 0, "negative")):
+        if bad.any():
+            k = tuple(int(i) for i in np.argwhere(bad)[0])
+            raise DataImportError(f"{what}: entry {k if len(k) > 1 else k[0]} is "
+                                  f"{v[k].item()!r}, {problem}; particle types are integers "
+                                  f"0, 1, 2, ...: fix the source data")
+    return v.astype(np.int64)
 
 
 def _per_trajectory_particles(value: Any, s: int, n: int, p: Path, key: str,
                               dtype: Any) -> np.ndarray:
-    v = np.asarray(value, dtype=dtype)
+    v = types_of(value, f"{p}: {key}") if dtype == np.int64 else floats(value, f"{p}: {key}")
     if v.shape not in ((n,), (s, n)):
         raise DataImportError(f"{p}: {key} have shape {v.shape}; give ({n},) or ({s}, {n}) "
                               f"(one per particle, optionally per trajectory)")
@@ -564,12 +739,16 @@ def _stack(trajs: list[tuple[np.ndarray, np.ndarray]], names: list[str], f: Path
     for (pos, _), name in zip(trajs, names):
         if pos.shape == shape0:
             continue
-        what = ("particle counts" if pos.shape[1] != shape0[1] else
-                "dimensions" if pos.shape[2] != shape0[2] else "frame counts")
+        what, fix = (("particle counts", "pad the smaller ones with kinematic particles "
+                      "standing still far from the rest") if pos.shape[1] != shape0[1] else
+                     ("dimensions", "import each dimension separately")
+                     if pos.shape[2] != shape0[2] else
+                     ("frame counts", "cut them to one length"))
         raise DataImportError(
             f"{f}: trajectory '{name}' has shape {pos.shape} (T, N, D) but '{names[0]}' has "
             f"{shape0}: different {what} in one split; bgn's files hold one (T, N, D) per "
-            f"split: import groups of equal shape separately, or pad/cut them to one shape")
+            f"split: import groups of equal shape separately, or {fix} (the equal-count rule, "
+            f"docs/usage.md 'Your own trajectories')")
     return SplitArrays(positions=np.stack([t[0] for t in trajs]),
                        types=np.stack([t[1] for t in trajs]), names=list(names))
 
@@ -714,6 +893,7 @@ def check_trajectories(raw: RawTrajectories, min_frames: int, where: str = "") -
                                   f"give one per dimension")
         _check_particles(a, split, fail)
         _check_motion(raw, a, split, fail)
+    _check_scales(raw, "train" if "train" in raw.splits else next(iter(raw.splits)), fail)
 
 
 def _name(a: SplitArrays, i: int) -> str:
@@ -734,11 +914,47 @@ def _check_particles(a: SplitArrays, split: str, fail: Any) -> None:
         if bad.any():
             i, j = (int(k) for k in np.argwhere(bad)[0])
             raise fail(split, f"split {split}, trajectory {_name(a, i)}, particle {j}: "
-                              f"{'radius' if key == 'radii' else 'mass'} {v[i, j]!r} is not "
+                              f"{'radius' if key == 'radii' else 'mass'} {v[i, j].item()!r} is not "
                               f"positive and finite; give {key} > 0 or leave them out")
+    if a.types is not None and (np.asarray(a.types) < 0).any():
+        i, j = (int(k) for k in np.argwhere(np.asarray(a.types) < 0)[0])
+        raise fail(split, f"split {split}, trajectory {_name(a, i)}, particle {j}: type "
+                          f"{a.types[i, j]} is negative; particle types are integers 0, 1, "
+                          f"2, ...: fix the source data")
     if a.velocities is not None and a.velocities.shape != a.positions.shape:
         raise fail(split, f"split {split}: velocities have shape {a.velocities.shape}, "
                           f"positions {a.positions.shape}; give one per position")
+
+
+def _check_scales(raw: RawTrajectories, split: str, fail: Any) -> None:
+    """Something moves, and the frames' typical speed and acceleration (median finite
+    differences of the moving particles over ``dt``) lie in ``PLAUSIBLE``: a dt in the wrong
+    unit (1e30) leaves targets that float32 rounds to zero."""
+    a = raw.splits[split]
+    steps, bends = [], []
+    for x in a.positions:  # one trajectory at a time: bounded memory
+        d1 = np.abs(np.diff(x, axis=0))
+        d2 = np.abs(np.diff(x, n=2, axis=0))
+        if (d1 > 0).any():
+            steps.append(float(np.median(d1[d1 > 0])))
+        if (d2 > 0).any():
+            bends.append(float(np.median(d2[d2 > 0])))
+    if not steps:
+        raise fail(split, f"split {split}: no particle moves in any trajectory (every frame "
+                          f"equals the first): nothing to learn; check that the positions are "
+                          f"the trajectories' frames (not one frame repeated)")
+    low, high = PLAUSIBLE
+    dt = np.float64(raw.dt)
+    with np.errstate(over="ignore", divide="ignore", under="ignore"):
+        scales = (("speed", np.median(steps) / dt, "dt"),
+                  ("acceleration", np.median(bends or [0.0]) / dt**2, "dt^2"))
+    for what, value, unit in scales:
+        if value and not low <= value <= high:
+            raise fail(None, f"dt={raw.dt:g} makes the frames' typical {what} {value:.3g} "
+                             f"(median change per frame over {unit}), outside {low:g}.."
+                             f"{high:g} where the models' float32 arithmetic resolves it; dt "
+                             f"is likely in the wrong unit: give the time between frames in "
+                             f"the unit of the source")
 
 
 def _check_motion(raw: RawTrajectories, a: SplitArrays, split: str, fail: Any) -> None:
@@ -762,6 +978,15 @@ def _check_motion(raw: RawTrajectories, a: SplitArrays, split: str, fail: Any) -
                 raise fail(split, f"split {split}, trajectory {_name(a, i)}, frame {frame}, "
                                   f"particle {particle}: {key} hold {arr[frame, particle, dim]} "
                                   f"(NaN or inf); remove or repair that trajectory")
+            big = np.abs(arr) > PLAUSIBLE[1]
+            if big.any():
+                frame, particle, dim = (int(k) for k in np.argwhere(big)[0])
+                raise fail(split, f"split {split}, trajectory {_name(a, i)}, frame {frame}, "
+                                  f"particle {particle}: {key} hold "
+                                  f"{arr[frame, particle, dim]:.3g}, beyond the "
+                                  f"{PLAUSIBLE[1]:g} the models' float32 arithmetic holds "
+                                  f"(squared distances overflow); fix the source data (a stray "
+                                  f"value or a wrong unit)")
         lo, hi = x.min(axis=(0, 1)), x.max(axis=(0, 1))
         if raw.bounds is not None:
             length, told = raw.bounds[:, 1] - raw.bounds[:, 0], "the box"

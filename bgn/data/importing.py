@@ -22,7 +22,8 @@ same for arrays already in memory. What is written:
 - the source (format, files, their sha256) and its own metadata as JSON attributes.
 
 Every split is checked before the first file is written, the files are written into a
-temporary directory and moved into place at once: bad input leaves nothing on disk.
+temporary directory and moved into place at once: bad input leaves nothing on disk (not even
+the folders above the import, where the import made them).
 """
 
 from __future__ import annotations
@@ -33,7 +34,9 @@ import math
 import os
 import re
 import shutil
+import sys
 import time
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import fields, replace
 from pathlib import Path
@@ -42,9 +45,15 @@ from typing import Any
 import numpy as np
 
 from bgn.coerce import ConfigError, need_int
-from bgn.data.files import DatasetFile, write_dataset
-from bgn.data.raw import IMPORT_SPLITS, DataImportError, RawTrajectories, SplitArrays
-from bgn.data.spec import IMPORTED, SPLITS, DatasetSpec, imported_dir
+from bgn.data.files import DatasetFile, DatasetFileError, write_dataset
+from bgn.data.raw import (
+    IMPORT_SPLITS,
+    DataImportError,
+    DataImportWarning,
+    RawTrajectories,
+    SplitArrays,
+)
+from bgn.data.spec import IMPORTED, SPLITS, DatasetSpec, data_dir_problem, imported_dir
 from bgn.data.stats import compute_stats
 from bgn.sim.imported import TARGETS, ImportedScene
 
@@ -146,6 +155,8 @@ def import_dataset(raw: RawTrajectories, name: str, data_dir: str | Path, histor
                               "the directory data/imported/<name>)")
     if target not in TARGETS:
         raise DataImportError(f"target={target!r}: choose one of {TARGETS}")
+    if problem := data_dir_problem(data_dir):
+        raise DataImportError(problem)
     directory = imported_dir(data_dir, name)
     if directory.exists() and not overwrite:
         raise DataImportError(f"an import named {name!r} exists in {directory}; pass "
@@ -178,32 +189,47 @@ def import_dataset(raw: RawTrajectories, name: str, data_dir: str | Path, histor
     attrs = {"source": _json(source), "source_metadata": _json(raw.metadata),
              "masses_known": masses_known}
 
+    made = [q for q in (directory.parent, *directory.parent.parents) if not q.exists()]
     directory.parent.mkdir(parents=True, exist_ok=True)
     tmp = directory.parent / f".{name}.tmp{os.getpid()}"
     old = directory.parent / f".{name}.old{os.getpid()}"
+    done = False
     try:
         for split in SPLITS:
             spec = train.with_split(split)
             write_dataset(tmp / f"{split}.h5", spec, scene.meta, arrays[split],
                           margin=scene.margin, stats=stats if split == "train" else None,
                           attrs=attrs)
-            DatasetFile(tmp / f"{split}.h5", replace(spec)).close()  # the checks on open
+            try:
+                DatasetFile(tmp / f"{split}.h5", replace(spec)).close()  # the checks on open
+            except DatasetFileError as err:  # the source's fault: name it, not the temporary
+                problem = str(err).split(": ", 1)[-1].split(". Delete it")[0]
+                raise DataImportError(f"{source.get('path') or 'the trajectories'}: its "
+                                      f"{split} split fails bgn's checks of a dataset file "
+                                      f"({problem}); fix the source data") from None
         if directory.exists():  # overwrite: swap the directories, then drop the old one
             os.replace(directory, old)
         os.replace(tmp, directory)
+        done = True
     finally:
         for leftover in (tmp, old):
             if leftover.exists():
                 shutil.rmtree(leftover)
+        if not done:  # the folders this import made, innermost first, if still empty
+            for q in made:
+                if q.is_dir() and not any(q.iterdir()):
+                    q.rmdir()
     return {split: directory / f"{split}.h5" for split in SPLITS}
 
 
 def _per_trajectory(value: Any, s: int, shape: tuple[int, ...], key: str,
                     dtype: Any) -> np.ndarray | None:
     """A per-particle array given once (N,) or per trajectory (S, N) -> (S, N)."""
+    from bgn.data.formats import floats
+
     if value is None:
         return None
-    a = np.asarray(value, dtype=dtype)
+    a = floats(value, key) if dtype == np.float64 else np.asarray(value, dtype=dtype)
     if a.shape == shape[1:]:
         a = np.broadcast_to(a, shape).copy()
     if a.shape != shape:
@@ -226,9 +252,9 @@ def from_arrays(positions: np.ndarray, dt: float, masses: np.ndarray | None = No
     (positions are then unwrapped by the minimum image). ``splits`` maps train/val/test to
     trajectory indices; None splits the trajectories 80/10/10 with ``split_seed``, never frames
     of one trajectory into two splits. Returns the three files' paths (``import_dataset``)."""
-    from bgn.data.formats import split_by_trajectory, unwrap_periodic
+    from bgn.data.formats import floats, split_by_trajectory, types_of, unwrap_periodic
 
-    x = np.asarray(positions, dtype=np.float64)
+    x = floats(positions, "positions")
     if x.ndim != 4:
         raise DataImportError(f"positions have shape {x.shape}; expected (S, T, N, D) "
                               "(trajectories, frames, particles, dimensions)")
@@ -252,8 +278,9 @@ def from_arrays(positions: np.ndarray, dt: float, masses: np.ndarray | None = No
         positions=x,
         masses=_per_trajectory(masses, s, (s, n), "masses", np.float64),
         radii=_per_trajectory(radii, s, (s, n), "radii", np.float64),
-        types=_per_trajectory(types, s, (s, n), "types", np.int64),
-        velocities=None if velocities is None else np.asarray(velocities, dtype=np.float64),
+        types=None if types is None else _per_trajectory(types_of(types, "types"), s, (s, n),
+                                                         "types", np.int64),
+        velocities=None if velocities is None else floats(velocities, "velocities"),
         names=[f"trajectory {i}" for i in range(s)])
     if whole.velocities is not None and whole.velocities.shape != x.shape:
         raise DataImportError(f"velocities have shape {whole.velocities.shape}; expected the "
@@ -315,6 +342,16 @@ def validate_import(cfg: Any) -> None:
         if OmegaConf.is_config(cfg) and OmegaConf.is_missing(cfg, key) or not cfg.get(key):
             raise ConfigError(key, message=f"{key} is missing: {what} (python -m "
                               "bgn.data.import <path> name=<name>)")
+    if cfg.get("format") is not None:
+        from bgn.data.formats import format_name
+
+        try:
+            format_name(cfg.get("format"), cfg.get("path"))
+        except DataImportError as err:
+            raise ConfigError("format", message=str(err)) from None
+    data_dir = (cfg.get("paths") or {}).get("data_dir") or "data"
+    if problem := data_dir_problem(data_dir):
+        raise ConfigError("paths.data_dir", message=problem)
     need_int(cfg.get("split_seed", 0), "split_seed", 0, 2**32 - 1)
     need_int(cfg.get("history", 5), "history", 0)
     if not NAME.fullmatch(str(cfg.get("name"))):
@@ -374,9 +411,19 @@ def main(cfg: Any) -> dict[str, Path]:
 
     validate_import(cfg)
     start = time.perf_counter()
-    raw = read_trajectories(cfg.path, fmt=cfg.get("format"),
-                            split_seed=int(cfg.get("split_seed", 0)))
-    raw = radii_from_types(raw, cfg.get("radii_by_type"))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DataImportWarning)
+        try:
+            raw = read_trajectories(cfg.path, fmt=cfg.get("format"),
+                                    split_seed=int(cfg.get("split_seed", 0)),
+                                    allow_pickle=bool(cfg.get("allow_pickle", False)))
+            raw = radii_from_types(raw, cfg.get("radii_by_type"))
+        finally:  # one line each, before a refusal's own line
+            for w in caught:
+                if issubclass(w.category, DataImportWarning):
+                    print(f"bgn: warning: {w.message}", file=sys.stderr)
+                else:
+                    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     paths = import_dataset(raw, str(cfg.name), cfg.paths.data_dir, int(cfg.get("history", 5)),
                            bool(cfg.get("overwrite", False)), str(cfg.get("target")))
     print(describe(paths, time.perf_counter() - start))

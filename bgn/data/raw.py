@@ -21,6 +21,11 @@ class DataImportError(ValueError):
     and says what to do. Raised before anything is written."""
 
 
+class DataImportWarning(UserWarning):
+    """Something of the source that the import ignores or doubts (a key no reader uses, a
+    misspelt one); the import goes on."""
+
+
 @dataclass
 class SplitArrays:
     """One split: S trajectories of T frames, N particles, D dimensions (float64).

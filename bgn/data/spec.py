@@ -80,6 +80,20 @@ def imported_dir(data_dir: str | Path, name: str) -> Path:
     return Path(data_dir) / IMPORTED / name
 
 
+def data_dir_problem(data_dir: str | Path) -> str | None:
+    """Why ``data_dir`` cannot hold dataset folders (it, or a folder above it, is a file), or
+    None; the commands refuse such a ``paths.data_dir`` before any work."""
+    path = Path(data_dir)
+    for q in (path, *path.parents):
+        if q.exists():
+            if q.is_dir():
+                return None
+            what = "is a file" if q == path else f"lies under the file {q}"
+            return (f"paths.data_dir={data_dir} {what}, not a folder; give the folder that "
+                    "holds (or is to hold) the datasets")
+    return None
+
+
 def _plain(value: Any) -> Any:
     """Config values (OmegaConf containers, dataclasses, tuples) -> JSON-able builtins."""
     if is_dataclass(value) and not isinstance(value, type):
@@ -159,8 +173,10 @@ class DatasetSpec:
                     sizes.append((int(f.attrs["n_sims"]), int(f.attrs["n_frames"])))
                     if part == "train":
                         config, fps = json.loads(f.attrs["config"]), float(f.attrs["fps"])
-            except (OSError, KeyError, ValueError) as err:
-                raise ValueError(f"imported dataset {name!r}: {path} cannot be read ({err}); "
+            except (OSError, KeyError, ValueError) as err:  # a damaged file: exit 1, not 2
+                from bgn.data.raw import DataImportError
+
+                raise DataImportError(f"imported dataset {name!r}: {path} cannot be read ({err}); "
                                  f"import it again with `python -m bgn.data.import <path> "
                                  f"name={name} overwrite=true`") from None
         n_sims, n_frames = sizes[SPLITS.index(split)]

@@ -154,6 +154,8 @@ class ImportKeys:
     # radius of each particle type ([type 0's, type 1's, ...]) for sources that record types
     # but no radii (the GNS layout): the discs' contact metrics need them
     radii_by_type: list[float] | None = None
+    # unpickle GNS .npz files of pickled objects (unpickling can run code: trusted files only)
+    allow_pickle: bool = False
     paths: Any = None
 
 

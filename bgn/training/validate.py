@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from bgn.coerce import ConfigError, need_float, need_int
-from bgn.data.spec import IMPORTED, DatasetSpec, LoaderOptions, check_fps
+from bgn.data.spec import IMPORTED, DatasetSpec, LoaderOptions, check_fps, data_dir_problem
 from bgn.sim import SCENES, Scene
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
@@ -102,8 +102,12 @@ def validate_imported(dataset: Any, data_dir: Any) -> DatasetSpec:
         raise ConfigError("dataset.name", message=(
             "dataset.name is missing: give the name of an import (python -m bgn.data.import "
             "<path> name=<name>), e.g. dataset=imported dataset.name=<name>"))
+    from bgn.data.raw import DataImportError
+
     try:
         spec = DatasetSpec.from_config(dataset, 1.0, "train", data_dir or "data")
+    except DataImportError:  # the import's files are damaged (exit 1), not the name
+        raise
     except ValueError as err:
         raise ConfigError("dataset.name", message=str(err)) from None
     loader = LoaderOptions.from_config(
@@ -123,6 +127,8 @@ def validate_dataset(dataset: Any, fps: Any, data_dir: Any = None) -> DatasetSpe
     """Check a ``dataset`` node and ``fps`` (types, ranges, the scene's parameters, enough
     frames, a resolved frame spacing); returns the train split's ``DatasetSpec``. Imported
     data (``scene: imported``) are read from their files under ``data_dir``."""
+    if data_dir is not None and (problem := data_dir_problem(data_dir)):
+        raise ConfigError("paths.data_dir", message=problem)  # not a NotADirectoryError later
     fps = check_fps(fps)
     scene_name = _get(dataset, "scene")
     if scene_name not in SCENES:

@@ -103,7 +103,7 @@ FORMATS = ["gns-npz", "lagrangebench-h5", "arrays-npz", "arrays-h5", "tfrecord"]
 @pytest.mark.parametrize("fmt", FORMATS)
 def test_every_format_imports_trains_and_rolls_out(tmp_path, fmt):
     source = _write(fmt, tmp_path)
-    raw = read_trajectories(source)
+    raw = read_trajectories(source, allow_pickle=True)  # the test's own GNS files
     paths = import_dataset(raw, "tiny", tmp_path / "data")
     train_file = DatasetFile(paths["train"])
     assert train_file.n_sims == 3 and train_file.n_frames == T
@@ -279,7 +279,8 @@ def test_import_files_pass_the_checks_on_open(tmp_path):
 
 
 def test_kinematic_particles_are_inputs_never_predicted_or_scored(tmp_path):
-    import_dataset(read_trajectories(_write("gns-npz", tmp_path)), "kin", tmp_path / "data")
+    raw = read_trajectories(_write("gns-npz", tmp_path), allow_pickle=True)
+    import_dataset(raw, "kin", tmp_path / "data")
     datamodule, module = build(_train_cfg("kin", tmp_path / "data", tmp_path / "run", "gns"))
     model, data = module.model, datamodule.datasets["train"]
     g = data[0]

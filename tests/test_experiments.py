@@ -53,7 +53,16 @@ def test_tiny_preset_end_to_end_and_resumes(tmp_path: Path, capsys) -> None:
         (s, float(f)) for s in preset.scenes for f in preset.fps}
     for row in table1:
         assert float(row["NMSE"]) >= 0 and float(row["MSE"]) >= 0
-        assert row["given"] and row["physics written in"]  # what the model is, every row
+        # what the model is, every row: trained with, given at inference, physics
+        assert row["trained with"] and row["given at inference"] and row["physics written in"]
+        assert int(row["train steps"]) > 0 and float(row["train s"]) > 0  # its budget
+        # the baselines' loss reads the frames alone; BGN's the recorded masses too (its
+        # flow), and on collisions the recorded contacts
+        if row["model"].startswith(("GNS", "Cranmer")):
+            assert row["trained with"] == "-"
+        else:
+            assert "recorded masses" in row["trained with"]
+            assert ("recorded contacts" in row["trained with"]) == (row["scene"] == "collisions")
         assert float(row["repeat-last NMSE"]) >= 0  # no-learning references, every row
         assert float(row["linear-extrapolation NMSE"]) >= 0
         # 10 and 50 fps are in the paper; its baselines are the plain ones
@@ -73,7 +82,8 @@ def test_tiny_preset_end_to_end_and_resumes(tmp_path: Path, capsys) -> None:
     references = set(INVERSE_REFERENCES.values())
     models = [r for r in inverse if r["model"] not in references]  # each with its references
     assert len(models) == len(preset.scenes) * len(preset.fps)
-    assert all(r["model"].startswith("BGN") and r["given"] for r in models)  # labelled
+    assert all(r["model"].startswith("BGN") and r["given at inference"]
+               and "recorded masses" in r["trained with"] for r in models)  # labelled
     # the prior-only sampler and the physical estimator under every model, the type-only
     # sampler where each type has its own mass law (collisions)
     assert len(inverse) == 3 * len(models) + sum(r["scene"] == "collisions" for r in models)

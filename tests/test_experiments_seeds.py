@@ -46,7 +46,7 @@ def record(cell: Cell) -> dict[str, Any]:
     if not (cell.model == "bgn" and i == 1):  # absent in one seed: averaged over the others
         metrics["rollout/energy_err@all"] = 0.01 * (i + 1)
     return {"train": {"metrics": {"wall_time_s": 30.0}},
-            "eval": {"metrics": metrics, "figure": None,
+            "eval": {"metrics": metrics, "figure": None, "train_steps": 500,
                      "model": {"label": LABELS[cell.model], "given": ["radii"],
                                "physics": "none"}}}
 
@@ -89,8 +89,9 @@ def test_table1_over_seeds_is_mean_and_spread_never_the_best(tmp_path: Path) -> 
     per_seed = csv_rows(tmp_path / "table1_per_seed.csv")
     assert [(r["seed"], float(r["NMSE"])) for r in per_seed] == [
         (str(s), v) for m in ("bgn", "gns_given") for s, v in zip(SEEDS, NMSE[m])]
-    assert "| 3 | 0.6 ± 0.5292 (0.2–1.2) | 0.3 ± 0.2646 (0.1–0.6) |" in text
-    assert "| 3 | 0.6 | 0.3 |" in text  # the seeds agree: the value alone
+    # each seed's steps and wall time, then the errors
+    assert "| 3 | 500 | 30 | 0.6 ± 0.5292 (0.2–1.2) | 0.3 ± 0.2646 (0.1–0.6) |" in text
+    assert "| 3 | 500 | 30 | 0.6 | 0.3 |" in text  # the seeds agree: the value alone
     assert "never the best seed" in text
 
 
@@ -167,7 +168,7 @@ def test_report_provenance_and_results_md(tmp_path: Path) -> None:
     assert text.count(regenerate) == 6  # under every table
     first = results_md.read_text()
     assert first.startswith("# Results\n\nhand-written\n") and regenerate in first
-    assert "| 3 | 0.6 ± 0.5292 (0.2–1.2)" in first  # the aggregated Table 1
+    assert "| 3 | 500 | 30 | 0.6 ± 0.5292 (0.2–1.2)" in first  # the aggregated Table 1
     write_report(report_dir, "reproduce", "cells/", CELLS, RESULTS, provenance, results_md)
     assert results_md.read_text() == first  # a second run leaves one block, the same
 

@@ -16,6 +16,8 @@ import numpy as np
 import pytest
 import sympy
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from omegaconf import OmegaConf
 
 from bgn.eval.laws import (
@@ -377,6 +379,49 @@ def law_auto_overrides(run: Path, data_dir: Path) -> list[str]:
             "callbacks.progress_bar=null"]
 
 
+def _score(errors: list[float], cap: float = 10.0) -> dict:
+    """A ``validation_errors`` record of rollouts with these errors after 50 steps (a
+    failed one: ``cap``)."""
+    e = np.asarray(errors)
+    return {"errors": {50: float(e.mean())},
+            "typical": {50: float(np.exp(np.log(e + 1e-9).mean()))},
+            "failed": int(np.sum(e >= cap)), "failed_share": float(np.mean(e >= cap)),
+            "horizon": 50, "rollouts": len(e)}
+
+
+def test_law_choice_counts_failed_rollouts_where_the_geometric_mean_would_not():
+    """The formula stage's choice: a law with a failed rollout (at the cap) but tiny errors
+    elsewhere has the lower geometric mean, yet never wins over a law with none failed."""
+    from bgn.eval.laws import failed_rollouts, law_choice
+
+    network = _score([0.01] * 10)
+    formula = _score([1e-5] * 9 + [10.0])  # one rollout failed, at the cap
+    assert formula["typical"][50] < network["typical"][50]  # what the old rule chose
+    assert law_choice({"network": network, "formula": formula}, 50) == "network"
+    assert law_choice({"network": formula, "formula": network}, 50) == "formula"
+    # equal failures: the lower mean error (failures at the cap), the network law on a tie
+    worse = _score([1e-5] * 8 + [10.0, 10.0])
+    assert law_choice({"network": worse, "formula": formula}, 50) == "formula"
+    assert law_choice({"network": network, "formula": _score([0.01] * 10)}, 50) == "network"
+    assert law_choice({"network": network, "formula": _score([0.005] * 10)}, 50) == "formula"
+    # an older record without the count: from its share
+    assert failed_rollouts({"failed_share": 0.2, "rollouts": 10}) == 2
+
+
+@given(st.lists(st.floats(1e-6, 10.0), min_size=2, max_size=12),
+       st.lists(st.floats(1e-6, 10.0), min_size=2, max_size=12))
+@settings(max_examples=60, deadline=None)
+def test_law_choice_never_prefers_more_failures(a, b):
+    from bgn.eval.laws import law_choice
+
+    scores = {"network": _score(a), "formula": _score(b)}
+    chosen = law_choice(scores, 50)
+    other = "formula" if chosen == "network" else "network"
+    assert scores[chosen]["failed"] <= scores[other]["failed"]
+    if scores[chosen]["failed"] == scores[other]["failed"]:
+        assert scores[chosen]["errors"][50] <= scores[other]["errors"][50]
+
+
 def test_law_auto_tests_the_law_that_validates_better(tmp_path, shared_data_dir):
     """model.law=auto: after the fit, the law read back as a formula and fine-tuned (the
     formula stage), the better of the two on validation rollouts tested, and bgn.evaluate
@@ -394,8 +439,8 @@ def test_law_auto_tests_the_law_that_validates_better(tmp_path, shared_data_dir)
     stage = json.loads((run / "laws" / "formula.json").read_text())
     assert law["choice"] == stage["choice"] in ("network", "formula")
     horizon = str(stage["validation"]["network"]["horizon"])  # JSON keys are strings
-    errors = {k: v["typical"][horizon] for k, v in stage["validation"].items()}
-    assert errors[law["choice"]] == min(errors.values())  # chosen on validation alone
+    scores = {k: (v["failed"], v["errors"][horizon]) for k, v in stage["validation"].items()}
+    assert scores[law["choice"]] == min(scores.values())  # chosen on validation alone
     rollouts = [k for k in record["metrics"] if k.startswith("test/rollout_error@")]
     assert (run / "laws" / "report.md").is_file() and rollouts and all(
         np.isfinite(record["metrics"][k]) for k in rollouts)

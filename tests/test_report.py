@@ -7,7 +7,14 @@ import csv
 from pathlib import Path
 from typing import Any
 
-from bgn.eval.columns import INVERSE_REFERENCE_VARIANTS, INVERSE_REFERENCES
+from bgn.eval.columns import (
+    GIVEN,
+    INVERSE_REFERENCES,
+    NO_LEARNING,
+    PHYSICS,
+    TRAINED_WITH,
+    inverse_reference_variant,
+)
 from bgn.studies.cells import Cell
 from bgn.studies.report import (
     PAPER_LABEL,
@@ -50,7 +57,7 @@ def record(cell: Cell) -> dict[str, Any]:
                      ("predictability", 1e-6)):
         metrics.update({f"{key}/pos_err_mean@10": err, f"{key}/failed_share": 0.0})
     out = {"train": {"metrics": {"wall_time_s": 60.0, "test/contact_f1": 0.7}},
-           "eval": {"metrics": metrics, "figure": figure}}
+           "eval": {"metrics": metrics, "figure": figure, "train_steps": 300}}
     if cell.scene == "collisions":  # what bgn.studies.grid records (older records lack it)
         out["eval"]["model"] = VARIANTS[cell.model]
     return out
@@ -58,8 +65,12 @@ def record(cell: Cell) -> dict[str, Any]:
 
 VARIANTS = {  # PhysicsModel.describe of the collisions cells
     "bgn": {"label": "BGN + impulse head (radii)", "given": ["radii"],
+            "trained_with": ["contacts", "masses"],
+            "supervision": {"contacts": ["contact"], "masses": ["mass_nll", "impulse_mass"]},
             "physics": "impulses at the time of impact"},
-    "gns": {"label": "GNS + radii/types", "given": ["radii", "types"], "physics": "none"}}
+    "gns": {"label": "GNS + radii/types", "given": ["radii", "types"], "trained_with": [],
+            "supervision": {}, "physics": "none"}}
+BGN_TRAINED = "recorded contacts (contact); recorded masses (mass_nll, impulse_mass)"
 
 
 RESULTS = {c.name: record(c) for c in CELLS}
@@ -85,9 +96,10 @@ def test_rollout_table(tmp_path: Path) -> None:
         ("spring", "last extrapolation"), ("spring", "linear extrapolation"), ("spring", LIMIT)]
     assert [float(r["pos_err_mean@10"]) for r in rows[:3]] == [0.01, 0.01, 0.5]
     assert rows[0]["pos_err_mean@100"] == ""  # not evaluated: blank, not zero
-    assert [(r["given"], r["physics written in"]) for r in rows[:3]] == [
-        ("radii", "impulses at the time of impact"), ("radii, types", "none"), ("-", "none")]
-    assert (rows[5]["given"], rows[5]["physics written in"]) == ("", "")  # an older record
+    assert [(r[TRAINED_WITH], r[GIVEN], r[PHYSICS]) for r in rows[:3]] == [
+        (BGN_TRAINED, "radii", "impulses at the time of impact"), ("-", "radii, types", "none"),
+        (NO_LEARNING, "-", "none")]
+    assert (rows[5][GIVEN], rows[5][PHYSICS]) == ("", "")  # an older record
 
 
 def test_paper_values() -> None:
@@ -101,7 +113,7 @@ def test_table1(tmp_path: Path) -> None:
     """One row per main cell: its variant, what it is given, the physics written in; the
     paper's value beside the paper's variant only."""
     plain = {"bgn_decoder": {"name": "bgn", "label": "BGN (paper decoder)", "given": [],
-                             "physics": "none"},
+                             "physics": "none"},  # an older record: no supervision
              "gns": {"label": "GNS", "given": [], "physics": "none"}}
     cells, results = [*CELLS], {**RESULTS}
     for model, about in plain.items():  # model=bgn_decoder: the paper's BGN by its name
@@ -110,12 +122,15 @@ def test_table1(tmp_path: Path) -> None:
         results[cells[-1].name]["eval"]["model"] = about
     table1(tmp_path, cells, results)
     rows = csv_rows(tmp_path / "table1.csv")
-    assert [(r["scene"], r["fps"], r["model"], r["given"]) for r in rows] == [
-        ("collisions", "10", "BGN + impulse head (radii)", "radii"),
-        ("collisions", "10", "GNS + radii/types", "radii, types"),
-        ("spring", "25", "bgn", ""),  # an older record: the cell's model name
-        ("spring", "10", "BGN (paper decoder)", "-"), ("spring", "10", "GNS", "-")]
-    assert rows[1]["NMSE"] == "0.2" and rows[1]["physics written in"] == "none"
+    assert [(r["scene"], r["fps"], r["model"], r[TRAINED_WITH], r[GIVEN]) for r in rows] == [
+        ("collisions", "10", "BGN + impulse head (radii)", BGN_TRAINED, "radii"),
+        ("collisions", "10", "GNS + radii/types", "-", "radii, types"),
+        ("spring", "25", "bgn", "", ""),  # an older record: the cell's model name
+        ("spring", "10", "BGN (paper decoder)", "not recorded", "-"),
+        ("spring", "10", "GNS", "not recorded", "-")]
+    assert rows[1]["NMSE"] == "0.2" and rows[1][PHYSICS] == "none"
+    # every cell's budget: its steps and its whole run's wall time
+    assert {(r["train steps"], r["train s"]) for r in rows} == {("300", "60.0")}
     assert rows[1]["frames"] == "256"  # NMSE is heavy-tailed: the frames it averages
     assert rows[0]["repeat-last NMSE"] == "1.5"
     # the paper's BGN is its decoder, its GNS reads no radii or types
@@ -133,8 +148,10 @@ def test_inverse_table_lists_full_cells_with_a_figure(tmp_path: Path) -> None:
                                                   *INVERSE_REFERENCES.values())] + [
         ("spring", "25", label) for label in ("bgn", INVERSE_REFERENCES["prior"],
                                               INVERSE_REFERENCES["physical"])]
-    assert [r["given"] for r in rows[:4]] == ["radii", "-", "types",
-                                              INVERSE_REFERENCE_VARIANTS["physical"]["given"]]
+    assert [r[GIVEN] for r in rows[:4]] == ["radii", "-", "types", "recorded contacts, types"]
+    assert [r[TRAINED_WITH] for r in rows[:4]] == [BGN_TRAINED, *[NO_LEARNING] * 3]
+    # the force-law estimator on a force scene reads nothing but the window
+    assert rows[-1][GIVEN] == "-" == inverse_reference_variant("physical", False)[GIVEN]
     assert rows[0]["figure"] == f"figures/mass_{MAIN[0].name}.png"
     assert (rows[0]["info_gain"], rows[1]["info_gain"]) == ("1.5", "0.0")
     assert (rows[0]["info_gain_over_type"], rows[2]["info_gain"]) == ("0.81", "0.69")
@@ -169,5 +186,5 @@ def test_report_md_embeds_every_table(tmp_path: Path) -> None:
     for name in ("table1", "rollouts", "inverse", "types", "ablations", "sample_efficiency"):
         assert "\n#" + (tmp_path / f"{name}.md").read_text().rstrip("\n") in text, name
     for cell in CELLS:
-        assert f"| {cell.name} | {', '.join(cell.groups)} | 60 |" in text
+        assert f"| {cell.name} | {', '.join(cell.groups)} | 300 | 60 |" in text  # steps, s
     assert "total training wall time 6.0 min" in text

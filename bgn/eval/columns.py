@@ -10,15 +10,23 @@ INVERSE_COLUMNS = ["coverage50", "coverage90", "coverage_max_dev", "sbc_p", "tar
 INVERSE_REFERENCES = {"prior": "prior-only sampler",
                       "type_prior": "type-only sampler (the true type's mass law)",
                       "physical": "physical estimator (force law, no learning)"}
-# what each reference reads beyond the position window, and the physics written into it
-# (the columns a model's row has from its PhysicsModel.describe)
-INVERSE_REFERENCE_VARIANTS = {
-    "prior": {"given": "-", "physics written in": "the scene's mass law"},
-    "type_prior": {"given": "types", "physics written in": "each type's mass law"},
-    "physical": {"given": "collisions: the recorded contacts, types",
-                 "physics written in": "the scene's force law (collisions: momentum exchange "
-                                       "at impacts) and mass law"}}
+# the columns that say what a model is, beside its name in every model table: what its
+# training loss reads beyond the frames, what it reads at inference beyond the position window
+# (PhysicsModel.describe) and the physics written into it
+TRAINED_WITH, GIVEN, PHYSICS = "trained with", "given at inference", "physics written in"
+VARIANT_COLUMNS = [TRAINED_WITH, GIVEN, PHYSICS]
+NO_LEARNING = "- (no learning)"  # what a reference that learns nothing is trained with
 
+
+def inverse_reference_variant(key: str, contact_scene: bool) -> dict[str, str]:
+    """What an inverse reference (``INVERSE_REFERENCES``) reads and has written in: the
+    physical estimator reads the recorded contacts and the types on contact scenes only."""
+    given = {"prior": "-", "type_prior": "types",
+             "physical": "recorded contacts, types" if contact_scene else "-"}[key]
+    physics = {"prior": "the scene's mass law", "type_prior": "each type's mass law",
+               "physical": ("momentum exchange at impacts, each type's mass law"
+                            if contact_scene else "the scene's force law and mass law")}[key]
+    return {TRAINED_WITH: NO_LEARNING, GIVEN: given, PHYSICS: physics}
 
 ROLLOUT_COLUMNS = ["pos_err_mean@1", "pos_err_mean@10", "pos_err_mean@50", "pos_err_mean@100",
                    "pos_err_median@100", "pos_err_mean@all", "pos_mse_mean@all",

@@ -1084,7 +1084,7 @@ def validation_errors(model: Any, val: Any, history: int, horizon: int = FINETUN
     """bgn.studies.auto's scoring: every validation simulation (or ``val_sims`` of them)
     rolled out from the shared start frames; after 10 and ``horizon`` steps the mean capped
     error (a failed rollout at the cap) and its geometric mean over the rollouts
-    (``typical``), and the share that failed."""
+    (``typical``, shown beside), and how many failed (``failed``, ``failed_share``)."""
     from bgn.data.frames import evenly_spaced
     from bgn.metrics import SHORT_HORIZON, failure_capped_errors
     from bgn.rollout import rollout_many, rollout_starts
@@ -1102,6 +1102,7 @@ def validation_errors(model: Any, val: Any, history: int, horizon: int = FINETUN
             "failed_share": float(np.mean(failed >= 0)), "horizon": n_steps,
             "rollouts": len(sims) * len(starts)}
 
+            "failed": int(np.sum(failed >= 0)),
 
 def law_objective(model: Any, head: Any, g: Any) -> torch.Tensor:
     """The loss a pair law's constants are tuned on. Where the model trains its law with the
@@ -1327,6 +1328,25 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
                      seed: int = 0, start: str | None = None,
                      max_seconds: float | None = None) -> dict[str, Any]:
     """The fitted formula as the model's law, its constants fine-tuned end to end: the
+def failed_rollouts(score: dict[str, Any]) -> int:
+    """How many of a ``validation_errors`` score's rollouts failed (from its share where an
+    older record lacks the count)."""
+    if "failed" in score:
+        return int(score["failed"])
+    return int(round(score.get("failed_share", 0.0) * score.get("rollouts", 0)))
+
+
+def law_choice(scores: dict[str, dict[str, Any]], horizon: int) -> str:
+    """The law a formula stage keeps, of ``scores`` (law -> ``validation_errors``): the fewest
+    failed rollouts first, so a law that fails more never wins; then the lower mean error
+    after ``horizon`` steps with each failed rollout at the cap (``model.dynamics=auto``'s
+    rule, ``bgn.metrics.capped_step_errors``), in which a failure weighs its cap where a
+    geometric mean would let it weigh little; the network law on a tie."""
+    return min(scores, key=lambda k: (failed_rollouts(scores[k]),
+                                      scores[k]["errors"].get(horizon, math.inf),
+                                      k != "network"))
+
+
     checkpoint's model with ``law=formula`` (``formula_module``), the law's constants alone
     fitted by Nelder-Mead (``steps`` evaluations) to the head's own loss (``law_objective``)
     on a fixed batch of ``batch_size`` training frames (``tuning_batches``: the closest
@@ -1335,8 +1355,9 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     it); the chosen form's constants are then polished through finer substeps
     (``polish_constants``). Only the law is fitted: the rest of the model is the
     checkpoint's, validated with the network law, and a handful of constants cannot overfit
-    a split. Both laws are then scored on the validation rollouts (``validation_errors``);
-    the lower typical error (geometric mean over the rollouts) after the horizon is chosen.
+    a split. Both laws are then scored on the validation rollouts (``validation_errors``)
+    and one is kept (``law_choice``: the fewer failed rollouts, then the lower mean error
+    after the horizon, a failed rollout at the cap).
     ``out_dir``: writes ``formula.ckpt`` (loadable as any checkpoint) and ``formula.json``.
     ``start``: a spec to start from in place of the law read back (tests). ``max_seconds``:
     the fit stops there too (a time budget: ``bgn.studies.auto``'s share).
@@ -1393,11 +1414,7 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
                                           val_sims, substeps)
     hp["model_config"] = {**hp["model_config"], "substeps": head.substeps}
     n = scores["network"]["horizon"]
-    # the law on the typical rollout (the geometric mean): the mean after many steps of a
-    # chaotic scene is set by the few rollouts whose encounters diverge, whatever the law
-    # (docs/notes/2026-11-26-results-history.md, "The formula stage"); a failed rollout still
-    # counts, at the cap
-    choice = min(scores, key=lambda k: (scores[k]["typical"].get(n, math.inf), k != "network"))
+    choice = law_choice(scores, n)
     record = {"checkpoint": str(checkpoint), "substeps": substeps,
               "steps": evaluations[0], "tunings": evaluations[1], "batch_size": batch_size,
               "forms": [{k: f[k] for k in ("start", "tuned", "loss", "constants")}
@@ -1559,8 +1576,8 @@ def finetune_markdown(record: dict[str, Any], level: int = 2) -> str:
                   f"{_g(record.get('model_scale', 1.0))}, the network law's scale, in which "
                   "its mass flow reads the window's fitted masses.", ""]
     lines += truth_markdown(record.get("against_truth") or {}, record.get("truth"))
-    lines += [f"Chosen: **{record['choice']}** (the lower typical validation rollout error "
-              f"after {horizons[-1]} steps)."]
+    lines += [f"Chosen: **{record['choice']}** (the fewer failed validation rollouts, then "
+              f"the lower mean error after {horizons[-1]} steps, a failed one at the cap)."]
     if record.get("path"):
         lines += ["", f"Checkpoint with the formula law: `{record['path']}`."]
     return "\n".join(lines) + "\n"

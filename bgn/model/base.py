@@ -7,8 +7,9 @@ training split's statistics and the window length k (k+1 velocities, newest firs
 - turns them into task losses (``loss_terms``) and their weighted sum (``total_loss``, Eq. 12);
 - predicts the forward target in physical units (``predict``), which is all a rollout needs;
 - says which heads it has (``heads``: the loss keys it produces), how to label it, what it is
-  given beyond the position window and what physics is written into it (``label``,
-  ``given``, ``physics``: derived from its config, so every table names the variant);
+  given at inference beyond the position window, what its training loss reads beyond the
+  frames and what physics is written into it (``label``, ``given``, ``trained_with``,
+  ``physics``: derived from its config and loss weights, so every table names the variant);
 - samples masses (``sample_mass``) when it has an inverse head.
 
 Subclasses implement ``build`` (their layers), ``forward`` and ``forward_target`` (the dynamics
@@ -42,6 +43,12 @@ LOSS_KEYS = ("dynamics", "contact", "type", "mass_nll", "relmass", "unroll", "im
 # What a model may be given beyond the position window (``PhysicsModel.given``): the
 # particles' radii, types or true masses, all hidden from a model that is not given them.
 GIVEN_FIELDS = ("radii", "types", "masses")
+# What each loss term reads beyond the frames every model trains on (``trained_with``): the
+# recorded quantity its target is. "contact" is the recorded contacts on contact scenes and
+# the recorded pair forces elsewhere (``PhysicsModel.supervision``).
+SUPERVISION = {"dynamics": (), "unroll": (), "type": ("types",), "mass_nll": ("masses",),
+               "relmass": ("masses",), "impulse_mass": ("masses",), "law": ("masses",),
+               "contact": ("contacts",)}
 
 
 @dataclass
@@ -193,10 +200,32 @@ class PhysicsModel(nn.Module, ABC):
         """The physics written into the model's dynamics ("none": a learned map only)."""
         return "none"
 
+    @property
+    def supervision(self) -> dict[str, list[str]]:
+        """What the training loss reads beyond the frames: each recorded quantity (masses,
+        contacts, pair forces, types) -> the loss terms that read it, from the heads the model
+        has and their weights (``SUPERVISION``; a term weighted 0 reads nothing)."""
+        out: dict[str, list[str]] = {}
+        for key in LOSS_KEYS:
+            if key not in self.heads or not self.loss_weights.get(key, 1.0) > 0:
+                continue
+            for quantity in SUPERVISION[key]:
+                if quantity == "contacts" and self.meta.interaction != "contact":
+                    quantity = "pair forces"  # the contact head regresses |F_ij| there
+                out.setdefault(quantity, []).append(key)
+        return out
+
+    @property
+    def trained_with(self) -> tuple[str, ...]:
+        """The recorded quantities the training loss reads beyond the frames
+        (``supervision``'s keys), e.g. ("masses", "types"); () for the frames alone."""
+        return tuple(self.supervision)
+
     def describe(self) -> dict[str, Any]:
-        """``name``, ``label``, ``given`` and ``physics`` as one record (reports,
-        metrics.json)."""
+        """``name``, ``label``, ``given`` (at inference), ``trained_with`` and
+        ``supervision`` (at training) and ``physics`` as one record (reports, metrics.json)."""
         return {"name": self.name, "label": self.label, "given": list(self.given),
+                "trained_with": list(self.trained_with), "supervision": self.supervision,
                 "physics": self.physics}
 
     @property

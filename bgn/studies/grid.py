@@ -135,6 +135,19 @@ def cached_eval(cell: Cell, cfg: DictConfig) -> dict[str, Any] | None:
     return None
 
 
+def trained_steps(run_dir: Path) -> int | None:
+    """The optimiser steps a cell trained: its last checkpoint's (the best one where there is
+    no last; None where neither records it), so the report shows each cell's budget."""
+    from bgn.training.checkpoints import read
+
+    for name in ("last.ckpt", "best.ckpt"):
+        path = run_dir / "checkpoints" / name
+        if path.is_file():
+            step = read(path).get("global_step")
+            return None if step is None else int(step)
+    return None
+
+
 def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
     """Metrics of a cell's chosen checkpoint (``chosen_checkpoint``) on the preset's split
     (``eval.split``: test, or val with the mass flow recalibrated on train, as
@@ -151,8 +164,10 @@ def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
     calibration = CALIBRATION_SPLIT[split]  # never the scored split
     result = cached_eval(cell, cfg)
     if result is not None:
-        if "model" not in result:  # an older record: what the model is, from its checkpoint
+        # an older record: what the model is (trained with, given), from its checkpoint
+        if "supervision" not in (result.get("model") or {}) or "train_steps" not in result:
             result["model"] = load_model(ckpt).model.describe()
+            result["train_steps"] = trained_steps(run_dir)
             write_atomic(eval_path, json.dumps(result, indent=2, sort_keys=True))
         return result
     datamodule = cell_datamodule(run_dir, cfg.data_dir)
@@ -165,7 +180,8 @@ def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
         rollout_sims=e.rollout_sims)
     # the report labels each row by what the model is given and has written in (bgn.studies.report)
     result = {"checkpoint": str(ckpt), "metrics": metrics, "figure": None,
-              "model": module.model.describe(), "split": split,
+              "model": module.model.describe(), "train_steps": trained_steps(run_dir),
+              "split": split,
               "calibration_split": calibration}
     if arrays:
         result["figure"] = str(mass_figure(arrays, figure))

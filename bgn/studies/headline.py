@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING, Any
 from omegaconf import DictConfig, OmegaConf
 
 from bgn.coerce import ConfigError, need_int
+from bgn.eval.columns import VARIANT_COLUMNS
 from bgn.studies.cells import map_in_processes
 from bgn.studies.law_stage import laws_stage, validate_laws
 from bgn.studies.report import stage_provenance, write_stage
@@ -281,7 +282,7 @@ def stability_stage(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
 
 
 # ----------------------------------------------------------------------------- pareto
-PARETO_KEYS_ROW = ["scene", "fps", "model", "given", "physics written in", "on front"]
+PARETO_KEYS_ROW = ["scene", "fps", "model", *VARIANT_COLUMNS, "on front"]
 PARETO_VALUES = ["rollout_error", "seconds_per_time_unit", "failed_share", "nmse",
                  "parameters", "cell_minutes"]
 INFERENCE = "seconds_per_time_unit"
@@ -291,7 +292,7 @@ def pareto_points(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
                   ) -> list[dict[str, Any]]:
     """Per seed, every main cell's point and (from the first cell of each scene x fps) the
     no-learning extrapolations', from the grid's eval.json and metrics.json."""
-    from bgn.studies.report import REFERENCES, evaluation, training, variant
+    from bgn.studies.report import NOTHING, REFERENCES, evaluation, training, variant
     from bgn.training.checkpoints import chosen_checkpoint
     from bgn.training.module import load_model
 
@@ -300,9 +301,8 @@ def pareto_points(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
     for scene, fps in dict.fromkeys((c.scene, c.fps) for c in main):
         group = [c for c in main if (c.scene, c.fps) == (scene, fps)]
         h = steps_per_unit(fps)
-        nothing = {"given": "-", "physics written in": "none"}
         sources = [(variant(results, c), c, "rollout") for c in group]
-        sources += [({"model": f"{ref} extrapolation", **nothing}, group[0], f"rollout_{ref}")
+        sources += [({"model": f"{ref} extrapolation", **NOTHING}, group[0], f"rollout_{ref}")
                     for ref in REFERENCES]
         for about, c, key in sources:
             m = evaluation(results, c)

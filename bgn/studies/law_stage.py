@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 from omegaconf import DictConfig, OmegaConf
 
 from bgn.coerce import ConfigError
+from bgn.eval.columns import VARIANT_COLUMNS
 from bgn.studies.cells import map_in_processes, preset_seeds
 from bgn.studies.report import stage_provenance, variant, write_stage
 from bgn.tables import write_table
@@ -38,11 +39,12 @@ if TYPE_CHECKING:
 LAWS_KEYS = {"model": "the grid model whose cells' laws are read (one of preset.models)",
              "seeds": "their seeds (a subset of preset.seeds; null: all)",
              "max_seconds": "each cell's fitting of the forms at most this (null: no limit)"}
-KEYS = ["scene", "model", "given", "physics written in", "truth"]  # one row per scene
+KEYS = ["scene", "model", *VARIANT_COLUMNS, "truth"]  # one row per scene
 TEXT = ["read back from the network", "fitted to the frames"]
 VALUES = ["form is the truth's", "constants vs truth", "network vs truth",
           "network vs truth 1-99%", "fitted vs truth", "fitted vs truth 1-99%",
-          "formula chosen", "network val error", "formula val error", "stage s"]
+          "formula chosen", "network val error", "formula val error", "network failed",
+          "formula failed", "stage s"]
 
 
 def validate_laws(preset: DictConfig) -> None:
@@ -101,15 +103,17 @@ def _law_job(cell_dir: str, data_dir: str, out_dir: str,
 
 def law_row(record: dict[str, Any]) -> dict[str, Any]:
     """A table row's values from a formula stage's record (``against_truth`` and the
-    validation rollouts: the typical error after the stage's horizon)."""
-    from bgn.eval.laws import spec_text
+    validation rollouts the choice reads, ``bgn.eval.laws.law_choice``: the failed rollouts
+    and the mean error after the stage's horizon, a failed one at the cap)."""
+    from bgn.eval.laws import failed_rollouts, spec_text
 
     truth = record.get("against_truth") or {}
     v = record["validation"]
     n = v["network"]["horizon"]
 
-    def typical(law: str) -> float:
-        return float(v[law].get("typical", {}).get(n, math.nan))
+    def mean(law: str) -> float:  # JSON keys are strings in a record read back
+        errors = v[law].get("errors", {})
+        return float(errors.get(n, errors.get(str(n), math.nan)))
 
     def got(key: str) -> float:
         return float(truth.get(key, math.nan))
@@ -124,8 +128,61 @@ def law_row(record: dict[str, Any]) -> dict[str, Any]:
             "network vs truth 1-99%": got("network_max_1_99"),
             "fitted vs truth": got("tuned_max"), "fitted vs truth 1-99%": got("tuned_max_1_99"),
             "formula chosen": float(record["choice"] == "formula"),
-            "network val error": typical("network"), "formula val error": typical("formula"),
-            "horizon": n}
+            "network val error": mean("network"), "formula val error": mean("formula"),
+            "network failed": float(failed_rollouts(v["network"])),
+            "formula failed": float(failed_rollouts(v["formula"])), "horizon": n}
+
+
+def _g(value: float) -> str:
+    return "nan" if not math.isfinite(value) else f"{value:.2g}"
+
+
+def findings(rows: list[dict[str, Any]], horizon: str) -> list[str]:
+    """The laws table's findings in prose, from its per-seed rows (written beside the table,
+    so the prose is always of the run the table is): per scene, how many seeds' fitted
+    formula has the truth's form, the worst of its constants and of its error against the
+    truth, the network law's error, and which law the validation rollouts chose."""
+    if not rows:
+        return []
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    of = {scene: [r for r in rows if r["scene"] == scene] for scene in scenes}
+
+    def worst(scene: str, key: str) -> float:
+        values = [float(r[key]) for r in of[scene] if r.get(key) is not None]
+        return max(values) if values else math.nan
+
+    def each(text: Any) -> str:
+        return ", ".join(f"{text(scene)} ({scene})" for scene in scenes)
+
+    truth_form = sum(int(r["form is the truth's"] == 1.0) for r in rows)
+    chosen = sum(int(r["formula chosen"] == 1.0) for r in rows)
+    mean = {law: {scene: sum(float(r[f"{law} val error"]) for r in of[scene]) / len(of[scene])
+                  for scene in scenes} for law in ("network", "formula")}
+    failed = {law: sum(int(r[f"{law} failed"]) for r in rows) for law in ("network", "formula")}
+    per_scene = ", ".join(f"{scene} {sum(int(r[TRUTH_FORM] == 1.0) for r in of[scene])} of "
+                          f"{len(of[scene])}" for scene in scenes)
+    return [
+        f"- **The fitted formula has the truth's form in {truth_form} of {len(rows)} cells** "
+        f"({per_scene}); its constants within "
+        + each(lambda s: f"{_g(100 * worst(s, 'constants vs truth'))} %")
+        + " of the truth's (the worst seed). At every training distance its largest relative "
+        "error is " + each(lambda s: _g(worst(s, "fitted vs truth")))
+        + "; between the 1st and 99th percentiles "
+        + each(lambda s: _g(worst(s, "fitted vs truth 1-99%"))) + ".",
+        "- The network law's largest relative error against the truth is "
+        + each(lambda s: _g(worst(s, "network vs truth"))) + " ("
+        + each(lambda s: _g(worst(s, "network vs truth 1-99%")))
+        + " between the percentiles; the worst seed).",
+        f"- The formula was chosen over the network law in {chosen} of {len(rows)} cells "
+        f"(the fewer failed validation rollouts, then the lower mean error after {horizon} "
+        "steps, a failed rollout at the cap; mean over the seeds, formula against network: "
+        + each(lambda s: f"{_g(mean['formula'][s])} against {_g(mean['network'][s])}")
+        + f"; failed rollouts, all cells: formula {failed['formula']}, network "
+        f"{failed['network']}).",
+        ]
+
+
+TRUTH_FORM = "form is the truth's"
 
 
 def laws_stage(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
@@ -186,16 +243,18 @@ def laws_stage(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
         "the largest relative error against the true law over the training pairs' distances "
         "(all of them, and between their 1st and 99th percentiles; near a zero crossing "
         "relative to the law's change over 10 % of r). `formula chosen`: the share of seeds "
-        "whose formula validated better than the network law; the two validation errors: the "
-        f"typical (geometric-mean) position error after {h} steps over the validation "
-        "rollouts, a failed one at the cap.",
+        "whose formula validated better than the network law (the fewer failed validation "
+        "rollouts, then the lower mean error: bgn.eval.laws.law_choice); the two validation "
+        f"errors: the mean position error after {h} steps over the validation rollouts, a "
+        "failed one at the cap; `... failed`: how many of those rollouts failed.",
         empty="(no cell with a pair-force head)")
     now = time.perf_counter()
     path = write_stage(
         out, "laws", f"Learned laws of the `{cfg.preset.name}` cells",
         [f"The grid's `{spec.model}` cells of seeds {', '.join(map(str, sorted(seeds)))} "
          "(their network checkpoints), read back and fitted by the formula stage, one cell "
-         f"per process ({workers} at once)."],
+         f"per process ({workers} at once). What the tables below show, written from them:",
+         "", *findings(rows, h)],
         [formulas, table], figures, stage_provenance(provenance, now - t0), cfg.get("results_md"))
     if failed:  # the tables of the others are written; the command still fails
         raise RuntimeError(f"laws stage: {len(failed)} cell(s) failed ({', '.join(failed)}); "

@@ -18,10 +18,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from bgn.eval.columns import (
+    GIVEN,
     INVERSE_COLUMNS,
-    INVERSE_REFERENCE_VARIANTS,
     INVERSE_REFERENCES,
+    NO_LEARNING,
+    PHYSICS,
     ROLLOUT_COLUMNS,
+    TRAINED_WITH,
+    VARIANT_COLUMNS,
+    inverse_reference_variant,
 )
 from bgn.provenance import write_block
 from bgn.tables import fmt, write_csv, write_table
@@ -80,7 +85,7 @@ def split_notes(split: str, notes: str) -> str:
 SEED = "seed"          # the training seed of a per-seed row (bgn.studies.cells.Cell.seed)
 SEEDS = "seeds"        # how many seeds an aggregated row holds
 MODEL_ID = "model_id"  # a per-seed row's model config (cell model and variant): what groups it
-MODEL_TEXT = ("model", "given", "physics written in")  # what describes it, seed by seed
+MODEL_TEXT = ("model", *VARIANT_COLUMNS)  # what describes it, seed by seed
 STATS = ("std", "min", "max", "n")  # the spread columns beside each mean in the CSV
 SEEDS_NOTE = ("Seeds: each row is the mean over its `seeds` training seeds, ± the sample "
               "standard deviation, with (min–max) after it; never the best seed. A value "
@@ -215,21 +220,74 @@ def _main(cells: list[Cell]) -> list[Cell]:
     return [c for c in cells if "main" in c.groups]
 
 
+def supervision_text(info: dict[str, Any]) -> str:
+    """The ``trained with`` cell of a ``PhysicsModel.describe`` record: each recorded quantity
+    the training loss reads beyond the frames, with the loss terms that read it ("masses
+    (mass_nll, relmass, law)"); "-" for the frames alone, "not recorded" for an older record
+    that lacks it."""
+    if "supervision" not in info:
+        return "not recorded" if info else ""
+    return "; ".join(f"recorded {quantity} ({', '.join(terms)})"
+                     for quantity, terms in info["supervision"].items()) or "-"
+
+
+def describe_columns(info: dict[str, Any]) -> dict[str, str]:
+    """``VARIANT_COLUMNS`` of a ``PhysicsModel.describe`` record (a model that trained)."""
+    return {TRAINED_WITH: supervision_text(info),
+            GIVEN: ", ".join(info.get("given", [])) or ("-" if info else ""),
+            PHYSICS: info.get("physics", "")}
+
+
 def variant(results: Results, cell: Cell) -> dict[str, str]:
     """What a cell's model is (``PhysicsModel.describe``, recorded by ``bgn.studies.grid``):
-    its label, what it is given beyond the position window and the physics written into it;
-    the cell's model name alone where an older record lacks it."""
+    its label, what its training loss reads beyond the frames, what it is given at inference
+    beyond the position window and the physics written into it; the cell's model name alone
+    where an older record lacks it."""
     info = results[cell.name]["eval"].get("model") or {}
     return {MODEL_ID: f"{cell.model}/{cell.tag}", "model": info.get("label", cell.model),
-            "given": ", ".join(info.get("given", [])) or ("-" if info else ""),
-            "physics written in": info.get("physics", "")}
+            **describe_columns(info)}
 
 
-# the columns that say what a model is (``variant``), beside its name in every model table
-VARIANT_COLUMNS = ["given", "physics written in"]
+# a reference that learns nothing and reads nothing but the window (the extrapolations)
+NOTHING = {TRAINED_WITH: NO_LEARNING, GIVEN: "-", PHYSICS: "none"}
+VARIANT_NOTE = ("trained with: what the model's training loss reads beyond the frames, each "
+                "recorded quantity with the loss terms that read it (mass_nll: the mass "
+                "flow; relmass: the relative masses; law: the pair law with the recorded "
+                "masses; impulse_mass: the impulse head's masses; contact: the contact head; "
+                "type: the type classifier; a term weighted 0 reads nothing; - the frames "
+                "alone), from its config and loss weights; given at inference: what it reads "
+                "beyond the position window when it predicts (radii, types, masses; - "
+                "nothing); physics written in: the structure its dynamics has by "
+                "construction (none: a learned map).")
 # the paper's BGN is its decoder, its baselines read neither radii nor types: its value
 # stands beside a row of the same family given nothing and with no physics written in
 PAPER_SOURCE = {"bgn": "BGN", "cranmer_gn": "Cranmer et al.", "gns": "Sanchez-Gonzalez et al."}
+
+
+# what each cell trained: its optimiser steps and its whole run's wall time
+BUDGET_COLUMNS = ["train steps", "train s"]
+BUDGET_NOTE = ("train steps: the optimiser steps the cell trained (its last checkpoint); "
+               "train s: the wall time of its whole training run (the fit, BGN's formula "
+               "stage where it has one, the test), on the machine and load of the provenance "
+               "above: the two show what \"trained for the same wall time\" held.")
+
+
+def budget_columns(results: Results, cell: Cell) -> dict[str, Any]:
+    """``BUDGET_COLUMNS`` of a cell: its steps (``bgn.studies.grid`` records them beside the
+    evaluation) and its training run's wall time (metrics.json)."""
+    return {"train steps": results[cell.name]["eval"].get("train_steps"),
+            "train s": training(results, cell).get("wall_time_s")}
+
+
+def contact_scene(scene: str) -> bool:
+    """Whether a built-in scene's interaction is contact (collisions); False for a scene the
+    simulators do not know (imported data)."""
+    from bgn.sim import make_scene
+
+    try:
+        return make_scene(scene).meta.interaction == "contact"
+    except ValueError:
+        return False
 
 
 def table1(report_dir: Path, cells: list[Cell], results: Results, split: str = "test") -> str:
@@ -244,16 +302,17 @@ def table1(report_dir: Path, cells: list[Cell], results: Results, split: str = "
             m, about = evaluation(results, c), variant(results, c)
             source = PAPER_SOURCE.get((results[c.name]["eval"].get("model") or {}).get(
                 "name", c.model))  # the registry name: model=bgn_decoder is a "bgn"
-            paper = (paper_value(source, scene, fps) if source and about["given"] == "-"
-                     and about["physics written in"] == "none" else None)
+            paper = (paper_value(source, scene, fps) if source and about[GIVEN] == "-"
+                     and about[PHYSICS] == "none" else None)
             rows.append({SEED: c.seed, "scene": scene, "fps": fmt(fps), **about,
-                         OVERRIDES: variant_overrides(c), "MSE": m["mse"],
+                         OVERRIDES: variant_overrides(c), **budget_columns(results, c),
+                         "MSE": m["mse"],
                          "NMSE": m["nmse"], "frames": m.get("n_frames"),
                          # the same frames for every model of a scene x fps
                          **{column: m.get(f"nmse_{ref}_extrapolation")
                             for ref, column in REFERENCES.items()}, PAPER_LABEL: paper})
-    columns = ["scene", "fps", "model", *extra, *VARIANT_COLUMNS, "MSE", "NMSE", "frames",
-               *REFERENCES.values(), PAPER_LABEL]
+    columns = ["scene", "fps", "model", *extra, *VARIANT_COLUMNS, *BUDGET_COLUMNS, "MSE",
+               "NMSE", "frames", *REFERENCES.values(), PAPER_LABEL]
     return write_seeded_table(
         report_dir, "table1", columns, ["scene", "fps", "model", *extra, *VARIANT_COLUMNS,
                                         PAPER_LABEL], rows,
@@ -263,9 +322,7 @@ def table1(report_dir: Path, cells: list[Cell], results: Results, split: str = "
         "many frames, evenly spread over the split, they average (preset.eval.max_frames; "
         "the targets are heavy-tailed, so the figure depends on it). model: the "
         "variant (BGN with the paper's decoder or a structured head; a baseline with the "
-        "node inputs it is given); given: what it reads beyond the position window "
-        "(radii, types, masses; - nothing); physics written in: the structure its "
-        "dynamics has by construction (none: a learned map). The paper column is the "
+        f"node inputs it is given); {VARIANT_NOTE} {BUDGET_NOTE} The paper column is the "
         "published Table 1 value (it does not say which metric) of the paper's variant "
         "only: its BGN is the decoder, its baselines read neither radii nor types (single "
         "values per scene). The extrapolation columns learn nothing: they repeat the last "
@@ -301,7 +358,8 @@ def inverse_table(report_dir: Path, cells: list[Cell], results: Results,
                 values = {k: m.get(f"{key}/{k}") for k in INVERSE_COLUMNS}
                 if any(v is not None for v in values.values()):
                     rows.append({SEED: c.seed, "scene": c.scene, "fps": fmt(c.fps),
-                                 "model": label, **INVERSE_REFERENCE_VARIANTS[key],
+                                 "model": label,
+                                 **inverse_reference_variant(key, contact_scene(c.scene)),
                                  OVERRIDES: variant_overrides(c), **values})
     return write_seeded_table(
         report_dir, "inverse", columns, keys, rows,
@@ -341,7 +399,7 @@ def inverse_table(report_dir: Path, cells: list[Cell], results: Results,
         "laws; its per-simulation value pools the windows of a simulation). Where the frames "
         "say nothing of a particle the estimator falls back to its type's mean log-mass "
         "(the law's mean with one type): identified and sim_identified are the shares it "
-        "estimated, per frame and per simulation, the rest fell back."),
+        f"estimated, per frame and per simulation, the rest fell back. {VARIANT_NOTE}"),
         images=("figure",))
 
 
@@ -358,7 +416,7 @@ def types_table(report_dir: Path, cells: list[Cell], results: Results,
         report_dir, "types", [*keys, "type_accuracy", "type_auroc"], keys, rows,
         f"Particle-type classification ({SPLIT_NAMES[split]} split)",
         split_notes(split, "Accuracy and one-vs-rest AUROC of the type classifier "
-                    "(collisions)."),
+                    f"(collisions). {VARIANT_NOTE}"),
         csv_too=False)
 
 
@@ -420,12 +478,10 @@ def rollout_table(report_dir: Path, cells: list[Cell], results: Results,
         group = [c for c in _main(cells) if (c.scene, c.fps, c.tag) == (scene, fps, tag)]
         sources = [(variant(results, c), c, "rollout") for c in group]
         # the references learn nothing: one seed's cell holds them (the same test frames)
-        nothing = {"given": "-", "physics written in": "none"}
-        sources += [({"model": f"{ref} extrapolation", **nothing}, group[0],
+        sources += [({"model": f"{ref} extrapolation", **NOTHING}, group[0],
                      f"rollout_{ref}") for ref in REFERENCES]
-        sources.append(({"model": "predictability limit (simulator, 1e-6 off)", "given": "-",
-                         "physics written in": "the exact simulator"},
-                        group[0], "predictability"))
+        sources.append(({"model": "predictability limit (simulator, 1e-6 off)", **NOTHING,
+                         PHYSICS: "the exact simulator"}, group[0], "predictability"))
         for about, c, key in sources:
             values = {k: evaluation(results, c).get(f"{key}/{k}") for k in ROLLOUT_COLUMNS}
             if any(v is not None for v in values.values()):
@@ -435,9 +491,9 @@ def rollout_table(report_dir: Path, cells: list[Cell], results: Results,
     return write_seeded_table(
         report_dir, "rollouts", [*keys, *ROLLOUT_COLUMNS], keys, rows,
         f"Rollouts on the {SPLIT_NAMES[split]} split",
-        split_notes(split, "Each model (its variant, what it is given and the physics "
-        "written in: as Table 1) fed its own frames from the same start frames of every "
-        f"{SPLIT_NAMES[split]} simulation "
+        split_notes(split, "Each model (its variant, what it was trained with and is given "
+        "and the physics written in: as Table 1) fed its own frames from the same start "
+        f"frames of every {SPLIT_NAMES[split]} simulation "
         "(frame 100 when the file is long enough), through the learned simulator. Every "
         "rollout counts, a failed one at the cap (rollout_cap: 10 scene scales, the mean "
         "over the rollouts). pos_err_mean@h: mean over all rollouts of the mean position "
@@ -533,9 +589,11 @@ def report_md(report_dir: Path, preset: str, cells_dir: str | Path, cells: list[
     for text in tables.values():
         lines += ["#" + text.rstrip("\n"), "", *regenerate_line(provenance)]
     lines += ["![sample efficiency](sample_efficiency.png)", "",
-              "## Cells", "", f"| cell | groups | trained in (s) | {split} NMSE |",
-              "|---|---|---|---|"]
+              "## Cells", "",
+              f"| cell | groups | train steps | trained in (s) | {split} NMSE |",
+              "|---|---|---|---|---|"]
     lines += [f"| {c.name} | {', '.join(c.groups)} | "
+              f"{fmt(results[c.name]['eval'].get('train_steps'))} | "
               f"{fmt(training(results, c).get('wall_time_s'))} | "
               f"{fmt(evaluation(results, c)['nmse'])} |" for c in cells]
     path = report_dir / "report.md"

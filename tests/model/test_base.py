@@ -76,7 +76,8 @@ def test_label_given_and_physics_follow_the_config(scene, overrides) -> None:
     else:
         assert physics in model.physics and model.physics != "none"
     assert model.describe() == {"name": model.name, "label": label, "given": list(given),
-                                "physics": model.physics}
+                                "trained_with": list(model.trained_with),
+                                "supervision": model.supervision, "physics": model.physics}
 
 
 def test_the_pair_force_head_reads_types_on_a_scene_of_several() -> None:

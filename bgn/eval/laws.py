@@ -1099,10 +1099,10 @@ def validation_errors(model: Any, val: Any, history: int, horizon: int = FINETUN
     at = {h: capped[:, h - 1] for h in horizons}
     return {"errors": {h: float(e.mean()) for h, e in at.items()},
             "typical": {h: float(np.exp(np.log(e + TYPICAL_FLOOR).mean())) for h, e in at.items()},
+            "failed": int(np.sum(failed >= 0)),
             "failed_share": float(np.mean(failed >= 0)), "horizon": n_steps,
             "rollouts": len(sims) * len(starts)}
 
-            "failed": int(np.sum(failed >= 0)),
 
 def law_objective(model: Any, head: Any, g: Any) -> torch.Tensor:
     """The loss a pair law's constants are tuned on. Where the model trains its law with the
@@ -1320,14 +1320,6 @@ def polish_constants(model: Any, head: Any, batches: list[tuple[float, Any]], st
     return {"substeps": fine, "loss": loss, "evaluations": n}
 
 
-def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
-                     report: LawReport | None = None, steps: int = FINETUNE_STEPS,
-                     substeps: int = FINETUNE_SUBSTEPS,
-                     batch_size: int = FINETUNE_BATCH, horizon: int = FINETUNE_HORIZON,
-                     val_sims: int | None = None, out_dir: Path | None = None,
-                     seed: int = 0, start: str | None = None,
-                     max_seconds: float | None = None) -> dict[str, Any]:
-    """The fitted formula as the model's law, its constants fine-tuned end to end: the
 def failed_rollouts(score: dict[str, Any]) -> int:
     """How many of a ``validation_errors`` score's rollouts failed (from its share where an
     older record lacks the count)."""
@@ -1347,6 +1339,14 @@ def law_choice(scores: dict[str, dict[str, Any]], horizon: int) -> str:
                                       k != "network"))
 
 
+def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
+                     report: LawReport | None = None, steps: int = FINETUNE_STEPS,
+                     substeps: int = FINETUNE_SUBSTEPS,
+                     batch_size: int = FINETUNE_BATCH, horizon: int = FINETUNE_HORIZON,
+                     val_sims: int | None = None, out_dir: Path | None = None,
+                     seed: int = 0, start: str | None = None,
+                     max_seconds: float | None = None) -> dict[str, Any]:
+    """The fitted formula as the model's law, its constants fine-tuned end to end: the
     checkpoint's model with ``law=formula`` (``formula_module``), the law's constants alone
     fitted by Nelder-Mead (``steps`` evaluations) to the head's own loss (``law_objective``)
     on a fixed batch of ``batch_size`` training frames (``tuning_batches``: the closest

@@ -268,7 +268,8 @@ def validate_generate(cfg: Any) -> DatasetSpec:
     if _get(_get(cfg, "dataset"), "scene") == IMPORTED:
         raise ConfigError("dataset", message="dataset=imported is not generated: import "
                           "trajectories with python -m bgn.data.import <path> name=<name>")
-    return validate_dataset(_get(cfg, "dataset"), _get(cfg, "fps"))
+    return validate_dataset(_get(cfg, "dataset"), _get(cfg, "fps"),
+                            _get(_get(cfg, "paths"), "data_dir"))
 
 
 # ----------------------------------------------------------------------------- the exit

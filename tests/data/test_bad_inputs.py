@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from bgn.data import from_arrays
 from bgn.data.formats import read_trajectories
@@ -286,6 +288,7 @@ CASES: dict[str, tuple[str, Source, dict[str, str | None], Setup]] = {
     "import-exists": ("import", arrays, {}, lambda w, data: imported(w, data)),
     # the training command on imported data (exit 2: its config; 1: its files)
     "train-data-dir-is-file": ("train", None, {"paths.data_dir": "{file}"}, None),
+    "generate-data-dir-is-file": ("generate", None, {"paths.data_dir": "{file}"}, None),
     "train-import-without-name": ("train", None, {"dataset": "imported"}, None),
     "train-import-missing": ("train", None, {"dataset": "imported", "dataset.name": "nowhere"},
                              imported),
@@ -294,6 +297,11 @@ CASES: dict[str, tuple[str, Source, dict[str, str | None], Setup]] = {
                                        data / "imported/x/val.h5").unlink())),
     "train-history-too-long": ("train", None, {"dataset": "imported", "dataset.name": "x",
                                                "dataset.history": "20"}, imported),
+    "train-negative-history": ("train", None, {"dataset": "imported", "dataset.name": "x",
+                                               "dataset.history": "-1"}, imported),
+    "train-val-rollouts-too-many": ("train", None, {"dataset": "imported", "dataset.name": "x",
+                                                    "val_rollout_sims": "2",
+                                                    "val_rollout_steps": "4"}, imported),
     "train-sims-too-many": ("train", None, {"dataset": "imported", "dataset.name": "x",
                                             "dataset.train_sims": "9"}, imported),
     "train-import-not-hdf5": ("train", None, {"dataset": "imported", "dataset.name": "x"},
@@ -349,6 +357,11 @@ def run(case: str, tmp_path: Path) -> int:
     if command == "import":
         cfg = compose_config("import", [f"{k}={v}" for k, v in given.items() if v is not None])
         entry = cli("import")(import_main)
+    elif command == "generate":
+        from bgn.train.generate import main as generate
+
+        cfg = compose_config("generate", [f"{k}={v}" for k, v in given.items() if v is not None])
+        entry = cli("generate")(generate)
     else:
         from bgn.train.__main__ import main as entry
 
@@ -451,3 +464,38 @@ def test_the_command_line_refuses_in_one_line(tmp_path):
     assert result.returncode == 1
     assert result.stderr.strip().count("\n") == 0 and "0.5" in result.stderr
     assert not (tmp_path / "data").exists()
+
+
+def test_a_file_failing_the_checks_on_open_names_the_source_and_leaves_nothing(tmp_path,
+                                                                              monkeypatch):
+    """The last line of defence: a file the source's checks passed but the dataset file's
+    checks refuse is reported against the source (never the temporary file), and the folders
+    the import made are gone."""
+    from bgn.data import importing
+    from bgn.data.files import DatasetFileError
+
+    def refuse(path, *args, **kwargs):
+        raise DatasetFileError(path, "array 'types' holds types outside 0..0", "regenerate")
+
+    monkeypatch.setattr(importing, "DatasetFile", refuse)
+    raw = read_trajectories(arrays(tmp_path))
+    with pytest.raises(DataImportError) as err:
+        importing.import_dataset(raw, "x", tmp_path / "data")
+    assert str(tmp_path / "a.npz") in str(err.value) and "fix the source data" in str(err.value)
+    assert ".tmp" not in str(err.value) and "regenerate" not in str(err.value)
+    assert not (tmp_path / "data").exists()
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.one_of(st.integers(-3, 5), st.floats(-3, 5), st.just(np.nan)), min_size=1,
+                max_size=8))
+def test_types_are_accepted_exactly_when_whole_and_not_negative(values):
+    from bgn.data.formats import types_of
+
+    v = np.asarray(values)
+    ok = bool(np.all(np.isfinite(v) & (v == np.round(v)) & (v >= 0)))
+    if ok:
+        np.testing.assert_array_equal(types_of(v, "types"), v.astype(np.int64))
+    else:
+        with pytest.raises(DataImportError, match="types: entry"):
+            types_of(v, "types")

@@ -72,6 +72,7 @@ TIMES_RTOL = 1e-6  # allowed relative spread of the spacing of given times
 ARRAY_KEYS = ("positions", "dt", "masses", "radii", "types", "velocities", "box", "periodic",
               "times", "split")
 # metadata.json keys some reader uses: a near miss of one of them is warned about
+GNS_ITEM_KEYS = ("positions", "position", "particle_type", "particle_types", "material_property")
 METADATA_KEYS = ("dt", "bounds", "dim", "default_connectivity_radius", "write_every",
                  "periodic_boundary_conditions")
 # The models compute in float32 (largest 3.4e38, smallest normal 1.2e-38): positions and the
@@ -201,12 +202,13 @@ def _read_gns(p: Path, seed: int, fractions: Sequence[float], allow_pickle: bool
         f = p / f"{stem}.npz"
         if not f.is_file():
             continue
-        names, trajs, mats = [], [], []
+        names, trajs, mats, unread = [], [], [], set()
         for name, item in _gns_items(f, allow_pickle):
-            pos, ptype, mat = _gns_trajectory(item, f, name)
+            pos, ptype, mat = _gns_trajectory(item, f, name, unread)
             names.append(name)
             trajs.append((pos, ptype))
             mats.append(mat)
+        warn_ignored(sorted(unread), GNS_ITEM_KEYS, f"{f} (its trajectories)")
         splits[split] = _stack(trajs, names, f)
         files[split] = [f]
         if any(m is not None for m in mats):
@@ -288,13 +290,17 @@ def open_h5(f: Path) -> Iterator[h5py.File]:
                                   f"incomplete: copy it again") from None
 
 
-def _gns_trajectory(item: Any, f: Path, name: str) -> tuple[np.ndarray, np.ndarray, Any]:
+def _gns_trajectory(item: Any, f: Path, name: str, unread: set[str]
+                    ) -> tuple[np.ndarray, np.ndarray, Any]:
+    """One GNS trajectory: (positions, types, material); keys of a dict item that are not read
+    go to ``unread`` (warned about once per file)."""
     if isinstance(item, np.ndarray) and item.dtype == object and item.ndim == 0:
         item = item.item()
     if isinstance(item, dict):
         pos = item.get("positions", item.get("position"))
         ptype = item.get("particle_type", item.get("particle_types"))
         mat = item.get("material_property")
+        unread.update(str(k) for k in item if k not in GNS_ITEM_KEYS)
     elif len(item) in (2, 3):
         pos, ptype = item[0], item[1]
         mat = item[2] if len(item) == 3 else None
@@ -682,10 +688,11 @@ def _equal_counts(frames: Any, f: Path, name: str) -> None:
         if shape != shapes[0]:
             raise DataImportError(
                 f"{f}: trajectory '{name}', frame {frame} holds {shape[0] if shape else 0} "
-                f"particles, frame 0 {shapes[0][0] if shapes[0] else 0}: a trajectory keeps "
-                f"its particles in every frame; cut it where the count changes and import "
-                f"parts of one count (the equal-count rule, docs/usage.md 'Your own "
-                f"trajectories')")
+                f"particles where frame 0 holds {shapes[0][0] if shapes[0] else 0}: a "
+                f"trajectory keeps its particles in every frame; cut it where the count changes "
+                f"and import parts of one count (padding with still kinematic particles fits "
+                f"trajectories of different constant counts, not a changing one: the "
+                f"equal-count rule, docs/usage.md 'Your own trajectories')")
 
 
 def floats(value: Any, what: str) -> np.ndarray:

@@ -499,3 +499,19 @@ def test_types_are_accepted_exactly_when_whole_and_not_negative(values):
     else:
         with pytest.raises(DataImportError, match="types: entry"):
             types_of(v, "types")
+
+
+def test_an_unread_key_of_a_gns_trajectory_is_warned_about(tmp_path):
+    folder = tmp_path / "gns"
+    folder.mkdir()
+    items = {}
+    for i, x in enumerate(positions(s=3)):
+        item = np.empty((), dtype=object)
+        item[()] = {"positions": x, "particle_type": np.zeros(N, np.int64), "velocity": x}
+        items[f"trajectory_{i}"] = item
+    np.savez(folder / "train.npz", **items)
+    (folder / "metadata.json").write_text(json.dumps(META))
+    with pytest.warns(DataImportWarning, match=r"trajectories\): ignored 'velocity'") as record:
+        raw = read_trajectories(folder, allow_pickle=True)
+    assert len([w for w in record if w.category is DataImportWarning]) == 1  # once per file
+    assert raw.splits["train"].positions.shape[1:] == (T, N, D)

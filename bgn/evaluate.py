@@ -1,6 +1,7 @@
-"""``python -m bgn.evaluate``, kept under its old name: ``bgn.eval.evaluate``."""
+"""``python -m bgn.evaluate <run folder or checkpoint> [key=value ...]``: the full evaluation
+report of one trained model (``bgn.eval.evaluate``); ``--help`` lists the keys."""
 
-from bgn.eval.evaluate import command
+from bgn.eval.evaluate import main
 
 if __name__ == "__main__":
-    command()
+    main()

@@ -1,5 +1,5 @@
-"""``python -m bgn.experiments preset=<name>``: the studies' command, kept under its old name
-(``bgn.studies.dispatch``)."""
+"""``python -m bgn.experiments preset=<name> [key=value ...]``: the studies' command
+(``bgn.studies.dispatch``); ``--help`` lists the keys and presets."""
 
 from bgn.studies.dispatch import command
 

@@ -1,4 +1,5 @@
-"""``python -m bgn.laws``, kept under its old name: ``bgn.eval.laws``."""
+"""``python -m bgn.laws <run folder or checkpoint> [key=value ...]``: the learned pair law as
+a formula (``bgn.eval.laws``); ``--help`` lists the keys."""
 
 from bgn.eval.laws import main
 

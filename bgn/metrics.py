@@ -9,8 +9,10 @@ type-classification accuracy and AUROC; rollout errors, energy and momentum drif
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -508,17 +510,21 @@ LB_HORIZONS = (5, 10, 20, 50, 100)
 LB_EPSILON = 0.05  # ott-jax's default entropic regularisation, relative to the mean cost
 
 
-def minimum_image(d: np.ndarray, period: np.ndarray | None) -> np.ndarray:
-    """Displacements ``d`` (..., D) by the minimum image along the dimensions whose
-    ``period`` (D,) is finite (a periodic box's side); the others as they are."""
+def minimum_image(d: Any, period: Any) -> Any:
+    """Differences ``d`` (..., D) moved by whole box lengths to their nearest image in each
+    periodic dimension; ``period`` broadcasts against ``d`` (a box's side where periodic; 0
+    or inf where not; None: ``d`` unchanged). numpy arrays or torch tensors, the result of the
+    same kind: the one implementation of the package (data, models and metrics use it). The
+    shift is piecewise constant, so a tensor's gradient in ``d`` is the identity."""
     if period is None:
         return d
-    period = np.asarray(period, dtype=np.float64)
-    periodic = np.isfinite(period)
-    if not periodic.any():
-        return d
-    side = np.where(periodic, period, 1.0)
-    return np.where(periodic, d - side * np.round(d / side), d)
+    if isinstance(d, torch.Tensor):
+        where, period = torch.where, torch.as_tensor(period, device=d.device).to(d.dtype)
+    else:
+        where, d, period = np.where, np.asarray(d), np.asarray(period, dtype=np.float64)
+    periodic = (period > 0) & (period < math.inf)
+    side = where(periodic, period, 1.0)
+    return where(periodic, d - side * (d / side).round(), d)
 
 
 def _entropic_cost(cost: np.ndarray, eps: float, max_iter: int, threshold: float) -> float:

@@ -1,4 +1,5 @@
-"""``python -m bgn.render``, kept under its old name: ``bgn.studies.render``."""
+"""``python -m bgn.render <run folder or checkpoint> [key=value ...]``: a rollout animated
+against the truth (``bgn.studies.render``); ``--help`` lists the keys."""
 
 from bgn.studies.render import main
 

@@ -1,4 +1,5 @@
-"""``python -m bgn.stability``, kept under its old name: ``bgn.studies.stability``."""
+"""``python -m bgn.stability preset=<name> [checkpoints.<scene>=<run folder or checkpoint>]``:
+the hard-case suite (``bgn.studies.stability``); ``--help`` lists the keys."""
 
 from bgn.studies.stability import main
 

@@ -19,7 +19,7 @@ import torch
 from omegaconf import OmegaConf
 
 from bgn.data.datamodule import ParticleDataModule
-from bgn.eval.evaluate import evaluate_model, mass_figure, path_override
+from bgn.eval.evaluate import evaluate_model, mass_figure
 from bgn.eval.evaluate import main as evaluate_main
 from bgn.rollout import evaluate_rollouts, rollout_starts, rollout_summary
 from bgn.training.run import build, train
@@ -329,9 +329,12 @@ def test_the_rollout_masses_recheck_evaluates_both_fits_of_the_same_checkpoint(
 
 
 def test_the_path_is_the_first_positional_argument() -> None:
-    assert path_override(["x", "runs/a", "split=val"]) == ["x", "ckpt=runs/a", "split=val"]
-    assert path_override(["x", "-cn", "evaluate", "r"]) == ["x", "-cn", "evaluate", "ckpt=r"]
-    assert path_override(["x", "my run,1"]) == ["x", "ckpt='my run,1'"]
+    from bgn.training.validate import positional_override
+
+    assert positional_override(["runs/a", "split=val"], "ckpt") == ["ckpt=runs/a", "split=val"]
+    assert positional_override(["-cn", "evaluate", "r"], "ckpt") == ["-cn", "evaluate", "ckpt=r"]
+    assert positional_override(["my run,1"], "ckpt") == ["ckpt='my run,1'"]
+    assert positional_override(["a", "b"], "ckpt") == ["ckpt=a", "b"]  # Hydra refuses b
 
 
 def test_the_command_line_refuses_a_missing_path(tmp_path: Path) -> None:

@@ -347,8 +347,8 @@ def test_fine_tuning_moves_a_perturbed_constant_back_and_writes_a_checkpoint(
 def test_the_command_fine_tunes_with_finetune_true(tmp_path, shared_data_dir):
     ckpt = tiny_run(tmp_path, shared_data_dir, "newton", "model.hidden=16")
     out = tmp_path / "laws"
-    main([str(ckpt), f"out_dir={out}", "finetune=true", "finetune.steps=3",
-          "finetune.substeps=2", "finetune.horizon=10"])
+    main([str(ckpt), f"out_dir={out}", "finetune=true", "finetune_steps=3",
+          "finetune_substeps=2", "finetune_horizon=10"])
     assert {"formula.ckpt", "formula.json", "report.md", "train_config.yaml"} <= {
         p.name for p in out.iterdir()}
     record = json.loads((out / "formula.json").read_text())
@@ -359,8 +359,8 @@ def test_the_command_fine_tunes_with_finetune_true(tmp_path, shared_data_dir):
     assert "The formula as the law, fine-tuned" in text and f"**{record['choice']}**" in text
 
 
-@pytest.mark.parametrize("option", ["finetune=maybe", "finetune.steps=0",
-                                    "finetune.substeps=x"])
+@pytest.mark.parametrize("option", ["finetune=maybe", "finetune_steps=0",
+                                    "finetune_substeps=x"])
 def test_bad_finetune_options_are_refused_in_one_line(option, capsys, tmp_path):
     with pytest.raises(SystemExit) as done:
         main([str(tmp_path / "x.ckpt"), option])

@@ -51,7 +51,8 @@ def test_animation_lands_in_tensorboard(tmp_path: Path):
     assert image.step == 3 and image.encoded_image_string[:3] == b"GIF"
 
 
-def test_render_command_animates_a_trained_checkpoint(tmp_path: Path, shared_data_dir: Path):
+def test_render_command_animates_a_trained_checkpoint(tmp_path: Path, shared_data_dir: Path,
+                                                      capsys):
     run = tmp_path / "run"
     cfg = compose_config("train", ["dataset=spring", *SMALL["spring"],
                                    f"paths.data_dir={shared_data_dir}",
@@ -62,17 +63,21 @@ def test_render_command_animates_a_trained_checkpoint(tmp_path: Path, shared_dat
     train(cfg)
     (run / ".hydra").mkdir()
     OmegaConf.save(cfg, run / ".hydra" / "config.yaml")  # as Hydra writes it for a real run
-    out = main([str(run / "checkpoints" / "last.ckpt"), "--steps", "6", "--sim", "1",
-                "--out", str(tmp_path / "r.gif")])
+    out = main([str(run / "checkpoints" / "last.ckpt"), "steps=6", "sim=1",
+                f"out={tmp_path / 'r.gif'}"])
     with Image.open(out) as gif:
         assert gif.n_frames == 7
     lone = tmp_path / "elsewhere" / "checkpoints" / "x.ckpt"
     lone.parent.mkdir(parents=True)
     shutil.copy(run / "checkpoints" / "last.ckpt", lone)
-    with pytest.raises(FileNotFoundError, match="no run config"):
-        main([str(lone)])
-    with pytest.raises(SystemExit, match="no checkpoint"):
-        main([str(tmp_path / "missing.ckpt")])
+    for args, expected in (([str(lone)], "no run config"),
+                           ([str(tmp_path / "missing.ckpt")], "no such file"),
+                           ([str(run), "sim=2"], "sim=2"), ([str(run), "--sim", "1"], "sim=")):
+        with pytest.raises(SystemExit) as done:
+            main(args)
+        assert done.value.code == 2
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and expected in err, err
     # weights of an older model (as the impulse head's unit buffers, dropped since): one error
     older = torch.load(run / "checkpoints" / "last.ckpt", weights_only=True)
     older["state_dict"]["model.node_encoder.length_scale"] = torch.tensor(1.0)

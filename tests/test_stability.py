@@ -90,8 +90,11 @@ def test_every_case_is_in_the_all_cases_preset():
     assert sorted(cfg.preset.cases) == sorted(p.stem for p in (CONF_DIR / "case").glob("*.yaml"))
 
 
-def test_the_old_quick_name_composes_the_all_cases_preset():
-    assert compose_stability(["preset=quick"]) == compose_stability(["preset=all_cases"])
+def test_the_old_quick_name_is_gone():
+    from hydra.errors import MissingConfigException
+
+    with pytest.raises(MissingConfigException):
+        compose_stability(["preset=quick"])
 
 
 def test_unknown_case_keys_are_errors(tmp_path):

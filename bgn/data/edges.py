@@ -22,6 +22,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from bgn.coerce import as_float, as_int, as_real_array
+from bgn.metrics import minimum_image  # noqa: F401 (here too: the graphs' rule)
 
 __all__ = [
     "batch_edges",
@@ -79,18 +80,6 @@ def _as_period(period: Sequence[float] | np.ndarray | None, dim: int) -> np.ndar
         raise ValueError(f"period must be one finite length >= 0 per dimension (0: not "
                          f"periodic), shape ({dim},); got {np.asarray(period).tolist()}")
     return p if p.any() else None
-
-
-def minimum_image(dx: np.ndarray, period: Sequence[float] | np.ndarray | None) -> np.ndarray:
-    """Differences ``dx`` (..., D) moved by whole box lengths to their nearest image in each
-    periodic dimension (``period`` (D,), 0: not periodic; None: unchanged). The numpy twin of
-    ``bgn.model.message_passing.minimum_image``."""
-    dx = np.asarray(dx, dtype=np.float64)
-    p = _as_period(period, dx.shape[-1])
-    if p is None:
-        return dx
-    safe = np.where(p > 0, p, 1.0)
-    return np.where(p > 0, dx - p * np.rint(dx / safe), dx)
 
 
 def pair_distance(positions: np.ndarray, senders: np.ndarray, receivers: np.ndarray,

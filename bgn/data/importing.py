@@ -429,16 +429,3 @@ def main(cfg: Any) -> dict[str, Path]:
     print(describe(paths, time.perf_counter() - start))
     return paths
 
-
-def path_override(argv: list[str]) -> list[str]:
-    """``<path>`` (the first argument that is no ``key=value`` override nor an option) ->
-    ``path=<path>``, quoted for Hydra's override grammar."""
-    out, done = [], False
-    for arg in argv:
-        if not done and not arg.startswith("-") and "=" not in arg:
-            escaped = arg.replace("\\", "\\\\").replace("'", "\\'")
-            out.append(f"path='{escaped}'")
-            done = True
-        else:
-            out.append(arg)
-    return out

@@ -1,6 +1,6 @@
 """Normalisation statistics, computed once on the training split (float64) and stored in it.
 
-Targets of the force scenes are heavy-tailed (SIMS.md, last section): next to mean and
+Targets of the force scenes are heavy-tailed (docs/design.md#frames-and-targets): next to mean and
 standard deviation we keep the median and a robust scale (1.4826 x median absolute deviation),
 so the model can choose a normalisation that a few extreme frames do not dominate.
 """

@@ -10,7 +10,6 @@ rollout metrics of the model and the no-learning references through the learned 
 from __future__ import annotations
 
 import json
-import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,6 +47,7 @@ from bgn.rollout import evaluate_rollouts, lb_prefix
 from bgn.training.checkpoints import CheckpointError, read
 from bgn.training.module import PhysicsModule, load_model
 from bgn.training.validate import (
+    ARGV,
     DATA_EXIT,
     MAX_SEED,
     ConfigError,
@@ -527,29 +527,6 @@ def mass_figure(arrays: dict[str, np.ndarray], path: str | Path) -> Path:
 # ----------------------------------------------------------------------------- the command
 SPLITS = ("train", "val", "test")
 RELMASS_DECODES = ("median", "draw")  # evaluate_model's relmass_decode
-# Hydra options that take the next argument as their value (not a positional path)
-_VALUE_OPTIONS = {"-cp", "--config-path", "-cn", "--config-name", "-cd", "--config-dir",
-                  "-c", "--cfg", "-p", "--package", "--experimental-rerun"}
-
-
-_ARGV: list[str] = []  # the command line as typed (before path_override), for the report
-
-
-def path_override(argv: list[str]) -> list[str]:
-    """``argv`` with its first positional argument (a path: no ``=``, not an option) turned
-    into the override ``ckpt=<path>`` (quoted where Hydra's grammar needs it), so that
-    ``python -m bgn.evaluate <run> split=val`` reads as Hydra overrides."""
-    out, taken, after_option = list(argv[:1]), False, False
-    for arg in argv[1:]:
-        if not taken and not after_option and "=" not in arg and not arg.startswith("-"):
-            if not re.fullmatch(r"[\w./~+:@-]+", arg):
-                arg = "'" + arg.replace("\\", "\\\\").replace("'", "\\'") + "'"
-            out.append(f"ckpt={arg}")
-            taken = True
-        else:
-            out.append(arg)
-        after_option = arg in _VALUE_OPTIONS
-    return out
 
 
 def resolve_run(path: str, run_config: str | None = None) -> tuple[Path, Path, Path]:
@@ -675,8 +652,8 @@ def provenance_record(cfg: Any, ckpt: Path, config: Path, run_cfg: Any) -> dict[
             "seeds": {"evaluation": int(cfg.seed), "training": run_cfg.get("seed"),
                       "data": run_cfg.dataset.get("seed")},
             "split": str(cfg.split), "calibration_split": str(cfg.calibration_split),
-            "command": " ".join(["python -m bgn.evaluate",
-                                 *(shlex.quote(a) for a in (_ARGV or sys.argv)[1:])])}
+            "command": " ".join([ARGV[0] if ARGV else "python -m bgn.evaluate",
+                                 *(shlex.quote(a) for a in (ARGV or sys.argv)[1:])])}
 
 
 class Stages:
@@ -897,7 +874,7 @@ def evaluate_run(cfg: Any, paths: tuple[Path, Path, Path]) -> Path:
     start = time.perf_counter()
     ckpt, run_dir, config = paths
     run_cfg = OmegaConf.load(config)
-    data_dir = cfg.data_dir or run_cfg.paths.data_dir
+    data_dir = cfg.paths.data_dir or run_cfg.paths.data_dir
     datamodule = ParticleDataModule(run_cfg.dataset, run_cfg.fps, data_dir,
                                     generate_workers=run_cfg.dataset.get("generate_workers"),
                                     show_progress=bool(cfg.progress))
@@ -960,9 +937,9 @@ def write_rollouts(path: Path, positions: dict[str, np.ndarray], dt: float) -> N
         tmp.unlink(missing_ok=True)
 
 
-@cli("evaluate")  # Hydra app; bad input: one line, exit 2 (bgn.training.validate)
+@cli("evaluate", positional="ckpt")  # bad input: one line, exit 2 (bgn.training.validate)
 def main(cfg: Any) -> Path:
-    """``python -m bgn.evaluate <checkpoint or run directory> [split=test] ...``."""
+    """``python -m bgn.evaluate <run folder or checkpoint> [split=test] ...``."""
     with reported():
         paths = validate_evaluate(cfg)
     try:
@@ -971,16 +948,3 @@ def main(cfg: Any) -> Path:
         fail(err, DATA_EXIT)
     print(f"report: {out_dir / 'report.md'}")
     return out_dir
-
-
-def command() -> None:
-    """The console entry: the positional path becomes ``ckpt=<path>`` before Hydra parses
-    ``sys.argv`` (``path_override``)."""
-    import sys
-
-    from bgn.training.config import register_configs
-
-    register_configs(models=False)  # evaluate_base, before Hydra composes conf/evaluate.yaml
-    _ARGV[:] = sys.argv
-    sys.argv = path_override(sys.argv)
-    main()

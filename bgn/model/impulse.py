@@ -1,7 +1,8 @@
 """Newton's laws for hard discs: pair impulses along the normal at the time of impact, equal
 and opposite by construction, divided by learned masses.
 
-The collisions scene is free flight between elastic impacts (SIMS.md). What a frame of a disc
+The collisions scene is free flight between elastic impacts (docs/design.md#collisions-scene).
+What a frame of a disc
 gas shows is mostly free flight, and an impact changes two velocities by
 ``dv_i = -(1 + e) m_j / (m_i + m_j) ((v_i - v_j) . n) n`` at the instant the discs touch (``n``
 the unit normal from j to i then, ``e`` the restitution, 1 for elastic). A generic network

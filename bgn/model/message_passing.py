@@ -34,6 +34,7 @@ import torch
 from torch.utils.checkpoint import checkpoint
 
 from bgn.graph import Graph
+from bgn.metrics import minimum_image
 
 
 @dataclass(frozen=True)
@@ -171,19 +172,6 @@ def edge_difference(x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
     rather than ``x[index]``: its backward is ``index_add_``, not the slower accumulating
     ``index_put_``."""
     return x.index_select(0, edge_index[1]) - x.index_select(0, edge_index[0])
-
-
-def minimum_image(dx: torch.Tensor, period: torch.Tensor | None) -> torch.Tensor:
-    """Differences ``dx`` (..., D) moved by whole box lengths to their nearest image in each
-    periodic dimension; ``period`` broadcasts against ``dx`` (0: not periodic; None: ``dx``
-    unchanged). The shift is piecewise constant, so the gradient in ``dx`` is the identity.
-    The numpy twin is ``bgn.data.edges.minimum_image``."""
-    if period is None:
-        return dx
-    period = period.to(dx.dtype)
-    periodic = period > 0
-    safe = torch.where(periodic, period, torch.ones_like(period))
-    return torch.where(periodic, dx - period * torch.round(dx / safe), dx)
 
 
 def edge_period(g: Graph, receivers: torch.Tensor | None = None) -> torch.Tensor | None:

@@ -1,7 +1,8 @@
 """A physically structured forward model: learned central pair forces, Newton's third law by
 construction, masses fitted to the window.
 
-The n-body scenes are pair forces along the line between two particles (SIMS.md): spring
+The n-body scenes are pair forces along the line between two particles
+(docs/design.md#n-body-scenes): spring
 ``F_ij = -2 (s_ij - 1) u_ij`` whatever the masses, gravity ``F_ij ~ m_i m_j g(s_ij) u_ij``. A
 network that sees only a velocity window must re-infer every particle's mass from that window
 at every step of a rollout, and a small error in its own frames changes the masses it reads:

@@ -3,7 +3,7 @@
 Statistics are held as buffers, so a checkpoint carries them and ``model.double()`` / ``.to()``
 move them with the weights.
 
-Choices (SIMS.md, last section: targets of force scenes are heavy-tailed):
+Choices (docs/design.md#frames-and-targets: targets of force scenes are heavy-tailed):
 
 - Kinematic quantities (velocity, target, relative position/velocity, force magnitude) use a
   robust scale (1.4826 x MAD), falling back to the standard deviation where it is zero (e.g.

@@ -1,6 +1,7 @@
 """Softened n-body scenes of Cranmer et al. 2020: spring, gravity_r1 (log) and gravity_r2 (1/r).
 
-Physics and its pitfalls are in ``shared/SIMS.md``. Every pair potential is a function of the
+The physics and its choices: docs/design.md#n-body-scenes. Every pair potential is a function
+of the
 additively softened distance ``s = r + softening``; forces point along the unsoftened difference
 ``x_i - x_j``. numpy and scipy only.
 """

@@ -36,7 +36,6 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import hydra
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
@@ -45,6 +44,7 @@ from bgn.sim.collisions import CollisionScene
 from bgn.sim.nbody import NYQUIST_TURN, pair_turns
 from bgn.sim.transform import offset, scaled
 from bgn.tables import markdown_table, write_csv
+from bgn.training.validate import cli
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf" / "stability"
 # default limits of the simulator checks; a case's ``limits`` overrides them
@@ -510,8 +510,27 @@ def run(cfg: DictConfig) -> Path:
     return report
 
 
-@hydra.main(config_path=str(CONF_DIR), config_name="stability", version_base="1.3")
+def resolve_checkpoints(cfg: DictConfig) -> None:
+    """Each ``checkpoints.<scene>`` given (a run folder or checkpoint) replaced by the
+    checkpoint ``python -m bgn.evaluate`` would score (``bgn.eval.evaluate.resolve_run``); a
+    path that is neither: one line, exit 2, before any case runs."""
+    from bgn.eval.evaluate import resolve_run
+    from bgn.training.validate import ConfigError
+
+    given = cfg.get("checkpoints") or {}
+    for scene in list(given):  # the scenes' keys are conf/stability/stability.yaml's
+        if given[scene]:
+            try:
+                ckpt, _, _ = resolve_run(str(given[scene]))
+            except ConfigError as err:
+                raise ConfigError(f"checkpoints.{scene}", message=str(err).replace(
+                    "ckpt=", f"checkpoints.{scene}=", 1)) from None
+            given[scene] = str(ckpt)
+
+
+@cli("stability", resolve_checkpoints, config_dir=CONF_DIR)  # bad input: one line, exit 2
 def main(cfg: DictConfig) -> None:
-    """``python -m bgn.stability preset=all_cases checkpoints.spring=...``: see the module doc."""
+    """``python -m bgn.stability preset=all_cases checkpoints.spring=<run>``: see the module
+    doc."""
     start = time.perf_counter()
     print(f"report: {run(cfg)} ({time.perf_counter() - start:.0f} s)")

@@ -13,7 +13,6 @@ from typing import Any
 
 from bgn.data.files import DatasetFile
 from bgn.data.generate import ensure_splits
-from bgn.training.config import register_configs
 from bgn.training.validate import cli, validate_generate
 
 
@@ -33,6 +32,5 @@ def main(cfg: Any) -> dict[str, Path]:
 
 
 if __name__ == "__main__":
-    register_configs(models=False)  # the dataset schemas conf/generate.yaml builds on
     # a Hydra app; bad input: one line, exit 2 (main validates first)
-    cli("generate")(main)()
+    cli("generate", prog="bgn.train.generate")(main)()

@@ -183,7 +183,7 @@ class EvaluateKeys:
     split: str = "test"               # the split scored
     calibration_split: str = "val"    # the split the mass flow is recalibrated on
     out_dir: str | None = None        # null: <run>/eval/<split>
-    data_dir: str | None = None       # null: the run's paths.data_dir
+    paths: Any = None                 # paths.data_dir (null: the run's paths.data_dir)
     max_frames: int | None = None     # one-step frames, evenly spread (null: the frames the
                                       # training run's own phase scores, dataset.<split>_samples)
     mass_frames: int = 32             # frames of the inverse metrics and of the calibration

@@ -158,7 +158,8 @@ class PhysicsModule(L.LightningModule):
         if g.kinematic is not None:  # moved by the source: never scored
             pred, target = pred[~g.kinematic], target[~g.kinematic]
         m["mse"].update(pred, target)
-        # robust error next to MSE: heavy tails make MSE a few-frame statistic (SIMS.md)
+        # robust error next to MSE: heavy tails make MSE a few-frame statistic
+        # (docs/design.md#one-step)
         m["relative_error"].update((pred - target).norm(dim=-1)
                                    / target.norm(dim=-1).clamp_min(1e-12))
         if "type_accuracy" in m:

@@ -25,9 +25,12 @@ Hydra's ``HYDRA_FULL_ERROR=1``) shows the full trace instead.
 from __future__ import annotations
 
 import functools
+import logging
 import math
 import os
+import re
 import sys
+import warnings
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
@@ -175,6 +178,12 @@ def validate_model(model: Any, scene: Scene, history: int) -> None:
     if name not in MODELS:
         raise ConfigError("model", name, f"choose one of {sorted(MODELS)}")
     params = {str(k): v for k, v in (model.items() if hasattr(model, "items") else {})}
+    from bgn.model.newton import DYNAMICS
+
+    if "dynamics" in params and params["dynamics"] not in (*DYNAMICS, "auto"):
+        raise ConfigError("model.dynamics", params["dynamics"], (
+            f"choose one of {[*DYNAMICS, 'auto']} (auto: every structure the data admit, "
+            "chosen on validation)"))
     if params.get("dynamics") == "auto":  # bgn.studies.auto composes and checks each candidate; the
         params["dynamics"] = "decoder"    # rest of the options are checked with the decoder
     try:
@@ -322,6 +331,14 @@ def reported() -> Iterator[None]:
 
 _NOT_SET = object()
 _saved_hydra_env: list[Any] = []  # HYDRA_FULL_ERROR as the user set it, while cli forces it
+ARGV: list[str] = []  # the command line as typed (before ``positional_override``): provenance
+
+# Hydra's own options; those that take the next argument as their value (not a positional path)
+_VALUE_OPTIONS = {"-cp", "--config-path", "-cn", "--config-name", "-cd", "--config-dir",
+                  "-c", "--cfg", "-p", "--package", "--experimental-rerun", "-i", "--info"}
+_HYDRA_OPTIONS = _VALUE_OPTIONS | {"-h", "--help", "--hydra-help", "--version", "--resolve",
+                                   "-r", "--run", "-m", "--multirun", "-sc",
+                                   "--shell-completion"}
 
 
 def _restore_hydra_env() -> None:
@@ -333,49 +350,183 @@ def _restore_hydra_env() -> None:
             os.environ["HYDRA_FULL_ERROR"] = saved
 
 
+def positional_override(argv: list[str], key: str) -> list[str]:
+    """``argv`` (the arguments, without the program) with its first positional argument (no
+    ``=``, not an option nor an option's value) turned into the override ``<key>=<it>``,
+    quoted where Hydra's override grammar needs it: ``python -m bgn.evaluate <run> split=val``
+    reads as Hydra overrides. A second positional argument is left for Hydra to refuse."""
+    out, taken, after_option = [], False, False
+    for arg in argv:
+        if not taken and not after_option and "=" not in arg and not arg.startswith("-"):
+            if not re.fullmatch(r"[\w./~+:@-]+", arg):
+                arg = "'" + arg.replace("\\", "\\\\").replace("'", "\\'") + "'"
+            out.append(f"{key}={arg}")
+            taken = True
+        else:
+            out.append(arg)
+        after_option = arg in _VALUE_OPTIONS
+    return out
+
+
+def check_options(argv: list[str], prog: str) -> None:
+    """Refuse, in one line, an option Hydra does not know (``--split test``: every bgn
+    command takes ``key=value``)."""
+    for arg in argv:
+        name = arg.split("=", 1)[0]
+        if arg.startswith("-") and name not in _HYDRA_OPTIONS:
+            key = name.lstrip("-").replace("-", "_")
+            raise ConfigError(key, message=(
+                f"{name} is not an option of python -m {prog}: its arguments are key=value "
+                f"overrides, e.g. {key}=<value> (python -m {prog} --help lists them)"))
+
+
+def _remove_refused_run() -> None:
+    """After a refusal inside a Hydra run: remove the run folder Hydra made for it where it
+    holds nothing but Hydra's ``.hydra/`` (its three yaml files) and the job's log; anything
+    else in it, or any other folder, is kept."""
+    import shutil
+
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return
+    hydra_cfg = HydraConfig.get()
+    out = Path(hydra_cfg.runtime.output_dir)
+    if not out.is_dir() or out.resolve() == Path.cwd().resolve():
+        return
+    subdir = out / str(hydra_cfg.output_subdir) if hydra_cfg.output_subdir else None
+    expected = {f"{hydra_cfg.job.name}.log"} | ({subdir.name} if subdir else set())
+    if {p.name for p in out.iterdir()} - expected:
+        return
+    if subdir is not None and subdir.exists() and not (
+            subdir.is_dir() and not subdir.is_symlink() and all(
+                p.is_file() and p.suffix == ".yaml" for p in subdir.iterdir())):
+        return
+    if subdir is not None and subdir.exists():
+        shutil.rmtree(subdir)
+    (out / f"{hydra_cfg.job.name}.log").unlink(missing_ok=True)
+    out.rmdir()
+
+
+# Lightning's messages that ask nothing of the user: an advertisement, and warnings about
+# what bgn does on purpose or about Lightning's own use of torch (each filtered by its text
+# and category, so that any other message still shows)
+QUIET_MESSAGES = ("Tip: For seamless", "litmodels", "litlogger")
+QUIET_WARNINGS = (
+    (r"`isinstance\(treespec, LeafSpec\)` is deprecated", FutureWarning),  # Lightning's pytree
+    (r"`\.\w+\(ckpt_path=None\)` was called without a model", UserWarning),  # bgn names it
+    (r'\.\w+\(ckpt_path="last"\) is set, but there is no last checkpoint', UserWarning),
+    (r"You have overridden `transfer_batch_to_device` in `LightningModule`", UserWarning),
+    (r"The number of training batches \(\d+\) is smaller than the logging interval",
+     UserWarning),
+)
+LIGHTNING_COMMANDS = ("train", "experiments")  # those that train in their own process
+
+
+class _Quiet(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not any(text in record.getMessage() for text in QUIET_MESSAGES)
+
+
+def quiet_logs(lightning: bool = False) -> None:
+    """One line per Lightning log record, without its advertisement or the warnings the user
+    cannot act on (``QUIET_WARNINGS``). Lightning gives its loggers console handlers of their
+    own at import, and Hydra's logging config the root one, so each record printed twice:
+    here Lightning's records go to Hydra's handlers alone. With ``lightning`` it is imported
+    first (a command that trains), else only an already imported Lightning is quietened."""
+    if lightning:
+        import lightning as _  # noqa: F401 (its import adds the handlers removed below)
+    for name in ("lightning.pytorch", "lightning.fabric", "lightning"):
+        if name not in sys.modules:
+            continue
+        log = logging.getLogger(name)
+        for handler in list(log.handlers):
+            if type(handler) is logging.StreamHandler:  # Lightning's own console handler
+                log.removeHandler(handler)
+        log.propagate = True
+    for handler in logging.getLogger().handlers:
+        if not any(isinstance(f, _Quiet) for f in handler.filters):
+            handler.addFilter(_Quiet())
+    for message, category in QUIET_WARNINGS:
+        warnings.filterwarnings("ignore", message=message, category=category)
+
+
 def cli(config_name: str, validate: Callable[[Any], Any] | None = None,
-        config_dir: Path = CONF_DIR) -> Callable[[Callable[[Any], Any]], Callable[..., Any]]:
-    """``@cli("train", validate_train)`` on ``def main(cfg)``: a Hydra app (``conf/<config_name>
-    .yaml``) whose bad input ends with one line and exit code 2, before any work.
+        config_dir: Path = CONF_DIR, positional: str | None = None,
+        prog: str | None = None) -> Callable[[Callable[[Any], Any]], Callable[..., Any]]:
+    """``@cli("train", validate_train)`` on ``def main(cfg)``: the command style of every
+    ``python -m bgn.*`` command. A Hydra app (``<config_dir>/<config_name>.yaml``, its
+    ``--help`` the config's ``hydra.help.template``) taking ``key=value`` overrides, whose
+    bad input ends with one line and exit code 2 before any work; with ``positional`` (a key)
+    its first positional argument is that key's value (``python -m bgn.evaluate <run>``:
+    ``ckpt=<run>``).
 
     Hydra reports its own errors (a value the schema refuses, an unknown config) in several
     lines with exit code 1; so until the task starts, ``HYDRA_FULL_ERROR`` is set and the
     error reaches this wrapper, which prints it on one line (or re-raises it: full trace). The
     task restores the user's setting first thing (unless ``BGN_FULL_ERROR`` is set), so
-    errors at run time keep Hydra's usual report. Called with a
-    config (``main(cfg)``), the function validates and runs it without Hydra.
+    errors at run time keep Hydra's usual report. A refused run leaves no run folder behind
+    (``_remove_refused_run``). The decorated function is called with nothing (the console:
+    ``sys.argv``), with a list of arguments (the same, in the caller's process, composed
+    without a run folder or logging set-up) or with a config (validated and run as it is).
     """
+    name = prog or f"bgn.{config_name}"
 
     def decorate(task: Callable[[Any], Any]) -> Callable[..., Any]:
         @functools.wraps(task)
         def checked(cfg: Any) -> Any:
             if not _env_set(FULL_ERROR_ENV):  # BGN_FULL_ERROR: full traces at run time too
                 _restore_hydra_env()
-            with reported():
-                if validate is not None:
-                    validate(cfg)
-                return task(cfg)
+            quiet_logs(lightning=config_name in LIGHTNING_COMMANDS)
+            try:
+                with reported():
+                    if validate is not None:
+                        validate(cfg)
+                    return task(cfg)
+            except SystemExit as exit_:
+                if exit_.code not in (0, None):
+                    _remove_refused_run()
+                raise
 
         import hydra
 
         app = hydra.main(config_path=str(config_dir), config_name=config_name,
                          version_base="1.3")(checked)
 
+        def compose_args(args: list[str]) -> Any:
+            from hydra import compose, initialize_config_dir
+
+            with initialize_config_dir(config_dir=str(config_dir), version_base="1.3"):
+                return compose(config_name=config_name, overrides=args)
+
         @functools.wraps(task)
         def main(cfg: Any = None) -> Any:
-            if cfg is not None:
+            if cfg is not None and not isinstance(cfg, (list, tuple)):
                 return checked(cfg)
+            from bgn.training.config import register_configs
+
+            register_configs(models=False)  # the schemas the configs build on (idempotent)
             full = full_error()
+            typed = list(sys.argv[1:] if cfg is None else cfg)
+            ARGV[:] = [f"python -m {name}", *typed]
+            args = positional_override(typed, positional) if positional else typed
             _saved_hydra_env.append(os.environ.get("HYDRA_FULL_ERROR", _NOT_SET))
             os.environ["HYDRA_FULL_ERROR"] = "1"
+            saved_argv = sys.argv
             try:
-                return app()
-            except Exception as err:  # raised before the task ran: Hydra's own (bad input)
-                if full:
+                check_options(args, name)
+                if cfg is None:
+                    sys.argv = [saved_argv[0], *args]
+                    return app()
+                composed = compose_args(args)  # in this process: composed, then run
+            except Exception as err:  # raised before the task ran: bad input (an unknown
+                if full:              # option, or Hydra's own: a refused value or config)
                     raise
                 fail(err, CONFIG_EXIT)
             finally:
+                sys.argv = saved_argv
                 _restore_hydra_env()
+            return checked(composed)
 
         return main
 

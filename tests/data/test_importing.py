@@ -19,14 +19,14 @@ from bgn.data.datamodule import ParticleDataModule
 from bgn.data.files import DatasetFile, DatasetFileError
 from bgn.data.formats import read_trajectories
 from bgn.data.generate import ensure_splits
-from bgn.data.importing import import_dataset, path_override
+from bgn.data.importing import import_dataset
 from bgn.data.raw import DataImportError
 from bgn.data.spec import DatasetSpec
 from bgn.model.noise import add_random_walk_noise
 from bgn.rollout import rollout
 from bgn.training.run import build, data_module, train
 from bgn.training.unroll import advance
-from bgn.training.validate import ConfigError, validate_train
+from bgn.training.validate import ConfigError, positional_override, validate_train
 from tests.conftest import SMALL, compose_config
 from tests.data.layouts import (
     write_arrays_h5,
@@ -264,8 +264,8 @@ def test_the_command_line_imports_and_reports_the_next_command(tmp_path):
 
 
 def test_the_path_argument_becomes_an_override():
-    assert path_override(["/a b/c's", "name=x"]) == ["path='/a b/c\\'s'", "name=x"]
-    assert path_override(["name=x", "path=y"]) == ["name=x", "path=y"]
+    assert positional_override(["/a b/c's", "name=x"], "path") == ["path='/a b/c\\'s'", "name=x"]
+    assert positional_override(["name=x", "path=y"], "path") == ["name=x", "path=y"]
 
 
 def test_import_files_pass_the_checks_on_open(tmp_path):

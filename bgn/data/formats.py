@@ -258,14 +258,19 @@ def open_npz(f: Path, allow_pickle: bool = False) -> Iterator[Any]:
         yield data
 
 
-def _npz_member(data: Any, key: str, f: Path) -> Any:
-    """One array of an open ``.npz``; damaged bytes and pickled objects refused in one line."""
+def _npz_member(data: Any, key: str, f: Path, may_pickle: bool = True) -> Any:
+    """One array of an open ``.npz``; damaged bytes and pickled objects refused in one line
+    (``may_pickle``: the layout may hold them, with ``allow_pickle``)."""
     try:
         return data[key]
     except ValueError as err:
         if "allow_pickle" not in str(err):
             raise DataImportError(f"{f}: key '{key}' cannot be read ({err}); the file is "
                                   f"damaged: copy it again") from None
+        if not may_pickle:
+            raise DataImportError(f"{f}: key '{key}' holds pickled Python objects, which "
+                                  f"plain-array files do not; save it as numbers (numpy.savez "
+                                  f"of a float or int array)") from None
         raise DataImportError(
             f"{f}: key '{key}' holds pickled Python objects, and unpickling a file can run "
             f"code; if you trust the file, import it with allow_pickle=true") from None
@@ -418,7 +423,8 @@ def _read_arrays(p: Path, fmt: str, seed: int, fractions: Sequence[float]) -> Re
 def _load_arrays(p: Path, fmt: str) -> dict[str, Any]:
     if fmt == "arrays-npz":
         with open_npz(p) as f:
-            arrays = {k: _npz_member(f, k, p) for k in f.files if k in ARRAY_KEYS}
+            arrays = {k: _npz_member(f, k, p, may_pickle=False) for k in f.files
+                      if k in ARRAY_KEYS}
             ignored = [k for k in f.files if k not in ARRAY_KEYS]
     else:
         with open_h5(p) as f:

@@ -239,6 +239,8 @@ CASES: dict[str, tuple[str, Source, dict[str, str | None], Setup]] = {
                      None),
     "gns-pickle-not-allowed": ("import", gns, {}, None),
     # the source: keys and values (exit 1)
+    "pickled-array": ("import", lambda w: arrays(w, masses=np.array([1.0, "a"] * 3,
+                                                                    dtype=object)), {}, None),
     "text-positions": ("import", lambda w: arrays(w, positions=positions().astype(str)), {},
                        None),
     "text-types": ("import", text_types, {"allow_pickle": "true"}, None),
@@ -390,7 +392,9 @@ def test_every_bad_input_is_refused_in_one_line(case, tmp_path, capsys):
     for word in words:
         assert word in lines[0], (word, lines[0])
     assert "Traceback" not in err and ".tmp" not in lines[0]  # the source, not a temporary
-    assert ("pickle" in lines[0]) == (case == "gns-pickle-not-allowed")  # text.npz: no pickle
+    # text.npz: no word of pickles; a pickled plain array: no offer to unpickle it
+    assert ("pickle" in lines[0]) == (case in ("gns-pickle-not-allowed", "pickled-array"))
+    assert ("allow_pickle" in lines[0]) == (case == "gns-pickle-not-allowed")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,5 +1,4 @@
-"""The learned pair law as a formula: ``python -m bgn.laws <run folder or checkpoint>
-[finetune=true] ...`` (``main``; ``--help`` lists the keys).
+"""The learned pair law as a formula: ``python -m bgn.laws <checkpoint> [out_dir=...]``.
 
 A pair-force head (``bgn.model.newton``: ``model=newton``, or BGN with
 ``model.dynamics=newton``) learns a scene's interaction as an MLP ``f(r)`` of the pair's
@@ -61,6 +60,7 @@ heuristic, and takes seconds: numpy, scipy and sympy (already dependencies) suff
 
 from __future__ import annotations
 
+import argparse
 import copy
 import csv
 import io
@@ -68,6 +68,7 @@ import itertools
 import json
 import logging
 import math
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -82,7 +83,9 @@ from scipy.optimize import least_squares, minimize
 from scipy.signal import savgol_filter
 from scipy.stats import gaussian_kde
 
-from bgn.training.validate import cli
+from bgn.training.budget import NO_DEADLINE, Deadline, OutOfTime, check, clock_text
+
+log = logging.getLogger("bgn.train")
 
 # relative residuals: |f| floored near a zero crossing by the change of f over this fraction
 # of r (a spring's law crosses zero at s = 1, where a plain relative error is undefined)
@@ -992,7 +995,6 @@ POLISH_FACTOR = 4         # the chosen form's constants polished through this ti
 FINETUNE_BATCH = 512      # training frames of the fixed batch (closest_frames among them)
 AMPLITUDE_STEP = 0.1      # the first simplex's step in each amplitude (relative to its start)
 C_STEP = 2.0              # ... and its factor on each constant c
-LAW_STAGE_SHARE = 0.5     # model.law=auto: the forms' fitting at most this share of max_time
 FORM_TOLERANCE = 0.02     # a simpler form is kept while its tuned loss is within this of the best
 NEGLIGIBLE = 0.01         # a term this small against the law at every distance goes (prune_terms)
 FINETUNE_HORIZON = 50     # validation rollout steps (as auto.horizon)
@@ -1255,14 +1257,15 @@ def prune_terms(tune: Callable[[str], tuple[float, Any, Any, str]], loss: float,
 
 
 def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], steps: int,
-                   deadline: float | None) -> tuple[float, int]:
+                   deadline: Deadline | None) -> tuple[float, int]:
     """The constants of ``head``'s formula law fitted in place to ``law_objective`` on the
     weighted ``batches``, derivative-free (Nelder-Mead, at most ``steps`` evaluations): the
     law's loss through the substeps of the closest encounters is smooth at the scale of the
     constants' errors but rough at a quasi-Newton step's (its gradient jumps), where L-BFGS
     stalls. A trial point where the loss is not finite counts as infinitely worse (a form
     with no finite point returns inf and loses). Returns (the lowest loss, evaluations);
-    ``_Budget`` past ``deadline`` before any."""
+    ``_Budget`` past ``deadline`` (the job's, ``bgn.training.budget``) before any; a
+    SIGTERM ends it between evaluations (``check``)."""
     from bgn.model.formula_law import NONLINEAR
 
     law = head.force_law
@@ -1276,8 +1279,12 @@ def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], step
             law.log_c[nonlinear] = torch.as_tensor(x[len(law.kinds):], dtype=law.log_c.dtype)
 
     def objective(x: np.ndarray) -> float:
-        if count[0] >= steps or (deadline is not None and time.perf_counter() > deadline):
+        if count[0] >= steps:
             raise _Budget
+        try:
+            check(deadline, "the formula stage")  # and SIGTERM, between evaluations
+        except OutOfTime:
+            raise _Budget from None
         place(x)
         with torch.no_grad():
             loss = float(sum(w * law_objective(model, head, g) for w, g in batches))
@@ -1304,7 +1311,7 @@ def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], step
 
 
 def polish_constants(model: Any, head: Any, batches: list[tuple[float, Any]], steps: int,
-                     deadline: float | None) -> dict[str, Any] | None:
+                     deadline: Deadline | None) -> dict[str, Any] | None:
     """The chosen form's constants tuned once more (``steps`` evaluations, as every form)
     through ``POLISH_FACTOR`` times finer substeps: through the coarser substeps the forms
     are compared with, the loss is rough at the scale of a softening constant, and its minimum
@@ -1346,7 +1353,8 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
                      batch_size: int = FINETUNE_BATCH, horizon: int = FINETUNE_HORIZON,
                      val_sims: int | None = None, out_dir: Path | None = None,
                      seed: int = 0, start: str | None = None,
-                     max_seconds: float | None = None) -> dict[str, Any]:
+                     max_seconds: float | None = None,
+                     deadline: Deadline | None = None) -> dict[str, Any]:
     """The fitted formula as the model's law, its constants fine-tuned end to end: the
     checkpoint's model with ``law=formula`` (``formula_module``), the law's constants alone
     fitted by Nelder-Mead (``steps`` evaluations) to the head's own loss (``law_objective``)
@@ -1360,8 +1368,10 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     and one is kept (``law_choice``: the fewer failed rollouts, then the lower mean error
     after the horizon, a failed rollout at the cap).
     ``out_dir``: writes ``formula.ckpt`` (loadable as any checkpoint) and ``formula.json``.
-    ``start``: a spec to start from in place of the law read back (tests). ``max_seconds``:
-    the fit stops there too (a time budget: ``bgn.studies.auto``'s share).
+    ``start``: a spec to start from in place of the law read back (tests). The fit is
+    bounded by its evaluation count (``steps`` per form); ``deadline`` (the job's wall-clock
+    cap, ``bgn.training.budget``) and ``max_seconds`` (from now) stop it earlier, and the
+    record's ``budget.cut_by`` says so. A line per tuned form shows its progress.
     Returns the record (specs before and after, errors, choice)."""
     from bgn.training.module import load_model
 
@@ -1370,7 +1380,8 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
         report = read_law(network, train_split)
     batches = tuning_batches(train_split, batch_size, seed)
     reach, floor = _data_reach(report, train_split)
-    deadline = None if max_seconds is None else time.perf_counter() + max_seconds
+    deadline = (deadline or NO_DEADLINE).sooner(max_seconds)
+    began = time.monotonic()
     evaluations = [0, 0]  # loss evaluations, tunings (each at most `steps` evaluations)
 
     def tune(spec: str) -> tuple[float, Any, Any, str]:
@@ -1382,6 +1393,8 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
         loss, n = tune_constants(model, head, batches, steps, deadline)
         evaluations[0] += n
         evaluations[1] += 1
+        log.info("formula stage: tuning %d done (%d evaluations, loss %.4g, %s so far)",
+                 evaluations[1], n, loss, clock_text(time.monotonic() - began))
         return loss, module, hp, head.force_law.spec()
 
     starts = [start] if start is not None else candidate_specs(report)
@@ -1394,6 +1407,12 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     if polish:
         evaluations[0] += polish["evaluations"]
         evaluations[1] += 1
+    # the fit ended by the cap, not by its evaluation count: another machine fits otherwise
+    budget = {"steps_per_form": steps, "evaluations": evaluations[0],
+              "cut_by": "max_time" if deadline.passed() else None}
+    log.info("formula stage: tuned in %s%s; rolling out both laws on validation",
+             clock_text(time.monotonic() - began),
+             " (cut short by the job's wall-clock cap)" if budget["cut_by"] else "")
     scale, model_scale = 1.0, 1.0
     if "law" not in getattr(model, "heads", ()):
         # tuned through the window's mass fit, which absorbs the law's scale (law_objective):
@@ -1418,6 +1437,7 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     choice = law_choice(scores, n)
     record = {"checkpoint": str(checkpoint), "substeps": substeps,
               "steps": evaluations[0], "tunings": evaluations[1], "batch_size": batch_size,
+              "budget": budget,
               "forms": [{k: f[k] for k in ("start", "tuned", "loss", "constants")}
                         for f in forms],
               "rollout_substeps": head.substeps,
@@ -1599,39 +1619,47 @@ def spec_text(pairs: list[dict[str, Any]]) -> str:
 
 # ----------------------------------------------------------------------------- command line
 
-FINETUNE_KEYS = ("steps", "substeps", "batch_size", "horizon", "val_sims")  # finetune_<key>
+def _flag(value: str) -> bool:
+    if value.lower() not in ("true", "false"):
+        raise ValueError(value)
+    return value.lower() == "true"
 
 
-def _options(cfg: Any) -> tuple[Path, dict[str, Any]]:
-    """``python -m bgn.laws``'s keys (``conf/laws.yaml``) checked before any data or model is
-    read: (the checkpoint, ``run``'s options). The checkpoint is the one ``python -m
-    bgn.evaluate`` scores (``bgn.eval.evaluate.resolve_run``: a run folder's chosen one)."""
-    from bgn.eval.evaluate import resolve_run
-    from bgn.training.validate import ConfigError, need_float, need_int
+OPTIONS = {"out_dir": str, "config": str, "data_dir": str, "max_terms": int,
+           "tolerance": float, "parsimony": float, "finetune": _flag, "finetune.steps": int,
+           "finetune.substeps": int, "finetune.batch_size": int, "finetune.horizon": int,
+           "finetune.val_sims": int}
 
-    if not cfg.get("ckpt"):
-        raise ConfigError("ckpt", None, "give a run folder or checkpoint: python -m bgn.laws "
-                          "outputs/train/runs/<run> [finetune=true]")
-    if not isinstance(cfg.finetune, bool):
-        raise ConfigError("finetune", cfg.finetune, "true or false")
-    need_int(cfg.max_terms, "max_terms", 1, 4)
-    need_float(cfg.tolerance, "tolerance", 0.0, strict_low=False)
-    need_float(cfg.parsimony, "parsimony", 1.0, strict_low=False)
-    for key, high in (("steps", None), ("substeps", 64), ("batch_size", None),
-                      ("horizon", None), ("val_sims", None)):
-        need_int(cfg[f"finetune_{key}"], f"finetune_{key}", 1, high, optional=True)
-    ckpt, _, config = resolve_run(str(cfg.ckpt), cfg.get("run_config"))
-    options: dict[str, Any] = {"config": str(config), "finetune": cfg.finetune,
-                               "max_terms": int(cfg.max_terms), "tolerance": cfg.tolerance,
-                               "parsimony": cfg.parsimony}
-    if cfg.paths.data_dir:
-        options["data_dir"] = str(cfg.paths.data_dir)
-    if cfg.out_dir:
-        options["out_dir"] = str(cfg.out_dir)
-    for key in FINETUNE_KEYS:
-        if cfg[f"finetune_{key}"] is not None:
-            options[f"finetune.{key}"] = int(cfg[f"finetune_{key}"])
-    return ckpt, options
+
+def parse(argv: list[str]) -> tuple[Path, dict[str, Any]]:
+    """``<checkpoint> [key=value ...]`` (keys: ``OPTIONS``)."""
+    parser = argparse.ArgumentParser(
+        prog="python -m bgn.laws", description=__doc__.split("\n\n")[0],
+        epilog="options: " + ", ".join(f"{k}=..." for k in OPTIONS) + " (out_dir: default "
+        "<run>/laws; config: the run's config, default found beside the checkpoint; "
+        "data_dir: default the run's paths.data_dir)")
+    parser.add_argument("checkpoint", type=Path)
+    parser.add_argument("options", nargs="*", metavar="key=value")
+    args = parser.parse_args(argv)
+    options: dict[str, Any] = {}
+    for item in args.options:
+        key, sep, value = item.partition("=")
+        if not sep or key not in OPTIONS:
+            raise ValueError(f"{item!r} is not an option; use key=value with key one of "
+                             f"{sorted(OPTIONS)}")
+        try:
+            options[key] = OPTIONS[key](value)
+        except ValueError:
+            kind = {int: "an integer", float: "a number",
+                    _flag: "true or false"}.get(OPTIONS[key], "a path")
+            raise ValueError(f"{key}={value!r} must be {kind}") from None
+    for key, low, high in (("max_terms", 1, 4), ("tolerance", 0, math.inf),
+                           ("parsimony", 1, math.inf), ("finetune.steps", 1, math.inf),
+                           ("finetune.substeps", 1, 64), ("finetune.batch_size", 1, math.inf),
+                           ("finetune.horizon", 1, math.inf), ("finetune.val_sims", 1, math.inf)):
+        if key in options and not low <= options[key] <= high:
+            raise ValueError(f"{key}={options[key]} must be in [{low}, {high}]")
+    return args.checkpoint, options
 
 
 def formula_stage(checkpoint: Path, train_split: Any, val: Any, config: Any,
@@ -1676,28 +1704,22 @@ def formula_stage(checkpoint: Path, train_split: Any, val: Any, config: Any,
 
 
 def law_stage(cfg: Any, best: Path, datamodule: Any, output_dir: Path,
-              world_size: int) -> dict[str, Any]:
+              world_size: int, deadline: Deadline | None = None) -> dict[str, Any]:
     """``model.law=auto``'s stage (``bgn.training.run.train``'s ``law_stage``): the best
     checkpoint's network law read back as a formula, the formula fine-tuned as the law and
     kept where it validates better on rollouts (``formula_stage``, in ``<run>/laws/``); run
     before the test, on the training and validation splits only. Returns its record
-    (``choice``: network or formula; ``path``: formula.ckpt)."""
-    log = logging.getLogger("bgn.train")
+    (``choice``: network or formula; ``path``: formula.ckpt). Bounded by its evaluation
+    count (``FINETUNE_STEPS`` per form), so the same run fits the same formula on any
+    machine; ``deadline`` (the job's wall-clock cap) stops it earlier, and its record's
+    ``budget`` says so (docs/design.md#budgets)."""
     if world_size > 1:  # one process would tune while the others wait at the test's barrier
         log.info("model.law=auto: the formula stage runs in a single process; run python -m "
                  f"bgn.laws {best} finetune=true after this DDP run")
         return {}
-    from bgn.coerce import seconds
-
-    # the fitting's share of the run's time; a run budgeted in steps (trainer.max_steps) is
-    # bounded by the fit's own evaluation count instead, so it repeats on any machine
-    steps = cfg.trainer.get("max_steps")
-    budget = None if steps is not None and int(steps) > 0 else \
-        seconds(cfg.trainer.get("max_time"))
     log.info("model.law=auto: reading the learned law back as a formula and fine-tuning it")
     record = formula_stage(best, datamodule.datasets["train"], datamodule.datasets["val"],
-                           cfg, output_dir / "laws", **({} if budget is None else {
-                               "finetune.max_seconds": LAW_STAGE_SHARE * budget}))
+                           cfg, output_dir / "laws", **{"finetune.deadline": deadline})
     log.info(f"model.law=auto: the {record['choice']} law validates better "
              f"(report: {record['report']})")
     return record
@@ -1730,16 +1752,14 @@ def run(checkpoint: Path, options: dict[str, Any]) -> Path:
     return Path(record["report"])
 
 
-@cli("laws", positional="ckpt")  # bad input: one line, exit 2 (bgn.training.validate)
-def main(cfg: Any) -> Path:
-    """``python -m bgn.laws <run folder or checkpoint> [finetune=true] ...``; a model without
-    a pair-force head or an unusable checkpoint: one line, exit code 2."""
+def main(argv: list[str] | None = None) -> Path:
+    """The command line: one clear line and exit code 2 on bad input."""
     from bgn.data.files import DatasetFileError
     from bgn.training.checkpoints import CheckpointError
     from bgn.training.validate import CONFIG_EXIT, DATA_EXIT, fail, full_error
 
-    checkpoint, options = _options(cfg)
     try:
+        checkpoint, options = parse(sys.argv[1:] if argv is None else argv)
         path = run(checkpoint, options)
     except DatasetFileError as err:
         if full_error():

@@ -599,26 +599,6 @@ def test_laws_are_scored_against_the_truth_at_every_training_distance(trained_sp
     assert against_truth(report, json.loads(spring_spec(1.98, -2.0))) == {}
 
 
-@pytest.mark.parametrize(("trainer", "deadline"), [
-    ({"max_time": "00:00:08:00"}, 240.0),                       # a time budget: its share
-    ({"max_time": "00:00:10:00", "max_steps": 900}, None),      # a step budget: no clock
-    ({"max_time": "00:00:08:00", "max_steps": -1}, 240.0)])     # Lightning's "no step limit"
-def test_law_stage_fits_by_the_clock_only_under_a_time_budget(monkeypatch, tmp_path, trainer,
-                                                               deadline):
-    """model.law=auto's fit gets half the run's max_time; a run budgeted in steps fits by its
-    evaluation count alone, so the same config and seed give the same formula on any
-    machine."""
-    import bgn.eval.laws as laws
-
-    seen = {}
-    monkeypatch.setattr(laws, "formula_stage", lambda *a, **options: (
-        seen.update(options) or {"choice": "network", "report": "report.md"}))
-    datamodule = type("DM", (), {"datasets": {"train": None, "val": None}})()
-    laws.law_stage(OmegaConf.create({"trainer": trainer}), tmp_path / "best.ckpt", datamodule,
-                   tmp_path, world_size=1)
-    assert seen.get("finetune.max_seconds") == deadline
-
-
 def test_a_non_finite_loss_is_a_worse_point_for_the_tuning_not_a_crash(monkeypatch):
     """tune_constants steps away from constants where the law's loss is not finite (a tiny
     run's formula stage ended on one in the slow tier); a form with no finite point returns an

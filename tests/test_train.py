@@ -17,6 +17,7 @@ import torch
 from lightning.pytorch.callbacks import Callback
 
 from bgn.graph import collate
+from bgn.training.budget import reset_signals
 from bgn.training.checkpoints import CheckpointError
 from bgn.training.module import PhysicsModule
 from bgn.training.run import build, train
@@ -112,7 +113,7 @@ def test_a_step_budget_ending_mid_epoch_validates_its_last_steps(tiny_train_cfg,
     """trainer.max_steps inside the first epoch: the run stops as a time budget does, so
     its last steps are validated and checkpointed (Lightning alone would end with no
     validation, so no best.ckpt)."""
-    train(tiny_train_cfg("spring", "+trainer.max_steps=3", "trainer.max_time=null",
+    train(tiny_train_cfg("spring", "trainer.max_steps=3", "trainer.max_time=null",
                          "dataset.batch_size=2",  # an epoch of many more than 3 batches
                          "+trainer.num_sanity_val_steps=0", "trainer.limit_val_batches=1",
                          "test=false"))
@@ -332,10 +333,14 @@ def test_a_truncated_checkpoint_is_named_in_one_line(tmp_path, shared_data_dir):
 @pytest.fixture
 def interactive_sigint():
     """A shell starts background jobs with SIGINT ignored, and CI may run the tests so; Python
-    then never raises KeyboardInterrupt. Give the test the handler an interactive run has."""
+    then never raises KeyboardInterrupt. Give the test the handler an interactive run has;
+    after it, no SIGTERM recorded (bgn.training.budget) and the SIGTERM handler as before."""
     before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    before_term = signal.getsignal(signal.SIGTERM)
     yield
     signal.signal(signal.SIGINT, before)
+    signal.signal(signal.SIGTERM, before_term)
+    reset_signals()
 
 
 @pytest.mark.parametrize(("name", "at", "code"), [("SIGTERM", "validation", 143),
@@ -356,6 +361,7 @@ def test_a_signal_saves_last_ckpt_and_exits_non_zero(tiny_train_cfg, tmp_path, c
     assert not (run / "metrics.json").exists()
     last = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     assert last["global_step"] >= 9
+    reset_signals()  # a new job in this process (the command exited above)
     train(tiny_train_cfg("spring", *common, "ckpt_path=last"))  # continues and ends
     final = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     assert final["global_step"] > last["global_step"] and final["epoch"] == 3  # all 3 done
@@ -365,20 +371,27 @@ def test_a_signal_saves_last_ckpt_and_exits_non_zero(tiny_train_cfg, tmp_path, c
 @pytest.mark.slow  # a real training process killed by SIGTERM
 def test_sigterm_to_a_training_process_saves_a_checkpoint_and_exits_non_zero(tmp_path,
                                                                             shared_data_dir):
+    """SIGTERM in the middle of a long fit: the process exits within seconds, with last.ckpt
+    and one message whose resume command is the run's own (its overrides, its folder)."""
     run = tmp_path / "run"
-    proc = subprocess.Popen(
-        command_line(*TINY_CLI, f"paths.data_dir={shared_data_dir}", "trainer.max_epochs=10000",
-                     "trainer.max_time=null", f"hydra.run.dir={run}"),
-        cwd=tmp_path, env=CLI_ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    overrides = [*TINY_CLI, f"paths.data_dir={shared_data_dir}", "trainer.max_epochs=10000",
+                 "trainer.max_steps=-1", "trainer.max_time=null", "seed=7"]
+    proc = subprocess.Popen(command_line(*overrides, f"hydra.run.dir={run}"),
+                            cwd=tmp_path, env=CLI_ENV, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 300
     while not (run / "checkpoints" / "last.ckpt").exists() and time.monotonic() < deadline:
         time.sleep(0.5)  # training has run an epoch
     time.sleep(1.0)
+    sent = time.monotonic()
     proc.send_signal(signal.SIGTERM)
     out, err = proc.communicate(timeout=120)
+    took = time.monotonic() - sent
     assert proc.returncode == 143, err[-3000:]
+    assert took < 10.0, f"{took:.1f} s from SIGTERM to exit"
     assert "training stopped by SIGTERM" in out + err
-    assert "ckpt_path=last hydra.run.dir=" in out + err
+    assert f"python -m bgn.train {' '.join(overrides)} ckpt_path=last hydra.run.dir={run}" \
+        in out + err
     assert not (run / "metrics.json").exists()
     last = torch.load(run / "checkpoints" / "last.ckpt", map_location="cpu", weights_only=True)
     assert last["global_step"] > 0
@@ -393,7 +406,7 @@ def test_kill_9_mid_epoch_then_resume_ends_like_an_uninterrupted_run(tmp_path,
     come in a new order)."""
     # (the network law: the formula stage after training is not what resuming is about)
     common = [*TINY_CLI, NETWORK_LAW, f"paths.data_dir={shared_data_dir}",
-              "+trainer.max_steps=40", "trainer.max_time=null", "seed=3",
+              "trainer.max_steps=40", "trainer.max_time=null", "seed=3",
               "callbacks.time_checkpoint.train_time_interval.minutes=0.0002"]
 
     def train_run(run: Path, *extra: str) -> subprocess.CompletedProcess:

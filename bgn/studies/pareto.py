@@ -109,6 +109,7 @@ def schedule_overrides(cell_dir: Path, seconds: Sequence[float]) -> list[str]:
             f"+callbacks.time_schedule.dirpath={cell_dir / 'checkpoints'}",
             f"+callbacks.time_schedule.seconds=[{','.join(f'{s:g}' for s in seconds)}]",
             f"trainer.max_time={clock(limit)}",
+            "trainer.max_steps=-1",  # the schedule's times end the cell, not a scene's steps
             "test=false"]
 
 

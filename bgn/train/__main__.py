@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from omegaconf import DictConfig
 
+from bgn.coerce import seconds
+from bgn.training.budget import Deadline, watch_signals
 from bgn.training.checkpoints import CheckpointError
 from bgn.training.run import train
 from bgn.training.validate import cli, validate_train
@@ -18,6 +20,10 @@ from bgn.training.validate import cli, validate_train
 
 @cli("train")  # Hydra app; bad input: one line, exit 2 (bgn.training.validate)
 def main(cfg: DictConfig) -> float:
+    # the job's wall-clock cap counts from here: data generation, training, the formula stage
+    # and the test inside it (docs/design.md#budgets); SIGTERM acted on anywhere within seconds
+    deadline = Deadline.after(seconds(cfg.trainer.get("max_time")))
+    watch_signals()
     spec = validate_train(cfg)  # once per run: the DatasetSpec is handed on to the DataModule
     try:
         if cfg.model.get("dynamics") == "auto":  # the structure chosen by evidence
@@ -27,7 +33,7 @@ def main(cfg: DictConfig) -> float:
         else:
             from bgn.eval.laws import law_stage  # model.law=auto's formula stage
 
-            metrics = train(cfg, spec, law_stage=law_stage)
+            metrics = train(cfg, spec, law_stage=law_stage, deadline=deadline)
     except CheckpointError as err:  # one line, no traceback
         raise SystemExit(f"bgn.train: {err}") from None
     return metrics.get("val/nmse", float("nan"))  # the objective a sweeper would minimise

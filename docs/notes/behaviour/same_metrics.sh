@@ -19,10 +19,10 @@ for side in before after; do
   rev=${!side}; d=$work/$side
   rm -rf "$d"; git clone -q "$repo" "$d"; git -C "$d" checkout -q "$rev"
   (cd "$d" && PYTHONPATH=$d python -m bgn.train seed=0 trainer.max_time=null \
-     +trainer.max_steps=300 paths.data_dir="$work/data" hydra.run.dir="$d/outputs/spring" \
+     trainer.max_steps=300 paths.data_dir="$work/data" hydra.run.dir="$d/outputs/spring" \
      callbacks.progress_bar=null > "$work/$side.spring.log" 2>&1)
   (cd "$d" && PYTHONPATH=$d python -m bgn.train dataset=collisions experiment=quick seed=0 \
-     trainer.max_time=null +trainer.max_steps=100 optimizer.lr=3e-3 model.loss_weights.contact=0.1 \
+     trainer.max_time=null trainer.max_steps=100 optimizer.lr=3e-3 model.loss_weights.contact=0.1 \
      model.loss_weights.type=0.1 model.loss_weights.mass_nll=0.1 model.loss_weights.relmass=0.1 \
      paths.data_dir="$d/data" \
      hydra.run.dir="$d/outputs/collisions" callbacks.progress_bar=null \

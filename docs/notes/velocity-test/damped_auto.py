@@ -40,7 +40,7 @@ def main() -> None:
            "figures=false", "val_rollout_steps=0", "animation_every=0",
            "callbacks.progress_bar=null", "dataset.batch_size=16",
            "trainer.check_val_every_n_epoch=5", "trainer.max_epochs=-1",
-           f"+trainer.max_steps={steps}", "auto.share=0.75", "auto.references=[]",
+           f"trainer.max_steps={steps}", "auto.share=0.75", "auto.references=[]",
            "test=false"]
     proc = subprocess.run(cmd, cwd=ROOT, env={**os.environ, "OMP_NUM_THREADS": "1"},
                           capture_output=True, text=True)

@@ -158,6 +158,9 @@ def import_dataset(raw: RawTrajectories, name: str, data_dir: str | Path, histor
     if problem := data_dir_problem(data_dir):
         raise DataImportError(problem)
     directory = imported_dir(data_dir, name)
+    if directory.parent.exists() and not directory.parent.is_dir():
+        raise DataImportError(f"{directory.parent} is a file, not the folder of imports; move "
+                              "it away, or give another paths.data_dir")
     if directory.exists() and not overwrite:
         raise DataImportError(f"an import named {name!r} exists in {directory}; pass "
                               "overwrite=true to replace it, or choose another name")

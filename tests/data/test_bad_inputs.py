@@ -288,6 +288,8 @@ CASES: dict[str, tuple[str, Source, dict[str, str | None], Setup]] = {
     "radii-by-type-too-short": ("import", lambda w: arrays(w, types=np.r_[np.zeros(N - 1), 1]),
                                 {"radii_by_type": "[0.1]"}, None),
     "import-exists": ("import", arrays, {}, lambda w, data: imported(w, data)),
+    "imports-folder-is-a-file": ("import", arrays, {}, lambda w, data: (
+        data.mkdir(), (data / "imported").write_text("x"))),
     # the training command on imported data (exit 2: its config; 1: its files)
     "train-data-dir-is-file": ("train", None, {"paths.data_dir": "{file}"}, None),
     "generate-data-dir-is-file": ("generate", None, {"paths.data_dir": "{file}"}, None),

@@ -34,7 +34,7 @@ from tests.data.layouts import (
 
 def read_trajectories(path: Path, **options) -> RawTrajectories:
     """The reader with unpickling allowed: these GNS files are the tests' own (the refusal
-    without it: test_a_pickled_gns_file_needs_allow_pickle)."""
+    without it: tests/data/test_bad_inputs.py)."""
     return formats.read_trajectories(path, allow_pickle=True, **options)
 
 

@@ -158,6 +158,10 @@ def test_summary_aggregates_seeds_and_keeps_failures(tmp_path, monkeypatch):
                             "rollout/failed_share": failed,
                             "rollout_last/pos_err_mean@100": 1.0,
                             "rollout_linear/pos_err_mean@100": 2.0}}))
+        write(run / "auto" / "newton_source" / "metrics.json", json.dumps({  # bgn.train's
+            "variant": {"label": "BGN + pair-force head", "given": [],
+                        "supervision": {"masses": ["mass_nll", "relmass"]},
+                        "physics": "central pair forces"}}))
         for key, worst in (("predicted", 0.02 * (seed + 1)), ("true", 1e-6)):
             write(run / f"energy_{key}.json", json.dumps({  # engine_energy.py --json
                 "after": [10, 50, 100], "relative_change": [[0.0, 0.0, worst / 2],
@@ -170,6 +174,10 @@ def test_summary_aggregates_seeds_and_keeps_failures(tmp_path, monkeypatch):
         choices.append(choice)
     assert [r["model"] for r in tests[:2]] == ["chosen (newton)", "decoder (candidate)"]
     assert tests[0]["ratio @100"] == pytest.approx(0.01)
+    # what each model was trained with and is given, from its run's record (none: blank)
+    assert (tests[0]["trained with"], tests[0]["given at inference"]) == (
+        "recorded masses (mass_nll, relmass)", "-")
+    assert tests[1]["trained with"] == "" and tests[1]["steps"] is None
     md, _ = summary.table([r for r in tests if r["model"].startswith("chosen")],
                           ["data", "model"])
     assert "0.02 ± 0.01414 (0.01–0.03)" in md          # @100 over the two seeds
@@ -192,6 +200,10 @@ def test_summary_aggregates_seeds_and_keeps_failures(tmp_path, monkeypatch):
     # the engine's energy: the worst trajectory per seed, the recorded frames beside it,
     # kept out of the rollout tables
     energy = text.split("## energy")[1]
-    assert "| gas | chosen (newton) | 2 | 0 | 0 | 0.03 ± 0.01414 (0.02–0.04) |" in energy
-    assert "| gas | recorded frames | 2 | 0 | 0 | 1e-06 |" in energy
+    assert ("| gas | chosen (newton) |  |  |  | 2 | 0 | 0 | 0.03 ± 0.01414 (0.02–0.04) |"
+            in energy)
+    assert "| gas | recorded frames |  |  |  | 2 | 0 | 0 | 1e-06 |" in energy
+    rollouts = text.split("## rollouts")[1].split("##")[0]
+    assert ("| gas | chosen (newton) | recorded masses (mass_nll, relmass) | - | central pair "
+            "forces | 2 |") in rollouts
     assert "recorded frames" not in text.split("## energy")[0]

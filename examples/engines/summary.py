@@ -27,8 +27,9 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
+from bgn.eval.columns import VARIANT_COLUMNS
 from bgn.provenance import git_commit, write_block
-from bgn.studies.report import aggregate_rows, spread
+from bgn.studies.report import aggregate_rows, describe_columns, spread
 from bgn.tables import write_csv
 
 BLOCK = "engines"  # the generated block --results-md rewrites
@@ -49,6 +50,21 @@ def _run_config(run: Path) -> Any:
     raise SystemExit(f"{run}: no run config (.hydra/config.yaml or train_config.yaml)")
 
 
+def _variant(directory: Path) -> dict[str, str]:
+    """What the run's model was trained with, is given at inference and has written in (its
+    metrics.json's ``variant``: ``PhysicsModel.describe``), as the study's tables show it."""
+    path = directory / "metrics.json"
+    record = json.loads(path.read_text()) if path.exists() else {}
+    return describe_columns(record.get("variant") or {})
+
+
+def _steps(directory: Path) -> int | None:
+    """The optimiser steps the run trained (its last checkpoint's)."""
+    from bgn.studies.grid import trained_steps
+
+    return trained_steps(directory)
+
+
 def _budget(directory: Path) -> float | None:
     path = directory / "metrics.json"
     if not path.exists():
@@ -65,9 +81,13 @@ def best_reference(metrics: dict[str, Any], h: int) -> float | None:
 
 
 def test_row(name: str, seed: int, model: str, metrics: dict[str, Any],
-             budget: float | None) -> dict[str, Any]:
-    """One model's test rollouts (mean over all rollouts, a failed one at the cap)."""
-    row: dict[str, Any] = {"data": name, "model": model, "seed": seed, "budget s": budget}
+             budget: float | None, directory: Path | None = None) -> dict[str, Any]:
+    """One model's test rollouts (mean over all rollouts, a failed one at the cap), with what
+    the model in ``directory`` was trained with and given (``_variant``) and its steps."""
+    about = _variant(directory) if directory is not None else {}
+    row: dict[str, Any] = {"data": name, "model": model, **about, "seed": seed,
+                           "steps": _steps(directory) if directory is not None else None,
+                           "budget s": budget}
     for h in HORIZONS:
         row[f"@{h}"] = metrics.get(f"rollout/pos_err_mean@{h}")
     row["median @100"] = metrics.get("rollout/pos_err_median@100")
@@ -98,14 +118,15 @@ def rows_of(run: Path) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
     if not auto.exists():
         metrics = _metrics(run)
         model = str(cfg.model.get("name", "model")) + " (full budget)"
-        return ([test_row(name, seed, model, metrics, _budget(run))] if metrics else []), None
+        return ([test_row(name, seed, model, metrics, _budget(run), run)]
+                if metrics else []), None
     record = json.loads(auto.read_text())
     choice = record["choice"]
     rows = []
     winner = _metrics(run / "auto" / choice) or _metrics(run)
     if winner:
         rows.append(test_row(name, seed, f"chosen ({choice.split('_')[0]})", winner,
-                             _budget(run / "auto" / choice)))
+                             _budget(run / "auto" / choice), run / "auto" / choice))
     choice_row: dict[str, Any] = {"data": name, "seed": seed, "chosen": choice,
                                   "margin": record.get("margin")}
     for c in record["candidates"]:
@@ -115,7 +136,7 @@ def rows_of(run: Path) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
         metrics = _metrics(run / "auto" / c["candidate"])
         if metrics and c["candidate"] != choice:
             rows.append(test_row(name, seed, f"{c['candidate']} (candidate)", metrics,
-                                 c.get("wall_s")))
+                                 c.get("wall_s"), run / "auto" / c["candidate"]))
     balance = record["protocol"].get("balance") or {}
     choice_row["momentum imbalance"] = balance.get("linear")
     rows += energy_rows(run, name, seed, f"chosen ({choice.split('_')[0]})")
@@ -151,7 +172,7 @@ def table(rows: list[dict[str, Any]], keys: list[str]) -> tuple[str, list[str]]:
                                   if c not in keys and c != "seed"]
     lines = ["| " + " | ".join(columns) + " |", "|" + "---|" * len(columns)]
     for row in merged:
-        lines.append("| " + " | ".join(str(row.get(c, "")) if c in keys or c == "seeds"
+        lines.append("| " + " | ".join(str(row.get(c) or "") if c in keys or c == "seeds"
                                         else spread(row, c) for c in columns) + " |")
     return "\n".join(lines) + "\n", columns
 
@@ -185,7 +206,7 @@ def main(argv: list[str] | None = None) -> str:
         if choice:
             choices.append(choice)
     args.out.mkdir(parents=True, exist_ok=True)
-    keys = ["data", "model"]
+    keys = ["data", "model", *VARIANT_COLUMNS]
     lb = [f"lb {k}" for k in LB]
     rollouts = [r for r in tests if not is_energy(r)]
     groups = {"choices": (choices, ["data"], None),

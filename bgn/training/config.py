@@ -121,6 +121,10 @@ class TrainKeys:
     task_name: str = "train"
     fps: float = 50.0                 # frames per unit of simulated time (> 0)
     seed: int = 0                     # training seed (the data seed is dataset.seed)
+    # torch's CPU threads (null: torch's default, one per core). One: on small batches a second
+    # thread gains little on an idle machine and, spin-waiting, costs many times that on a
+    # busy one; and the same count everywhere keeps the model the same (docs/design.md#budgets)
+    threads: int | None = 1
     figures: bool = True
     rollout_steps: int = 50           # validation rollout figure length (>= 0)
     animation_every: int = 25         # validations between TensorBoard animations (0: off)

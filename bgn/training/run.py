@@ -184,6 +184,18 @@ def check_step_budget(cfg: DictConfig, datamodule: ParticleDataModule) -> None:
                     epoch)
 
 
+def set_threads(threads: Any) -> None:
+    """torch's CPU threads for this job (``threads``; null: torch's default)."""
+    from bgn.coerce import need_int
+
+    n = need_int(threads, "threads", 1, optional=True,
+                 why=": torch's CPU threads (null: one per core)")
+    if n is not None:
+        import torch
+
+        torch.set_num_threads(n)
+
+
 def fit_reserve(cfg: DictConfig, left: float | None) -> float:
     """Seconds of the job's time left at the fit's start kept for what follows it: the test
     and, with ``model.law=auto``, the formula stage (``RESERVE_SHARE``)."""
@@ -229,6 +241,7 @@ def train(cfg: DictConfig, spec: DatasetSpec | None = None,
     if deadline is None:
         deadline = Deadline.after(cap)
     watch_signals()  # idempotent: the command installed it already
+    set_threads(cfg.get("threads"))
     default_dir, default_overrides = resume_target(cfg)
     run_dir = default_dir if run_dir is None else Path(run_dir)
     overrides = default_overrides if overrides is None else list(overrides)

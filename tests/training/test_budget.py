@@ -234,3 +234,17 @@ def test_a_tuning_past_the_deadline_stops_between_evaluations(monkeypatch):
     assert 0 < n == len(calls) < 40  # stopped by the deadline, not by its 10 000 evaluations
     with pytest.raises(laws._Budget):  # no time for even one evaluation
         laws.tune_constants(None, head, [(1.0, None)], 10, Deadline(time.monotonic() - 1))
+
+
+def test_a_job_trains_on_the_threads_it_is_given_and_refuses_none(tmp_path, shared_data_dir):
+    import torch
+
+    before = torch.get_num_threads()
+    try:
+        train(tiny_cfg(tmp_path, shared_data_dir, "trainer.max_steps=2", "test=false",
+                       "threads=1"))
+        assert torch.get_num_threads() == 1
+        with pytest.raises(ConfigError, match="threads=0"):
+            train(tiny_cfg(tmp_path, shared_data_dir, "threads=0", run="none"))
+    finally:
+        torch.set_num_threads(before)

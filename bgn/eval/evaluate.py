@@ -577,8 +577,8 @@ def validate_evaluate(cfg: Any) -> tuple[Path, Path, Path]:
     """Everything ``python -m bgn.evaluate`` is given, before any data or model is read;
     returns ``resolve_run``'s paths."""
     if not cfg.get("ckpt"):
-        raise ConfigError("ckpt", None, "give a checkpoint or run directory: python -m "
-                          "bgn.eval.evaluate outputs/train/runs/<run> [split=test]")
+        raise ConfigError("ckpt", None, "give a run folder or checkpoint: python -m "
+                          "bgn.evaluate outputs/train/runs/<run> [split=test]")
     for key in ("split", "calibration_split"):
         if cfg[key] not in SPLITS:
             raise ConfigError(key, cfg[key], f"choose one of {list(SPLITS)}")

@@ -519,6 +519,9 @@ def cli(config_name: str, validate: Callable[[Any], Any] | None = None,
                     sys.argv = [saved_argv[0], *args]
                     return app()
                 composed = compose_args(args)  # in this process: composed, then run
+            except BrokenPipeError:  # --help | head: the reader left; nothing to report
+                os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+                raise SystemExit(0) from None
             except Exception as err:  # raised before the task ran: bad input (an unknown
                 if full:              # option, or Hydra's own: a refused value or config)
                     raise

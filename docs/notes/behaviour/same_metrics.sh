@@ -1,6 +1,6 @@
 #!/bin/bash
 # Behaviour unchanged across a refactor: the default spring job and a collisions
-# experiment=quick run, each with a fixed number of steps (no time budget), trained at two
+# experiment=smoke run, each with a fixed number of steps (no time budget), trained at two
 # commits in fresh clones of this repository; then every metric of the two metrics.json
 # compared (diff_metrics.py).
 #
@@ -21,7 +21,7 @@ for side in before after; do
   (cd "$d" && PYTHONPATH=$d python -m bgn.train seed=0 trainer.max_time=null \
      trainer.max_steps=300 paths.data_dir="$work/data" hydra.run.dir="$d/outputs/spring" \
      callbacks.progress_bar=null > "$work/$side.spring.log" 2>&1)
-  (cd "$d" && PYTHONPATH=$d python -m bgn.train dataset=collisions experiment=quick seed=0 \
+  (cd "$d" && PYTHONPATH=$d python -m bgn.train dataset=collisions experiment=smoke seed=0 \
      trainer.max_time=null trainer.max_steps=100 optimizer.lr=3e-3 model.loss_weights.contact=0.1 \
      model.loss_weights.type=0.1 model.loss_weights.mass_nll=0.1 model.loss_weights.relmass=0.1 \
      paths.data_dir="$d/data" \

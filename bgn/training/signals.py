@@ -128,12 +128,15 @@ class FitDeadline(Callback):
                 clock_text(left), clock_text(self.validation_s))
 
     def on_train_batch_end(self, trainer: L.Trainer, *args: Any, **kwargs: Any) -> None:
-        if self.deadline.passed() and not trainer.should_stop:
+        # every DDP process stops at the same step, as Lightning's Timer does
+        passed = trainer.strategy.reduce_boolean_decision(self.deadline.passed(), all=False)
+        if passed and not trainer.should_stop:
             trainer.should_stop = True
             self.cut = True
 
     def on_test_batch_end(self, trainer: L.Trainer, *args: Any, **kwargs: Any) -> None:
-        check(self.job, "the test")
+        if trainer.world_size == 1:  # one DDP process alone leaving the test would hang it
+            check(self.job, "the test")
 
 
 def timer_ran_out(trainer: L.Trainer) -> bool:

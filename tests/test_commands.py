@@ -144,6 +144,25 @@ def test_an_option_is_refused_with_its_key_value_spelling(capsys):
     assert len(err.splitlines()) == 1 and "--split" in err and "split=<value>" in err
 
 
+@pytest.mark.parametrize("command, key, close", [
+    ("bgn.evaluate", "data_dir", "paths.data_dir"),   # evaluate's key before one style
+    ("bgn.laws", "config", "run_config"),
+    ("bgn.laws", "finetune.steps", "finetune_steps"),
+    ("bgn.render", "stpes", "steps"),
+])
+def test_a_key_the_command_lacks_is_refused_naming_the_closest(capsys, command, key, close):
+    """Not Hydra's "to append use +key=...": the key, the closest the command has, --help."""
+    main = importlib.import_module({"bgn.evaluate": "bgn.eval.evaluate", "bgn.laws":
+                                    "bgn.eval.laws", "bgn.render": "bgn.studies.render"}[
+                                        command]).main
+    with pytest.raises(SystemExit) as done:
+        main(["some/run", f"{key}=1"])
+    assert done.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "+" not in err
+    assert f"{key} is not a key of python -m {command}; did you mean {close}" in err, err
+
+
 @pytest.mark.parametrize("argv", [["a"], ["a", "b=1"], ["x=1", "a b", "--cfg", "job"],
                                   ["-cn", "evaluate", "r"], ["'q'", "c=2"], []])
 def test_only_the_first_positional_argument_becomes_the_key(argv):

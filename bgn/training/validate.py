@@ -451,6 +451,42 @@ def quiet_logs(lightning: bool = False) -> None:
         warnings.filterwarnings("ignore", message=message, category=category)
 
 
+def leaf_keys(cfg: Any, prefix: str = "") -> list[str]:
+    """The dotted names of a config's values (``paths.data_dir``, ``rollout.steps``, ...)."""
+    from omegaconf import OmegaConf
+
+    out = []
+    for key in cfg:
+        if key == "hydra":
+            continue
+        node = cfg._get_node(key)
+        name = f"{prefix}{key}"
+        out += leaf_keys(node, f"{name}.") if OmegaConf.is_dict(node) else [name]
+    return out
+
+
+def unknown_key(err: BaseException, prog: str, defaults: Callable[[], Any]) -> BaseException:
+    """Hydra's refusal of a key the config does not have ("Could not override 'x'. To append
+    to your config use +x=...", whose advice does not apply) as one line naming the key, the
+    closest keys the command has (``defaults``: its config) and where they are listed;
+    any other error as it is."""
+    import difflib
+
+    found = re.match(r"Could not override '([^']+)'", str(err))
+    if not found:
+        return err
+    key = found.group(1)
+    try:
+        keys = leaf_keys(defaults())
+    except Exception:  # noqa: BLE001 (the hint is a nicety; the refusal stands)
+        keys = []
+    close = [k for k in keys if k.endswith(f".{key}") or key.endswith(f".{k}")]
+    close += [k for k in difflib.get_close_matches(key, keys, n=2) if k not in close]
+    hint = f"; did you mean {' or '.join(close[:2])}?" if close else ""
+    return ConfigError(key, message=f"{key} is not a key of python -m {prog}{hint} "
+                       f"(python -m {prog} --help lists them)")
+
+
 def cli(config_name: str, validate: Callable[[Any], Any] | None = None,
         config_dir: Path = CONF_DIR, positional: str | None = None,
         prog: str | None = None) -> Callable[[Callable[[Any], Any]], Callable[..., Any]]:
@@ -525,7 +561,7 @@ def cli(config_name: str, validate: Callable[[Any], Any] | None = None,
             except Exception as err:  # raised before the task ran: bad input (an unknown
                 if full:              # option, or Hydra's own: a refused value or config)
                     raise
-                fail(err, CONFIG_EXIT)
+                fail(unknown_key(err, name, lambda: compose_args([])), CONFIG_EXIT)
             finally:
                 sys.argv = saved_argv
                 _restore_hydra_env()

@@ -292,15 +292,26 @@ def test_a_run_folder_of_the_formula_stage_gives_the_formula_checkpoint(tmp_path
 
 # ----------------------------------------------------------------------------- refused runs
 def run_app(monkeypatch, module: str, *args: str) -> int:
-    """``python -m <module> <args>`` through its Hydra app, in this process."""
+    """``python -m <module> <args>`` through its Hydra app, in this process (the logging set-up
+    Hydra makes, handlers on this test's captured streams, undone after)."""
+    import logging
+
     monkeypatch.setattr(sys, "argv", [module, *args])
     main = getattr(importlib.import_module(module), "command", None) or \
         importlib.import_module(module).main
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
     try:
         with pytest.raises(SystemExit) as done:
             main()
     finally:
         GlobalHydra.instance().clear()
+        for handler in root.handlers[:]:
+            if handler not in handlers:
+                root.removeHandler(handler)
+                handler.close()
+        root.handlers[:] = handlers
+        root.setLevel(level)
     return done.value.code
 
 

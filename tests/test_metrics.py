@@ -422,6 +422,31 @@ def test_a_failed_rollout_counts_at_the_cap_in_the_lagrangebench_metrics():
     assert np.isfinite(out["e_kin_mse"]) and out["e_kin_mse"] > 0
 
 
+@pytest.mark.parametrize("seed", range(5))
+def test_the_one_minimum_image_serves_arrays_and_tensors_alike(seed):
+    """``minimum_image`` is the package's one: numpy and torch give the same differences, a
+    dimension marked 0 (the graphs' convention) or inf (the metrics') is left as it is, each
+    periodic one lands in [-L/2, L/2], and a tensor's gradient is the identity."""
+    import torch
+
+    rng = np.random.default_rng(seed)
+    side = rng.uniform(0.5, 3.0)
+    d = rng.normal(scale=4.0, size=(40, 3))
+    for marked in (0.0, np.inf):
+        period = np.array([side, marked, 2 * side])
+        out = minimum_image(d, period)
+        assert np.all(np.abs(out[:, [0, 2]]) <= np.array([side, 2 * side]) / 2 + 1e-12)
+        np.testing.assert_array_equal(out[:, 1], d[:, 1])
+        np.testing.assert_allclose(np.round((d - out)[:, [0, 2]] / [side, 2 * side]),
+                                   (d - out)[:, [0, 2]] / [side, 2 * side], atol=1e-9)
+        t = torch.tensor(d, requires_grad=True)
+        shifted = minimum_image(t, torch.tensor(period))
+        np.testing.assert_allclose(shifted.detach().numpy(), out, rtol=0, atol=1e-12)
+        shifted.sum().backward()
+        np.testing.assert_array_equal(t.grad.numpy(), np.ones_like(d))
+    assert minimum_image(d, None) is d
+
+
 def test_periodic_dimensions_take_the_minimum_image():
     d = np.array([[0.9, 0.9], [-0.6, 0.2]])
     np.testing.assert_allclose(minimum_image(d, np.array([1.0, np.inf])),

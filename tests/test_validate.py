@@ -51,6 +51,7 @@ def refused(config: str, *overrides: str) -> str:
     (["rollout_steps=-1"], ["rollout_steps=-1", ">= 0"]),
     (["scheduler.factor=2"], ["scheduler.factor=2", "< 1"]),
     (["dataset=collisions", "dataset.box=-1"], ["dataset.box", "> 0"]),
+    (["model.dynamics=foo"], ["model.dynamics='foo'", "'decoder', 'newton', 'auto'"]),
 ])
 def test_train_config_refused_with_one_line(overrides, expected):
     message = refused("train", *overrides)

@@ -263,3 +263,18 @@ def test_seeds_of_one_model_config_are_one_row_whatever_their_fitted_law() -> No
     # seeds that share a formula's start: the split stays outside its brackets
     assert merged_text(["law -1*(r + 0.009994)**-1", "law -1*(r + 0.009992)**-1"]) == (
         "law (per seed: -1*(r + 0.009994)**-1; -1*(r + 0.009992)**-1)")
+
+
+def test_trained_steps_reads_the_last_checkpoint(tmp_path: Path) -> None:
+    """A cell's budget in the report: the optimiser steps of its last checkpoint (the best
+    one where there is no last), None where it has neither."""
+    import torch
+
+    from bgn.studies.grid import trained_steps
+
+    assert trained_steps(tmp_path) is None
+    (tmp_path / "checkpoints").mkdir()
+    torch.save({"global_step": 40, "state_dict": {}}, tmp_path / "checkpoints" / "best.ckpt")
+    assert trained_steps(tmp_path) == 40
+    torch.save({"global_step": 55, "state_dict": {}}, tmp_path / "checkpoints" / "last.ckpt")
+    assert trained_steps(tmp_path) == 55

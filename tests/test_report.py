@@ -188,3 +188,28 @@ def test_report_md_embeds_every_table(tmp_path: Path) -> None:
     for cell in CELLS:
         assert f"| {cell.name} | {', '.join(cell.groups)} | 300 | 60 |" in text  # steps, s
     assert "total training wall time 6.0 min" in text
+
+
+def test_the_laws_prose_is_written_from_the_table_rows() -> None:
+    """The laws block's findings (``law_stage.findings``) quote the rows beside them: the
+    seeds whose fitted form is the truth's, the worst constants and errors, the choice and
+    the failed rollouts, never a figure of another run."""
+    from bgn.studies.law_stage import findings
+
+    def row(scene: str, truth_form: float, constants: float, chosen: float) -> dict[str, Any]:
+        return {"scene": scene, "form is the truth's": truth_form,
+                "constants vs truth": constants, "fitted vs truth": 2 * constants,
+                "fitted vs truth 1-99%": constants / 2, "network vs truth": 1.3,
+                "network vs truth 1-99%": 0.03, "formula chosen": chosen,
+                "network val error": 4e-3, "formula val error": 1e-5,
+                "network failed": 1.0, "formula failed": 0.0}
+
+    rows = [row("spring", 1.0, 4e-5, 1.0), row("spring", 1.0, 6e-5, 1.0),
+            row("gravity_r2", 0.0, 8e-3, 0.0)]
+    text = "\n".join(findings(rows, "50"))
+    assert "truth's form in 2 of 3 cells** (spring 2 of 2, gravity_r2 0 of 1)" in text
+    assert "within 0.006 % (spring), 0.8 % (gravity_r2)" in text  # the worst seed's
+    assert "0.00012 (spring), 0.016 (gravity_r2)" in text
+    assert "chosen over the network law in 2 of 3 cells" in text
+    assert "after 50 steps" in text and "formula 0, network 3" in text
+    assert findings([], "50") == []

@@ -325,8 +325,7 @@ def train(cfg: DictConfig, spec: DatasetSpec | None = None,
                     metrics.update(test_rollouts(tested.model, datamodule.datasets["test"]))
             except OutOfTime as err:  # the run stays usable: its checkpoints are written
                 tested_note = f"{err}; python -m bgn.evaluate {run_dir} tests it"
-                log.warning(tested_note)
-                metrics = {k: v for k, v in metrics.items() if not k.startswith("test/")}
+                log.warning(tested_note)  # (what the test finished before is kept)
         module = tested  # the run's model: the law the stage chose, tested or not
     except (SystemExit, KeyboardInterrupt) as exc:  # SIGTERMException is a SystemExit
         name = stop.signal or received() or \

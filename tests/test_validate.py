@@ -182,3 +182,22 @@ def test_study_validates_every_cell_before_training(monkeypatch, capsys):
     assert exit_.value.code == 2 and len(err.strip().splitlines()) == 1
     assert "bgn: error: cell collisions_" in err and "dataset.n_frames=5" in err
     assert not trained
+
+
+def test_the_default_rollout_sims_are_capped_at_a_small_validation_split(monkeypatch):
+    """One validation simulation (an import of few trajectories): the default
+    ``val_rollout_sims=2`` rolls out that one; the same value typed, or more, is refused."""
+    from bgn.training import validate
+
+    monkeypatch.setattr(validate, "ARGV", ["python -m bgn.train", "dataset.n_sims=1"])
+    cfg = compose_config("train", ["dataset.n_sims=1"])
+    assert validate_train(cfg).with_split("val").n_sims == 1
+    assert cfg.val_rollout_sims == 1
+    for given in (2, 3):
+        monkeypatch.setattr(validate, "ARGV", ["python -m bgn.train", f"val_rollout_sims={given}"])
+        with pytest.raises(ConfigError, match="val_rollout_sims.*validation simulations: 1"):
+            validate_train(compose_config("train", ["dataset.n_sims=1",
+                                                    f"val_rollout_sims={given}"]))
+    cfg = compose_config("train", ["dataset.n_sims=3"])  # enough: the default stands
+    validate_train(cfg)
+    assert cfg.val_rollout_sims == 2

@@ -41,6 +41,7 @@ import numpy as np
 from bgn.coerce import ConfigError, need_float, need_int
 from bgn.data.spec import IMPORTED, DatasetSpec, LoaderOptions, check_fps, data_dir_problem
 from bgn.sim import SCENES, Scene
+from bgn.training.config import TrainKeys
 
 CONF_DIR = Path(__file__).resolve().parents[2] / "conf"
 FULL_ERROR_ENV = "BGN_FULL_ERROR"
@@ -248,6 +249,11 @@ def validate_auto(auto: Any) -> None:
 
 
 # ----------------------------------------------------------------------------- entry configs
+def typed(key: str) -> bool:
+    """Whether the command line as typed (``ARGV``, set by ``cli``) sets ``key``."""
+    return any(arg.split("=", 1)[0].lstrip("+~") == key for arg in ARGV[1:])
+
+
 def validate_train(cfg: Any) -> DatasetSpec:
     """Everything ``bgn.train`` is given, before data or a model are made."""
     need_int(_get(cfg, "seed", 0), "seed", 0, MAX_SEED)
@@ -257,8 +263,12 @@ def validate_train(cfg: Any) -> DatasetSpec:
                             _get(_get(cfg, "paths"), "data_dir"))
     if (_get(cfg, "val_rollout_steps", 0) or 0) > 0:
         n_val = spec.with_split("val").n_sims  # imported data: each split its own
-        need_int(_get(cfg, "val_rollout_sims", 1), "val_rollout_sims", 1, n_val,
-                 why=f" (validation simulations: {n_val})")
+        sims = _get(cfg, "val_rollout_sims", 1)
+        if sims == TrainKeys.val_rollout_sims and n_val < sims and not typed("val_rollout_sims"):
+            # the default asks for more than a small split has (an import of one validation
+            # trajectory): all of them; a value the user gave stays refused
+            cfg["val_rollout_sims"] = sims = n_val
+        need_int(sims, "val_rollout_sims", 1, n_val, why=f" (validation simulations: {n_val})")
     history = need_int(_get(_get(cfg, "dataset"), "history", LoaderOptions.history),
                        "dataset.history", 0)
     assert history is not None

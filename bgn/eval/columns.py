@@ -1,6 +1,10 @@
 """The columns of the metric tables that ``python -m bgn.evaluate``'s report.md and the
 study's report (``bgn.studies.report``) both print, in one place so that the two agree."""
 
+from __future__ import annotations
+
+from typing import Any
+
 INVERSE_COLUMNS = ["coverage50", "coverage90", "coverage_max_dev", "sbc_p", "tarp_atc",
                    "info_gain", "info_gain_over_type", "relmass_r2", "relmass_r2_estimate",
                    "mass_rel_err", "sim_mass_rel_err", "sim_mass_rel_err_flow", "identified",
@@ -16,6 +20,17 @@ INVERSE_REFERENCES = {"prior": "prior-only sampler",
 TRAINED_WITH, GIVEN, PHYSICS = "trained with", "given at inference", "physics written in"
 VARIANT_COLUMNS = [TRAINED_WITH, GIVEN, PHYSICS]
 NO_LEARNING = "- (no learning)"  # what a reference that learns nothing is trained with
+
+
+def supervision_text(info: dict[str, Any]) -> str:
+    """The ``trained with`` cell of a ``PhysicsModel.describe`` record: each recorded quantity
+    the training loss reads beyond the frames, with the loss terms that read it ("masses
+    (mass_nll, relmass, law)"); "-" for the frames alone, "not recorded" for an older record
+    that lacks it."""
+    if "supervision" not in info:
+        return "not recorded" if info else ""
+    return "; ".join(f"recorded {quantity} ({', '.join(terms)})"
+                     for quantity, terms in info["supervision"].items()) or "-"
 
 
 def inverse_reference_variant(key: str, contact_scene: bool) -> dict[str, str]:

@@ -753,15 +753,21 @@ def report_text(record: dict[str, Any], metrics: dict[str, Any], figures: list[s
                 law: str | None = None) -> str:
     """report.md: the provenance header, then one-step, rollout (bgn's and LagrangeBench's)
     and inverse tables, and ``law``, the section on the learned pair law (``law_text``)."""
-    from bgn.eval.columns import INVERSE_COLUMNS, INVERSE_REFERENCES, ROLLOUT_COLUMNS
+    from bgn.eval.columns import (
+        INVERSE_COLUMNS,
+        INVERSE_REFERENCES,
+        ROLLOUT_COLUMNS,
+        supervision_text,
+    )
     from bgn.tables import markdown_table
 
     seeds = ", ".join(f"{k} {v}" for k, v in record["seeds"].items())
     about = record.get("model") or {}
     lines = [f"# Evaluation on the {record['split']} split", "",
-             *([f"- model: {about['label']}; given: {', '.join(about['given']) or 'nothing'} "
-                f"beyond the position window; physics written in: {about['physics']}"]
-               if about else []),
+             *([f"- model: {about['label']}; trained with: "
+                f"{supervision_text(about)} (beyond the frames); given at inference: "
+                f"{', '.join(about['given']) or 'nothing'} beyond the position window; "
+                f"physics written in: {about['physics']}"] if about else []),
              f"- command: `{record['command']}`",
              f"- checkpoint: `{record['checkpoint']}`",
              f"- run config: `{record['run_config']}` (hash {record['run_config_hash']})",

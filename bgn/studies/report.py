@@ -27,6 +27,7 @@ from bgn.eval.columns import (
     TRAINED_WITH,
     VARIANT_COLUMNS,
     inverse_reference_variant,
+    supervision_text,
 )
 from bgn.provenance import write_block
 from bgn.tables import fmt, write_csv, write_table
@@ -218,17 +219,6 @@ def training(results: Results, cell: Cell) -> dict[str, Any]:
 
 def _main(cells: list[Cell]) -> list[Cell]:
     return [c for c in cells if "main" in c.groups]
-
-
-def supervision_text(info: dict[str, Any]) -> str:
-    """The ``trained with`` cell of a ``PhysicsModel.describe`` record: each recorded quantity
-    the training loss reads beyond the frames, with the loss terms that read it ("masses
-    (mass_nll, relmass, law)"); "-" for the frames alone, "not recorded" for an older record
-    that lacks it."""
-    if "supervision" not in info:
-        return "not recorded" if info else ""
-    return "; ".join(f"recorded {quantity} ({', '.join(terms)})"
-                     for quantity, terms in info["supervision"].items()) or "-"
 
 
 def describe_columns(info: dict[str, Any]) -> dict[str, str]:

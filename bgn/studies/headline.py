@@ -348,8 +348,9 @@ def training_budget(preset: DictConfig) -> str:
     budgets = "; ".join(f"{scene}: " + ", ".join(f"{m} {n}" for m, n in models.items())
                         for scene, models in steps.items())
     return ("Every cell trained its preset step budget (max_steps per scene and model, the "
-            f"same for every seed: {budgets}; cell_minutes: the cell's whole run), so "
-            "training compute is not an axis here.")
+            f"same for every seed: {budgets}; cell_minutes: the cell's whole run, where the "
+            "preset sets the budgets to equal wall time), so training compute is not an "
+            "axis here.")
 
 
 def pareto_stage(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],

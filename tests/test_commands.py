@@ -40,6 +40,9 @@ COMMANDS = {
     "bgn.laws": (CONF_DIR, "laws", "ckpt", ()),
     "bgn.stability": (CONF_DIR / "stability", "stability", None, ("preset",)),
     "bgn.experiments": (CONF_DIR, "experiments", None, ("preset",)),
+    "bgn.data.balance": (CONF_DIR, "balance", "files", ()),
+    **{f"bgn.benchmarks.{name}": (CONF_DIR / "benchmarks", name, None, ())
+       for name in ("neighbours", "scaling", "flow", "shooting")},
 }
 # keys that are not arguments: where Hydra writes (paths.output_dir), the root the data
 # folder's default builds on, and the name the study code reads paths.data_dir by

@@ -1,39 +1,40 @@
 """NSF against NAF inside the whole BGN model: speed, and what a short training reaches.
 
-A synthetic collisions-like task, no files: frames of ``--per-frame`` discs in a box with a
+A synthetic collisions-like task, no files: frames of ``per_frame`` discs in a box with a
 radius graph, two particle types whose log-masses are bimodal (modes 0.001 and 0.4, as in the
 collisions scene) and whose speeds follow equipartition (``|v| ~ 1/sqrt(m)``), so the mass of a
 particle can be read from its velocity window. Writes ``flow.md``, ``flow.csv`` and ``flow.png``
-(the training mass NLL against the step, and the times) under ``--out``::
+(the training mass NLL against the step, and the times) under ``report_dir``::
 
-    python -m bgn.benchmarks.flow [--particles 2000] [--hidden 128] [--steps 300] [--threads 2]
-        [--flows nsf naf] [--out outputs/benchmarks]
+    python -m bgn.benchmarks.flow [particles=2000] [hidden=128] [steps=300] [threads=2]
+        [flows=[nsf,naf]] [report_dir=outputs/benchmarks]   # --help: conf/benchmarks/flow.yaml
 
 Reported per flow:
 
 - forward+backward+Adam time of one training step of the whole model;
 - time to sample every particle's mass once (and 10 times);
-- after ``--steps`` Adam steps cycling through ``--pool`` batches: held-out NLL of the
+- after ``steps`` Adam steps cycling through ``pool`` batches: held-out NLL of the
   normalised log-mass (mean and median over particles), the R^2 of the relative log-mass
   ``log m_i - log m_j`` on edges from one posterior sample (the paper's Eq. 9-10 path), the
   R^2 of the mean of 16 posterior log-mass samples, the dynamics loss and the training time.
 
 The model is BGN with its defaults (``conf/model/bgn.yaml``: degree normalisation, the ``auto``
-target prior) except ``hidden`` and ``flow``. ``--degree-normalize 0`` gives the paper's plain
+target prior) except ``hidden`` and ``flow``. ``degree_normalize=false`` gives the paper's plain
 ``Â = A + I``, with which neither flow trains in 300 steps on this task.
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import time
+from argparse import Namespace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
-from bgn.benchmarks._report import console, print_table
+from bgn.benchmarks._report import command, console, need_choices, options, print_table
 from bgn.data.stats import summarize
 from bgn.eval.evaluate import r2_score
 from bgn.graph import Graph, collate
@@ -131,7 +132,7 @@ def timed(fn, repeat: int) -> float:
     return float(np.median(times))
 
 
-def benchmark(flow: str, args: argparse.Namespace) -> tuple[dict[str, float], list[float]]:
+def benchmark(flow: str, args: Namespace) -> tuple[dict[str, float], list[float]]:
     """The figures of one flow, and the training mass NLL of every step."""
     torch.manual_seed(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
@@ -179,7 +180,7 @@ def benchmark(flow: str, args: argparse.Namespace) -> tuple[dict[str, float], li
     return result, curve
 
 
-def write_markdown(rows: dict[str, dict[str, float]], args: argparse.Namespace,
+def write_markdown(rows: dict[str, dict[str, float]], args: Namespace,
                    path: Path) -> None:
     lines = [
         "# Flow benchmark: NSF against NAF inside BGN",
@@ -237,33 +238,26 @@ def write_plot(rows: dict[str, dict[str, float]], curves: dict[str, list[float]]
     plt.close(fig)
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m bgn.benchmarks.flow",
-                                     description=__doc__.split("\n\n")[0])
-    parser.add_argument("--particles", type=int, default=2000, help="particles per batch")
-    parser.add_argument("--per-frame", type=int, default=200)
-    parser.add_argument("--hidden", type=int, default=128)
-    parser.add_argument("--steps", type=int, default=300)
-    parser.add_argument("--pool", type=int, default=20, help="training batches cycled through")
-    parser.add_argument("--lr", type=float, default=1e-3)
-    parser.add_argument("--repeat", type=int, default=5, help="timed calls per figure")
-    parser.add_argument("--threads", type=int, default=None, help="torch threads")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--degree-normalize", type=int, choices=(0, 1), default=1,
-                        help="1: D^-1/2 Â D^-1/2 (trains here); 0: the paper's plain Â = A + I")
-    parser.add_argument("--flows", nargs="+", choices=("nsf", "naf"), default=["nsf", "naf"])
-    parser.add_argument("--out", type=Path, default=Path("outputs/benchmarks"))
-    args = parser.parse_args(argv)
-    for name in ("particles", "per_frame", "hidden", "steps", "pool", "repeat"):
-        if getattr(args, name) < 1:
-            parser.error(f"--{name.replace('_', '-')} must be >= 1")
-    if args.particles < args.per_frame:
-        parser.error("--particles must be >= --per-frame")
-    return args
+def check(cfg: Any) -> None:
+    """Everything ``python -m bgn.benchmarks.flow`` is given, before any work."""
+    from bgn.coerce import ConfigError, need_float, need_int
+
+    for key in ("particles", "per_frame", "hidden", "steps", "pool", "repeat"):
+        need_int(cfg[key], key, 1)
+    if cfg.particles < cfg.per_frame:
+        raise ConfigError("particles", cfg.particles, f"must be >= per_frame ({cfg.per_frame})")
+    need_float(cfg.lr, "lr", 0)
+    need_int(cfg.threads, "threads", 1, optional=True, why=" (null: torch's default)")
+    need_int(cfg.seed, "seed", 0)
+    if not isinstance(cfg.degree_normalize, bool):
+        raise ConfigError("degree_normalize", cfg.degree_normalize, "true or false")
+    need_choices(cfg.flows, "flows", ("nsf", "naf"))
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
+@command("flow", check)  # key=value; bad input: one line, exit 2
+def main(cfg: Any) -> int:
+    """Measure each flow and write the report under ``report_dir``."""
+    args = options(cfg)
     if args.threads:
         torch.set_num_threads(args.threads)
     out = console()
@@ -278,15 +272,15 @@ def main(argv: list[str] | None = None) -> int:
                 [[label, *(fmt.format(r[key]) for r in rows.values())]
                  for key, label, fmt in FIGURES])
 
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_csv(args.out / "flow.csv", ["flow", *(key for key, _, _ in FIGURES)],
+    args.report_dir.mkdir(parents=True, exist_ok=True)
+    write_csv(args.report_dir / "flow.csv", ["flow", *(key for key, _, _ in FIGURES)],
               [{"flow": flow, **{key: f"{r[key]:.6g}" for key, _, _ in FIGURES}}
                for flow, r in rows.items()])
-    write_markdown(rows, args, args.out / "flow.md")
-    write_plot(rows, curves, args.out / "flow.png")
-    out.print(f"wrote {args.out / 'flow.md'}, .csv, .png")
+    write_markdown(rows, args, args.report_dir / "flow.md")
+    write_plot(rows, curves, args.report_dir / "flow.png")
+    out.print(f"wrote {args.report_dir / 'flow.md'}, .csv, .png")
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    main()

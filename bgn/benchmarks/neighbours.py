@@ -1,11 +1,11 @@
 """Benchmark of :func:`bgn.data.edges.radius_graph`: does neighbour search scale linearly in N?
 
-Uniform random points in 2-D at a density giving about ``--neighbours`` neighbours per point
+Uniform random points in 2-D at a density giving about ``neighbours`` neighbours per point
 within a cut-off of 1. Writes ``neighbours.md``, ``neighbours.csv`` and ``neighbours.png`` (time
-against N, log-log, with a linear reference line) under ``--out``::
+against N, log-log, with a linear reference line) under ``report_dir``::
 
-    python -m bgn.benchmarks.neighbours [--sizes 2000 20000 200000] [--neighbours 20]
-        [--out outputs/benchmarks]
+    python -m bgn.benchmarks.neighbours [sizes=[2000,20000,200000]] [neighbours=20]
+        [report_dir=outputs/benchmarks]      # --help: every key (conf/benchmarks/neighbours.yaml)
 
 The scaling ratio is ``(t(N_b) / t(N_a)) / (N_b / N_a)`` for the two largest sizes, so with the
 defaults ``t(200k) / t(20k) / 10``: 1 is linear, above 1 is worse than linear.
@@ -13,21 +13,22 @@ defaults ``t(200k) / t(20k) / 10``: 1 is linear, above 1 is worse than linear.
 
 from __future__ import annotations
 
-import argparse
 import ctypes
 import ctypes.util
 import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import scipy
 
-from bgn.benchmarks._report import console, print_table
+from bgn.benchmarks._report import command, console, need_ints, options, print_table
 from bgn.data.edges import radius_graph
 from bgn.provenance import machine
 from bgn.tables import markdown_table, write_csv
+from bgn.training.validate import ConfigError, need_int
 
 CUTOFF = 1.0
 # Single runs above this size: the largest case is slow enough that noise matters less.
@@ -169,10 +170,10 @@ def write_markdown(
         "",
         "Allocator: "
         + (
-            "freed memory retained in the process (`--retain-memory`)."
+            "freed memory retained in the process (`retain_memory=true`)."
             if retained
             else "default glibc malloc (arrays over 32 MiB are page-faulted again on every call; "
-            "`--retain-memory` measures without that)."
+            "`retain_memory=true` measures without that)."
         ),
         "",
         markdown_table(HEADERS, [dict(zip(HEADERS, formatted(r))) for r in rows]),
@@ -233,34 +234,25 @@ def retain_freed_memory() -> bool:
     return bool(mallopt(m_mmap_max, 0)) and bool(mallopt(m_trim_threshold, 2**31 - 1))
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
-        prog="python -m bgn.benchmarks.neighbours", description=__doc__.split("\n\n")[0]
-    )
-    parser.add_argument("--sizes", type=int, nargs="+", default=[2000, 20000, 200000])
-    parser.add_argument("--neighbours", type=float, default=20.0, help="target mean degree")
-    parser.add_argument("--out", type=Path, default=Path("outputs/benchmarks"))
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument(
-        "--retain-memory",
-        action="store_true",
-        help="glibc only: keep freed memory in the process, so repeated calls stop paying for "
-        "page faults (measures the search rather than the allocator)",
-    )
-    args = parser.parse_args(argv)
-    if any(n < 2 for n in args.sizes):
-        parser.error("--sizes must all be >= 2")
-    if not args.neighbours > 0:
-        parser.error("--neighbours must be > 0")
-    return args
+def check(cfg: Any) -> None:
+    """Everything ``python -m bgn.benchmarks.neighbours`` is given, before any work."""
+    from bgn.coerce import need_float
+
+    need_ints(cfg.sizes, "sizes", 2, why=" (particles)")
+    need_float(cfg.neighbours, "neighbours", 0, why=" (the target mean degree)")
+    need_int(cfg.seed, "seed", 0)
+    if not isinstance(cfg.retain_memory, bool):
+        raise ConfigError("retain_memory", cfg.retain_memory, "true or false")
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
+@command("neighbours", check)  # key=value; bad input: one line, exit 2
+def main(cfg: Any) -> int:
+    """Time the search at each size and write the report under ``report_dir``."""
+    args = options(cfg)
     out = console()
     retained = args.retain_memory and retain_freed_memory()
     if args.retain_memory and not retained:
-        out.print("[yellow]--retain-memory: not glibc, ignored[/yellow]")
+        out.print("[yellow]retain_memory=true: not glibc, ignored[/yellow]")
     rng = np.random.default_rng(args.seed)
     # Warm-up: first calls pay for lazy imports and page faults, not for the search.
     radius_graph(rng.uniform(size=(1000, 2)), cutoff=0.05)
@@ -281,14 +273,14 @@ def main(argv: list[str] | None = None) -> int:
             f"[bold]{value:.2f}[/bold] (1 = linear); from the first calls: {cold:.2f}"
         )
 
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_csv(args.out / "neighbours.csv", CSV_HEADER,
+    args.report_dir.mkdir(parents=True, exist_ok=True)
+    write_csv(args.report_dir / "neighbours.csv", CSV_HEADER,
               [dict(zip(CSV_HEADER, csv_row(r))) for r in rows])
-    write_markdown(rows, ratio, args.neighbours, retained, args.out / "neighbours.md")
-    write_plot(rows, args.out / "neighbours.png")
-    out.print(f"wrote {args.out / 'neighbours.md'}, .csv, .png")
+    write_markdown(rows, ratio, args.neighbours, retained, args.report_dir / "neighbours.md")
+    write_plot(rows, args.report_dir / "neighbours.png")
+    out.print(f"wrote {args.report_dir / 'neighbours.md'}, .csv, .png")
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    main()

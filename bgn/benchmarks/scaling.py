@@ -3,36 +3,37 @@ step, peak memory, fitted exponents, and the fraction of the machine's matmul ra
 
 Collisions-like frames at the scene's density (200 discs per 10 x 10 box, two types of radius
 0.1 and 0.2, equipartition speeds), edges from ``bgn.data.edges.radius_graph`` with a contact
-margin of ``--margin`` (1.25 gives the edge density of the measurements in
+margin of ``margin`` (1.25 gives the edge density of the measurements in
 docs/notes/2026-11-26-results-history.md, "Moved here from code comments and configs").
 Each model is its checkout's own config composed with
 ``dataset=collisions`` (``conf/``), so BGN runs with the collisions defaults (vector contact
 message)::
 
-    python -m bgn.benchmarks.scaling [--models bgn gns cranmer_gn]
-        [--sizes 200 2000 20000 200000] [--threads 2] [--against 8abf3d9]
-        [--max-gb 12] [--out outputs/benchmarks]
+    python -m bgn.benchmarks.scaling [models=[bgn,gns,cranmer_gn]]
+        [sizes=[200,2000,20000,200000]] [threads=2] [against=8abf3d9]
+        [max_gb=12] [report_dir=outputs/benchmarks]   # --help: conf/benchmarks/scaling.yaml
 
 Each (model, N) cell runs in its own process (``_scaling_cell.py``), so its peak resident
 memory is its own. A training step is forward + backward + AdamW; an inference step is
-``predict`` under ``no_grad``; both are the median of ``--repeats`` after a warm-up. The FLOP
+``predict`` under ``no_grad``; both are the median of ``repeats`` after a warm-up. The FLOP
 count is that of the matrix products of one training step (``torch.utils.flop_counter``:
 ``Linear`` layers and any other ``mm``), so "matmul fraction" is the achieved FLOP rate
 over the float32 matmul rate measured at the start of the same run.
 
-``--against REF`` exports ``git archive REF`` to a temporary folder and runs the same cells with
+``against=REF`` exports ``git archive REF`` to a temporary folder and runs the same cells with
 that checkout in separate processes, interleaved with this one's, and reports the ratios (old
 time / new time, old memory / new memory) from this one run: absolute times on a shared
-machine drift; ratios taken minutes apart drift less. ``--against`` also takes a folder holding
-such an export, for a machine without the history. ``--device cuda`` (the default where a GPU
+machine drift; ratios taken minutes apart drift less. ``against`` also takes a folder holding
+such an export, for a machine without the history. ``device=cuda`` (the default where a GPU
 is present) runs the cells there: memory is then the peak GPU memory allocated, and the rates
 are the GPU's. A cell whose predicted memory (the
-previous size's, scaled by N) exceeds ``--max-gb`` is skipped and the report says so.
+previous size's, scaled by N) exceeds ``max_gb`` is skipped and the report says so. The cell
+itself (``_scaling_cell.py``) keeps a private argparse interface: it is no user command, and
+it runs other checkouts' code, older than this command style.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -41,16 +42,27 @@ import sys
 import tarfile
 import tempfile
 import time
+from argparse import Namespace
 from contextlib import redirect_stdout
 from dataclasses import asdict
 from io import BytesIO, StringIO
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 
 import bgn
-from bgn.benchmarks._report import console, print_table
+from bgn.benchmarks._report import (
+    command,
+    console,
+    need_choices,
+    need_ints,
+    need_strings,
+    options,
+    outside_app,
+    print_table,
+)
 from bgn.benchmarks.flow import synthetic_stats
 from bgn.data.edges import radius_graph
 from bgn.graph import Graph, window_graph
@@ -138,7 +150,7 @@ def export(ref: str, into: Path) -> Path:
     return into
 
 
-def run_cell(checkout: Path, payload: Path | str, model: str, args: argparse.Namespace,
+def run_cell(checkout: Path, payload: Path | str, model: str, args: Namespace,
              extra: list[str]) -> dict:
     """One cell in a fresh process with ``checkout`` first on the path; {"error": ...} on a
     failure or a timeout. ``THP_MEM_ALLOC_ENABLE`` is left to each checkout's own ``bgn``."""
@@ -146,7 +158,7 @@ def run_cell(checkout: Path, payload: Path | str, model: str, args: argparse.Nam
         from bgn.benchmarks import _scaling_cell
 
         text = StringIO()
-        with redirect_stdout(text):
+        with redirect_stdout(text), outside_app():  # the cell composes conf/train.yaml
             _scaling_cell.main([str(payload), model, "--device", args.device, *extra])
         return json.loads(text.getvalue().strip().splitlines()[-1])
     env = {k: v for k, v in os.environ.items() if k != "THP_MEM_ALLOC_ENABLE"}
@@ -273,44 +285,51 @@ def write_report(rows: list[dict], training: list[dict], header: list[str],
 
 
 # ----------------------------------------------------------------------------- the command
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m bgn.benchmarks.scaling",
-                                     description=__doc__.split("\n\n")[0])
-    parser.add_argument("--models", nargs="+", default=sorted(MODELS), choices=sorted(MODELS))
-    parser.add_argument("--sizes", type=int, nargs="+", default=[200, 2000, 20000, 200000])
-    parser.add_argument("--margin", type=float, default=1.25,
-                        help="contact margin of the radius graph (1.25: ~15 edges per disc)")
-    parser.add_argument("--threads", type=int, default=2)
-    parser.add_argument("--repeats", type=int, default=2, help="timed steps after a warm-up")
-    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--against", default=None,
-                        help="a git ref (or a folder holding its export) to run side by side")
-    parser.add_argument("--against-max-n", type=int, default=None,
-                        help="largest N for the other checkout (the old code may not fit)")
-    parser.add_argument("--max-gb", type=float, default=12.0,
-                        help="skip the training of a cell predicted to grow memory past this")
-    parser.add_argument("--train-max-n", type=int, default=None,
-                        help="largest N whose training is run (inference only above)")
-    parser.add_argument("--timeout", type=float, default=900.0, help="seconds per cell")
-    parser.add_argument("--training-steps", type=int, default=0,
-                        help="also time the default collisions training over this many steps "
-                        "(0: not)")
-    parser.add_argument("--training-overrides", nargs="*", default=[],
-                        help="Hydra overrides of that training (e.g. paths.data_dir=...)")
-    parser.add_argument("--in-process", action="store_true",
-                        help="run the cells in this process (no --against; memory figures "
-                        "then include what earlier cells left; for tests)")
-    parser.add_argument("--out", type=Path, default=Path("outputs/benchmarks"))
-    args = parser.parse_args(argv)
-    if args.in_process and args.against:
-        parser.error("--against needs separate processes: drop --in-process")
-    if any(n < 2 for n in args.sizes):
-        parser.error("--sizes must all be >= 2")
-    return args
+def check(cfg: Any) -> None:
+    """Everything ``python -m bgn.benchmarks.scaling`` is given, before any work."""
+    from bgn.coerce import ConfigError, need_float, need_int
+
+    if cfg.models is not None:
+        need_choices(cfg.models, "models", sorted(MODELS))
+    need_ints(cfg.sizes, "sizes", 2, why=" (particles)")
+    need_float(cfg.margin, "margin", 0, why=" (the radius graph's contact margin)")
+    need_int(cfg.threads, "threads", 1)
+    need_int(cfg.repeats, "repeats", 1)
+    if cfg.device is not None:
+        try:
+            device = torch.device(str(cfg.device))
+        except RuntimeError:
+            device = None
+        if device is None or device.type not in ("cpu", "cuda"):
+            raise ConfigError("device", cfg.device, "cpu, cuda or cuda:<i> (null: cuda where "
+                              "present)")
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise ConfigError("device", cfg.device, "no GPU here: device=cpu (or null)")
+    need_int(cfg.against_max_n, "against_max_n", 2, optional=True)
+    need_float(cfg.max_gb, "max_gb", 0)
+    need_int(cfg.train_max_n, "train_max_n", 2, optional=True)
+    need_float(cfg.timeout, "timeout", 0, why=" (seconds per cell)")
+    need_int(cfg.training_steps, "training_steps", 0, why=" (0: not)")
+    if cfg.training_steps == 1:
+        raise ConfigError("training_steps", 1, "0 (not) or at least 2: the first step is "
+                          "a warm-up, not timed")
+    need_strings(cfg.training_overrides, "training_overrides")
+    if not isinstance(cfg.in_process, bool):
+        raise ConfigError("in_process", cfg.in_process, "true or false")
+    if cfg.in_process and cfg.against:
+        raise ConfigError("in_process", True, "against needs separate processes: "
+                          "in_process=false")
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
+@command("scaling", check)  # key=value; bad input: one line, exit 2
+def main(cfg: Any) -> int:
+    """Time every (model, N) cell and write the report under ``report_dir``."""
+    args = options(cfg)
+    args.models = args.models or sorted(MODELS)
+    args.device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+    if args.paths.get("data_dir"):  # the training timing's data, for every checkout
+        data_dir = Path(args.paths["data_dir"]).expanduser().resolve()
+        args.training_overrides = [f"paths.data_dir={data_dir}", *args.training_overrides]
     out = console()
     torch.set_num_threads(args.threads)
     on_gpu = torch.device(args.device).type == "cuda"
@@ -342,10 +361,10 @@ def main(argv: list[str] | None = None) -> int:
                     skip = guess > args.max_gb
                     if skip:
                         row["note"] = (f"training skipped: ~{guess:.0f} GB predicted "
-                                       f"> --max-gb {args.max_gb:g}")
+                                       f"> max_gb={args.max_gb:g}")
                     elif args.train_max_n is not None and n > args.train_max_n:
                         skip = True
-                        row["note"] = f"training skipped: N > --train-max-n {args.train_max_n}"
+                        row["note"] = f"training skipped: N > train_max_n={args.train_max_n}"
                     cell = run_cell(checkout, payload, model, args,
                                     ["--repeats", str(args.repeats)]
                                     + (["--skip-train"] if skip else []))
@@ -391,17 +410,17 @@ def main(argv: list[str] | None = None) -> int:
         f"times are medians of {args.repeats} after a warm-up; memory is the growth of the "
         + ("peak GPU memory allocated" if on_gpu else "peak resident set")
         + " over the cell's baseline (model and frame loaded)."]
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_report(rows, training, header, args.against, args.out)
+    args.report_dir.mkdir(parents=True, exist_ok=True)
+    write_report(rows, training, header, args.against, args.report_dir)
     print_table(out, "scaling", COLUMNS, [[fmt(r.get(c)) for c in COLUMNS] for r in rows])
     if args.against:
         for r in ratios(rows, "this", args.against):
             out.print(f"{r['model']} N={r['n']:,}: speed-up train "
                       f"{fmt(r['train_s_ratio'])}x, infer {fmt(r['infer_s_ratio'])}x, "
                       f"memory {fmt(r['train_peak_gb_ratio'])}x smaller")
-    out.print(f"wrote {args.out / 'scaling.md'}, .csv, .png")
+    out.print(f"wrote {args.report_dir / 'scaling.md'}, .csv, .png")
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    main()

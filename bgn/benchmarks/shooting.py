@@ -7,44 +7,49 @@ steps until the integration back over one frame meets x[t-1]. Fed the true law a
 recorded masses, the prediction should reproduce the recorded target to the integrator's
 accuracy; how close it gets after each number of steps says how many are enough. Per number of
 iterations and substeps: the relative error ``|a_pred - a_true| / |a_true|`` over every
-particle of ``--frames`` frames spread evenly over the split's simulations (median, 90th and
+particle of ``frames`` frames spread evenly over the split's simulations (median, 90th and
 99th percentiles) and the NMSE (mean squared error over the targets' variance)::
 
-    python -m bgn.benchmarks.shooting [--dataset gravity_r2] [--fps 50] [--split val]
-        [--frames 1024] [--iterations 1 2 3 4 8 16 24] [--substeps 16 64] [--data-dir data]
-        [--out outputs/benchmarks]
+    python -m bgn.benchmarks.shooting [scene=gravity_r2] [fps=50] [split=val] [frames=1024]
+        [iterations=[1,2,3,4,8,16,24]] [substeps=[16,64]] [paths.data_dir=data]
+        [report_dir=outputs/benchmarks]      # --help: every key (conf/benchmarks/shooting.yaml)
 
-Writes ``shooting.md`` and ``shooting.csv`` under ``--out``; the data are generated into
-``--data-dir`` where missing. Choose on the validation split (the default): the fewest
-iterations whose percentiles are within ``--tolerance`` of the most iterations' is printed.
+Writes ``shooting.md`` and ``shooting.csv`` under ``report_dir``; the data are generated into
+``paths.data_dir`` where missing. Choose on the validation split (the default): the fewest
+iterations whose percentiles are within ``tolerance`` of the most iterations' is printed.
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from bgn.benchmarks._report import console, print_table
+from bgn.benchmarks._report import (
+    command,
+    compose_train,
+    console,
+    need_ints,
+    need_strings,
+    options,
+    print_table,
+)
 from bgn.provenance import machine
 from bgn.tables import markdown_table, write_csv
 
 COLUMNS = ["substeps", "iterations", "median", "p90", "p99", "nmse", "seconds"]
 
 
-def split_data(dataset: str, fps: float, split: str, data_dir: str,
+def split_data(scene: str, fps: float, split: str, data_dir: str,
                overrides: list[str]) -> Any:
-    """The ``split`` of ``dataset=<dataset>`` at ``fps`` (generated where missing): a
+    """The ``split`` of ``dataset=<scene>`` at ``fps`` (generated where missing): a
     ``FrameDataset``, its file and scene."""
     from bgn.data.datamodule import ParticleDataModule
-    from bgn.studies.cells import compose_train
 
-    cfg = compose_train([f"dataset={dataset}", f"fps={fps}", *overrides])
+    cfg = compose_train([f"dataset={scene}", f"fps={fps}", *overrides])
     datamodule = ParticleDataModule(cfg.dataset, cfg.fps, data_dir, show_progress=False)
     datamodule.prepare_data()
     datamodule.setup()
@@ -112,30 +117,41 @@ def fewest(rows: list[dict[str, Any]], tolerance: float) -> dict[int, int]:
     return out
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog="python -m bgn.benchmarks.shooting",
-                                description=__doc__.split("\n\n")[0])
-    p.add_argument("--dataset", default="gravity_r2")
-    p.add_argument("--fps", type=float, default=50.0)
-    p.add_argument("--split", default="val", choices=["train", "val", "test"])
-    p.add_argument("--frames", type=int, default=1024)
-    p.add_argument("--iterations", type=int, nargs="+", default=[1, 2, 3, 4, 8, 16, 24])
-    p.add_argument("--substeps", type=int, nargs="+", default=[16, 64])
-    p.add_argument("--tolerance", type=float, default=0.01)
-    p.add_argument("--data-dir", default="data")
-    p.add_argument("--override", nargs="*", default=[], metavar="KEY=VALUE",
-                   help="train-config overrides of the dataset (dataset.n_sims=2, ...)")
-    p.add_argument("--out", type=Path, default=Path("outputs/benchmarks"))
-    args = p.parse_args(argv)
-    if args.frames < 1 or min(args.iterations) < 1 or min(args.substeps) < 2:
-        p.error("--frames and --iterations must be >= 1, --substeps >= 2 (one substep "
-                "does not shoot)")
-    return args
+SPLITS = ("train", "val", "test")
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    data = split_data(args.dataset, args.fps, args.split, args.data_dir, args.override)
+def check(cfg: Any) -> None:
+    """Everything ``python -m bgn.benchmarks.shooting`` is given, before data are read or
+    generated (the dataset's own keys: ``python -m bgn.train``'s checks)."""
+    from bgn.coerce import ConfigError, need_float, need_int
+    from bgn.training.validate import CONF_DIR, one_line, validate_dataset
+
+    scenes = sorted(p.stem for p in (CONF_DIR / "dataset").glob("*.yaml"))
+    if cfg.scene not in scenes:
+        raise ConfigError("scene", cfg.scene, f"one of {scenes} (conf/dataset/)")
+    if cfg.split not in SPLITS:
+        raise ConfigError("split", cfg.split, f"one of {list(SPLITS)}")
+    need_int(cfg.frames, "frames", 1)
+    need_ints(cfg.iterations, "iterations", 1, why=" (Newton steps)")
+    need_ints(cfg.substeps, "substeps", 2, why=" (one substep does not shoot)")
+    need_float(cfg.tolerance, "tolerance", 0)
+    if not cfg.paths.data_dir:
+        raise ConfigError("paths.data_dir", cfg.paths.data_dir, "a folder (default: data)")
+    overrides = need_strings(cfg.overrides, "overrides")
+    try:
+        train = compose_train([f"dataset={cfg.scene}", f"fps={cfg.fps}", *overrides])
+    except Exception as err:  # noqa: BLE001 (Hydra's refusal of an override, on one line)
+        raise ConfigError("overrides", message=f"overrides={overrides}: {one_line(err)}"
+                          ) from err
+    validate_dataset(train.dataset, train.fps, cfg.paths.data_dir)
+
+
+@command("shooting", check)  # key=value; bad input: one line, exit 2
+def main(cfg: Any) -> int:
+    """Measure each (substeps, iterations) and write the report under ``report_dir``."""
+    args = options(cfg)
+    data = split_data(args.scene, args.fps, args.split, args.paths["data_dir"],
+                      args.overrides)
     chosen = frames(data.file, args.frames)
     rows = []
     for k in args.substeps:
@@ -148,7 +164,7 @@ def main(argv: list[str] | None = None) -> int:
                          "seconds": time.perf_counter() - start})
     enough = fewest(rows, args.tolerance)
     n = sum(len(t) for _, t in chosen)
-    title = (f"Shooting iterations: {args.dataset} at fps {args.fps:g}, {args.split} split, "
+    title = (f"Shooting iterations: {args.scene} at fps {args.fps:g}, {args.split} split, "
              f"{n} frames, the true law and masses")
     notes = (f"Relative error |a_pred - a_true| / |a_true| per particle (median, p90, p99) and "
              "NMSE of the shooting's finite-difference acceleration against the recorded "
@@ -156,9 +172,9 @@ def main(argv: list[str] | None = None) -> int:
              f"{args.tolerance:g} of the most measured: "
              + ", ".join(f"{k} substeps: {v}" for k, v in enough.items()) + ". "
              + machine(torch=torch.__version__) + ".")
-    args.out.mkdir(parents=True, exist_ok=True)
-    write_csv(args.out / "shooting.csv", COLUMNS, rows)
-    (args.out / "shooting.md").write_text(
+    args.report_dir.mkdir(parents=True, exist_ok=True)
+    write_csv(args.report_dir / "shooting.csv", COLUMNS, rows)
+    (args.report_dir / "shooting.md").write_text(
         f"# {title}\n\n{notes}\n\n" + markdown_table(COLUMNS, rows))
     out = console()
     print_table(out, title, COLUMNS, [[f"{r[c]:.3g}" if isinstance(r[c], float) else str(r[c])
@@ -168,4 +184,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    main()

@@ -1,5 +1,7 @@
 """Every benchmark command runs: each module of ``bgn.benchmarks`` on tiny sizes, in-process,
-writing its report files with finite numbers; a new benchmark without a smoke test here fails."""
+writing its report files with finite numbers; a new benchmark without a smoke test here fails.
+Each takes ``key=value`` (``bgn.training.validate.cli``, ``conf/benchmarks/<name>.yaml``): bad
+input is refused in one line with exit code 2 and nothing written."""
 
 from __future__ import annotations
 
@@ -16,18 +18,17 @@ import torch
 
 import bgn.benchmarks
 
-# command -> (tiny arguments, the report files it writes under --out)
+# command -> (tiny key=value arguments, the report files it writes under report_dir)
 SMOKE = {
-    "neighbours": (["--sizes", "300", "600", "--neighbours", "8"],
+    "neighbours": (["sizes=[300,600]", "neighbours=8"],
                    ["neighbours.md", "neighbours.csv", "neighbours.png"]),
-    "scaling": (["--sizes", "40", "80", "--margin", "0.5", "--threads", "1", "--repeats", "1",
-                 "--in-process"],
+    "scaling": (["sizes=[40,80]", "margin=0.5", "threads=1", "repeats=1", "in_process=true"],
                 ["scaling.md", "scaling.csv", "scaling.png"]),
-    "flow": (["--particles", "40", "--per-frame", "20", "--hidden", "8", "--steps", "3",
-              "--pool", "2", "--repeat", "1", "--threads", "1"],
+    "flow": (["particles=40", "per_frame=20", "hidden=8", "steps=3", "pool=2", "repeat=1",
+              "threads=1"],
              ["flow.md", "flow.csv", "flow.png"]),
-    "shooting": (["--override", "dataset.n_sims=2", "dataset.n_frames=40", "--frames", "8",
-                  "--iterations", "1", "2", "--substeps", "4", "--data-dir", "{tmp}/data"],
+    "shooting": (["overrides=['dataset.n_sims=2','dataset.n_frames=40']", "frames=8",
+                  "iterations=[1,2]", "substeps=[4]", "paths.data_dir={tmp}/data"],
                  ["shooting.md", "shooting.csv"]),
 }
 
@@ -82,7 +83,7 @@ def numbers_of_markdown_tables(text: str) -> list[str]:
 def test_benchmark_writes_reports_with_finite_numbers(name, tmp_path, keep_threads) -> None:
     argv, files = SMOKE[name]
     main = importlib.import_module(f"bgn.benchmarks.{name}").main
-    assert main([*(a.format(tmp=tmp_path) for a in argv), "--out", str(tmp_path)]) == 0
+    assert main([*(a.format(tmp=tmp_path) for a in argv), f"report_dir={tmp_path}"]) == 0
     for file in files:
         assert (tmp_path / file).stat().st_size > 0, file
 
@@ -101,7 +102,7 @@ def test_benchmark_writes_reports_with_finite_numbers(name, tmp_path, keep_threa
 def test_neighbours_report_has_the_scaling_ratio(tmp_path) -> None:
     from bgn.benchmarks.neighbours import main
 
-    assert main(["--sizes", "300", "600", "--neighbours", "8", "--out", str(tmp_path)]) == 0
+    assert main(["sizes=[300,600]", "neighbours=8", f"report_dir={tmp_path}"]) == 0
     lines = (tmp_path / "neighbours.csv").read_text().splitlines()
     assert len(lines) == 3 and lines[1].startswith("300,")
     assert "Linear-scaling ratio" in (tmp_path / "neighbours.md").read_text()
@@ -178,13 +179,12 @@ def test_a_cell_killed_in_its_flop_count_keeps_its_timings(monkeypatch, tmp_path
 def test_scaling_trains_only_up_to_train_max_n(tmp_path, keep_threads) -> None:
     from bgn.benchmarks.scaling import main
 
-    assert main(["--sizes", "40", "80", "--margin", "0.5", "--threads", "1", "--repeats", "1",
-                 "--models", "cranmer_gn", "--train-max-n", "40", "--in-process",
-                 "--out", str(tmp_path)]) == 0
+    assert main(["sizes=[40,80]", "margin=0.5", "threads=1", "repeats=1", "models=[cranmer_gn]",
+                 "train_max_n=40", "in_process=true", f"report_dir={tmp_path}"]) == 0
     with (tmp_path / "scaling.csv").open(newline="") as f:
         rows = {int(r["n"]): r for r in csv.DictReader(f)}
     assert float(rows[40]["train_s"]) > 0 and float(rows[80]["infer_s"]) > 0
-    assert rows[80]["train_s"] == "" and "--train-max-n" in rows[80]["note"]
+    assert rows[80]["train_s"] == "" and "train_max_n=40" in rows[80]["note"]
 
 
 def test_against_takes_a_folder_holding_an_export_as_it_is(tmp_path) -> None:
@@ -226,3 +226,54 @@ def test_shooting_finds_the_fewest_iterations_within_the_tolerance() -> None:
     rows = [row(16, 1, 2.0, 2.0, 2.0), row(16, 2, 1.0, 1.2, 1.0), row(16, 3, 1.0, 1.005, 1.0),
             row(16, 8, 1.0, 1.0, 1.0), row(64, 1, 1.0, 1.0, 1.0), row(64, 4, 1.0, 1.0, 1.0)]
     assert fewest(rows, 0.01) == {16: 3, 64: 1}
+
+
+# name -> bad key=value arguments, each refused before any work (what the line names)
+BAD = [
+    ("neighbours", ["sizes=[1,600]"], "sizes=1"),
+    ("neighbours", ["sizes=300"], "sizes=300"),
+    ("neighbours", ["neighbours=0"], "neighbours=0"),
+    ("neighbours", ["neighbors=8"], "did you mean neighbours"),
+    ("neighbours", ["--sizes", "300"], "sizes=<value>"),
+    ("scaling", ["models=[bgn,nope]"], "models="),
+    ("scaling", ["in_process=true", "against=HEAD"], "against needs separate processes"),
+    ("scaling", ["device=tpu"], "device='tpu'"),
+    ("scaling", ["training_steps=1"], "training_steps=1"),
+    ("flow", ["particles=10", "per_frame=20"], "must be >= per_frame"),
+    ("flow", ["flows=[nsf,maf]"], "flows="),
+    ("flow", ["degree_normalize=1"], "degree_normalize=1"),
+    ("shooting", ["scene=nope"], "scene='nope'"),
+    ("shooting", ["split=dev"], "split='dev'"),
+    ("shooting", ["substeps=[1]"], "one substep does not shoot"),
+    ("shooting", ["overrides=['dataset.n_sims=0']"], "dataset.n_sims=0"),
+    ("shooting", ["overrides=['dataset.nsims=2']"], "dataset.nsims"),
+]
+
+
+@pytest.mark.parametrize("name, argv, named", BAD)
+def test_bad_input_is_one_line_exit_2_and_nothing_written(name, argv, named, tmp_path,
+                                                          capsys) -> None:
+    main = importlib.import_module(f"bgn.benchmarks.{name}").main
+    out = tmp_path / "report"
+    with pytest.raises(SystemExit) as done:
+        main([*argv, f"report_dir={out}", f"paths.data_dir={tmp_path / 'data'}"]
+             if name == "shooting" else [*argv, f"report_dir={out}"])
+    assert done.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and named in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.slow
+def test_a_benchmark_on_the_console_writes_its_report(tmp_path) -> None:
+    """``python -m bgn.benchmarks.neighbours key=value``: the report under report_dir and
+    nothing else in the working folder (no Hydra run folder, no log)."""
+    import sys
+
+    done = subprocess.run([sys.executable, "-m", "bgn.benchmarks.neighbours", "sizes=[300,600]",
+                           "neighbours=8", f"report_dir={tmp_path / 'r'}"], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert sorted(p.name for p in (tmp_path / "r").iterdir()) == [
+        "neighbours.csv", "neighbours.md", "neighbours.png"]
+    assert [p.name for p in tmp_path.iterdir()] == ["r"]

@@ -247,31 +247,53 @@ def test_auto_refuses_the_pair_force_head_where_the_forces_depend_on_velocity():
 
 
 def test_the_command_tabulates_each_file(tmp_path, capsys):
+    """``python -m bgn.data.balance <files> [results_md=FILE]`` (``bgn.train.balance``): one
+    row per file; several paths, or relative ones under ``paths.data_dir``; a missing file
+    refused in one line (exit 2) before any is read."""
+    import importlib
+
     from bgn.data import from_arrays
-    from bgn.data.balance import main
     from bgn.provenance import block_markers
 
+    main = importlib.import_module("bgn.train.balance").command
     x = np.stack([trajectory(s, field=-1.0) for s in range(5)])
     paths = from_arrays(x, 0.02, name="pulled", data_dir=tmp_path)
     table = main([str(paths["train"])])
     assert table.count("\n") == 2 and "total momentum changes" in table
     # the validation split beside it: the velocity test's two errors
     assert " / " in table.splitlines()[-1]
-    with pytest.raises(SystemExit):
-        main([])
-    assert "usage" in capsys.readouterr().err
-    # --results-md: the table and the command that wrote it, in the file's block, in place
+    relative = str(paths["val"].relative_to(tmp_path))
+    two = main([str(paths["train"]), relative, f"paths.data_dir={tmp_path}"])
+    assert two.count("\n") == 3 and relative in two.splitlines()[-1]
+    capsys.readouterr()
+    for argv, named in (([], "give dataset files"), ([str(tmp_path / "none.h5")], "none.h5"),
+                        ([str(paths["train"]), "results_md=out.txt"], "results_md")):
+        with pytest.raises(SystemExit) as done:
+            main(argv)
+        err = capsys.readouterr().err.strip()
+        assert done.value.code == 2 and len(err.splitlines()) == 1 and named in err, err
+    # results_md=: the table and the command that wrote it, in the file's block, in place
     results = tmp_path / "results.md"
     results.write_text("before\n<!-- generated:balance:begin -->\nold\n"
                        "<!-- generated:balance:end -->\nafter\n")
-    again = main([str(paths["train"]), "--results-md", str(results)])
+    again = main([str(paths["train"]), f"results_md={results}"])
     assert again.splitlines()[-1].rsplit("|", 2)[0] == table.splitlines()[-1].rsplit("|", 2)[0]
     text = results.read_text()
     begin, end = block_markers("balance")
     block = text[text.index(begin):text.index(end)]
     assert text.startswith("before\n") and text.endswith("after\n") and "old" not in block
-    assert "total momentum changes" in block and "python -m bgn.data.balance" in block
+    assert "total momentum changes" in block
+    assert f"python -m bgn.data.balance {paths['train']} results_md=" in block
     assert "commit" in block
+
+
+def test_several_paths_become_one_files_list():
+    from bgn.train.balance import one_list
+
+    assert one_list(["a.h5"]) == ["a.h5"]
+    assert one_list(["a.h5", "b c.h5", "results_md=r.md"]) == [
+        "files=['a.h5','b c.h5']", "results_md=r.md"]
+    assert one_list(["-cn", "balance", "a.h5"]) == ["-cn", "balance", "a.h5"]
 
 
 def test_frames_too_coarse_to_tell_leave_the_balance_untested():

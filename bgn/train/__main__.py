@@ -11,10 +11,9 @@ from __future__ import annotations
 
 from omegaconf import DictConfig
 
-from bgn.coerce import seconds
 from bgn.training.budget import Deadline, watch_signals
 from bgn.training.checkpoints import CheckpointError
-from bgn.training.run import train
+from bgn.training.run import job_cap, train
 from bgn.training.validate import cli, validate_train
 
 
@@ -22,7 +21,7 @@ from bgn.training.validate import cli, validate_train
 def main(cfg: DictConfig) -> float:
     # the job's wall-clock cap counts from here: data generation, training, the formula stage
     # and the test inside it (docs/design.md#budgets); SIGTERM acted on anywhere within seconds
-    deadline = Deadline.after(seconds(cfg.trainer.get("max_time")))
+    deadline = Deadline.after(job_cap(cfg))
     watch_signals()
     spec = validate_train(cfg)  # once per run: the DatasetSpec is handed on to the DataModule
     try:

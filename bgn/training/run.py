@@ -184,6 +184,22 @@ def check_step_budget(cfg: DictConfig, datamodule: ParticleDataModule) -> None:
                     epoch)
 
 
+def job_cap(cfg: DictConfig) -> float | None:
+    """``trainer.max_time`` in seconds (None: no cap); a value Lightning cannot read is
+    refused in one line."""
+    from bgn.coerce import ConfigError, seconds
+
+    value = cfg.trainer.get("max_time")
+    try:
+        cap = seconds(value)
+    except (TypeError, ValueError):
+        raise ConfigError("trainer.max_time", value, 'must be "DD:HH:MM:SS", timedelta fields '
+                          "({minutes: 40}) or null (no cap)") from None
+    if cap is not None and cap <= 0:
+        raise ConfigError("trainer.max_time", value, "must be a positive time, or null")
+    return cap
+
+
 def set_threads(threads: Any) -> None:
     """torch's CPU threads for this job (``threads``; null: torch's default)."""
     from bgn.coerce import need_int
@@ -224,7 +240,7 @@ def train(cfg: DictConfig, spec: DatasetSpec | None = None,
     candidate's folder)."""
     import lightning as L
 
-    from bgn.coerce import ConfigError, seconds
+    from bgn.coerce import ConfigError
     from bgn.training.budget import OutOfTime, clock_text, deferred, received, watch_signals
     from bgn.training.signals import FitDeadline, SignalCheckpoint, interrupted
 
@@ -237,9 +253,8 @@ def train(cfg: DictConfig, spec: DatasetSpec | None = None,
         raise ValueError("model.law=auto needs the formula stage: run python -m bgn.train, or "
                          "pass law_stage=bgn.eval.laws.law_stage")
     start = time.perf_counter()
-    cap = seconds(cfg.trainer.get("max_time"))
     if deadline is None:
-        deadline = Deadline.after(cap)
+        deadline = Deadline.after(job_cap(cfg))
     watch_signals()  # idempotent: the command installed it already
     set_threads(cfg.get("threads"))
     default_dir, default_overrides = resume_target(cfg)

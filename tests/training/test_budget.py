@@ -248,3 +248,9 @@ def test_a_job_trains_on_the_threads_it_is_given_and_refuses_none(tmp_path, shar
             train(tiny_cfg(tmp_path, shared_data_dir, "threads=0", run="none"))
     finally:
         torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize("value", ["abc", "00:00:-1:00", "00:00:00:00"])
+def test_a_cap_lightning_cannot_read_is_refused_in_one_line(tmp_path, shared_data_dir, value):
+    with pytest.raises(ConfigError, match="trainer.max_time"):
+        train(tiny_cfg(tmp_path, shared_data_dir, f"trainer.max_time='{value}'"))

@@ -28,7 +28,7 @@ def main(cfg: DictConfig) -> float:
         if cfg.model.get("dynamics") == "auto":  # the structure chosen by evidence
             from bgn.studies.auto import run_auto
 
-            metrics = run_auto(cfg)
+            metrics = run_auto(cfg, deadline=deadline)
         else:
             from bgn.eval.laws import law_stage  # model.law=auto's formula stage
 

@@ -101,20 +101,67 @@ def test_admitted_exactly_where_the_structured_head_builds(interaction, target, 
 
 
 # ----------------------------------------------------------------------------- budget
-def test_budget_split_and_the_winners_rest():
+def test_budget_split_in_steps_and_the_winners_rest():
+    """Candidates are bounded by optimiser steps (auto.share of trainer.max_steps, else of
+    auto.max_steps), never by their own time: trainer.max_time is the job's one deadline."""
     each, winner = split_budget({"max_time": "00:00:08:00", "max_steps": 600,
                                  "max_epochs": 300}, 0.5, 3)
-    assert each == {"max_time": "00:00:01:20", "max_steps": 100, "max_epochs": 50}
+    assert each == {"max_steps": 100, "max_epochs": -1}
     # the winner resumes (Lightning counts from the start): its share plus the rest
-    assert winner == {"max_time": "00:00:05:20", "max_steps": 400, "max_epochs": 200}
+    assert winner == {"max_steps": 400, "max_epochs": -1}
     for n, share, total in itertools.product((1, 2, 5, 7), (0.1, 0.5, 0.9), (10, 999)):
         each, winner = split_budget({"max_steps": total}, share, n)
         assert n * each["max_steps"] + winner["max_steps"] - each["max_steps"] == max(
             total, n * each["max_steps"])
-    each, _ = split_budget({"max_time": {"hours": 1}, "max_steps": -1}, 0.5, 2)
-    assert each == {"max_time": "00:00:15:00"}
-    with pytest.raises(ValueError, match="trainer.max_time or trainer.max_steps"):
-        split_budget({"max_epochs": 10}, 0.5, 2)
+    for trainer in ({"max_time": {"hours": 1}, "max_steps": -1}, {"max_epochs": 10}):
+        with pytest.raises(ValueError, match="trainer.max_steps"):
+            split_budget(trainer, 0.5, 2)
+
+
+def test_a_share_below_min_steps_is_refused_in_one_line():
+    from bgn.studies.auto import check_shares
+
+    check_shares({"max_steps": 100}, 100, 6, 1200)
+    with pytest.raises(ConfigError) as err:
+        check_shares({"max_steps": 99}, 100, 6, 1200)
+    message = str(err.value)
+    assert "\n" not in message and "auto.min_steps" in message and "trainer.max_steps" in message
+
+
+def test_a_candidate_below_min_steps_is_never_compared_and_a_result_survives_a_resume(
+        tmp_path):
+    """Not trained (fewer than auto.min_steps) or failed: never in the choice, whatever its
+    score; result.json gives a resumed run the same result back."""
+    from bgn.studies.auto import fallback, stored_result
+
+    decoder = Candidate("decoder", "d", ["model.dynamics=decoder"])
+    newton = Candidate("newton_inertial", "n", ["model.dynamics=newton"], pair_force=True)
+    short = Result(newton, errors={10: 0.001, 50: 0.01}, steps=40,
+                   untrained="not trained (40 steps of auto.min_steps=100 ...)")
+    trained = Result(decoder, errors={10: 0.1, 50: 1.0}, steps=100)
+    assert not short.compared and trained.compared
+    assert choose([short, trained], 50)[0] is trained
+    assert short.status().startswith("not trained") and trained.status() == "trained"
+    with pytest.raises(ValueError):
+        choose([short], 50)
+    assert fallback([short]) is short and fallback([Result(newton)]) is None
+    (tmp_path / "result.json").write_text(json.dumps(trained.state()))
+    again = stored_result(Candidate("decoder", "d", []), tmp_path)
+    assert again is not None and again.errors == trained.errors and again.steps == 100
+    assert again.candidate.overrides == ["model.dynamics=decoder"]
+    assert stored_result(decoder, tmp_path / "none") is None
+
+
+def test_each_fit_gets_an_even_part_of_the_time_left():
+    from bgn.studies.auto import WINNER_RESERVE, candidate_deadline
+    from bgn.training.budget import NO_DEADLINE, Deadline
+
+    assert candidate_deadline(NO_DEADLINE, 3) is NO_DEADLINE
+    job = Deadline.after(100.0)
+    for remaining in (1, 2, 7):
+        part = candidate_deadline(job, remaining).left()
+        assert part == pytest.approx(100 * (1 - WINNER_RESERVE) / remaining, abs=0.5)
+        assert candidate_deadline(job, remaining).end <= job.end
 
 
 # ----------------------------------------------------------------------------- scores
@@ -195,12 +242,25 @@ def test_report_names_the_choice_and_shows_its_evidence(tmp_path):
     decoder = Result(Candidate("decoder", "the decoder", []), errors={10: 0.02, 50: 0.4},
                      failed_share=0.5, curve=[0.2] * 50, steps=30, wall_s=1.0)
     absent = Result(Candidate("impulse", "impulses", [], admitted=False, reason="no contacts"))
+    failed = Result(Candidate("newton_source", "source", [], pair_force=True),
+                    error="FloatingPointError: train loss became nan at step 3")
+    short = Result(Candidate("newton_type", "type", [], pair_force=True), steps=7,
+                   untrained="not trained (7 steps of auto.min_steps=20 before trainer.max_time)")
     protocol = {"horizon": 50, "horizons": [10, 50], "sims": [0, 1, 2, 5], "starts": [6],
                 "rollouts": 2, "share": 0.5, "budget_each": {"max_steps": 30},
-                "budget_winner": {"max_steps": 70}, "masses_known": True,
+                "budget_winner": {"max_steps": 70}, "masses_known": True, "min_steps": 20,
                 "balance": {"linear": 2e-9, "angular": 3e-7, "sims": 8, "frames": 256},
-                "velocity": {"distance": 3e-4, "velocity": 2.9e-4, "sims": 8, "frames": 130}}
-    report = write_report(tmp_path, [decoder, pair, absent], pair, 4.0, protocol).read_text()
+                "velocity": {"distance": 3e-4, "velocity": 2.9e-4, "sims": 8, "frames": 130},
+                "cut": ["the formula candidate: not fitted (trainer.max_time was reached)"]}
+    report = write_report(tmp_path, [decoder, pair, failed, short, absent], pair, 4.0,
+                          protocol).read_text()
+    # a failed candidate with its reason, one cut short with its steps, what the cap cut
+    assert "| failed: FloatingPointError: train loss became nan at step 3 |" in report
+    assert "| not trained (7 steps of auto.min_steps=20 before trainer.max_time) |" in report
+    assert "- newton_source could not be trained or scored: FloatingPointError" in report
+    assert "- newton_type: not trained (7 steps" in report and "never compared" in report
+    assert "Cut by trainer.max_time: the formula candidate: not fitted" in report
+    assert "(at least 20 to count as trained" in report
     assert "**newton_inertial**" in report and "4 times that" in report
     assert "no: no contacts" in report
     assert "momentum imbalance 2e-09" in report and "Verdict: balanced" in report
@@ -212,14 +272,14 @@ def test_report_names_the_choice_and_shows_its_evidence(tmp_path):
     record = json.loads((tmp_path / "auto.json").read_text())
     assert record["choice"] == "newton_inertial" and record["margin"] == 4.0
     rows = (tmp_path / "auto.csv").read_text().splitlines()
-    assert len(rows) == 4 and rows[2].endswith("True,")          # the chosen one, no error
+    assert len(rows) == 6 and rows[2].endswith("True,,trained")  # the chosen one, no error
     for key in ("errors", "law", "masses_newton_inertial"):
         assert (tmp_path / record["figures"][key]).stat().st_size > 0
 
 
 # ----------------------------------------------------------------------------- configs
 def test_candidates_compose_from_the_real_configs(tmp_path):
-    base = ["dataset=gravity_r2", "model.dynamics=auto", "model.hidden=16", "+trainer.max_steps=9"]
+    base = ["dataset=gravity_r2", "model.dynamics=auto", "model.hidden=16", "trainer.max_steps=9"]
     limits = {"max_steps": 3}
     pool = {c.name: c for c in candidates(make_scene("gravity_r2").meta, 5, True, REFS)}
     newton = compose_candidate(base, pool["newton_inertial"], tmp_path / "n", limits)
@@ -284,7 +344,7 @@ def test_auto_picks_the_structure_spring_was_made_with(tmp_path, shared_data_dir
         "model.decoder_hidden=16", "model.flow_hidden=16", "figures=false",
         "val_rollout_steps=0", "animation_every=0", "callbacks.progress_bar=null",
         "dataset.batch_size=16", "trainer.check_val_every_n_epoch=5", "trainer.max_epochs=-1",
-        "+trainer.max_steps=800", "auto.share=0.75", "auto.references=[]", "test=false"),
+        "trainer.max_steps=800", "auto.share=0.75", "auto.references=[]", "test=false"),
         env=CLI_ENV, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
     record = json.loads((run / "auto" / "auto.json").read_text())
@@ -325,7 +385,7 @@ def test_auto_gives_centrally_damped_data_the_decoder(tmp_path):
         f"hydra.run.dir={run}", "model.hidden=16", "model.decoder_hidden=16",
         "model.flow_hidden=16", "figures=false", "val_rollout_steps=0", "animation_every=0",
         "callbacks.progress_bar=null", "dataset.batch_size=16", "trainer.max_epochs=-1",
-        "+trainer.max_steps=40", "auto.references=[]", "test=false"),
+        "trainer.max_steps=40", "auto.references=[]", "test=false"),
         env=CLI_ENV, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
     record = json.loads((run / "auto" / "auto.json").read_text())
@@ -387,6 +447,67 @@ def test_the_best_pair_force_law_becomes_a_formula_candidate(tmp_path, shared_da
                      OmegaConf.to_container(final.model, resolve=True))
     ckpt = torch.load(auto_dir / best.name / "checkpoints" / "last.ckpt", weights_only=True)
     assert len(ckpt["optimizer_states"][0]["param_groups"]) == (2 if law_init == "match" else 1)
+    # the formula's checkpoint is its own: no other candidate's callback state (its
+    # ModelCheckpoint named that candidate's best.ckpt)
+    own = torch.load(auto_dir / result.candidate.name / "checkpoints" / "last.ckpt",
+                     weights_only=True)
+    assert own["callbacks"] == {} and ckpt["callbacks"]
+
+
+@pytest.mark.parametrize("carried", [False, True])
+def test_a_winner_whose_budget_is_spent_is_tested_on_its_own_checkpoint(
+        tmp_path, shared_data_dir, monkeypatch, carried):
+    """The crash of issue 55: the winner (a formula candidate whose checkpoint was made from
+    another candidate's) resumed from its own last.ckpt with no steps left, and was tested
+    with the best.ckpt that the other candidate's ModelCheckpoint state named, whose network
+    law does not load into the formula model. Its test must read its own weights, also where
+    that state were still carried (``carried``: run.py's guard on its own)."""
+    import lightning as L
+
+    from bgn.eval.laws import law_stage
+    from bgn.rollout import rollout_starts
+    from bgn.studies.auto import formula_candidate
+    from bgn.training.run import data_module, train
+
+    auto_dir = tmp_path / "auto"
+    base = ["dataset=spring", *SMALL["spring"], f"paths.data_dir={shared_data_dir}",
+            "model.hidden=16", "model.decoder_hidden=16", "model.flow_hidden=16",
+            "figures=false", "val_rollout_steps=0", "callbacks.progress_bar=null",
+            "+trainer.limit_train_batches=2", "trainer.limit_val_batches=1",
+            "+trainer.limit_test_batches=1", "test_rollouts=false"]
+    best = Candidate("newton_inertial", "pair-force head",
+                     ["model.dynamics=newton", "model.mass_law=inertial"], pair_force=True)
+    spent = {"max_steps": 2, "max_epochs": -1}
+    train(compose_candidate(base, best, auto_dir / best.name, spent), law_stage=law_stage)
+    dm = data_module(compose_config("train", base))
+    dm.prepare_data()
+    dm.setup()
+    val = dm.datasets["val"]
+    formula = formula_candidate([Result(best, errors={10: 1.0}, steps=2)], auto_dir, val,
+                                dm.datasets["train"], [0], rollout_starts(val, 10), 10, [10],
+                                {"max_steps": 4})
+    out_dir = auto_dir / formula.candidate.name
+    last = out_dir / "checkpoints" / "last.ckpt"
+    if carried:  # the other candidate's ModelCheckpoint state, as formula.ckpt carried it
+        other = torch.load(auto_dir / best.name / "checkpoints" / "last.ckpt",
+                           weights_only=True)
+        ckpt = torch.load(last, weights_only=True)
+        ckpt["callbacks"] = other["callbacks"]
+        assert any(str(auto_dir / best.name) in str(v) for v in ckpt["callbacks"].values())
+        torch.save(ckpt, last)
+    final = compose_candidate(base, formula.candidate, out_dir, spent, test=True)
+    final.ckpt_path = str(last)
+    tested = []
+    original = L.Trainer.test
+
+    def spy(self, model=None, *args, ckpt_path=None, **kwargs):
+        tested.append(ckpt_path)
+        return original(self, model, *args, ckpt_path=ckpt_path, **kwargs)
+
+    monkeypatch.setattr(L.Trainer, "test", spy)
+    metrics = train(final, law_stage=law_stage)
+    assert math.isfinite(metrics["test/nmse"])
+    assert len(tested) == 1 and (tested[0] is None or str(out_dir) in str(tested[0]))
 
 
 def test_imported_data_choose_their_structure_by_default(tmp_path) -> None:

@@ -23,8 +23,10 @@ the MLP is kept only where it then beats its initial law there.
 
 from __future__ import annotations
 
+import logging
 import math
-from collections.abc import Iterable
+import time
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass
 
 import torch
@@ -35,6 +37,13 @@ from bgn.model.newton import PairForceHead, numerov, pair_force_head_of, past_po
 from bgn.model.ops import scatter_sum
 from bgn.model.target_coder import observed_targets
 
+log = logging.getLogger(__name__)
+
+# ``check``: what a fit calls between its iterations (the training layer hands in its clock
+# and signal check, which raises to stop the fit; the models layer imports nothing of it)
+Check = Callable[[], None]
+PROGRESS_S = 5.0  # a fit still running after this many seconds says how far it is
+
 KNOTS = 48  # table knots per pair of types, evenly spaced in log distance
 EDGE_ELEMENTS = 1 << 24  # entries of the per-edge design held at once (64 MiB in float32)
 # the matched law's learning rate relative to the optimiser's: Adam's first steps move every
@@ -42,6 +51,12 @@ EDGE_ELEMENTS = 1 << 24  # entries of the per-edge design held at once (64 MiB i
 # (docs/notes/2026-11-26-force-matching.md)
 MATCHED_LAW_LR = 0.1
 DISTIL_STEPS, DISTIL_POINTS, DISTIL_LR = 3000, 256, 1e-2
+# the MLP's squared error relative to the table's mean square at which its fit stops, far
+# below the table's own error against the frames (a spring's and a gravity law's exact
+# tables reach it in about 250 of the 3000 steps); and it stops where the error fell by less
+# than DISTIL_STALL over the last DISTIL_WINDOW steps. Each step takes milliseconds on an
+# idle core but 0.1 s on a busy one
+DISTIL_TOL, DISTIL_STALL, DISTIL_WINDOW = 1e-5, 0.1, 500
 
 
 @dataclass
@@ -144,11 +159,33 @@ def normal_equations(head: PairForceHead, g: Graph, knots: torch.Tensor, known_m
     return NormalEquations(x.T @ x, x.T @ y, y @ y, int(y.numel()))
 
 
+class Progress:
+    """Calls ``check`` at each iteration and, once the fit has run ``PROGRESS_S`` seconds,
+    logs how far it is every ``PROGRESS_S`` seconds."""
+
+    def __init__(self, check: Check | None = None) -> None:
+        self.check = check
+        self.start = self.shown = time.monotonic()
+
+    def __call__(self, what: str, done: int, total: int) -> None:
+        if self.check is not None:
+            self.check()
+        now = time.monotonic()
+        if now - self.shown >= PROGRESS_S:
+            self.shown = now
+            log.info("law_init=match: %s %d of %d (%.0f s)", what, done, total,
+                     now - self.start)
+
+
 def accumulate(head: PairForceHead, graphs: Iterable[Graph], knots: torch.Tensor,
-               known_masses: bool) -> NormalEquations | None:
+               known_masses: bool, progress: Progress | None = None,
+               ) -> NormalEquations | None:
     """``normal_equations`` summed over ``graphs`` (None when there are none)."""
     total = None
-    for g in graphs:
+    graphs = list(graphs)
+    for i, g in enumerate(graphs):
+        if progress is not None:
+            progress("batches of the least-squares fit", i, len(graphs))
         eq = normal_equations(head, g, knots, known_masses)
         total = eq if total is None else total + eq
     return total
@@ -173,10 +210,10 @@ def law_error(head: PairForceHead, graphs: Iterable[Graph], known_masses: bool) 
     return num / max(den, 1e-300)
 
 
-def distil(head: PairForceHead, table: Table) -> None:
+def distil(head: PairForceHead, table: Table, progress: Progress | None = None) -> None:
     """Fit the head's MLP law to ``table`` at ``DISTIL_POINTS`` distances per pair of types,
     evenly spaced in log distance (Adam on the squared error relative to the table's mean
-    square)."""
+    square, at most ``DISTIL_STEPS`` steps, until it is below ``DISTIL_TOL`` or stalls)."""
     t = max(head.types, 1)
     # the unordered pairs of types pair_index gives (lo * t + hi, lo <= hi): the table's
     # other rows are never filled
@@ -192,9 +229,19 @@ def distil(head: PairForceHead, table: Table) -> None:
     optimizer = torch.optim.Adam(head.force_law.parameters(), lr=DISTIL_LR)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, DISTIL_STEPS)
     with torch.enable_grad():
-        for _ in range(DISTIL_STEPS):
+        seen: list[float] = []  # the error every 50 steps
+        for i in range(DISTIL_STEPS):
             optimizer.zero_grad()
             loss = ((head.force_law(inputs)[:, 0] - target) ** 2).mean() / scale
+            if i % 50 == 0:
+                seen.append(float(loss.detach()))
+                if progress is not None:
+                    progress(f"steps fitting the MLP to the table (relative error "
+                             f"{seen[-1]:.2g})", i, DISTIL_STEPS)
+                back = DISTIL_WINDOW // 50
+                if seen[-1] < DISTIL_TOL or (len(seen) > back and
+                                             seen[-1] > (1 - DISTIL_STALL) * seen[-1 - back]):
+                    break
             loss.backward()
             optimizer.step()
             schedule.step()
@@ -202,31 +249,38 @@ def distil(head: PairForceHead, table: Table) -> None:
 
 @torch.no_grad()
 def match_forces(head: PairForceHead, train: list[Graph], val: list[Graph],
-                 known_masses: bool = False) -> MatchResult | None:
+                 known_masses: bool = False, check: Check | None = None) -> MatchResult | None:
     """Fit a tabulated law to the ``train`` windows (its smoothness chosen on ``val``), fit
     the head's MLP law to it, and keep that where it beats the initial law on ``val``. None
-    where nothing could be fitted (no windows or no pairs)."""
+    where nothing could be fitted (no windows or no pairs). ``check``: called between
+    iterations (it raises to stop the fit: a deadline, a signal); where it stops the fit,
+    the law is left as it was before."""
     span = distance_range(head, train)
     if span is None or not val:
         return None
     n_pairs = max(head.types, 1) ** 2
     knots = log_knots(*span, KNOTS)
-    fit = accumulate(head, train, knots, known_masses)
-    check = accumulate(head, val, knots, known_masses)
-    assert fit is not None and check is not None
+    progress = Progress(check)
+    fit = accumulate(head, train, knots, known_masses, progress)
+    held = accumulate(head, val, knots, known_masses, progress)
+    assert fit is not None and held is not None
     if not torch.isfinite(fit.gram).all() or not float(fit.gram.diagonal().mean()) > 0:
         return None
-    values, smoothing = fit_table(fit, check, n_pairs)
+    values, smoothing = fit_table(fit, held, n_pairs)
     table = Table(*span, values)
     before = law_error(head, val, known_masses)
     state = {k: v.clone() for k, v in head.force_law.state_dict().items()}
-    distil(head, table)
+    try:
+        distil(head, table, progress)
+    except BaseException:  # stopped: the law as it was, not half fitted
+        head.force_law.load_state_dict(state)
+        raise
     after = law_error(head, val, known_masses)
     kept = after < before
     if not kept:
         head.force_law.load_state_dict(state)
     flat = values.reshape(-1)
-    return MatchResult(smoothing, fit.relative_error(flat), check.relative_error(flat), after,
+    return MatchResult(smoothing, fit.relative_error(flat), held.relative_error(flat), after,
                        before, kept, fit.rows)
 
 
@@ -248,11 +302,12 @@ def matched_law_parameters(model: torch.nn.Module) -> list[torch.nn.Parameter]:
 
 
 def prepare(model: torch.nn.Module, train: Iterable[Graph], val: Iterable[Graph],
-            ) -> MatchResult | None:
+            check: Check | None = None) -> MatchResult | None:
     """Force matching of ``matched_head(model)``, with the recorded masses where the model
-    trains with them (its law loss). None where nothing was fitted."""
+    trains with them (its law loss). None where nothing was fitted. ``check``: as
+    ``match_forces``'s, also between the batches read."""
     head = matched_head(model)
     if head is None:
         return None
     return match_forces(head, list(train), list(val),
-                        known_masses="law" in getattr(model, "heads", ()))
+                        known_masses="law" in getattr(model, "heads", ()), check=check)

@@ -48,7 +48,7 @@ from typing import Any
 import numpy as np
 from omegaconf import DictConfig, OmegaConf, open_dict
 
-from bgn.coerce import clock, seconds
+from bgn.coerce import seconds
 from bgn.data.balance import (
     IMBALANCE_MAX,
     Balance,
@@ -58,13 +58,17 @@ from bgn.data.balance import (
 )
 from bgn.metrics import SHORT_HORIZON, rollout_scores
 from bgn.sim.scene import SceneMeta
+from bgn.training.budget import Deadline, clock_text, received
 from bgn.training.checkpoints import write_atomic
 
 log = logging.getLogger("bgn.studies.auto")
 
 MASS_FRAMES = 64         # validation frames the fitted masses are read from
 LAW_POINTS = 200         # distances the learned pair law is sampled at
-BUDGET_KEYS = ("max_time", "max_steps", "max_epochs")
+# the share of the job's time left that the candidates leave to the winner's continuation
+# and the test, where trainer.max_time caps the job (candidate_deadline)
+WINNER_RESERVE = 0.4
+MIN_FIT_S = 10.0  # below this a fit's part of trainer.max_time is warned about (run_auto)
 # overrides of the run that each candidate sets itself
 OWN_KEYS = ("model", "model.dynamics", "model.mass_law", "paths.output_dir", "ckpt_path", "test")
 REFERENCE_LABELS = {
@@ -156,25 +160,45 @@ def masses_known(dataset: Any) -> bool:
 # ----------------------------------------------------------------------------- budget
 def split_budget(trainer: Mapping[str, Any], share: float, n: int,
                  ) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The trainer limits of each of ``n`` candidates (``share`` of each limit set, split
-    evenly) and the winner's after it resumes (its own share plus what the candidates left:
-    Lightning counts steps, epochs and, through its Timer, training time from the start)."""
-    limits = {}
-    if (t := seconds(trainer.get("max_time"))) is not None:
-        limits["max_time"] = t
-    for key in ("max_steps", "max_epochs"):
-        if trainer.get(key) is not None and int(trainer.get(key)) > 0:
-            limits[key] = int(trainer.get(key))
-    if "max_time" not in limits and "max_steps" not in limits:
-        raise ValueError("model.dynamics=auto splits the training budget: set trainer.max_time "
-                         "or trainer.max_steps")
-    each, winner = {}, {}
-    for key, total in limits.items():
-        part = max(1, math.floor(share * total / n))
-        each[key], winner[key] = part, part + max(0, total - n * part)
-    if "max_time" in limits:
-        each["max_time"], winner["max_time"] = clock(each["max_time"]), clock(winner["max_time"])
+    """The trainer limits of each of ``n`` candidates and the winner's after it resumes:
+    bounded by optimiser steps, so the same command and seed train the same candidates on any
+    machine. ``share`` of the job's steps (``trainer.max_steps``: each scene's default is
+    conf/budget/<scene>.yaml) split evenly; the winner gets its own share plus what the
+    candidates left (Lightning counts steps from the start). No epoch limit, and no time
+    limit of their own: the job's ``trainer.max_time`` is one deadline over all of it
+    (``run_auto``)."""
+    steps = trainer.get("max_steps")
+    total = int(steps) if steps is not None else -1
+    if total <= 0:
+        raise ValueError("model.dynamics=auto splits a step budget: set trainer.max_steps to "
+                         "a number of optimiser steps")
+    part = max(1, math.floor(share * total / n))
+    each = {"max_steps": part, "max_epochs": -1}
+    winner = {"max_steps": part + max(0, total - n * part), "max_epochs": -1}
     return each, winner
+
+
+def check_shares(each: Mapping[str, Any], min_steps: int, n: int, total: Any) -> None:
+    """Refuse, in one line, a step budget whose share leaves a candidate fewer than
+    ``auto.min_steps``: none could be trained, so none could be compared."""
+    from bgn.coerce import ConfigError
+
+    if int(each["max_steps"]) < min_steps:
+        raise ConfigError("auto.min_steps", min_steps, message=(
+            f"model.dynamics=auto gives each of its {n} candidates {each['max_steps']} "
+            f"optimiser steps (auto.share of {total} steps), fewer than auto.min_steps="
+            f"{min_steps}: raise trainer.max_steps or lower auto.min_steps"))
+
+
+def candidate_deadline(deadline: Deadline, remaining: int,
+                       reserve: float = WINNER_RESERVE) -> Deadline:
+    """The deadline of the next of ``remaining`` fits before the choice: an even part of the
+    job's time left, less ``reserve`` of it kept for the winner's continuation and the test.
+    A cap only: a candidate ends on its steps first where the machine is fast enough."""
+    left = deadline.left()
+    if left is None:
+        return deadline
+    return deadline.sooner(left * (1 - reserve) / max(1, remaining))
 
 
 # ----------------------------------------------------------------------------- scores
@@ -194,6 +218,40 @@ class Result:
     law: dict[str, Any] | None = None
     masses: dict[str, Any] | None = None
     law_match: dict[str, Any] | None = None  # force matching's record (law_init=match)
+    untrained: str = ""  # why it counts as not trained (fewer than auto.min_steps steps)
+
+    @property
+    def compared(self) -> bool:
+        """Trained (at least auto.min_steps steps) and scored: it may enter the choice."""
+        return self.candidate.admitted and not self.error and not self.untrained \
+            and bool(self.errors)
+
+    def status(self) -> str:
+        """What became of it, for the report: "trained", "not trained (...)", "failed: ..."."""
+        if not self.candidate.admitted:
+            return "-"
+        if self.error:
+            return f"failed: {self.error}"
+        return self.untrained or "trained"
+
+    def state(self) -> dict[str, Any]:
+        """What ``auto/<candidate>/result.json`` keeps: a resumed run reuses it."""
+        return {"overrides": self.candidate.overrides, "label": self.candidate.label,
+                "errors": {str(k): v for k, v in self.errors.items()},
+                **{k: getattr(self, k) for k in ("failed_share", "curve", "steps", "wall_s",
+                                                 "error", "law", "masses", "law_match",
+                                                 "untrained")}}
+
+    @classmethod
+    def restored(cls, candidate: Candidate, state: Mapping[str, Any]) -> Result:
+        candidate.overrides = list(state.get("overrides", candidate.overrides))
+        candidate.label = state.get("label", candidate.label)
+        out = cls(candidate, errors={int(k): float(v) for k, v in state["errors"].items()})
+        for key in ("failed_share", "curve", "steps", "wall_s", "error", "law", "masses",
+                    "law_match", "untrained"):
+            if key in state:
+                setattr(out, key, state[key])
+        return out
 
     def score(self, horizon: int) -> float:
         value = self.errors.get(horizon, float("nan"))
@@ -205,7 +263,7 @@ def choose(results: Sequence[Result], horizon: int) -> tuple[Result, float]:
     the lower error after ``SHORT_HORIZON`` steps, then the order of ``results``), and the
     margin: the runner-up's error over the winner's (nan without a runner-up)."""
     pool = [(r.score(horizon), r.score(SHORT_HORIZON), i, r) for i, r in enumerate(results)
-            if r.candidate.eligible and r.candidate.admitted and not r.error]
+            if r.candidate.eligible and r.compared]
     if not pool:
         raise ValueError("no candidate could be trained and scored; see the errors in the log")
     pool.sort(key=lambda item: item[:3])
@@ -450,7 +508,8 @@ def write_report(auto_dir: Path, results: Sequence[Result], winner: Result, marg
                      **{f"val_err@{h}": r.errors.get(h, float("nan")) for h in horizons},
                      "failed_share": r.failed_share, "steps": r.steps, "wall_s": r.wall_s,
                      "mass_relative_r2": (r.masses or {}).get("relative_r2", float("nan")),
-                     "chosen": c.name == winner.candidate.name, "error": r.error})
+                     "chosen": c.name == winner.candidate.name, "error": r.error,
+                     "status": r.status()})
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=list(rows[0]))
     writer.writeheader()
@@ -468,29 +527,44 @@ def write_report(auto_dir: Path, results: Sequence[Result], winner: Result, marg
              f"{_ranges(protocol['sims'])} from frame(s) {protocol['starts']}), mean "
              f"position error after each horizon, a failed rollout counted at the cap "
              f"(bgn.metrics.capped_step_errors). Each candidate trained for "
-             f"{protocol['budget_each']}; the winner then resumed to {protocol['budget_winner']}.",
+             f"{protocol['budget_each']['max_steps']} optimiser steps (at least "
+             f"{protocol['min_steps']} to count as trained: fewer, it is neither scored nor "
+             f"compared); the winner then resumed to {protocol['budget_winner']['max_steps']}.",
              "", "| candidate | what it is given, what it writes in | admitted | may win | "
-             + " | ".join(f"val err @{k}" for k in horizons)
+             "trained | " + " | ".join(f"val err @{k}" for k in horizons)
              + " | failed | steps | wall s | rel. mass R^2 |",
-             "|---|---|---|---|" + "---|" * len(horizons) + "---|---|---|---|"]
+             "|---|---|---|---|---|" + "---|" * len(horizons) + "---|---|---|---|"]
     for row in rows:
         name = f"**{row['candidate']}**" if row["chosen"] else row["candidate"]
         admitted = "yes" if row["admitted"] else f"no: {row['reason']}"
         may_win = ("-" if not row["admitted"] else "yes" if row["eligible"] else "reference")
-        lines.append(f"| {name} | {row['label']} | {admitted} | {may_win} | "
+        status = row["status"].replace("|", "/")
+        lines.append(f"| {name} | {row['label']} | {admitted} | {may_win} | {status} | "
                      + " | ".join(_fmt(row[f"val_err@{k}"]) for k in horizons)
                      + f" | {_fmt(row['failed_share'])} | {row['steps'] or '-'} | "
                      f"{_fmt(row['wall_s'])} | {_fmt(row['mass_relative_r2'])} |")
-    lines += ["", f"Chosen: **{winner.candidate.name}** ({winner.candidate.label}), error "
-              f"{_fmt(winner.errors.get(h))} after {h} steps; the runner-up's is "
-              f"{_fmt(margin)} times that." if math.isfinite(margin) else
-              f"Chosen: **{winner.candidate.name}**, the one eligible candidate.", ""]
+    if protocol.get("fallback"):
+        lines += ["", f"Not chosen by evidence: **{winner.candidate.name}** "
+                  f"({winner.candidate.label}) is the run's model because "
+                  f"{protocol['fallback']}.", ""]
+    else:
+        lines += ["", f"Chosen: **{winner.candidate.name}** ({winner.candidate.label}), error "
+                  f"{_fmt(winner.errors.get(h))} after {h} steps; the runner-up's is "
+                  f"{_fmt(margin)} times that." if math.isfinite(margin) else
+                  f"Chosen: **{winner.candidate.name}**, the one eligible candidate trained "
+                  "and scored.", ""]
+    for line in protocol.get("cut") or []:
+        lines.append(f"- Cut by trainer.max_time: {line}")
+    if protocol.get("cut"):
+        lines.append("")
     lines += balance_lines(protocol.get("balance")) + [""]
     lines += velocity_lines(protocol.get("velocity")) + [""]
     lines += match_lines(results)
-    failures = [r for r in results if r.error]
-    for r in failures:
-        lines.append(f"- {r.candidate.name} could not be trained or scored: {r.error}")
+    for r in results:
+        if r.error:
+            lines.append(f"- {r.candidate.name} could not be trained or scored: {r.error}")
+        elif r.untrained:
+            lines.append(f"- {r.candidate.name}: {r.untrained}; not scored, never compared")
     lines += ["", f"![validation error]({paths['errors'].relative_to(auto_dir)})"]
     if "law" in paths:
         lines += ["", "Learned pair laws f(s) over the training split's distances (scale and "
@@ -549,6 +623,8 @@ def compose_candidate(base: Sequence[str], cand: Candidate, out_dir: Path,
     kept = [o for o in base if _key(o) not in OWN_KEYS
             and not (reference and _key(o).startswith("model."))]
     own = [*cand.overrides, f"paths.output_dir={out_dir}", f"test={str(test).lower()}"]
+    if not test:  # a candidate: auto draws its evidence, TensorBoard's figures cost time
+        own += ["figures=false", "animation_every=0"]
     cfg = compose_train([*kept, *own])
     weights = cfg.model.get("loss_weights") or {}
     extra: list[str] = []
@@ -569,8 +645,13 @@ def compose_candidate(base: Sequence[str], cand: Candidate, out_dir: Path,
     return cfg
 
 
-def train_candidate(cand: Candidate, cfg: DictConfig) -> Result:
-    """Train one candidate (``bgn.training.run.train``) in its own directory."""
+def train_candidate(cand: Candidate, cfg: DictConfig, deadline: Deadline | None = None,
+                    run_dir: Path | None = None, overrides: Sequence[str] | None = None,
+                    min_steps: int = 0) -> Result:
+    """Train one candidate (``bgn.training.run.train``) in its own directory until its
+    steps or ``deadline``; a signal's resume command names ``run_dir`` with ``overrides``
+    (the auto run's, not the candidate's folder). Fewer than ``min_steps`` steps: the result
+    says it is not trained."""
     from bgn.eval.laws import law_stage
     from bgn.training.checkpoints import read
     from bgn.training.run import train
@@ -580,13 +661,17 @@ def train_candidate(cand: Candidate, cfg: DictConfig) -> Result:
     write_atomic(out_dir / "train_config.yaml", OmegaConf.to_yaml(cfg, resolve=False))
     result = Result(cand)
     start = time.perf_counter()
-    metrics = train(cfg, law_stage=law_stage)
+    metrics = train(cfg, law_stage=law_stage, deadline=deadline, run_dir=run_dir,
+                    overrides=None if overrides is None else list(overrides))
     result.wall_s = float(metrics.get("wall_time_s", time.perf_counter() - start))
     last = out_dir / "checkpoints" / "last.ckpt"
     result.steps = int(read(last).get("global_step", 0)) if last.exists() else 0
     record = out_dir / "metrics.json"
     if record.exists():
         result.law_match = json.loads(record.read_text()).get("law_match")
+    if result.steps < min_steps:
+        result.untrained = (f"not trained ({result.steps} steps of auto.min_steps={min_steps}"
+                            " before trainer.max_time)")
     return result
 
 
@@ -619,18 +704,36 @@ def score_candidate(result: Result, out_dir: Path, val: Any, train_split: Any,
                       "f": {f"{a}-{b}": pair_law(head, s, (a, b)).tolist() for a, b in pairs}}
 
 
+def own_checkpoint(source: Path, target: Path) -> None:
+    """``source`` (``finetune_formula``'s formula.ckpt, a copy of another candidate's
+    checkpoint with the formula law) moved to ``target`` without the callbacks' state it
+    carried over: that candidate's ``ModelCheckpoint`` named its own best.ckpt, which a
+    resumed run would otherwise test (its network law does not load into the formula model),
+    and its early stopping counted that candidate's validations."""
+    import torch
+
+    ckpt = torch.load(source, map_location="cpu", weights_only=True)
+    ckpt["callbacks"] = {}
+    tmp = target.with_name(f".{target.name}.tmp")  # then a rename: never half written
+    torch.save(ckpt, tmp)
+    tmp.replace(target)
+    source.unlink()
+
+
 def formula_candidate(results: Sequence[Result], auto_dir: Path, val: Any, train_split: Any,
                       sims: list[int], starts: list[int], n_steps: int,
-                      horizons: Sequence[int], each: Mapping[str, Any]) -> Result | None:
+                      horizons: Sequence[int], each: Mapping[str, Any],
+                      deadline: Deadline | None = None) -> Result | None:
     """The best pair-force candidate's law read back as a formula (``bgn.eval.laws``), its
     constants fine-tuned through substeps (``bgn.eval.laws.finetune_formula``: its default
     iterations, at most half the candidates' ``max_steps``) and scored as the others;
-    eligible to win, and its best checkpoint the one the winner resumes from. None without a
-    scored pair-force candidate."""
+    eligible to win, and its checkpoint (``last.ckpt``: its own, carrying no other
+    candidate's callback state, ``own_checkpoint``) the one the winner resumes from. The fit
+    stops at ``deadline`` too. None without a trained and scored pair-force candidate."""
     from bgn.eval.laws import FINETUNE_STEPS, FINETUNE_SUBSTEPS, finetune_formula, spec_text
     from bgn.training.checkpoints import best_checkpoint
 
-    scored = [r for r in results if r.candidate.pair_force and not r.error and r.errors]
+    scored = [r for r in results if r.candidate.pair_force and r.compared]
     if not scored:
         return None
     best = min(scored, key=lambda r: r.score(n_steps))
@@ -640,7 +743,7 @@ def formula_candidate(results: Sequence[Result], auto_dir: Path, val: Any, train
     start = time.perf_counter()
     record = finetune_formula(best_checkpoint(auto_dir / best.candidate.name), train_split,
                               val, steps=steps, substeps=FINETUNE_SUBSTEPS, out_dir=out_dir,
-                              max_seconds=seconds(each.get("max_time")))
+                              max_seconds=None if deadline is None else deadline.left())
     spec = json.dumps(record["model_tuned"])  # the model's scale (finetune_formula)
     cand = Candidate(out_dir.name, f"{best.candidate.label}; its law the formula "
                      f"{spec_text(record['tuned'])}, constants fine-tuned",
@@ -650,27 +753,78 @@ def formula_candidate(results: Sequence[Result], auto_dir: Path, val: Any, train
                       f"model.substeps={record['rollout_substeps']}"],
                      pair_force=True)
     (out_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
-    (out_dir / "formula.ckpt").replace(out_dir / "checkpoints" / "last.ckpt")
+    own_checkpoint(out_dir / "formula.ckpt", out_dir / "checkpoints" / "last.ckpt")
     result = Result(cand, steps=best.steps, wall_s=time.perf_counter() - start)
     score_candidate(result, out_dir, val, train_split, sims, starts, n_steps, horizons)
     return result
 
 
-def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[str, float]:
+def one_line(err: BaseException) -> str:
+    """An exception as one short line (the report's and the log's reason)."""
+    return " ".join(f"{type(err).__name__}: {err}".split())[:300]
+
+
+def stored_result(cand: Candidate, out_dir: Path) -> Result | None:
+    """A candidate's result kept by an earlier attempt of this run (``result.json``), or None."""
+    path = out_dir / "result.json"
+    try:
+        return Result.restored(cand, json.loads(path.read_text()))
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def fallback(results: Sequence[Result]) -> Result | None:
+    """Where no candidate was trained and scored: the first eligible one (in the pool's
+    order, which puts the decoder, which writes no physics in, first) that has a checkpoint
+    to continue from; None where none has."""
+    for r in results:
+        c = r.candidate
+        if c.eligible and c.admitted and not r.error and r.steps > 0:
+            return r
+    return None
+
+
+def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None,
+             deadline: Deadline | None = None) -> dict[str, float]:
     """``model.dynamics=auto``: train the candidates, choose on validation rollouts, train the
     winner for the rest of the budget and test it (module doc). ``overrides``: the run's
-    train overrides (default: Hydra's command line). Returns the winner's final metrics; the
-    run directory gets ``metrics.json`` (the winner's, with the choice) and ``auto/``."""
+    train overrides (default: Hydra's command line). ``deadline``: the job's wall-clock cap
+    (default ``trainer.max_time`` from now), one over the candidates, their force matching,
+    the formula candidate, the winner's continuation and the test: each candidate gets an
+    even part of what is left (``candidate_deadline``). A resumed run (``ckpt_path=last``)
+    keeps every candidate already trained and scored (``result.json``) and continues one
+    stopped half-way from its ``last.ckpt``. Returns the winner's final metrics; the run
+    directory gets ``metrics.json`` (the winner's, with the choice) and ``auto/``."""
+    from lightning.pytorch.utilities.exceptions import SIGTERMException
+
+    from bgn.training.signals import interrupted
+
+    base = run_overrides(overrides)
+    run_dir = Path(cfg.paths.output_dir)
+    if deadline is None:
+        deadline = Deadline.after(seconds(cfg.trainer.get("max_time")))
+    phase = ["choosing the structure"]
+    try:
+        return _run_auto(cfg, base, run_dir, deadline, phase)
+    except SIGTERMException:  # outside a fit (scoring, the formula): the run's resume command
+        raise interrupted(received() or "SIGTERM", run_dir, base,
+                          phase=f"model.dynamics=auto ({phase[0]})",
+                          checkpoint_dir=run_dir / "auto") from None
+
+
+def _run_auto(cfg: DictConfig, base: list[str], run_dir: Path, deadline: Deadline,
+              phase: list[str]) -> dict[str, float]:
+    from bgn.coerce import ConfigError
     from bgn.data.frames import evenly_spaced
     from bgn.eval.laws import law_stage
     from bgn.rollout import rollout_starts
     from bgn.training.run import data_module, info, train
 
-    base = run_overrides(overrides)
-    run_dir = Path(cfg.paths.output_dir)
     auto_dir = run_dir / "auto"
     auto = cfg.get("auto") or {}
     share = float(auto.get("share", 0.5))
+    min_steps = int(auto.get("min_steps", 100))
+    resume = cfg.get("ckpt_path") == "last"
     datamodule = data_module(cfg)
     datamodule.prepare_data()
     datamodule.setup()
@@ -685,49 +839,119 @@ def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[st
                       velocity)
     admitted = [c for c in pool if c.admitted]
     each, winner_limits = split_budget(cfg.trainer, share, len(admitted))
+    check_shares(each, min_steps, len(admitted), cfg.trainer.get("max_steps"))
+    epoch = math.ceil(len(train_split) / int(cfg.dataset.batch_size))
+    if each["max_steps"] < epoch:  # validated once, where the candidate's steps end
+        each = {**each, "val_check_interval": each["max_steps"]}
     n_steps = min(int(auto.get("horizon", 50)), val.file.n_frames - datamodule.history - 2)
     horizons = sorted({min(SHORT_HORIZON, n_steps), n_steps})
     sims = evenly_spaced(val.file.n_sims, auto.get("val_sims"))
     starts = rollout_starts(val, n_steps)
+    # the fits before the choice: the candidates and, with a pair-force head, the formula
+    fits = len(admitted) + any(c.pair_force for c in admitted)
+    left = deadline.left()
     info("model.dynamics=auto: " + ", ".join(
         c.name if c.admitted else f"{c.name} (not admitted: {c.reason})" for c in pool)
-        + f"; each trained for {each}")
-    results = []
+        + f"; each trained for {each['max_steps']} optimiser steps (at least {min_steps} to "
+        f"be compared), the winner to {winner_limits['max_steps']}"
+        + ("" if left is None else f"; trainer.max_time leaves the job {clock_text(left)}"))
+    if left is not None and left * (1 - WINNER_RESERVE) / fits < MIN_FIT_S:
+        log.warning("trainer.max_time leaves each of auto's %d fits about %s, too little for "
+                    "%d optimiser steps and a validation: candidates cut short are reported "
+                    "as not trained; raise trainer.max_time", fits,
+                    clock_text(left * (1 - WINNER_RESERVE) / fits), min_steps)
+    results: list[Result] = []
+    cut: list[str] = []
     for cand in pool:
         result = Result(cand)
         if cand.admitted:
             out_dir = auto_dir / cand.name
+            # a resumed run keeps what was trained and scored (or failed); one the cap or a
+            # signal cut short continues from its last.ckpt
+            kept = stored_result(cand, out_dir) if resume else None
+            if kept is not None and not kept.untrained:
+                info(f"auto: {cand.name} kept from the run's earlier attempt ({kept.status()})")
+                results.append(kept)
+                continue
+            phase[0] = f"candidate {cand.name}"
+            remaining = fits - sum(1 for r in results if r.candidate.admitted)
             try:
-                result = train_candidate(cand, compose_candidate(base, cand, out_dir, each,
-                                                                 masses=known))
-                score_candidate(result, out_dir, val, train_split, sims, starts, n_steps,
-                                horizons)
+                if deadline.passed():
+                    result.untrained = "not trained (trainer.max_time was reached before it began)"
+                else:
+                    cfg_c = compose_candidate(base, cand, out_dir, each, masses=known)
+                    last = out_dir / "checkpoints" / "last.ckpt"
+                    if resume and last.exists():  # stopped half-way: continue it
+                        cfg_c.ckpt_path = str(last)
+                    result = train_candidate(cand, cfg_c, candidate_deadline(deadline, remaining),
+                                             run_dir, base, min_steps)
+                    if not result.untrained:
+                        phase[0] = f"scoring candidate {cand.name}"
+                        score_candidate(result, out_dir, val, train_split, sims, starts,
+                                        n_steps, horizons)
+            except ConfigError as err:  # the cap reached while it read its data
+                if err.key != "trainer.max_time":
+                    raise
+                result.untrained = "not trained (trainer.max_time was reached before it began)"
             except Exception as err:  # one candidate's failure is evidence, not the end
-                log.exception("candidate %s failed", cand.name)
-                result.error = " ".join(f"{type(err).__name__}: {err}".split())[:300]
-            info(f"auto: {cand.name} " + ", ".join(
-                f"val error @{h} {v:.4g}" for h, v in result.errors.items()))
+                result.error = one_line(err)
+                log.error("auto: candidate %s failed: %s", cand.name, result.error)
+                log.debug("candidate %s", cand.name, exc_info=True)
+            write_atomic(out_dir / "result.json", json.dumps(result.state(), default=float))
+            info(f"auto: {cand.name} {result.status()}" + "".join(
+                f", val error @{h} {v:.4g}" for h, v in result.errors.items()))
         results.append(result)
-    try:  # the best pair-force law as a formula, fine-tuned: a candidate of its own
-        formula = formula_candidate(results, auto_dir, val, train_split, sims, starts,
-                                    n_steps, horizons, each)
-    except Exception as err:
-        log.exception("the formula candidate failed")
-        formula = Result(Candidate("formula", "the best pair-force law as a formula", []),
-                         error=" ".join(f"{type(err).__name__}: {err}".split())[:300])
+    formula = None
+    phase[0] = "the formula candidate"
+    if deadline.passed():
+        if any(c.pair_force for c in admitted):
+            cut.append("the formula candidate: not fitted (trainer.max_time was reached)")
+    else:
+        try:  # the best pair-force law as a formula, fine-tuned: a candidate of its own
+            formula = formula_candidate(results, auto_dir, val, train_split, sims, starts,
+                                        n_steps, horizons, each, candidate_deadline(deadline, 1))
+        except Exception as err:
+            formula = Result(Candidate("formula", "the best pair-force law as a formula", []),
+                             error=one_line(err))
+            log.error("auto: the formula candidate failed: %s", formula.error)
+            log.debug("the formula candidate", exc_info=True)
     if formula is not None:
-        info(f"auto: {formula.candidate.name} " + ", ".join(
-            f"val error @{h} {v:.4g}" for h, v in formula.errors.items()))
+        info(f"auto: {formula.candidate.name} {formula.status()}" + "".join(
+            f", val error @{h} {v:.4g}" for h, v in formula.errors.items()))
         results.append(formula)
-    winner, margin = choose(results, n_steps)
+    phase[0] = "the choice"
+    why_fallback = ""
+    try:
+        winner, margin = choose(results, n_steps)
+    except ValueError:
+        chosen = fallback(results)
+        if chosen is None:
+            raise ValueError("model.dynamics=auto: no candidate could be trained"
+                             + (" before trainer.max_time" if deadline.end is not None else "")
+                             + ": " + "; ".join(f"{r.candidate.name} {r.status()}"
+                                                for r in results if r.candidate.admitted)
+                             ) from None
+        winner, margin = chosen, float("nan")
+        why_fallback = (f"no candidate trained {min_steps} steps (auto.min_steps) before "
+                        "trainer.max_time, so none could be compared: the first that may win "
+                        "and has a checkpoint continues")
+        log.warning("auto: %s (%s)", why_fallback, winner.candidate.name)
     protocol = {"horizon": n_steps, "horizons": horizons, "sims": sims, "starts": starts,
-                "rollouts": len(sims) * len(starts), "share": share,
+                "rollouts": len(sims) * len(starts), "share": share, "min_steps": min_steps,
                 "budget_each": each, "budget_winner": winner_limits,
                 "masses_known": known, "balance": asdict(balance),
-                "velocity": asdict(velocity) if velocity is not None else None}
+                "velocity": asdict(velocity) if velocity is not None else None,
+                "cut": cut, "fallback": why_fallback}
     report = write_report(auto_dir, results, winner, margin, protocol)
-    info(f"auto: chose {winner.candidate.name} (runner-up / winner at {n_steps} steps: "
-         f"{margin:.3g}); report: {report}")
+    short = [r.candidate.name for r in results if r.untrained]
+    if short:
+        log.warning("trainer.max_time cut model.dynamics=auto short: %s not trained %d "
+                    "steps (auto.min_steps), so not compared; see %s", ", ".join(short),
+                    min_steps, report)
+    info(f"auto: chose {winner.candidate.name} "
+         + (f"(runner-up / winner at {n_steps} steps: {margin:.3g})" if not why_fallback
+            else "(not by evidence: see the report)") + f"; report: {report}")
+    phase[0] = f"the winner {winner.candidate.name}"
     out_dir = auto_dir / winner.candidate.name
     final = compose_candidate(base, winner.candidate, out_dir, winner_limits,
                               test=bool(cfg.test), masses=known)
@@ -736,12 +960,29 @@ def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None) -> dict[st
         final.ckpt_path = str(last)
     # beside its checkpoints, as a candidate's: bgn.render and bgn.laws read it there
     write_atomic(out_dir / "train_config.yaml", OmegaConf.to_yaml(final, resolve=False))
-    metrics = train(final, law_stage=law_stage)
-    record = json.loads((out_dir / "metrics.json").read_text())
+    metrics: dict[str, float] = {}
+    stopped = "" if not deadline.passed() else "trainer.max_time was reached first"
+    if not stopped:
+        try:
+            metrics = train(final, law_stage=law_stage, deadline=deadline, run_dir=run_dir,
+                            overrides=base)
+        except ConfigError as err:  # the cap reached while it read its data
+            if err.key != "trainer.max_time":
+                raise
+            stopped = str(err)
+    if stopped:
+        cut.append(f"the winner {winner.candidate.name}: neither continued nor tested "
+                   f"({stopped}); python -m bgn.evaluate {run_dir} tests it as it is")
+        log.warning("trainer.max_time: %s", cut[-1])
+        write_report(auto_dir, results, winner, margin, protocol)  # protocol["cut"] is cut
+    path = out_dir / "metrics.json"
+    record = json.loads(path.read_text()) if path.exists() else {"metrics": metrics}
     record["auto"] = {"choice": winner.candidate.name, "label": winner.candidate.label,
-                      "margin": margin, "report": str(report),
+                      "margin": margin, "report": str(report), "fallback": why_fallback,
+                      "cut": cut, "status": {r.candidate.name: r.status() for r in results},
+                      "steps": {r.candidate.name: r.steps for r in results},
                       "val_errors": {r.candidate.name: r.errors for r in results}}
     record["overrides"] = dict(o.split("=", 1) for o in base if "=" in o)
     write_atomic(run_dir / "metrics.json", json.dumps(record, indent=2, sort_keys=True,
                                                       default=float))
-    return metrics
+    return metrics or {k: float(v) for k, v in record.get("metrics", {}).items()}

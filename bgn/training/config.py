@@ -108,7 +108,8 @@ def dataset_schema(scene: str) -> type:
 class AutoKeys:
     """``auto``: how ``model.dynamics=auto`` (``bgn.studies.auto``) spends the budget and scores."""
 
-    share: float = 0.5                # of the budget, split evenly among the candidates
+    share: float = 0.5                # of the step budget, split evenly among the candidates
+    min_steps: int = 100              # fewer steps: "not trained", never scored or chosen
     horizon: int = 50                 # rollout steps the choice is made at (capped by the files)
     val_sims: int | None = None       # validation simulations rolled out (null: all)
     references: list[str] = field(default_factory=lambda: ["gns", "cranmer_gn"])  # not chosen

@@ -39,10 +39,14 @@ from bgn.graph import Graph
 from bgn.model import build_model
 from bgn.model.force_matching import MATCHED_LAW_LR, matched_law_parameters, prepare
 from bgn.sim import SceneMeta
+from bgn.training.budget import Deadline, OutOfTime
+from bgn.training.budget import check as budget_check
 from bgn.training.checkpoints import CheckpointError, read
 from bgn.training.unroll import unrolled_loss
 
 STAGES = ("train", "val", "test")
+# the loss terms whose target is a recorded mass besides the inverse model's (``for_scene``)
+MASS_TERMS = ("law", "impulse_mass")
 MATCH_BATCHES = (30, 10)  # training and validation batches of force matching (law_init=match)
 log = logging.getLogger("bgn.train")
 
@@ -69,6 +73,34 @@ def reduce_on_plateau(optimizer: torch.optim.Optimizer, mode: str = "min", facto
 # that lacks one was trained with the value given here (a config composed by Hydra always
 # carries every option, so only such checkpoints and hand-made partial configs take these).
 CHANGED_DEFAULTS: dict[str, dict[str, Any]] = {"bgn": {"mass_context": "node"}}
+
+
+def fit_deadline(trainer: Any) -> Deadline | None:
+    """The deadline of the trainer's fit: its callback that carries one (``deadline``, as
+    ``bgn.training.signals.FitDeadline``), else None."""
+    for callback in getattr(trainer, "callbacks", None) or ():
+        if isinstance(getattr(callback, "deadline", None), Deadline):
+            return callback.deadline
+    return None
+
+
+def for_scene(model_config: Mapping[str, Any], meta: SceneMeta) -> dict[str, Any]:
+    """``model_config`` less the heads the scene's files cannot train: where they record no
+    masses (imported data, ``meta.masses_known`` false: the files hold ones) every loss term
+    whose target is a recorded mass is left out (docs/design.md#the-scene-record): the
+    inverse model (``mass_nll``, ``relmass``: on a constant the flow's likelihood grows
+    without bound and its relative masses turned NaN), the law loss and the impulse head's
+    masses (``law``, ``impulse_mass``: weighted 0). Checkpoints rebuild the same model, as
+    the meta they record is the same."""
+    config = dict(model_config)
+    if getattr(meta, "masses_known", True):
+        return config
+    if config.get("inverse"):
+        config["inverse"] = False
+    if "loss_weights" in config:
+        config["loss_weights"] = {**dict(config["loss_weights"] or {}),
+                                  **{k: 0.0 for k in MASS_TERMS}}
+    return config
 
 
 def with_changed_defaults(model_config: Mapping[str, Any]) -> dict[str, Any]:
@@ -115,7 +147,8 @@ class PhysicsModule(L.LightningModule):
         self.meta = SceneMeta(**meta)
         stats_arrays = {g: {k: np.asarray(v, dtype=np.float64) for k, v in entries.items()}
                         for g, entries in stats.items()}
-        self.model = build_model(with_changed_defaults(model_config), self.meta, stats_arrays,
+        self.model = build_model(for_scene(with_changed_defaults(model_config), self.meta),
+                                 self.meta, stats_arrays,
                                  history)
         target_variance = stats_arrays["target"]["std"] ** 2
         self.optimizer_factory = optimizer or DEFAULT_OPTIMIZER
@@ -226,13 +259,25 @@ class PhysicsModule(L.LightningModule):
             return
         datamodule = getattr(self.trainer, "datamodule", None)
         result = None
+        deadline = fit_deadline(self.trainer)
+
+        def check() -> None:  # the fit's clock and SIGTERM, between force matching's steps
+            budget_check(deadline, "force matching (law_init=match)")
+
         if datamodule is not None:
             def batches(loader: Iterable[Graph], n: int) -> Iterable[Graph]:
-                return (self.transfer_batch_to_device(g, self.device, 0)
-                        for g in islice(loader, n))
-            result = prepare(self.model,
-                             batches(datamodule.train_dataloader(), MATCH_BATCHES[0]),
-                             batches(datamodule.val_dataloader(), MATCH_BATCHES[1]))
+                for g in islice(loader, n):
+                    check()
+                    yield self.transfer_batch_to_device(g, self.device, 0)
+            try:
+                result = prepare(self.model,
+                                 batches(datamodule.train_dataloader(), MATCH_BATCHES[0]),
+                                 batches(datamodule.val_dataloader(), MATCH_BATCHES[1]),
+                                 check=check)
+            except OutOfTime as err:  # the law as initialised; the fit ends at its first step
+                log.warning("%s: the law starts as initialised", err)
+                self.trainer.should_stop = True
+                return
         if result is None or not result.kept:
             optimizer = self.optimizers()
             getattr(optimizer, "optimizer", optimizer).param_groups[-1]["lr"] /= MATCHED_LAW_LR

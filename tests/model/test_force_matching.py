@@ -105,10 +105,43 @@ def test_a_law_that_does_not_improve_on_validation_is_not_kept(small_datamodules
     head = fm.matched_head(model)
     before = {k: v.clone() for k, v in head.force_law.state_dict().items()}
     monkeypatch.setattr(fm, "distil",  # a law far off: a large constant force
-                        lambda head, table: head.force_law[-1].bias.data.fill_(1e3))
+                        lambda head, table, *_: head.force_law[-1].bias.data.fill_(1e3))
     result = fm.match_forces(head, train_batches, val_batches, known_masses=True)
     assert result is not None and not result.kept
     assert all(torch.equal(before[k], v) for k, v in head.force_law.state_dict().items())
+
+
+def test_a_check_that_raises_stops_the_fit_and_leaves_the_law_as_it_was(small_datamodules,
+                                                                        monkeypatch, caplog):
+    """``check`` (the training layer's clock and SIGTERM) is called between the batches of
+    the least-squares fit and between the MLP's steps: when it raises, the fit stops there
+    and the law is the one it started from, not half fitted. A fit that runs for a while says
+    how far it is."""
+    import logging
+
+    model, train_batches, val_batches = head_and_batches(small_datamodules,
+                                                         "model.law_init=match")
+    head = fm.matched_head(model)
+    before = {k: v.clone() for k, v in head.force_law.state_dict().items()}
+    calls = []
+
+    class Stop(Exception):
+        pass
+
+    def check():
+        calls.append(len(calls))
+        if len(calls) > len(train_batches) + len(val_batches) + 3:  # inside distil
+            raise Stop
+
+    monkeypatch.setattr(fm, "PROGRESS_S", 0.0)
+    monkeypatch.setattr(fm, "DISTIL_TOL", 0.0)  # the MLP's fit runs to its step limit
+    with caplog.at_level(logging.INFO, logger="bgn.model.force_matching"), \
+            pytest.raises(Stop):
+        fm.match_forces(head, train_batches, val_batches, known_masses=True, check=check)
+    assert len(calls) == len(train_batches) + len(val_batches) + 4
+    assert all(torch.equal(before[k], v) for k, v in head.force_law.state_dict().items())
+    assert any("steps fitting the MLP to the table (relative error" in r.message
+               for r in caplog.records)
 
 
 def test_only_an_mlp_law_asked_for_is_matched(small_datamodules):
@@ -133,7 +166,7 @@ def test_a_run_with_law_init_match_records_the_fit_and_trains_the_law_slower(
         rates.extend(g["lr"] for g in getattr(optimizer, "optimizer", optimizer).param_groups)
 
     monkeypatch.setattr(PhysicsModule, "on_train_start", on_train_start)
-    train(tiny_train_cfg(*SPRING, "model.law_init=match", "+trainer.max_steps=2",
+    train(tiny_train_cfg(*SPRING, "model.law_init=match", "trainer.max_steps=2",
                          "val_rollout_steps=0"))
     record = json.loads((tmp_path / "run" / "metrics.json").read_text())
     match = record["law_match"]

@@ -60,9 +60,11 @@ def test_for_scene_leaves_recorded_masses_alone():
         {"name": "gns"}
 
 
-def close_gravity(sims: int, frames: int, softening: float = 0.002) -> np.ndarray:
+def close_gravity(sims: int, frames: int, softening: float = 0.03) -> np.ndarray:
     """gravity_r2 (force ~ 1/r^2) trajectories with little softening: strong close
-    encounters, whose accelerations are orders of magnitude above the typical ones."""
+    encounters, whose accelerations are orders of magnitude above the typical ones (at 0.01
+    and below, frames 0.02 apart no longer resolve them on so few simulations: their angular
+    momentum seems to change, and auto admits no pair-force head)."""
     from bgn.sim import make_scene
 
     scene = make_scene("gravity_r2", n_particles=4, softening=softening)
@@ -80,13 +82,13 @@ def test_every_auto_candidate_trains_without_nan_on_data_without_masses(tmp_path
     from bgn.data import from_arrays
     from bgn.studies.auto import run_auto
 
-    positions = close_gravity(sims=6, frames=160)
+    positions = close_gravity(sims=10, frames=160)
     pair = np.linalg.norm(positions[:, :, :, None] - positions[:, :, None], axis=-1)
     pair[..., np.arange(4), np.arange(4)] = np.inf
     assert pair.min() < 0.05 * np.median(pair[np.isfinite(pair)])  # close encounters
     data, run = tmp_path / "data", tmp_path / "run"
     from_arrays(positions, 0.02, name="close", data_dir=data,
-                splits={"train": [0, 1, 2, 3], "val": [4], "test": [5]})
+                splits={"train": list(range(8)), "val": [8], "test": [9]})
     overrides = ["dataset=imported", "dataset.name=close", f"paths.data_dir={data}",
                  f"paths.output_dir={run}", "model.hidden=16", "model.decoder_hidden=16",
                  "figures=false", "val_rollout_steps=0", "callbacks.progress_bar=null",
@@ -97,11 +99,13 @@ def test_every_auto_candidate_trains_without_nan_on_data_without_masses(tmp_path
     rows = {c["candidate"]: c for c in record["candidates"]}
     trained = [n for n in ("decoder", "newton_inertial", "newton_source", "newton_type")
                if rows[n]["admitted"]]
-    assert "decoder" in trained and len(trained) >= 2, rows
+    assert trained == ["decoder", "newton_inertial", "newton_source", "newton_type"], \
+        {n: r["reason"] for n, r in rows.items()}
     for name in trained:
         row = rows[name]
         assert not row["error"] and row["status"] == "trained", row
-        assert row["steps"] == 60 and math.isfinite(row["val_err@20"]), row
+        assert row["steps"] == record["protocol"]["budget_each"]["max_steps"], row
+        assert math.isfinite(row["val_err@20"]), row
     report = (run / "auto" / "report.md").read_text()
     assert "could not be trained" not in report and "nan" not in report.lower()
     top = json.loads((run / "metrics.json").read_text())

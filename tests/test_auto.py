@@ -385,7 +385,7 @@ def test_auto_gives_centrally_damped_data_the_decoder(tmp_path):
         f"hydra.run.dir={run}", "model.hidden=16", "model.decoder_hidden=16",
         "model.flow_hidden=16", "figures=false", "val_rollout_steps=0", "animation_every=0",
         "callbacks.progress_bar=null", "dataset.batch_size=16", "trainer.max_epochs=-1",
-        "trainer.max_steps=40", "auto.references=[]", "test=false"),
+        "trainer.max_steps=40", "auto.min_steps=10", "auto.references=[]", "test=false"),
         env=CLI_ENV, capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stderr[-3000:]
     record = json.loads((run / "auto" / "auto.json").read_text())

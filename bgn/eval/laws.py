@@ -1,4 +1,5 @@
-"""The learned pair law as a formula: ``python -m bgn.laws <checkpoint> [out_dir=...]``.
+"""The learned pair law as a formula: ``python -m bgn.laws <run folder or checkpoint>
+[finetune=true] ...`` (``main``; ``--help`` lists the keys).
 
 A pair-force head (``bgn.model.newton``: ``model=newton``, or BGN with
 ``model.dynamics=newton``) learns a scene's interaction as an MLP ``f(r)`` of the pair's
@@ -60,7 +61,6 @@ heuristic, and takes seconds: numpy, scipy and sympy (already dependencies) suff
 
 from __future__ import annotations
 
-import argparse
 import copy
 import csv
 import io
@@ -68,7 +68,6 @@ import itertools
 import json
 import logging
 import math
-import sys
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -84,6 +83,7 @@ from scipy.signal import savgol_filter
 from scipy.stats import gaussian_kde
 
 from bgn.training.budget import NO_DEADLINE, Deadline, OutOfTime, check, clock_text
+from bgn.training.validate import cli
 
 log = logging.getLogger("bgn.train")
 
@@ -1619,47 +1619,39 @@ def spec_text(pairs: list[dict[str, Any]]) -> str:
 
 # ----------------------------------------------------------------------------- command line
 
-def _flag(value: str) -> bool:
-    if value.lower() not in ("true", "false"):
-        raise ValueError(value)
-    return value.lower() == "true"
+FINETUNE_KEYS = ("steps", "substeps", "batch_size", "horizon", "val_sims")  # finetune_<key>
 
 
-OPTIONS = {"out_dir": str, "config": str, "data_dir": str, "max_terms": int,
-           "tolerance": float, "parsimony": float, "finetune": _flag, "finetune.steps": int,
-           "finetune.substeps": int, "finetune.batch_size": int, "finetune.horizon": int,
-           "finetune.val_sims": int}
+def _options(cfg: Any) -> tuple[Path, dict[str, Any]]:
+    """``python -m bgn.laws``'s keys (``conf/laws.yaml``) checked before any data or model is
+    read: (the checkpoint, ``run``'s options). The checkpoint is the one ``python -m
+    bgn.evaluate`` scores (``bgn.eval.evaluate.resolve_run``: a run folder's chosen one)."""
+    from bgn.eval.evaluate import resolve_run
+    from bgn.training.validate import ConfigError, need_float, need_int
 
-
-def parse(argv: list[str]) -> tuple[Path, dict[str, Any]]:
-    """``<checkpoint> [key=value ...]`` (keys: ``OPTIONS``)."""
-    parser = argparse.ArgumentParser(
-        prog="python -m bgn.laws", description=__doc__.split("\n\n")[0],
-        epilog="options: " + ", ".join(f"{k}=..." for k in OPTIONS) + " (out_dir: default "
-        "<run>/laws; config: the run's config, default found beside the checkpoint; "
-        "data_dir: default the run's paths.data_dir)")
-    parser.add_argument("checkpoint", type=Path)
-    parser.add_argument("options", nargs="*", metavar="key=value")
-    args = parser.parse_args(argv)
-    options: dict[str, Any] = {}
-    for item in args.options:
-        key, sep, value = item.partition("=")
-        if not sep or key not in OPTIONS:
-            raise ValueError(f"{item!r} is not an option; use key=value with key one of "
-                             f"{sorted(OPTIONS)}")
-        try:
-            options[key] = OPTIONS[key](value)
-        except ValueError:
-            kind = {int: "an integer", float: "a number",
-                    _flag: "true or false"}.get(OPTIONS[key], "a path")
-            raise ValueError(f"{key}={value!r} must be {kind}") from None
-    for key, low, high in (("max_terms", 1, 4), ("tolerance", 0, math.inf),
-                           ("parsimony", 1, math.inf), ("finetune.steps", 1, math.inf),
-                           ("finetune.substeps", 1, 64), ("finetune.batch_size", 1, math.inf),
-                           ("finetune.horizon", 1, math.inf), ("finetune.val_sims", 1, math.inf)):
-        if key in options and not low <= options[key] <= high:
-            raise ValueError(f"{key}={options[key]} must be in [{low}, {high}]")
-    return args.checkpoint, options
+    if not cfg.get("ckpt"):
+        raise ConfigError("ckpt", None, "give a run folder or checkpoint: python -m bgn.laws "
+                          "outputs/train/runs/<run> [finetune=true]")
+    if not isinstance(cfg.finetune, bool):
+        raise ConfigError("finetune", cfg.finetune, "true or false")
+    need_int(cfg.max_terms, "max_terms", 1, 4)
+    need_float(cfg.tolerance, "tolerance", 0.0, strict_low=False)
+    need_float(cfg.parsimony, "parsimony", 1.0, strict_low=False)
+    for key, high in (("steps", None), ("substeps", 64), ("batch_size", None),
+                      ("horizon", None), ("val_sims", None)):
+        need_int(cfg[f"finetune_{key}"], f"finetune_{key}", 1, high, optional=True)
+    ckpt, _, config = resolve_run(str(cfg.ckpt), cfg.get("run_config"))
+    options: dict[str, Any] = {"config": str(config), "finetune": cfg.finetune,
+                               "max_terms": int(cfg.max_terms), "tolerance": cfg.tolerance,
+                               "parsimony": cfg.parsimony}
+    if cfg.paths.data_dir:
+        options["data_dir"] = str(cfg.paths.data_dir)
+    if cfg.out_dir:
+        options["out_dir"] = str(cfg.out_dir)
+    for key in FINETUNE_KEYS:
+        if cfg[f"finetune_{key}"] is not None:
+            options[f"finetune.{key}"] = int(cfg[f"finetune_{key}"])
+    return ckpt, options
 
 
 def formula_stage(checkpoint: Path, train_split: Any, val: Any, config: Any,
@@ -1752,14 +1744,16 @@ def run(checkpoint: Path, options: dict[str, Any]) -> Path:
     return Path(record["report"])
 
 
-def main(argv: list[str] | None = None) -> Path:
-    """The command line: one clear line and exit code 2 on bad input."""
+@cli("laws", positional="ckpt")  # bad input: one line, exit 2 (bgn.training.validate)
+def main(cfg: Any) -> Path:
+    """``python -m bgn.laws <run folder or checkpoint> [finetune=true] ...``; a model without
+    a pair-force head or an unusable checkpoint: one line, exit code 2."""
     from bgn.data.files import DatasetFileError
     from bgn.training.checkpoints import CheckpointError
     from bgn.training.validate import CONFIG_EXIT, DATA_EXIT, fail, full_error
 
+    checkpoint, options = _options(cfg)
     try:
-        checkpoint, options = parse(sys.argv[1:] if argv is None else argv)
         path = run(checkpoint, options)
     except DatasetFileError as err:
         if full_error():

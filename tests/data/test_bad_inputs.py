@@ -304,7 +304,7 @@ CASES: dict[str, tuple[str, Source, dict[str, str | None], Setup]] = {
     "train-negative-history": ("train", None, {"dataset": "imported", "dataset.name": "x",
                                                "dataset.history": "-1"}, imported),
     "train-val-rollouts-too-many": ("train", None, {"dataset": "imported", "dataset.name": "x",
-                                                    "val_rollout_sims": "2",
+                                                    "val_rollout_sims": "3",
                                                     "val_rollout_steps": "4"}, imported),
     "train-sims-too-many": ("train", None, {"dataset": "imported", "dataset.name": "x",
                                             "dataset.train_sims": "9"}, imported),

@@ -24,7 +24,6 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from types import FrameType
-from typing import Any
 
 # Lightning's SIGTERMException is imported where it is raised: this module is imported by
 # the commands before their input is checked, which must not wait for Lightning to load
@@ -36,7 +35,6 @@ class OutOfTime(RuntimeError):
 
 _received: list[str] = []   # the signals recorded since watch_signals()
 _defer_depth = 0            # > 0: inside a section that checks the flag at safe points
-_previous: Any = None
 
 
 def received() -> str | None:
@@ -56,11 +54,10 @@ def _on_sigterm(signum: int, frame: FrameType | None) -> None:
 def watch_signals() -> None:
     """Record SIGTERM (and raise it outside :func:`deferred` sections). Idempotent; only
     from the main thread (signal handlers can only be set there)."""
-    global _previous
     if threading.current_thread() is not threading.main_thread():
         return
     if signal.getsignal(signal.SIGTERM) is not _on_sigterm:
-        _previous = signal.signal(signal.SIGTERM, _on_sigterm)
+        signal.signal(signal.SIGTERM, _on_sigterm)
 
 
 def reset_signals() -> None:

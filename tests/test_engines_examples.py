@@ -207,3 +207,130 @@ def test_summary_aggregates_seeds_and_keeps_failures(tmp_path, monkeypatch):
     assert ("| gas | chosen (newton) | recorded masses (mass_nll, relmass) | - | central pair "
             "forces | 2 |") in rollouts
     assert "recorded frames" not in text.split("## energy")[0]
+
+
+# ----------------------------------------------------------------------------- equal_time.py
+def equal_time(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(ENGINES / "equal_time.py"), *args],
+                          capture_output=True, text=True, timeout=60)
+
+
+def fake_bgn_run(run: Path, job_s: float | None, candidates: dict[str, tuple]) -> Path:
+    """A BGN auto run folder with what equal_time.py reads: job_time.json (``job_s``; None:
+    absent) and auto/auto.json's candidates (name: (steps, wall_s))."""
+    (run / "auto").mkdir(parents=True)
+    if job_s is not None:
+        (run / "job_time.json").write_text(json.dumps({"wall_s": job_s}))
+    (run / "auto" / "auto.json").write_text(json.dumps({
+        "choice": "decoder", "margin": 2.0, "protocol": {"horizon": 50},
+        "candidates": [{"candidate": c, "admitted": True, "val_err@50": 0.1, "steps": s,
+                        "wall_s": w, "status": "trained"}
+                       for c, (s, w) in candidates.items()]}))
+    return run
+
+
+def test_equal_time_gives_a_baseline_the_steps_of_bgns_wall_time(tmp_path):
+    run = fake_bgn_run(tmp_path / "rebound_s0", 300.0,
+                       {"decoder": (400, 40.0), "gns": (400, 50.0), "cranmer_gn": (400, 80.0)})
+    out = tmp_path / "gns.json"
+    res = equal_time("steps", str(run), "gns", "--json", str(out))
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "2400"  # 400 steps / 50 s x 300 s
+    # one line of reasoning for the baseline's log, and the record summary.py states
+    assert res.stderr.count("\n") == 1 and "2400 steps" in res.stderr and "300.0 s" in res.stderr
+    record = json.loads(out.read_text())
+    assert (record["steps"], record["bgn_job_s"], record["steps_per_s"]) == (2400, 300.0, 8.0)
+    assert equal_time("steps", str(run), "cranmer_gn").stdout.strip() == "1500"
+
+
+def test_equal_time_steps_follow_the_rate_and_the_job(tmp_path_factory, monkeypatch):
+    """Property: the steps are the candidate's rate times the job's wall time (at least 1),
+    and grow with it."""
+    hypothesis = pytest.importorskip("hypothesis")
+    st = hypothesis.strategies
+    monkeypatch.syspath_prepend(str(ENGINES))
+    import equal_time as et
+
+    @hypothesis.settings(max_examples=40, deadline=None)
+    @hypothesis.given(steps=st.integers(1, 10**5), wall=st.floats(0.5, 1e4),
+                      job=st.floats(1.0, 1e5))
+    def check(steps: int, wall: float, job: float) -> None:
+        run = fake_bgn_run(tmp_path_factory.mktemp("run"), job, {"gns": (steps, wall)})
+        got = et.equal_steps(run, "gns")["steps"]
+        assert got == max(1, round(steps / wall * job))
+        (run / "job_time.json").write_text(json.dumps({"wall_s": 2 * job}))
+        assert et.equal_steps(run, "gns")["steps"] >= got
+
+    check()
+
+
+@pytest.mark.parametrize("job_s, candidates, model, names", [
+    (None, {"gns": (400, 50.0)}, "gns", "job_time.json"),            # the job was not timed
+    (300.0, {"gns": (400, 50.0)}, "cranmer_gn", "no candidate cranmer_gn"),
+    (300.0, {"gns": (0, 50.0)}, "gns", "no rate"),                   # never trained
+    (300.0, {"gns": (400, float("nan"))}, "gns", "no rate"),
+])
+def test_equal_time_refuses_a_run_without_the_record_in_one_line(tmp_path, job_s, candidates,
+                                                                 model, names):
+    run = fake_bgn_run(tmp_path / "run", job_s, candidates)
+    out = tmp_path / "record.json"
+    res = equal_time("steps", str(run), model, "--json", str(out))
+    assert res.returncode == 1 and res.stdout == "" and not out.exists()
+    assert res.stderr.count("\n") == 1 and names in res.stderr and str(run) in res.stderr
+    assert "Traceback" not in res.stderr
+
+
+def test_equal_time_refuses_a_folder_that_is_no_auto_run(tmp_path):
+    (tmp_path / "job_time.json").write_text(json.dumps({"wall_s": 10.0}))
+    res = equal_time("steps", str(tmp_path), "gns")
+    assert res.returncode == 1 and res.stderr.count("\n") == 1
+    assert "auto/auto.json" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_equal_time_times_the_job_and_records_only_a_success(tmp_path):
+    run = tmp_path / "run"
+    make = f"import pathlib, time; time.sleep(0.3); pathlib.Path({str(run)!r}).mkdir()"
+    res = equal_time("time", str(run), "--", sys.executable, "-c", make)
+    assert res.returncode == 0, res.stderr
+    record = json.loads((run / "job_time.json").read_text())
+    assert 0.3 <= record["wall_s"] < 30 and "time.sleep(0.3)" in record["command"]
+    failed = tmp_path / "failed"
+    failed.mkdir()
+    res = equal_time("time", str(failed), "--", sys.executable, "-c", "raise SystemExit(3)")
+    assert res.returncode == 3 and list(failed.iterdir()) == []  # no budget from a failure
+
+
+def test_summary_states_each_baselines_budget(tmp_path, monkeypatch):
+    """A baseline run with equal_time.py's record is labelled as given BGN's wall time, with
+    that time beside its own; the winner's row carries its whole job's time; a run the cap
+    cut has a row of its own."""
+    monkeypatch.syspath_prepend(str(ENGINES))
+    import summary
+
+    metrics = {"metrics": {"rollout/pos_err_mean@100": 0.5, "rollout/failed_share": 0.0}}
+    bgn = fake_bgn_run(tmp_path / "gas_s0", 300.0, {"gns": (400, 50.0)})
+    (bgn / ".hydra").mkdir()
+    (bgn / ".hydra" / "config.yaml").write_text("seed: 0\ndataset:\n  name: gas\n")
+    (bgn / "auto" / "decoder" / "eval" / "test").mkdir(parents=True)
+    (bgn / "auto" / "decoder" / "eval" / "test" / "metrics.json").write_text(
+        json.dumps(metrics))
+    base = tmp_path / "gas_gns_s0"
+    (base / "eval" / "test").mkdir(parents=True)
+    (base / "train_config.yaml").write_text("seed: 0\ndataset:\n  name: gas\nmodel:\n"
+                                            "  name: gns\n")
+    (base / "eval" / "test" / "metrics.json").write_text(json.dumps(metrics))
+    (base / "metrics.json").write_text(json.dumps({"wall_time_s": 290.0}))
+    import equal_time as et
+
+    (base / "equal_time.json").write_text(json.dumps(et.equal_steps(bgn, "gns")))
+    chosen = summary.rows_of(bgn)[0][0]
+    assert (chosen["model"], chosen["BGN job s"]) == ("chosen (decoder)", 300.0)
+    row = summary.rows_of(base)[0][0]
+    assert (row["model"], row["budget s"], row["BGN job s"]) == (
+        "gns (BGN's wall time)", 290.0, 300.0)
+    (base / "equal_time.json").unlink()
+    (base / "metrics.json").write_text(json.dumps({"wall_time_s": 290.0,
+                                                   "budget": {"cut_by": "max_time"}}))
+    row = summary.rows_of(base)[0][0]
+    assert (row["model"], row["BGN job s"]) == (
+        "gns (default budget) (cut by trainer.max_time)", None)

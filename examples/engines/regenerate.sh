@@ -4,14 +4,18 @@
 #   bash examples/engines/regenerate.sh
 #
 # The datasets must be generated and imported first (README.md beside this script,
-# "Commands"). Per dataset of NAMES: the default job (model.dynamics=auto) for each seed of
-# SEEDS, evaluated on test with its decoder, GNS and Cranmer GN candidates, its rollouts
-# extended to 104 steps and measured by the engine's own energy (engine_energy.py, the
-# engines that conserve one); each model of BASELINES alone at the full budget (seed 0);
-# then summary.py writes the tables into RESULTS_MD's block `engines`. JOBS runs at a time,
-# each with OMP_NUM_THREADS torch threads. A finished run (its regenerate.done) is kept
-# (delete the folder to redo it); a failed run is named and the script exits non-zero
-# after the others, without writing the tables. Logs: OUT/<run>.log.
+# "Commands"). First, per dataset of NAMES, the default job (model.dynamics=auto) for each
+# seed of SEEDS, timed whole by equal_time.py (<run>/job_time.json), evaluated on test with
+# its decoder, GNS and Cranmer GN candidates, its rollouts extended to 104 steps and measured
+# by the engine's own energy (engine_energy.py, the engines that conserve one). Then each
+# model of BASELINES alone (seed 0) for BGN's wall time: the steps it fits in the seed-0 BGN
+# job's whole wall time at the steps/s its auto candidate had in that job (equal_time.py
+# steps; its reasoning in the baseline's log and <run>/equal_time.json), so the budget
+# repeats on any machine. Then summary.py writes the tables into RESULTS_MD's block
+# `engines`. JOBS runs at a time, each with OMP_NUM_THREADS torch threads. A finished run (its
+# regenerate.done) is kept (delete the folder to redo it; a baseline's budget is its BGN
+# run's: redo both); a failed run is named and the script exits non-zero after the others,
+# without writing the tables. Logs: OUT/<run>.log.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 NAMES=${NAMES:-"rebound_nbody ase_morse_gas pymunk_granular"}
@@ -29,8 +33,16 @@ one() {  # <name> <seed> <model>: train, evaluate, the engine's energy
   if [ "$model" = bgn ]; then run=$OUT/${name}_s$seed; else run=$OUT/${name}_${model}_s$seed; fi
   [ -f "$run/regenerate.done" ] && { echo "kept $run"; return 0; }
   (
-    python -m bgn.train dataset=imported dataset.name="$name" model="$model" seed="$seed" \
-      hydra.run.dir="$run" || exit 1
+    train=(python -m bgn.train dataset=imported dataset.name="$name" model="$model" \
+      seed="$seed" hydra.run.dir="$run")
+    if [ "$model" = bgn ]; then  # the whole job's wall time: the baselines' budget
+      python examples/engines/equal_time.py time "$run" -- "${train[@]}" || exit 1
+    else  # the steps of the seed-0 BGN job's wall time
+      steps=$(python examples/engines/equal_time.py steps "$OUT/${name}_s0" "$model" \
+        --json "$run.equal_time.json") || exit 1
+      "${train[@]}" trainer.max_steps="$steps" || exit 1
+      mv "$run.equal_time.json" "$run/equal_time.json" || exit 1
+    fi
     python -m bgn.evaluate "$run" progress=false || exit 1
     [ "$model" = bgn ] || exit 0
     for c in decoder gns cranmer_gn; do  # the candidates auto trained beside the winner
@@ -50,11 +62,15 @@ one() {  # <name> <seed> <model>: train, evaluate, the engine's energy
 }
 export -f one
 
-jobs=()
-for seed in $SEEDS; do for name in $NAMES; do jobs+=("$name $seed bgn"); done; done
-for model in $BASELINES; do for name in $NAMES; do jobs+=("$name 0 $model"); done; done
+bgn=() baselines=()
+for seed in $SEEDS; do for name in $NAMES; do bgn+=("$name $seed bgn"); done; done
+for model in $BASELINES; do for name in $NAMES; do baselines+=("$name 0 $model"); done; done
 status=0
-printf '%s\n' "${jobs[@]}" | xargs -P "$JOBS" -L 1 bash -c 'one "$@"' _ || status=$?
+# every BGN job first: a baseline's budget is its dataset's seed-0 job's wall time
+printf '%s\n' "${bgn[@]}" | xargs -P "$JOBS" -L 1 bash -c 'one "$@"' _ || status=$?
+if [ ${#baselines[@]} -gt 0 ]; then
+  printf '%s\n' "${baselines[@]}" | xargs -P "$JOBS" -L 1 bash -c 'one "$@"' _ || status=$?
+fi
 if [ "$status" -ne 0 ]; then
   echo "some runs failed (above); the tables are not written" >&2
   exit "$status"

@@ -5,13 +5,15 @@
 
 Each ``<run>`` is a ``python -m bgn.train dataset=imported dataset.name=<name> seed=<s>`` run
 directory (``model.dynamics=auto``: ``<run>/auto/auto.json``) or a single model's run (a
-baseline at the full budget); each evaluated by ``python -m bgn.evaluate`` (the auto run's
-winner, ``<run>/eval`` or ``<run>/auto/<choice>/eval``) and, for the auto candidates that were,
-``python -m bgn.evaluate <run>/auto/<candidate>``; the engine's own energy along the winner's
-rollouts where ``engine_energy.py ... --json <run>/energy_<key>.json`` wrote it
-(``regenerate.sh`` beside this script runs all of it). Prints markdown (seeds aggregated: mean ±
-std (min-max)) and writes it with CSV files under ``--out``; ``--results-md FILE`` also writes
-it, with this command and the commits the runs were evaluated at, into FILE's generated block
+baseline, trained for the steps it fits in BGN's wall time on the same data: ``equal_time.py``
+beside this script, whose record ``<run>/equal_time.json`` the tables state); each evaluated
+by ``python -m bgn.evaluate`` (the auto run's winner, ``<run>/eval`` or
+``<run>/auto/<choice>/eval``) and, for the auto candidates that were, ``python -m
+bgn.evaluate <run>/auto/<candidate>``; the engine's own energy along the winner's rollouts
+where ``engine_energy.py ... --json <run>/energy_<key>.json`` wrote it (``regenerate.sh``
+beside this script runs all of it). Prints markdown (seeds aggregated: mean ± std (min-max))
+and writes it with CSV files under ``--out``; ``--results-md FILE`` also writes it, with this
+command and the commits the runs were evaluated at, into FILE's generated block
 ``<!-- generated:engines:... -->`` (``--block NAME``: another block, e.g. the built-in scenes'
 ``model.dynamics=auto`` runs).
 """
@@ -25,6 +27,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from equal_time import budget_record, job_seconds  # beside this script
 from omegaconf import OmegaConf
 
 from bgn.eval.columns import VARIANT_COLUMNS
@@ -73,6 +76,16 @@ def _budget(directory: Path) -> float | None:
     return record.get("wall_time_s", record.get("metrics", {}).get("wall_time_s"))
 
 
+def _cut(directory: Path) -> str:
+    """`` (cut by trainer.max_time)`` where the wall-clock cap cut the run short (its
+    metrics.json's ``budget.cut_by``, or an auto run's ``auto.cut``): its own row, not
+    averaged with whole runs."""
+    path = directory / "metrics.json"
+    record = json.loads(path.read_text()) if path.exists() else {}
+    cut = (record.get("budget") or {}).get("cut_by") or (record.get("auto") or {}).get("cut")
+    return " (cut by trainer.max_time)" if cut else ""
+
+
 def best_reference(metrics: dict[str, Any], h: int) -> float | None:
     """The better no-learning reference's mean error after ``h`` steps (repeat the last
     target, or extrapolate linearly)."""
@@ -81,13 +94,16 @@ def best_reference(metrics: dict[str, Any], h: int) -> float | None:
 
 
 def test_row(name: str, seed: int, model: str, metrics: dict[str, Any],
-             budget: float | None, directory: Path | None = None) -> dict[str, Any]:
+             budget: float | None, directory: Path | None = None,
+             job: float | None = None) -> dict[str, Any]:
     """One model's test rollouts (mean over all rollouts, a failed one at the cap), with what
-    the model in ``directory`` was trained with and given (``_variant``) and its steps."""
+    the model in ``directory`` was trained with and given (``_variant``), its steps and wall
+    time (``budget``), and ``job``: the whole BGN job's wall time (the winner's row: its own
+    job's; a baseline's: the seed-0 job whose time it was given, ``equal_time.py``)."""
     about = _variant(directory) if directory is not None else {}
     row: dict[str, Any] = {"data": name, "model": model, **about, "seed": seed,
                            "steps": _steps(directory) if directory is not None else None,
-                           "budget s": budget}
+                           "budget s": budget, "BGN job s": job}
     for h in HORIZONS:
         row[f"@{h}"] = metrics.get(f"rollout/pos_err_mean@{h}")
     row["median @100"] = metrics.get("rollout/pos_err_median@100")
@@ -117,16 +133,20 @@ def rows_of(run: Path) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
     auto = run / "auto" / "auto.json"
     if not auto.exists():
         metrics = _metrics(run)
-        model = str(cfg.model.get("name", "model")) + " (full budget)"
-        return ([test_row(name, seed, model, metrics, _budget(run), run)]
+        given = budget_record(run)  # equal_time.py's: the steps of BGN's wall time
+        model = str(cfg.model.get("name", "model")) + (" (BGN's wall time)" if given
+                                                        else " (default budget)")
+        return ([test_row(name, seed, model + _cut(run), metrics, _budget(run), run,
+                          given["bgn_job_s"] if given else None)]
                 if metrics else []), None
     record = json.loads(auto.read_text())
     choice = record["choice"]
     rows = []
     winner = _metrics(run / "auto" / choice) or _metrics(run)
     if winner:
-        rows.append(test_row(name, seed, f"chosen ({choice.split('_')[0]})", winner,
-                             _budget(run / "auto" / choice), run / "auto" / choice))
+        rows.append(test_row(name, seed, f"chosen ({choice.split('_')[0]})" + _cut(run),
+                             winner, _budget(run / "auto" / choice), run / "auto" / choice,
+                             job_seconds(run)))
     choice_row: dict[str, Any] = {"data": name, "seed": seed, "chosen": choice,
                                   "margin": record.get("margin")}
     for c in record["candidates"]:

@@ -280,11 +280,16 @@ def test_equal_time_refuses_a_run_without_the_record_in_one_line(tmp_path, job_s
     assert "Traceback" not in res.stderr
 
 
-def test_equal_time_refuses_a_folder_that_is_no_auto_run(tmp_path):
-    (tmp_path / "job_time.json").write_text(json.dumps({"wall_s": 10.0}))
+@pytest.mark.parametrize("record, names", [
+    (json.dumps({"wall_s": 10.0}), "auto/auto.json"),   # a folder that is no auto run
+    ("{truncated", "job_time.json: unreadable"),
+    (json.dumps({"seconds": 10.0}), "job_time.json: unreadable"),
+])
+def test_equal_time_refuses_a_folder_that_is_no_timed_auto_run(tmp_path, record, names):
+    (tmp_path / "job_time.json").write_text(record)
     res = equal_time("steps", str(tmp_path), "gns")
-    assert res.returncode == 1 and res.stderr.count("\n") == 1
-    assert "auto/auto.json" in res.stderr and "Traceback" not in res.stderr
+    assert res.returncode == 1 and res.stdout == "" and res.stderr.count("\n") == 1
+    assert names in res.stderr and "Traceback" not in res.stderr
 
 
 def test_equal_time_times_the_job_and_records_only_a_success(tmp_path):

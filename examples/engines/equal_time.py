@@ -41,7 +41,11 @@ def job_seconds(run: Path) -> float | None:
     path = Path(run) / JOB_FILE
     if not path.is_file():
         return None
-    return float(json.loads(path.read_text())["wall_s"])
+    try:
+        return float(json.loads(path.read_text())["wall_s"])
+    except (ValueError, KeyError, TypeError) as err:
+        raise _fail(f"{path}: unreadable ({type(err).__name__}: {err}): delete the BGN run's "
+                    "folder and rerun it through regenerate.sh") from None
 
 
 def timed(run: Path, command: list[str]) -> int:
@@ -82,8 +86,12 @@ def equal_steps(run: Path, model: str) -> dict[str, Any]:
     if not auto.is_file():
         raise _fail(f"{run}: no auto/auto.json: the budget comes from a model.dynamics=auto "
                     "run, which trains the baselines as candidates")
-    found = [c for c in json.loads(auto.read_text()).get("candidates", [])
-             if c.get("candidate") == model]
+    try:
+        found = [c for c in json.loads(auto.read_text()).get("candidates", [])
+                 if c.get("candidate") == model]
+    except (ValueError, AttributeError) as err:
+        raise _fail(f"{auto}: unreadable ({type(err).__name__}: {err}): rerun the BGN "
+                    "job") from None
     if not found:
         raise _fail(f"{auto}: no candidate {model}: run the BGN job with {model} among "
                     "auto.references")

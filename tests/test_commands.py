@@ -44,9 +44,9 @@ COMMANDS = {
     **{f"bgn.benchmarks.{name}": (CONF_DIR / "benchmarks", name, None, ())
        for name in ("neighbours", "scaling", "flow", "shooting")},
 }
-# keys that are not arguments: where Hydra writes (paths.output_dir), the root the data
-# folder's default builds on, and the name the study code reads paths.data_dir by
-NOT_ARGUMENTS = ("paths.output_dir", "paths.root_dir", "data_dir")
+# keys that are not arguments: where Hydra writes (paths.output_dir) and the root the data
+# folder's default builds on
+NOT_ARGUMENTS = ("paths.output_dir", "paths.root_dir")
 
 # A tiny BGN on spring: its pair-force head's law stays a network (no formula stage), one
 # epoch of two batches; a checkpoint is written (last.ckpt)

@@ -17,7 +17,7 @@ from tests.conftest import compose_config
 
 def tiny_cfg(tmp_path: Path):
     return compose_config("experiments", [
-        "preset=tiny", f"data_dir={tmp_path / 'data'}", f"cells_dir={tmp_path / 'cells'}",
+        "preset=tiny", f"paths.data_dir={tmp_path / 'data'}", f"cells_dir={tmp_path / 'cells'}",
         f"report_dir={tmp_path / 'report'}"])
 
 
@@ -126,7 +126,7 @@ def test_a_damaged_study_file_is_named_and_its_cell_redone(tmp_path: Path, share
     from bgn.studies.grid import evaluate_cell
 
     cfg = tiny_cfg(tmp_path)
-    cfg.data_dir = str(shared_data_dir)
+    cfg.paths.data_dir = str(shared_data_dir)
     cfg.preset.overrides.append("+dataset.generate_workers=1")
     cell = Cell("spring", 50.0, "cranmer_gn")
     record, trained = train_cell(cell, cfg)

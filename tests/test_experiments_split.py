@@ -123,7 +123,7 @@ def test_tiny_study_of_two_variants_on_validation(tmp_path: Path, shared_data_di
         "preset=tiny", "preset.scenes=[spring]", "preset.fps=[50]", "preset.models=[bgn]",
         "preset.ablations=null", "preset.sample_efficiency=null", "preset.eval.split=val",
         "+preset.variants={default:[],pairs:[\"model.mass_context=pairs\"]}",
-        f"data_dir={shared_data_dir}", f"cells_dir={tmp_path / 'cells'}",
+        f"paths.data_dir={shared_data_dir}", f"cells_dir={tmp_path / 'cells'}",
         f"report_dir={tmp_path / 'report'}", f"results_md={tmp_path / 'results.md'}"])
     cfg.preset.overrides.extend(["test=false", "+dataset.generate_workers=1"])
     validate_grid(cfg.preset)

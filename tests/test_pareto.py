@@ -20,7 +20,7 @@ from tests.conftest import compose_config
 
 def preset_cfg(name: str, tmp_path: Path | None = None):
     paths = [] if tmp_path is None else [
-        f"data_dir={tmp_path / 'data'}", f"cells_dir={tmp_path / 'cells'}",
+        f"paths.data_dir={tmp_path / 'data'}", f"cells_dir={tmp_path / 'cells'}",
         f"report_dir={tmp_path / 'report'}"]
     return compose_config("experiments", [f"preset={name}", *paths])
 

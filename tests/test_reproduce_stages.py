@@ -91,7 +91,7 @@ def test_tiny_reproduce_with_its_stages(tmp_path: Path) -> None:
         "preset=tiny", "preset.name=reproduce", "preset.scenes=[spring,collisions]",
         "preset.fps=[10]", "preset.models=[bgn,gns]", "preset.seeds=[0,1]",
         "preset.ablations=null", "preset.sample_efficiency=null", "workers=2",
-        f"data_dir={tmp_path / 'data'}", f"cells_dir={tmp_path / 'cells'}",
+        f"paths.data_dir={tmp_path / 'data'}", f"cells_dir={tmp_path / 'cells'}",
         f"report_dir={tmp_path / 'report'}", f"results_md={results_md}"])
     OmegaConf.update(cfg, "preset.stability", {"preset": "tiny", "model": "bgn", "fps": None,
                                                "seeds": None}, force_add=True)
@@ -187,7 +187,7 @@ def test_a_cell_whose_law_stage_fails_is_named_and_fails_the_stage(tmp_path: Pat
     cfg = OmegaConf.create({"preset": {"name": "p", "seeds": [0, 1], "laws": {
         "model": "bgn", "seeds": None, "max_seconds": None}},
         "cells_dir": str(tmp_path / "cells"), "report_dir": str(tmp_path / "report"),
-        "data_dir": str(tmp_path / "data"), "results_md": None})
+        "paths": {"data_dir": str(tmp_path / "data")}, "results_md": None})
     results = {c.name: {"eval": {"model": {"label": "BGN"}}} for c in cells}
     with pytest.raises(RuntimeError, match=r"1 cell\(s\) failed \(spring_fps50_bgn_full_s0\)"):
         law_stage.laws_stage(cfg, cells, results, {"command": "c", "preset": "p"}, 1, None)

@@ -94,18 +94,54 @@ def plan_cells(preset: DictConfig) -> list[Cell]:
     return [replace(c, seed=s, seeded=len(seeds) > 1) for s in seeds for c in cells.values()]
 
 
-def step_budget(cell: Cell, preset: DictConfig) -> list[str]:
-    """``trainer.max_steps`` of the cell from ``preset.max_steps`` (scene -> model -> steps),
-    or nothing where the preset gives none. A step budget repeats: the same config and seed
-    train the same steps on any machine, where ``max_time`` trains as many as the load
-    allows (``max_time`` stays as a cap)."""
-    steps = ((preset.get("max_steps") or {}).get(cell.scene) or {}).get(cell.model)
-    if steps is None:
-        return []
+DEFAULT_STEPS = "default"  # a preset.max_steps entry: the scene's default step budget
+
+
+def default_steps(scene: str) -> int | None:
+    """The scene's default step budget, ``conf/budget/<scene>.yaml`` (what ``python -m
+    bgn.train dataset=<scene>`` trains); None for a scene without one."""
+    path = CONF_DIR / "budget" / f"{scene}.yaml"
+    return int(OmegaConf.load(path).max_steps) if path.exists() else None
+
+
+def preset_steps(preset: DictConfig, scene: str, model: str) -> tuple[int, bool]:
+    """(``trainer.max_steps`` of the preset's cells of ``scene`` and ``model``, whether the
+    preset names it). ``preset.max_steps`` maps scene -> model -> a number of optimiser steps
+    or ``default`` (the scene's default budget, ``default_steps``, kept in one place); a pair
+    it leaves out also trains the scene's default, named by ``unnamed_budgets`` (a budget in
+    steps repeats on any machine, where ``max_time`` trains as many as the load allows; it
+    stays a cap only)."""
+    key = f"preset.max_steps.{scene}.{model}"
+    steps = ((preset.get("max_steps") or {}).get(scene) or {}).get(model)
+    if steps is None or steps == DEFAULT_STEPS:
+        default = default_steps(scene)
+        if default is None:
+            raise ConfigError(key, steps, f"{scene} has no default step budget "
+                              f"(conf/budget/{scene}.yaml): give its cells a number of "
+                              "optimiser steps")
+        return default, steps is not None
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-        raise ConfigError(f"preset.max_steps.{cell.scene}.{cell.model}", steps,
-                          "must be a positive whole number of optimiser steps")
-    return [f"++trainer.max_steps={steps}"]
+        raise ConfigError(key, steps, "must be a positive whole number of optimiser steps, "
+                          f"or {DEFAULT_STEPS} (the scene's, conf/budget/{scene}.yaml)")
+    return steps, True
+
+
+def step_budget(cell: Cell, preset: DictConfig) -> list[str]:
+    """The cell's ``trainer.max_steps`` override (``preset_steps``): every cell gets one, so
+    its ``cell.json`` records the steps it was given; none where the cell's own overrides set
+    it (a Pareto cell's time schedule, a variant)."""
+    if any(o.lstrip("+").startswith("trainer.max_steps=") for o in cell.extra):
+        return []
+    return [f"++trainer.max_steps={preset_steps(preset, cell.scene, cell.model)[0]}"]
+
+
+def unnamed_budgets(preset: DictConfig) -> list[str]:
+    """The scene/model pairs of the preset's cells that ``preset.max_steps`` does not name,
+    each with the scene default it trains instead (``grid.run`` prints them before training)."""
+    pairs = dict.fromkeys((c.scene, c.model) for c in plan_cells(preset))
+    return [f"{scene}/{model}: {preset_steps(preset, scene, model)[0]} "
+            f"(conf/budget/{scene}.yaml)" for scene, model in pairs
+            if not preset_steps(preset, scene, model)[1]]
 
 
 def cell_overrides(cell: Cell, cfg: DictConfig) -> list[str]:
@@ -114,7 +150,9 @@ def cell_overrides(cell: Cell, cfg: DictConfig) -> list[str]:
     preset = cfg.preset
     fps = int(cell.fps) if float(cell.fps).is_integer() else cell.fps
     out = [f"dataset={cell.scene}", f"fps={fps}", f"model={cell.model}",
-           f"ablation={cell.ablation}", f"trainer.max_time={preset.max_time}",
+           f"ablation={cell.ablation}",
+           # null: the default job's cap (conf/trainer/default.yaml)
+           *([f"trainer.max_time={preset.max_time}"] if preset.get("max_time") else []),
            *step_budget(cell, preset),
            *preset.get("overrides", []),
            *(preset.get("model_overrides", {}) or {}).get(cell.model, []),
@@ -127,7 +165,7 @@ def cell_overrides(cell: Cell, cfg: DictConfig) -> list[str]:
     if cell.seeded or cell.seed != 0:  # seed 0 is train.yaml's: one-seed cells as before
         out.append(f"seed={cell.seed}")
     out += [*cell.extra,
-            f"paths.data_dir={cfg.data_dir}",
+            f"paths.data_dir={cfg.paths.data_dir}",
             f"paths.output_dir={Path(cfg.cells_dir) / cell.name}"]
     return out
 

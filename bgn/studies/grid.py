@@ -46,6 +46,7 @@ from bgn.studies.cells import (
     preset_seeds,
     set_threads,
     train_cell,
+    unnamed_budgets,
 )
 from bgn.studies.headline import STAGES, run_stages
 from bgn.studies.report import CALIBRATION_SPLIT, write_report
@@ -170,7 +171,7 @@ def evaluate_cell(cell: Cell, cfg: DictConfig) -> dict[str, Any]:
             result["train_steps"] = trained_steps(run_dir)
             write_atomic(eval_path, json.dumps(result, indent=2, sort_keys=True))
         return result
-    datamodule = cell_datamodule(run_dir, cfg.data_dir)
+    datamodule = cell_datamodule(run_dir, cfg.paths.data_dir)
     e = cfg.preset.eval
     module, scored = load_model(ckpt), datamodule.datasets[split]
     metrics, arrays = evaluate_split(  # the code of python -m bgn.evaluate
@@ -354,6 +355,10 @@ def run(cfg: DictConfig) -> Path:
     import traceback
 
     cells = plan_cells(cfg.preset)
+    unnamed = unnamed_budgets(cfg.preset)
+    if unnamed:  # recorded too in each cell's cell.json (its ++trainer.max_steps)
+        print("preset.max_steps does not name these cells' step budgets; they train their "
+              f"scene's default: {'; '.join(unnamed)}", flush=True)
     start, code = time.perf_counter(), code_state()
     workers = max(1, int(cfg.get("workers") or 1))
     threads = cfg.get("threads_per_worker")

@@ -14,9 +14,9 @@ and ``laws`` keys; ``bgn.studies.grid.run`` calls ``run_stages`` after its own r
   ``rollout/seconds_per_step``, the batched rollout of the test simulations), with the
   no-learning extrapolations and the exact simulator (timed here, ``simulator_repeats``) as
   references; the Pareto front per scene and its figure. No training, no rollout of its own.
-  Training compute is the preset's budget for every cell (``max_steps`` per scene and model,
-  else ``max_time``), so the front is against inference time only (the training-time front is
-  ``bgn.studies.pareto``'s study).
+  Training compute is the preset's step budget for every cell (``max_steps`` per scene and
+  model, else the scene's default), so the front is against inference time only (the
+  training-time front is ``bgn.studies.pareto``'s study).
 - **laws** (``preset.laws``): the pair law of every cell with a pair-force head read back and
   fitted as a formula, against the truth (``bgn.studies.law_stage``).
 
@@ -39,7 +39,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from bgn.coerce import ConfigError, need_int
 from bgn.eval.columns import VARIANT_COLUMNS
-from bgn.studies.cells import map_in_processes
+from bgn.studies.cells import map_in_processes, plan_cells, preset_steps
 from bgn.studies.law_stage import laws_stage, validate_laws
 from bgn.studies.report import stage_provenance, write_stage
 from bgn.tables import fmt, write_table
@@ -340,14 +340,14 @@ def mark_fronts(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def training_budget(preset: DictConfig) -> str:
-    """The sentence on what every cell trained: the preset's step budgets, else its time."""
-    steps = preset.get("max_steps")
-    if not steps:
-        return (f"Every cell trained for the same max_time ({preset.max_time}; cell_minutes: "
-                "the cell's whole run), so training compute is not an axis here.")
-    budgets = "; ".join(f"{scene}: " + ", ".join(f"{m} {n}" for m, n in models.items())
-                        for scene, models in steps.items())
-    return ("Every cell trained its preset step budget (max_steps per scene and model, the "
+    """The sentence on what every cell trained: its step budget per scene and model
+    (``preset.max_steps``, else the scene's default: ``bgn.studies.cells.preset_steps``)."""
+    pairs = dict.fromkeys((c.scene, c.model) for c in plan_cells(preset))
+    scenes = dict.fromkeys(scene for scene, _ in pairs)
+    budgets = "; ".join(f"{scene}: " + ", ".join(
+        f"{m} {preset_steps(preset, s, m)[0]}" for s, m in pairs if s == scene)
+        for scene in scenes)
+    return ("Every cell trained its step budget (trainer.max_steps per scene and model, the "
             f"same for every seed: {budgets}; cell_minutes: the cell's whole run, where the "
             "preset sets the budgets to equal wall time), so training compute is not an "
             "axis here.")
@@ -371,7 +371,7 @@ def pareto_stage(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
     simulator = []
     for scene, fps in dict.fromkeys((r["scene"], r["fps"]) for r in rows):
         cell = next(c for c in cells if (c.scene, c.fps) == (scene, fps) and c.name in results)
-        test = test_split(Path(cfg.cells_dir) / cell.name, cfg.data_dir)
+        test = test_split(Path(cfg.cells_dir) / cell.name, cfg.paths.data_dir)
         simulator.append({"scene": scene, "fps": fps, "N": test.meta.n_particles,
                           INFERENCE: simulator_seconds(test, fps, repeats)})
     for r in [*rows, *simulator, *means]:

@@ -197,7 +197,7 @@ def laws_stage(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
               and c.seed in seeds and c.name in results]
     out = Path(cfg.report_dir) / "laws"
     out.mkdir(parents=True, exist_ok=True)
-    jobs = [(str(Path(cfg.cells_dir) / c.name), str(cfg.data_dir), str(out / c.name),
+    jobs = [(str(Path(cfg.cells_dir) / c.name), str(cfg.paths.data_dir), str(out / c.name),
              spec.get("max_seconds")) for c in chosen]
     done = map_in_processes(_law_job, jobs, workers, threads)
     rows, left_out, failed, figures, horizons = [], {}, {}, [], set()

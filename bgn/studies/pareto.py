@@ -239,7 +239,7 @@ def evaluate_cell(cell: Cell, cfg: DictConfig) -> list[dict[str, Any]]:
         cached = read_record(path)
         if cached is not None:
             return cached["points"]
-    test = test_split(run_dir, cfg.data_dir)
+    test = test_split(run_dir, cfg.paths.data_dir)
     points = [{"scene": cell.scene, "fps": cell.fps, "model": cell.model,
                "size": cell.tag or "default", "minutes": seconds / 60, "group": cell.groups[0],
                **evaluate_checkpoint(ckpt, test, cell.fps, cfg.preset.eval)}
@@ -276,7 +276,7 @@ def scaled_collisions(cells: list[Cell], cfg: DictConfig, n_particles: int,
 
     sc = cfg.preset.simulator
     cell = cells[0]
-    test = test_split(Path(cfg.cells_dir) / cell.name, cfg.data_dir)
+    test = test_split(Path(cfg.cells_dir) / cell.name, cfg.paths.data_dir)
     base = test.scene
     scene = replace(base, n_particles=n_particles,
                     box=base.box * (n_particles / base.n_particles) ** (1 / base.dim))
@@ -429,7 +429,7 @@ def run(cfg: DictConfig) -> Path:
     simulator = []
     for cell in cells:
         if SCHEDULE in cell.groups and cell.model == cfg.preset.models[0]:
-            test = test_split(Path(cfg.cells_dir) / cell.name, cfg.data_dir)
+            test = test_split(Path(cfg.cells_dir) / cell.name, cfg.paths.data_dir)
             simulator.append({"scene": cell.scene, "fps": cell.fps,
                               "N": test.meta.n_particles,
                               "seconds_per_time_unit": simulator_seconds(test, cell.fps,

@@ -131,6 +131,10 @@ def test_a_damaged_study_file_is_named_and_its_cell_redone(tmp_path: Path, share
     cell = Cell("spring", 50.0, "cranmer_gn")
     record, trained = train_cell(cell, cfg)
     assert trained and "test/nmse" in record["metrics"]
+    # the preset's step budget ended the cell, not its wall-time cap (nothing "cut short")
+    assert record["budget"]["steps"] == record["budget"]["max_steps"] == \
+        cfg.preset.max_steps.spring.cranmer_gn
+    assert record["budget"]["cut_by"] is None
     first = evaluate_cell(cell, cfg)
     run_dir = tmp_path / "cells" / cell.name
     for name in ("eval.json", "metrics.json", "cell.json"):

@@ -126,20 +126,31 @@ class Trajectories:
 
 @torch.no_grad()
 def rollout_many(model: Predictor, dataset: FrameDataset, sims: list[int], starts: list[int],
-                 n_steps: int) -> Trajectories:
+                 n_steps: int, chunk: int | None = None,
+                 between: Callable[[], None] | None = None) -> Trajectories:
     """Every simulation in ``sims`` rolled out from every frame in ``starts`` (batched over
-    the simulations of one start)."""
+    the simulations of one start; with ``chunk``, in batches of whole simulations of at most
+    ``chunk`` particles, at least one simulation each). ``between``: called before each
+    batch (a caller's deadline or signal check: one batch of a large scene can take minutes)."""
     k, sim_ = dataset.history, simulator(model, dataset)
     parts = particles(dataset, sims)
+    size = len(sims) if chunk is None else max(1, chunk // max(1, parts.masses.shape[1]))
+    groups = [list(range(i, min(i + size, len(sims)))) for i in range(0, len(sims), size)]
     predicted, true, bad, seconds = [], [], [], []
     for start in starts:
-        truth = true_positions(dataset, sims, start - k - 1, start + n_steps)
-        result = sim_.rollout(torch.as_tensor(truth[:, :k + 2]), parts, n_steps, start,
-                              driven=torch.as_tensor(truth[:, k + 2:]))
-        predicted.append(np.concatenate([truth[:, k:k + 1], result.positions.cpu().numpy()], 1))
-        true.append(truth[:, k:])
-        bad.append(result.first_non_finite.numpy())
-        seconds.append(result.seconds_per_step / len(sims))
+        for group in groups:
+            if between is not None:
+                between()
+            batch = [sims[i] for i in group]
+            part = parts if len(group) == len(sims) else particles(dataset, batch)
+            truth = true_positions(dataset, batch, start - k - 1, start + n_steps)
+            result = sim_.rollout(torch.as_tensor(truth[:, :k + 2]), part, n_steps, start,
+                                  driven=torch.as_tensor(truth[:, k + 2:]))
+            predicted.append(np.concatenate([truth[:, k:k + 1],
+                                             result.positions.cpu().numpy()], 1))
+            true.append(truth[:, k:])
+            bad.append(result.first_non_finite.numpy())
+            seconds.append(result.seconds_per_step / len(batch))
     reps = len(starts)
     return Trajectories(np.concatenate(predicted), np.concatenate(true), np.concatenate(bad),
                         np.tile(parts.masses.numpy(), (reps, 1)),

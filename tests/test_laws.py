@@ -625,3 +625,88 @@ def test_a_non_finite_loss_is_a_worse_point_for_the_tuning_not_a_crash(monkeypat
         law.amplitude.fill_(1.0)
     loss, n = laws.tune_constants(None, head, [(1.0, None)], 50, None)
     assert loss == math.inf and n > 0 and float(law.amplitude[0]) == 1.0
+
+
+# ----------------------------------------------------------------------------- the job's clock
+def test_validation_rollouts_in_batches_are_the_same_rollouts_and_stop_between_batches(
+        tmp_path, shared_data_dir, monkeypatch):
+    """checked_rollouts (the formula stage's and auto's scoring): batches of whole
+    simulations give the rollouts one batch gives, and the job's deadline is checked before
+    each, so trainer.max_time bounds them (OutOfTime) however large the split."""
+    from types import SimpleNamespace
+
+    import bgn.eval.laws as laws
+    from bgn.data.datamodule import ParticleDataModule
+    from bgn.rollout import rollout_many, rollout_starts
+    from bgn.training.budget import Deadline, OutOfTime
+    from bgn.training.module import load_model
+
+    ckpt = tiny_run(tmp_path, shared_data_dir, "newton", "model.hidden=16")
+    cfg = OmegaConf.load(tmp_path / "newton" / "train_config.yaml")
+    dm = ParticleDataModule(cfg.dataset, cfg.fps, shared_data_dir, show_progress=False)
+    dm.prepare_data()
+    dm.setup()
+    val, model = dm.datasets["val"], load_model(ckpt).model
+    sims, n = [0, 1, 1, 0], 12  # a simulation twice: more batches on the small split
+    starts = rollout_starts(val, n)
+    whole = rollout_many(model, val, sims, starts, n)
+    calls = []
+    monkeypatch.setattr(laws, "ROLLOUT_CHUNK", 1)  # one simulation per batch
+    monkeypatch.setattr(laws, "check", lambda deadline, what: calls.append(what))
+    parts = laws.checked_rollouts(model, val, sims, starts, n, Deadline.after(60.0))
+    assert len(calls) == len(sims) * len(starts)
+    np.testing.assert_array_equal(parts.predicted, whole.predicted)
+    np.testing.assert_array_equal(parts.first_non_finite, whole.first_non_finite)
+    np.testing.assert_array_equal(parts.true, whole.true)
+    # the real check: a deadline that passes after the second batch stops the third
+    monkeypatch.undo()
+    monkeypatch.setattr(laws, "ROLLOUT_CHUNK", 1)
+    import bgn.rollout as rollout
+
+    seen = []
+    original = rollout.LearnedSimulator.rollout
+
+    def counted(self, *args, **kwargs):
+        seen.append(1)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(rollout.LearnedSimulator, "rollout", counted)
+    passes = SimpleNamespace(passed=lambda: len(seen) >= 2)  # during the second batch
+    with pytest.raises(OutOfTime, match="the validation rollouts"):
+        laws.checked_rollouts(model, val, sims, starts, n, passes)
+    assert len(seen) == 2
+
+
+def test_a_formula_stage_whose_deadline_is_spent_keeps_the_network_law_and_says_so(
+        tmp_path, shared_data_dir):
+    """The job's deadline spent before the formula stage's validation rollouts: the stage
+    returns at once, keeps the network law (the run stays usable), and its record and
+    report say the rollouts were cut."""
+    from bgn.data.datamodule import ParticleDataModule
+    from bgn.eval.laws import finetune_formula, finetune_markdown
+    from bgn.training.budget import Deadline
+
+    ckpt = tiny_run(tmp_path, shared_data_dir, "newton", "model.hidden=16")
+    cfg = OmegaConf.load(tmp_path / "newton" / "train_config.yaml")
+    dm = ParticleDataModule(cfg.dataset, cfg.fps, shared_data_dir, show_progress=False)
+    dm.prepare_data()
+    dm.setup()
+    began = time.monotonic()
+    record = finetune_formula(ckpt, dm.datasets["train"], dm.datasets["val"],
+                              start=spring_spec(1.5, -2.0), steps=40, substeps=4, horizon=20,
+                              out_dir=tmp_path / "laws", deadline=Deadline(time.monotonic() - 1))
+    assert time.monotonic() - began < 20
+    assert record["choice"] == "network" and record["validation"] == {}
+    assert record["budget"]["cut_by"] == "max_time"
+    assert record["budget"]["cut"] == ["the fit", "the validation rollouts"]
+    assert record["steps"] == 0  # nothing tuned either
+    text = finetune_markdown(record)
+    assert "Not compared" in text and "network law is kept" in text
+    # formula.ckpt is still written (what auto's formula candidate would continue from)
+    assert (tmp_path / "laws" / "formula.ckpt").exists()
+    # a deadline that leaves the fit its time but not the rollouts: the fit is not cut
+    timed = finetune_formula(ckpt, dm.datasets["train"], dm.datasets["val"],
+                             start=spring_spec(1.5, -2.0), steps=2, substeps=4, horizon=20,
+                             deadline=Deadline.after(600.0))
+    assert timed["budget"]["cut"] == [] and timed["budget"]["cut_by"] is None
+    assert set(timed["validation"]) == {"network", "formula"}

@@ -998,6 +998,9 @@ C_STEP = 2.0              # ... and its factor on each constant c
 FORM_TOLERANCE = 0.02     # a simpler form is kept while its tuned loss is within this of the best
 NEGLIGIBLE = 0.01         # a term this small against the law at every distance goes (prune_terms)
 FINETUNE_HORIZON = 50     # validation rollout steps (as auto.horizon)
+# particles per batch of validation rollouts (checked_rollouts): the job's deadline is checked
+# between batches; a force scene's whole validation split (200 x 4 bodies) is one batch
+ROLLOUT_CHUNK = 4096
 TYPICAL_FLOOR = 1e-9      # added to each error before the geometric mean (an exact rollout)
 CANCELLING = 0.01         # a term twice whose amplitudes cancel to this is one term's derivative
 CLOSE_SHARE = 0.25        # of the tuning batch: the frames with the closest pairs
@@ -1082,21 +1085,35 @@ def tuning_batches(dataset: Any, size: int, seed: int = 0) -> list[tuple[float, 
             ((n - k) / n, collate([dataset[int(i)] for i in np.sort(rest)]))]
 
 
+def checked_rollouts(model: Any, val: Any, sims: list[int], starts: list[int], n_steps: int,
+                     deadline: Deadline | None = None) -> Any:
+    """Validation rollouts (``bgn.rollout.rollout_many``) in batches of at most
+    ``ROLLOUT_CHUNK`` particles, the job's ``deadline`` and SIGTERM checked before each
+    (``check``: ``OutOfTime`` past it): one batch of a large scene's validation split can
+    take minutes. The formula stage's and ``bgn.studies.auto``'s scoring."""
+    from bgn.rollout import rollout_many
+
+    with torch.no_grad():
+        return rollout_many(model.eval(), val, sims, starts, n_steps, chunk=ROLLOUT_CHUNK,
+                            between=lambda: check(deadline, "the validation rollouts"))
+
+
 def validation_errors(model: Any, val: Any, history: int, horizon: int = FINETUNE_HORIZON,
-                      val_sims: int | None = None) -> dict[str, Any]:
+                      val_sims: int | None = None,
+                      deadline: Deadline | None = None) -> dict[str, Any]:
     """bgn.studies.auto's scoring: every validation simulation (or ``val_sims`` of them)
     rolled out from the shared start frames; after 10 and ``horizon`` steps the mean capped
     error (a failed rollout at the cap) and its geometric mean over the rollouts
-    (``typical``, shown beside), and how many failed (``failed``, ``failed_share``)."""
+    (``typical``, shown beside), and how many failed (``failed``, ``failed_share``).
+    ``deadline``: checked between batches (``checked_rollouts``)."""
     from bgn.data.frames import evenly_spaced
     from bgn.metrics import SHORT_HORIZON, failure_capped_errors
-    from bgn.rollout import rollout_many, rollout_starts
+    from bgn.rollout import rollout_starts
 
     n_steps = min(horizon, val.file.n_frames - history - 2)
     horizons = sorted({min(SHORT_HORIZON, n_steps), n_steps})
     sims, starts = evenly_spaced(val.file.n_sims, val_sims), rollout_starts(val, n_steps)
-    with torch.no_grad():
-        t = rollout_many(model.eval(), val, sims, starts, n_steps)
+    t = checked_rollouts(model, val, sims, starts, n_steps, deadline)
     capped, failed = failure_capped_errors(t.predicted, t.true, t.first_non_finite,
                                            val.meta.box)
     at = {h: capped[:, h - 1] for h in horizons}
@@ -1371,8 +1388,11 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     ``start``: a spec to start from in place of the law read back (tests). The fit is
     bounded by its evaluation count (``steps`` per form); ``deadline`` (the job's wall-clock
     cap, ``bgn.training.budget``) and ``max_seconds`` (from now) stop it earlier, and the
-    record's ``budget.cut_by`` says so. A line per tuned form shows its progress.
-    Returns the record (specs before and after, errors, choice)."""
+    record's ``budget.cut_by`` says so. The validation rollouts check ``deadline`` alone
+    between their batches (``checked_rollouts``); past it the network law is kept (the
+    run stays usable), ``validation`` is empty and ``budget.cut`` names them. A line per
+    tuned form shows its progress. Returns the record (specs before and after, errors,
+    choice)."""
     from bgn.training.module import load_model
 
     network = load_model(checkpoint)
@@ -1380,7 +1400,8 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
         report = read_law(network, train_split)
     batches = tuning_batches(train_split, batch_size, seed)
     reach, floor = _data_reach(report, train_split)
-    deadline = (deadline or NO_DEADLINE).sooner(max_seconds)
+    job = deadline or NO_DEADLINE  # the validation rollouts' (max_seconds bounds the fit)
+    deadline = job.sooner(max_seconds)
     began = time.monotonic()
     evaluations = [0, 0]  # loss evaluations, tunings (each at most `steps` evaluations)
 
@@ -1409,7 +1430,8 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
         evaluations[1] += 1
     # the fit ended by the cap, not by its evaluation count: another machine fits otherwise
     budget = {"steps_per_form": steps, "evaluations": evaluations[0],
-              "cut_by": "max_time" if deadline.passed() else None}
+              "cut_by": "max_time" if deadline.passed() else None,
+              "cut": ["the fit"] if deadline.passed() else []}
     log.info("formula stage: tuned in %s%s; rolling out both laws on validation",
              clock_text(time.monotonic() - began),
              " (cut short by the job's wall-clock cap)" if budget["cut_by"] else "")
@@ -1430,11 +1452,18 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     hp["model_config"] = {**hp["model_config"], "law_formula": head.force_law.spec(),
                           "law_scale": 1 / model_scale}  # its labels in physical units
     history = int(hp["history"])
-    scores, by_substeps = _validated_laws(network, model, head, val, history, horizon,
-                                          val_sims, substeps)
+    try:
+        scores, by_substeps = _validated_laws(network, model, head, val, history, horizon,
+                                              val_sims, substeps, job)
+        choice = law_choice(scores, scores["network"]["horizon"])
+    except OutOfTime:  # nothing compared: the law the checkpoint validated with stays
+        scores, by_substeps, choice = {}, {}, "network"
+        budget["cut_by"] = "max_time"
+        budget["cut"].append("the validation rollouts")
+        log.warning("formula stage: the validation rollouts reached the job's wall-clock cap "
+                    "(trainer.max_time): the network law is kept; raise trainer.max_time to "
+                    "compare the formula")
     hp["model_config"] = {**hp["model_config"], "substeps": head.substeps}
-    n = scores["network"]["horizon"]
-    choice = law_choice(scores, n)
     record = {"checkpoint": str(checkpoint), "substeps": substeps,
               "steps": evaluations[0], "tunings": evaluations[1], "batch_size": batch_size,
               "budget": budget,
@@ -1503,20 +1532,28 @@ def _chosen_form(forms: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def _validated_laws(network: Any, model: Any, head: Any, val: Any, history: int, horizon: int,
-                    val_sims: int | None,
-                    substeps: int) -> tuple[dict[str, Any], dict[int, Any]]:
+                    val_sims: int | None, substeps: int, deadline: Deadline | None = None,
+                    ) -> tuple[dict[str, Any], dict[int, Any]]:
     """Validation rollouts of the network law and of the formula (``scores``), the formula
     rolled out with the substeps it was tuned through and with the network's own
     (``by_substeps``); ``head.substeps`` is left at the better of the two on the mean error:
     the shooting's velocity estimate can cost more over a rollout than the substeps gain
     (docs/notes/2026-11-26-results-history.md, "The formula stage"), and substeps are there
-    for the rare close encounters, which a typical (geometric-mean) error discounts."""
-    scores = {"network": validation_errors(network.model, val, history, horizon, val_sims)}
+    for the rare close encounters, which a typical (geometric-mean) error discounts.
+    ``deadline``: the job's, checked between rollout batches (``OutOfTime``, with
+    ``head.substeps`` put back)."""
+    scores = {"network": validation_errors(network.model, val, history, horizon, val_sims,
+                                           deadline)}
     n = scores["network"]["horizon"]
     by_substeps = {}
     for k in sorted({substeps, pair_force_head(network)[1].substeps}):
         head.substeps = k
-        by_substeps[k] = validation_errors(model, val, history, horizon, val_sims)
+        try:
+            by_substeps[k] = validation_errors(model, val, history, horizon, val_sims,
+                                               deadline)
+        except OutOfTime:
+            head.substeps = substeps
+            raise
     head.substeps = min(by_substeps, key=lambda k: by_substeps[k]["errors"].get(n, math.inf))
     scores["formula"] = by_substeps[head.substeps]
     return scores, by_substeps
@@ -1553,6 +1590,13 @@ def finetune_markdown(record: dict[str, Any], level: int = 2) -> str:
     """The comparison table of ``finetune_formula``'s record."""
     h = "#" * level
     v = record["validation"]
+    if not v:  # the validation rollouts were cut (finetune_formula)
+        return (f"{h} The formula as the law, fine-tuned\n\nThe fitted formula as the model's "
+                f"pair law, its constants fitted in {record['steps']} evaluations: "
+                f"`{spec_text(record['tuned'])}`. Not compared: the job's wall-clock cap "
+                "(trainer.max_time) was reached before the validation rollouts finished "
+                f"({', '.join((record.get('budget') or {}).get('cut', []))} cut), so the "
+                "network law is kept.\n")
     horizons = sorted(v["network"]["errors"], key=int)
     lines = [f"{h} The formula as the law, fine-tuned",
              "",

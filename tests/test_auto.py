@@ -31,7 +31,7 @@ from bgn.studies.auto import (
     write_report,
 )
 from bgn.training.validate import ConfigError, validate_train
-from tests.conftest import SMALL, compose_config
+from tests.conftest import NETWORK_LAW, SMALL, compose_config
 from tests.test_train import CLI_ENV, command_line
 
 REFS = ("gns", "cranmer_gn")
@@ -134,8 +134,8 @@ def test_a_candidate_below_min_steps_is_never_compared_and_a_result_survives_a_r
     score; result.json gives a resumed run the same result back."""
     from bgn.studies.auto import fallback, stored_result
 
-    decoder = Candidate("decoder", "d", ["model.dynamics=decoder"])
-    newton = Candidate("newton_inertial", "n", ["model.dynamics=newton"], pair_force=True)
+    decoder = Candidate("decoder", ["model.dynamics=decoder"])
+    newton = Candidate("newton_inertial", ["model.dynamics=newton"], pair_force=True)
     short = Result(newton, errors={10: 0.001, 50: 0.01}, steps=40,
                    untrained="not trained (40 steps of auto.min_steps=100 ...)")
     trained = Result(decoder, errors={10: 0.1, 50: 1.0}, steps=100)
@@ -146,7 +146,7 @@ def test_a_candidate_below_min_steps_is_never_compared_and_a_result_survives_a_r
         choose([short], 50)
     assert fallback([short]) is short and fallback([Result(newton)]) is None
     (tmp_path / "result.json").write_text(json.dumps(trained.state()))
-    again = stored_result(Candidate("decoder", "d", []), tmp_path)
+    again = stored_result(Candidate("decoder", []), tmp_path)
     assert again is not None and again.errors == trained.errors and again.steps == 100
     assert again.candidate.overrides == ["model.dynamics=decoder"]
     assert stored_result(decoder, tmp_path / "none") is None
@@ -188,7 +188,7 @@ def test_failed_rollouts_count_at_the_cap():
 
 def result(name: str, errors: dict[int, float], eligible: bool = True, error: str = "",
            ) -> Result:
-    return Result(Candidate(name, name, [], eligible=eligible), errors=errors, error=error)
+    return Result(Candidate(name, [], eligible=eligible), errors=errors, error=error)
 
 
 def test_choice_on_given_scores():
@@ -232,19 +232,22 @@ def test_report_names_the_choice_and_shows_its_evidence(tmp_path):
     rng = np.random.default_rng(0)
     true_log = rng.normal(size=40)
     s = np.geomspace(0.1, 3.0, 20)
-    pair = Result(Candidate("newton_inertial", "pair forces", [], pair_force=True),
+    about = {"name": "bgn", "label": "BGN + pair-force head (masses inertial)", "given": [],
+             "trained_with": ["masses"], "supervision": {"masses": ["mass_nll", "law"]},
+             "physics": "central pair forces, equal and opposite"}
+    pair = Result(Candidate("newton_inertial", [], pair_force=True), model=about,
                   errors={10: 0.01, 50: 0.1}, failed_share=0.0, curve=[0.05] * 50, steps=30,
                   wall_s=2.0, law={"s": s.tolist(), "sign": 1.0, "f": {"0-0": (1 - s).tolist()}},
                   masses={"true_log": true_log.tolist(), "fitted_log": (true_log + 1).tolist(),
                           "relative_r2": 1.0, "median_fit": 0.5},
                   law_match={"val_error": 2e-4, "val_error_before": 0.99,
                              "table_val_error": 5e-5, "kept": True})
-    decoder = Result(Candidate("decoder", "the decoder", []), errors={10: 0.02, 50: 0.4},
+    decoder = Result(Candidate("decoder", []), errors={10: 0.02, 50: 0.4},
                      failed_share=0.5, curve=[0.2] * 50, steps=30, wall_s=1.0)
-    absent = Result(Candidate("impulse", "impulses", [], admitted=False, reason="no contacts"))
-    failed = Result(Candidate("newton_source", "source", [], pair_force=True),
+    absent = Result(Candidate("impulse", [], admitted=False, reason="no contacts"))
+    failed = Result(Candidate("newton_source", [], pair_force=True),
                     error="FloatingPointError: train loss became nan at step 3")
-    short = Result(Candidate("newton_type", "type", [], pair_force=True), steps=7,
+    short = Result(Candidate("newton_type", [], pair_force=True), steps=7,
                    untrained="not trained (7 steps of auto.min_steps=20 before trainer.max_time)")
     protocol = {"horizon": 50, "horizons": [10, 50], "sims": [0, 1, 2, 5], "starts": [6],
                 "rollouts": 2, "share": 0.5, "budget_each": {"max_steps": 30},
@@ -272,9 +275,19 @@ def test_report_names_the_choice_and_shows_its_evidence(tmp_path):
     record = json.loads((tmp_path / "auto.json").read_text())
     assert record["choice"] == "newton_inertial" and record["margin"] == 4.0
     rows = (tmp_path / "auto.csv").read_text().splitlines()
-    assert len(rows) == 6 and rows[2].endswith("True,,trained")  # the chosen one, no error
+    # the chosen one, no error, trained in this attempt
+    assert len(rows) == 6 and rows[2].endswith("True,,trained,False")
     for key in ("errors", "law", "masses_newton_inertial"):
         assert (tmp_path / record["figures"][key]).stat().st_size > 0
+    # each named as Table 1 names its model (describe()), else by its name
+    assert "| **newton_inertial** | BGN + pair-force head (masses inertial) | recorded masses " \
+        "(mass_nll, law) | - | central pair forces, equal and opposite | yes |" in report
+    assert "| newton_source | newton_source | - | - | - | yes |" in report
+    labels = {c["candidate"]: c["label"] for c in record["candidates"]}
+    assert labels == {"decoder": "decoder", "newton_inertial": about["label"],
+                      "newton_source": "newton_source", "newton_type": "newton_type",
+                      "impulse": "impulse"}
+    assert record["candidates"][1]["model"] == about
 
 
 # ----------------------------------------------------------------------------- configs
@@ -420,9 +433,8 @@ def test_the_best_pair_force_law_becomes_a_formula_candidate(tmp_path, shared_da
             "figures=false", "val_rollout_steps=0", "callbacks.progress_bar=null",
             "trainer.max_epochs=1", "+trainer.limit_train_batches=2",
             "trainer.limit_val_batches=1"]
-    best = Candidate("newton_inertial", "pair-force head",
-                     ["model.dynamics=newton", "model.mass_law=inertial",
-                      f"model.law_init={law_init}"], pair_force=True)
+    best = Candidate("newton_inertial", ["model.dynamics=newton", "model.mass_law=inertial",
+                                         f"model.law_init={law_init}"], pair_force=True)
     train(compose_candidate(base, best, auto_dir / best.name, {}), law_stage=law_stage)
     cfg = compose_config("train", base)
     dm = ParticleDataModule(cfg.dataset, cfg.fps, shared_data_dir, show_progress=False)
@@ -439,7 +451,8 @@ def test_the_best_pair_force_law_becomes_a_formula_candidate(tmp_path, shared_da
     tuned = json.loads((auto_dir / result.candidate.name / "formula.json").read_text())
     # each form tuned in at most its share of the steps (half the candidates' max_steps)
     assert 0 < tuned["steps"] <= 3 * tuned["tunings"]
-    assert "constants fine-tuned" in result.candidate.label
+    # named by its model's describe(): the formula written into the pair-force head
+    assert result.label == result.model["label"] and "law a formula" in result.label
     final = compose_candidate(base, result.candidate, auto_dir / result.candidate.name, {})
     assert final.model.law == "formula"
     assert json.loads(final.model.law_formula) == tuned["model_tuned"]  # the model's scale
@@ -475,8 +488,8 @@ def test_a_winner_whose_budget_is_spent_is_tested_on_its_own_checkpoint(
             "figures=false", "val_rollout_steps=0", "callbacks.progress_bar=null",
             "+trainer.limit_train_batches=2", "trainer.limit_val_batches=1",
             "+trainer.limit_test_batches=1", "test_rollouts=false"]
-    best = Candidate("newton_inertial", "pair-force head",
-                     ["model.dynamics=newton", "model.mass_law=inertial"], pair_force=True)
+    best = Candidate("newton_inertial", ["model.dynamics=newton", "model.mass_law=inertial"],
+                     pair_force=True)
     spent = {"max_steps": 2, "max_epochs": -1}
     train(compose_candidate(base, best, auto_dir / best.name, spent), law_stage=law_stage)
     dm = data_module(compose_config("train", base))
@@ -520,3 +533,138 @@ def test_imported_data_choose_their_structure_by_default(tmp_path) -> None:
     assert cfg.model.dynamics == "auto"
     with pytest.raises(ValueError, match="python -m bgn.train"):
         train(cfg)
+
+
+# ----------------------------------------------------------------------------- a tiny run
+TINY_AUTO = ["dataset=spring", *SMALL["spring"], "model.dynamics=auto", "model.hidden=16",
+             "model.decoder_hidden=16", "model.flow_hidden=16", "figures=false",
+             "val_rollout_steps=0", "callbacks.progress_bar=null", "dataset.batch_size=16",
+             NETWORK_LAW,
+             "trainer.max_steps=40", "auto.min_steps=4", "auto.references=[]",
+             "auto.horizon=10", "test=false"]
+
+
+@pytest.fixture(scope="module")
+def tiny_auto(tmp_path_factory, shared_data_dir):
+    """A whole model.dynamics=auto run in this process on SMALL spring data (the decoder and
+    three pair-force candidates of 5 steps each, the formula candidate, the winner to 25
+    steps; about 30 s on one core): its run directory."""
+    from bgn.studies.auto import run_auto
+
+    run = tmp_path_factory.mktemp("tiny_auto") / "run"
+    overrides = [*TINY_AUTO, f"paths.data_dir={shared_data_dir}", f"paths.output_dir={run}"]
+    run_auto(compose_config("train", overrides), overrides)
+    return run
+
+
+@pytest.mark.slow
+def test_every_candidate_is_named_by_its_models_description(tiny_auto):
+    """The report's label of each candidate is its trained model's describe()["label"] (the
+    record Table 1 reads), with what it was trained with, given and has written in."""
+    from bgn.training.checkpoints import best_checkpoint
+    from bgn.training.module import load_model
+
+    record = json.loads((tiny_auto / "auto" / "auto.json").read_text())
+    rows = {c["candidate"]: c for c in record["candidates"]}
+    assert set(rows) - {"decoder", *PAIR_FORCE, "impulse"} == {
+        n for n in rows if n.startswith("formula_")}
+    for name, row in rows.items():
+        if not row["admitted"]:
+            assert row["label"] == name and row["model"] is None
+            continue
+        about = load_model(best_checkpoint(tiny_auto / "auto" / name)).model.describe()
+        assert row["label"] == about["label"], name
+        assert row["model"] == json.loads(json.dumps(about)), name
+        assert row["physics"] == about["physics"]
+    formula = next(r for n, r in rows.items() if n.startswith("formula_"))
+    assert "law a formula" in formula["label"]
+    report = (tiny_auto / "auto" / "report.md").read_text()
+    for row in rows.values():
+        assert f"| {row['label']} |" in report
+    top = json.loads((tiny_auto / "metrics.json").read_text())
+    assert top["auto"]["label"] == rows[top["auto"]["choice"]]["label"]
+
+
+@pytest.mark.slow
+def test_the_runs_wall_time_is_the_whole_jobs(tiny_auto):
+    """metrics.json's wall_time_s at the run folder counts the whole job (every candidate,
+    the formula candidate, the winner's continuation); each candidate keeps its own; the
+    closing summary states the whole job's time."""
+    from bgn.training.budget import clock_text
+    from bgn.training.run import summary
+
+    top = json.loads((tiny_auto / "metrics.json").read_text())
+    own = top["auto"]["wall_s"]
+    record = json.loads((tiny_auto / "auto" / "auto.json").read_text())
+    admitted = {c["candidate"]: c["wall_s"] for c in record["candidates"] if c["admitted"]}
+    assert own == pytest.approx(admitted) and all(t > 0 for t in own.values())
+    job = top["metrics"]["wall_time_s"]
+    assert job >= sum(own.values()) + top["auto"]["winner_wall_time_s"]
+    winner = json.loads((tiny_auto / "auto" / top["auto"]["choice"] / "metrics.json")
+                        .read_text())
+    assert winner["metrics"]["wall_time_s"] == pytest.approx(top["auto"]["winner_wall_time_s"])
+    assert top["auto"]["kept"] == []
+    text = summary(top, tiny_auto)
+    first = text.splitlines()[0]
+    assert f"in {clock_text(job)} (the whole job: {len(own)} candidates" in first
+    assert f"chose {top['auto']['choice']}" in text
+    assert f"next: python -m bgn.evaluate {tiny_auto}" in text
+
+
+@pytest.mark.slow
+def test_a_stopped_auto_run_resumes_with_the_command_it_printed(tmp_path, shared_data_dir,
+                                                                  tiny_auto):
+    """SIGTERM once a candidate has finished; the command the run printed resumes it: the
+    finished candidates are kept (result.json untouched, not retrained), the run completes
+    with its metrics.json and chooses what the same command chose uninterrupted."""
+    import os
+    import shlex
+    import signal
+    import sys
+    import time
+
+    run = tmp_path / "run"
+    proc = subprocess.Popen(command_line(*TINY_AUTO, f"paths.data_dir={shared_data_dir}",
+                                         f"hydra.run.dir={run}"),
+                            cwd=tmp_path, env=CLI_ENV, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    first = run / "auto" / "decoder" / "result.json"
+    deadline = time.monotonic() + 600
+    while not first.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert proc.poll() is None, proc.communicate()[1][-3000:]
+    os.kill(proc.pid, signal.SIGTERM)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, err[-3000:]
+    assert not (run / "metrics.json").exists()
+    said = [line for line in (out + err).splitlines() if "resume with: " in line]
+    assert len(said) == 1, (out + err)[-3000:]
+    command = shlex.split(said[0].split("resume with: ", 1)[1])
+    assert command[:3] == ["python", "-m", "bgn.train"] and f"hydra.run.dir={run}" in command
+    finished = {p.parent.name: (p.read_bytes(), p.stat().st_mtime_ns)
+                for p in (run / "auto").glob("*/result.json")}
+    checkpoints = {name: (run / "auto" / name / "checkpoints" / "last.ckpt").stat().st_mtime_ns
+                   for name in finished}
+    assert "decoder" in finished
+    resumed = subprocess.run([sys.executable, *command[1:]], cwd=tmp_path, env=CLI_ENV,
+                             capture_output=True, text=True, timeout=900)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    for name, (content, mtime) in finished.items():
+        path = run / "auto" / name / "result.json"
+        assert (path.read_bytes(), path.stat().st_mtime_ns) == (content, mtime), name
+    top = json.loads((run / "metrics.json").read_text())
+    reference = json.loads((tiny_auto / "metrics.json").read_text())
+    assert top["auto"]["choice"] == reference["auto"]["choice"]
+    assert sorted(top["auto"]["kept"]) == sorted(finished)
+    for name in finished:  # not retrained (the winner's last.ckpt is its continuation's)
+        if name != top["auto"]["choice"]:
+            last = run / "auto" / name / "checkpoints" / "last.ckpt"
+            assert last.stat().st_mtime_ns == checkpoints[name], name
+    assert set(top["auto"]["status"]) == set(reference["auto"]["status"])
+    assert all(s in ("trained", "-") for s in top["auto"]["status"].values()), top["auto"]
+    assert top["auto"]["steps"] == reference["auto"]["steps"]
+    for name in finished:  # the same evidence as the uninterrupted run's
+        assert top["auto"]["val_errors"][name] == pytest.approx(
+            reference["auto"]["val_errors"][name], rel=1e-6), name
+    assert "kept from an earlier attempt" in (resumed.stdout + resumed.stderr)
+    assert (run / "auto" / "report.md").exists()

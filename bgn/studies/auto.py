@@ -71,21 +71,17 @@ WINNER_RESERVE = 0.4
 MIN_FIT_S = 10.0  # below this a fit's part of trainer.max_time is warned about (run_auto)
 # overrides of the run that each candidate sets itself
 OWN_KEYS = ("model", "model.dynamics", "model.mass_law", "paths.output_dir", "ckpt_path", "test")
-REFERENCE_LABELS = {
-    "gns": "GNS (Sanchez-Gonzalez et al. 2020): encode-process-decode, no physics written in",
-    "cranmer_gn": "Cranmer et al. 2020 graph network: edge messages summed, no physics "
-                  "written in",
-}
 
 
 # ----------------------------------------------------------------------------- candidates
 @dataclass
 class Candidate:
     """One structure: its overrides of the run's train config, whether the data admit it
-    (``reason`` if not) and whether it may win (references may not)."""
+    (``reason`` if not) and whether it may win (references may not). What it is (label,
+    given, physics written in) is its model's ``describe()`` (``Result.model``), the record
+    Table 1 reads, so the two never disagree."""
 
     name: str
-    label: str                        # what it is given and what physics it writes in
     overrides: list[str]
     admitted: bool = True
     reason: str = ""
@@ -104,17 +100,10 @@ def candidates(meta: SceneMeta, history: int, radii_given: bool,
     (``velocity``: a law of the distance cannot express them); then the references."""
     from bgn.model.newton import check_scene
 
-    out = [Candidate("decoder", "BGN + the paper's decoder (Eq. 5): the window in, the "
-                     "target out, no physics written in", ["model.dynamics=decoder"])]
-    for law, physics in (("inertial", "inertial masses fitted to the window, a_i = sum_j "
-                                      "f(s_ij) u_ij / m_i (spring-like)"),
-                         ("source", "masses at the source fitted to the window, a_i = sum_j "
-                                    "m_j f(s_ij) u_ij (gravity-like)"),
-                         ("type", "one inertial mass per particle type, learned (all equal "
-                                  "where one type), a_i = sum_j f(s_ij) u_ij / m_i")):
-        cand = Candidate(f"newton_{law}", "BGN + pair-force head (central, equal and opposite "
-                         f"forces f(s) learned), {physics}",
-                         ["model.dynamics=newton", f"model.mass_law={law}"], pair_force=True)
+    out = [Candidate("decoder", ["model.dynamics=decoder"])]
+    for law in ("inertial", "source", "type"):
+        cand = Candidate(f"newton_{law}", ["model.dynamics=newton", f"model.mass_law={law}"],
+                         pair_force=True)
         if meta.interaction == "contact":
             cand.admitted, cand.reason = False, "a contact scene: impulses, not forces"
         else:
@@ -126,9 +115,7 @@ def candidates(meta: SceneMeta, history: int, radii_given: bool,
                 if cand.admitted and evidence is not None and evidence.breaks():
                     cand.admitted, cand.reason = False, evidence.breaks()
         out.append(cand)
-    impulse = Candidate("impulse", "BGN + contact-impulse head (equal and opposite impulses "
-                        "along the normal at the time of impact, masses learned from radii)",
-                        ["model.dynamics=newton"])
+    impulse = Candidate("impulse", ["model.dynamics=newton"])
     if meta.interaction != "contact":
         impulse.admitted, impulse.reason = False, (f"{meta.interaction} interactions, not "
                                                    "contacts")
@@ -140,8 +127,7 @@ def candidates(meta: SceneMeta, history: int, radii_given: bool,
         impulse.admitted, impulse.reason = False, "needs the walls of a box"
     out.append(impulse)
     for name in references:
-        out.append(Candidate(name, REFERENCE_LABELS.get(name, name) + " (reference)",
-                             [f"model={name}"], eligible=False))
+        out.append(Candidate(name, [f"model={name}"], eligible=False))
     return out
 
 
@@ -202,11 +188,18 @@ def candidate_deadline(deadline: Deadline, remaining: int,
 
 
 # ----------------------------------------------------------------------------- scores
+# what result.json keeps of a Result besides its overrides and errors
+STATE_KEYS = ("failed_share", "curve", "steps", "wall_s", "error", "law", "masses",
+              "law_match", "untrained", "model")
+
+
 @dataclass
 class Result:
     """A candidate's validation evidence: the capped error after each horizon, the share of
-    failed rollouts, the mean capped error per step (``curve``), steps and wall time of its
-    training; ``error``: why it could not be trained or scored."""
+    failed rollouts, the mean capped error per step (``curve``), its steps and its own wall
+    time (training and scoring); ``error``: why it could not be trained or scored;
+    ``model``: its model's ``describe()`` (the trained one's, or, where training failed,
+    the one its config builds; None where none could be built)."""
 
     candidate: Candidate
     errors: dict[int, float] = field(default_factory=dict)
@@ -219,6 +212,13 @@ class Result:
     masses: dict[str, Any] | None = None
     law_match: dict[str, Any] | None = None  # force matching's record (law_init=match)
     untrained: str = ""  # why it counts as not trained (fewer than auto.min_steps steps)
+    model: dict[str, Any] | None = None
+    kept: bool = False  # restored from an earlier attempt of the run (result.json)
+
+    @property
+    def label(self) -> str:
+        """How the report names it: its model's label (``describe()``), else its name."""
+        return (self.model or {}).get("label") or self.candidate.name
 
     @property
     def compared(self) -> bool:
@@ -236,19 +236,16 @@ class Result:
 
     def state(self) -> dict[str, Any]:
         """What ``auto/<candidate>/result.json`` keeps: a resumed run reuses it."""
-        return {"overrides": self.candidate.overrides, "label": self.candidate.label,
+        return {"overrides": self.candidate.overrides,
                 "errors": {str(k): v for k, v in self.errors.items()},
-                **{k: getattr(self, k) for k in ("failed_share", "curve", "steps", "wall_s",
-                                                 "error", "law", "masses", "law_match",
-                                                 "untrained")}}
+                **{k: getattr(self, k) for k in STATE_KEYS}}
 
     @classmethod
     def restored(cls, candidate: Candidate, state: Mapping[str, Any]) -> Result:
         candidate.overrides = list(state.get("overrides", candidate.overrides))
-        candidate.label = state.get("label", candidate.label)
-        out = cls(candidate, errors={int(k): float(v) for k, v in state["errors"].items()})
-        for key in ("failed_share", "curve", "steps", "wall_s", "error", "law", "masses",
-                    "law_match", "untrained"):
+        out = cls(candidate, errors={int(k): float(v) for k, v in state["errors"].items()},
+                  kept=True)
+        for key in STATE_KEYS:
             if key in state:
                 setattr(out, key, state[key])
         return out
@@ -490,7 +487,13 @@ def match_lines(results: Sequence[Result]) -> list[str]:
 
 def write_report(auto_dir: Path, results: Sequence[Result], winner: Result, margin: float,
                  protocol: dict[str, Any]) -> Path:
-    """``report.md``, ``auto.csv``, ``auto.json`` and the figures in ``auto_dir``."""
+    """``report.md``, ``auto.csv``, ``auto.json`` and the figures in ``auto_dir``. Each
+    candidate is named as Table 1 names a model (``bgn.studies.report.describe_columns`` of
+    its ``describe()``): its label, what its training loss reads beyond the frames, what it
+    is given at inference and the physics written in."""
+    from bgn.eval.columns import GIVEN, PHYSICS, TRAINED_WITH
+    from bgn.studies.report import describe_columns
+
     horizons = protocol["horizons"]
     figures = auto_dir / "figures"
     paths = {"errors": error_figure(results, figures / "validation_error.png")}
@@ -503,13 +506,16 @@ def write_report(auto_dir: Path, results: Sequence[Result], winner: Result, marg
     rows = []
     for r in results:
         c = r.candidate
-        rows.append({"candidate": c.name, "label": c.label, "admitted": c.admitted,
-                     "reason": c.reason, "eligible": c.eligible,
+        about = describe_columns(r.model) if r.model else dict.fromkeys(
+            (TRAINED_WITH, GIVEN, PHYSICS), "-")
+        rows.append({"candidate": c.name, "label": r.label, "trained_with": about[TRAINED_WITH],
+                     "given": about[GIVEN], "physics": about[PHYSICS],
+                     "admitted": c.admitted, "reason": c.reason, "eligible": c.eligible,
                      **{f"val_err@{h}": r.errors.get(h, float("nan")) for h in horizons},
                      "failed_share": r.failed_share, "steps": r.steps, "wall_s": r.wall_s,
                      "mass_relative_r2": (r.masses or {}).get("relative_r2", float("nan")),
                      "chosen": c.name == winner.candidate.name, "error": r.error,
-                     "status": r.status()})
+                     "status": r.status(), "kept": r.kept})
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=list(rows[0]))
     writer.writeheader()
@@ -517,7 +523,7 @@ def write_report(auto_dir: Path, results: Sequence[Result], winner: Result, marg
     write_atomic(auto_dir / "auto.csv", buffer.getvalue())
     record = {"choice": winner.candidate.name, "margin": margin, "protocol": protocol,
               "candidates": [{**row, "overrides": r.candidate.overrides,
-                              "law": r.law, "curve": r.curve}
+                              "law": r.law, "curve": r.curve, "model": r.model}
                              for row, r in zip(rows, results)],
               "figures": {k: str(v.relative_to(auto_dir)) for k, v in paths.items()}}
     write_atomic(auto_dir / "auto.json", json.dumps(record, indent=2, default=float))
@@ -530,25 +536,30 @@ def write_report(auto_dir: Path, results: Sequence[Result], winner: Result, marg
              f"{protocol['budget_each']['max_steps']} optimiser steps (at least "
              f"{protocol['min_steps']} to count as trained: fewer, it is neither scored nor "
              f"compared); the winner then resumed to {protocol['budget_winner']['max_steps']}.",
-             "", "| candidate | what it is given, what it writes in | admitted | may win | "
-             "trained | " + " | ".join(f"val err @{k}" for k in horizons)
+             "`wall s`: the candidate's own time, its training and scoring; "
+             f"`{TRAINED_WITH}` (beyond the frames), `{GIVEN}` (beyond the position window) "
+             f"and `{PHYSICS}`: its model's, as Table 1 says them.",
+             "", f"| candidate | model | {TRAINED_WITH} | {GIVEN} | {PHYSICS} | admitted | "
+             "may win | trained | " + " | ".join(f"val err @{k}" for k in horizons)
              + " | failed | steps | wall s | rel. mass R^2 |",
-             "|---|---|---|---|---|" + "---|" * len(horizons) + "---|---|---|---|"]
+             "|---|---|---|---|---|---|---|---|" + "---|" * len(horizons) + "---|---|---|---|"]
     for row in rows:
         name = f"**{row['candidate']}**" if row["chosen"] else row["candidate"]
         admitted = "yes" if row["admitted"] else f"no: {row['reason']}"
         may_win = ("-" if not row["admitted"] else "yes" if row["eligible"] else "reference")
         status = row["status"].replace("|", "/")
-        lines.append(f"| {name} | {row['label']} | {admitted} | {may_win} | {status} | "
+        about = " | ".join(str(row[k]).replace("|", "/")
+                           for k in ("label", "trained_with", "given", "physics"))
+        lines.append(f"| {name} | {about} | {admitted} | {may_win} | {status} | "
                      + " | ".join(_fmt(row[f"val_err@{k}"]) for k in horizons)
                      + f" | {_fmt(row['failed_share'])} | {row['steps'] or '-'} | "
                      f"{_fmt(row['wall_s'])} | {_fmt(row['mass_relative_r2'])} |")
     if protocol.get("fallback"):
         lines += ["", f"Not chosen by evidence: **{winner.candidate.name}** "
-                  f"({winner.candidate.label}) is the run's model because "
+                  f"({winner.label}) is the run's model because "
                   f"{protocol['fallback']}.", ""]
     else:
-        lines += ["", f"Chosen: **{winner.candidate.name}** ({winner.candidate.label}), error "
+        lines += ["", f"Chosen: **{winner.candidate.name}** ({winner.label}), error "
                   f"{_fmt(winner.errors.get(h))} after {h} steps; the runner-up's is "
                   f"{_fmt(margin)} times that." if math.isfinite(margin) else
                   f"Chosen: **{winner.candidate.name}**, the one eligible candidate trained "
@@ -662,7 +673,7 @@ def train_candidate(cand: Candidate, cfg: DictConfig, deadline: Deadline | None 
     result = Result(cand)
     start = time.perf_counter()
     metrics = train(cfg, law_stage=law_stage, deadline=deadline, run_dir=run_dir,
-                    overrides=None if overrides is None else list(overrides))
+                    overrides=None if overrides is None else list(overrides), closing=False)
     result.wall_s = float(metrics.get("wall_time_s", time.perf_counter() - start))
     last = out_dir / "checkpoints" / "last.ckpt"
     result.steps = int(read(last).get("global_step", 0)) if last.exists() else 0
@@ -675,19 +686,35 @@ def train_candidate(cand: Candidate, cfg: DictConfig, deadline: Deadline | None 
     return result
 
 
+def described(cfg: DictConfig, datamodule: Any) -> dict[str, Any] | None:
+    """``describe()`` of the model a candidate's config builds, untrained (cheap: layers
+    only), for a candidate that failed before it had a checkpoint; None where it cannot be
+    built."""
+    from bgn.training.run import build_module, plain_stats
+
+    try:
+        return build_module(cfg, dict(vars(datamodule.meta)), plain_stats(datamodule.stats()),
+                            datamodule.history).model.describe()
+    except Exception as err:  # the report falls back on the candidate's name
+        log.debug("auto: no model description for %s: %s", cfg.paths.output_dir, err)
+        return None
+
+
 def score_candidate(result: Result, out_dir: Path, val: Any, train_split: Any,
                     sims: list[int], starts: list[int], n_steps: int,
-                    horizons: Sequence[int]) -> None:
+                    horizons: Sequence[int], deadline: Deadline | None = None) -> None:
     """The validation evidence of a trained candidate (its best checkpoint): rollout errors,
     and for a pair-force head its law over the training split's distances and its fitted
-    masses on validation windows."""
+    masses on validation windows. ``deadline``: the job's, checked between rollout chunks
+    (``OutOfTime``)."""
+    from bgn.eval.laws import checked_rollouts
     from bgn.model.newton import PairForceHead
-    from bgn.rollout import rollout_many
     from bgn.training.checkpoints import best_checkpoint
     from bgn.training.module import load_model
 
     module = load_model(best_checkpoint(out_dir))
-    t = rollout_many(module.model, val, sims, starts, n_steps)
+    result.model = module.model.describe()  # what it is, as Table 1 says it
+    t = checked_rollouts(module.model, val, sims, starts, n_steps, deadline)
     errors, failed, curve = rollout_scores(t.predicted, t.true, t.first_non_finite,
                                            val.meta.box, horizons)
     result.errors, result.failed_share, result.curve = errors, failed, curve.tolist()
@@ -728,9 +755,11 @@ def formula_candidate(results: Sequence[Result], auto_dir: Path, val: Any, train
     constants fine-tuned through substeps (``bgn.eval.laws.finetune_formula``: its default
     iterations, at most half the candidates' ``max_steps``) and scored as the others;
     eligible to win, and its checkpoint (``last.ckpt``: its own, carrying no other
-    candidate's callback state, ``own_checkpoint``) the one the winner resumes from. The fit
-    stops at ``deadline`` too. None without a trained and scored pair-force candidate."""
-    from bgn.eval.laws import FINETUNE_STEPS, FINETUNE_SUBSTEPS, finetune_formula, spec_text
+    candidate's callback state, ``own_checkpoint``) the one the winner resumes from.
+    ``deadline``: the job's; the fit stops at an even part of it (``candidate_deadline``),
+    the validation rollouts at it (``OutOfTime``). None without a trained and scored
+    pair-force candidate."""
+    from bgn.eval.laws import FINETUNE_STEPS, FINETUNE_SUBSTEPS, finetune_formula
     from bgn.training.checkpoints import best_checkpoint
 
     scored = [r for r in results if r.candidate.pair_force and r.compared]
@@ -741,27 +770,38 @@ def formula_candidate(results: Sequence[Result], auto_dir: Path, val: Any, train
         else FINETUNE_STEPS
     out_dir = auto_dir / f"formula_{best.candidate.name}"
     start = time.perf_counter()
+    part = None if deadline is None else candidate_deadline(deadline, 1).left()
     record = finetune_formula(best_checkpoint(auto_dir / best.candidate.name), train_split,
                               val, steps=steps, substeps=FINETUNE_SUBSTEPS, out_dir=out_dir,
-                              max_seconds=None if deadline is None else deadline.left())
+                              max_seconds=part, deadline=deadline)
     spec = json.dumps(record["model_tuned"])  # the model's scale (finetune_formula)
-    cand = Candidate(out_dir.name, f"{best.candidate.label}; its law the formula "
-                     f"{spec_text(record['tuned'])}, constants fine-tuned",
-                     [*best.candidate.overrides, "model.law=formula",
+    cand = Candidate(out_dir.name, [*best.candidate.overrides, "model.law=formula",
                       f"model.law_formula='{spec}'",
                       f"model.law_scale={1 / record['model_scale']!r}",
                       f"model.substeps={record['rollout_substeps']}"],
                      pair_force=True)
     (out_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
     own_checkpoint(out_dir / "formula.ckpt", out_dir / "checkpoints" / "last.ckpt")
-    result = Result(cand, steps=best.steps, wall_s=time.perf_counter() - start)
-    score_candidate(result, out_dir, val, train_split, sims, starts, n_steps, horizons)
+    result = Result(cand, steps=best.steps)
+    score_candidate(result, out_dir, val, train_split, sims, starts, n_steps, horizons,
+                    deadline)
+    result.wall_s = time.perf_counter() - start
     return result
 
 
 def one_line(err: BaseException) -> str:
     """An exception as one short line (the report's and the log's reason)."""
     return " ".join(f"{type(err).__name__}: {err}".split())[:300]
+
+
+def kept_formula(auto_dir: Path) -> Result | None:
+    """The formula candidate an earlier attempt of this run fitted and scored
+    (``formula_<candidate>/result.json``), or None."""
+    for path in sorted(auto_dir.glob("formula_*/result.json")):
+        kept = stored_result(Candidate(path.parent.name, [], pair_force=True), path.parent)
+        if kept is not None and not kept.untrained and not kept.error:
+            return kept
+    return None
 
 
 def stored_result(cand: Candidate, out_dir: Path) -> Result | None:
@@ -794,18 +834,21 @@ def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None,
     even part of what is left (``candidate_deadline``). A resumed run (``ckpt_path=last``)
     keeps every candidate already trained and scored (``result.json``) and continues one
     stopped half-way from its ``last.ckpt``. Returns the winner's final metrics; the run
-    directory gets ``metrics.json`` (the winner's, with the choice) and ``auto/``."""
+    directory gets ``metrics.json`` (the winner's, with the choice; its ``wall_time_s`` the
+    whole job's, each candidate's own in ``auto.wall_s``) and ``auto/``, and the job ends
+    with the closing summary (``bgn.training.run.summary``)."""
     from lightning.pytorch.utilities.exceptions import SIGTERMException
 
     from bgn.training.signals import interrupted
 
+    began = time.perf_counter()  # the whole job's wall time counts from here
     base = run_overrides(overrides)
     run_dir = Path(cfg.paths.output_dir)
     if deadline is None:
         deadline = Deadline.after(seconds(cfg.trainer.get("max_time")))
     phase = ["choosing the structure"]
     try:
-        return _run_auto(cfg, base, run_dir, deadline, phase)
+        return _run_auto(cfg, base, run_dir, deadline, phase, began)
     except SIGTERMException:  # outside a fit (scoring, the formula): the run's resume command
         raise interrupted(received() or "SIGTERM", run_dir, base,
                           phase=f"model.dynamics=auto ({phase[0]})",
@@ -813,12 +856,13 @@ def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None,
 
 
 def _run_auto(cfg: DictConfig, base: list[str], run_dir: Path, deadline: Deadline,
-              phase: list[str]) -> dict[str, float]:
+              phase: list[str], began: float) -> dict[str, float]:
     from bgn.coerce import ConfigError
     from bgn.data.frames import evenly_spaced
     from bgn.eval.laws import law_stage
     from bgn.rollout import rollout_starts
-    from bgn.training.run import data_module, info, train
+    from bgn.training.budget import OutOfTime
+    from bgn.training.run import data_module, info, summary, train
 
     auto_dir = run_dir / "auto"
     auto = cfg.get("auto") or {}
@@ -875,46 +919,64 @@ def _run_auto(cfg: DictConfig, base: list[str], run_dir: Path, deadline: Deadlin
                 continue
             phase[0] = f"candidate {cand.name}"
             remaining = fits - sum(1 for r in results if r.candidate.admitted)
+            start = time.perf_counter()
             try:
                 if deadline.passed():
                     result.untrained = "not trained (trainer.max_time was reached before it began)"
                 else:
                     cfg_c = compose_candidate(base, cand, out_dir, each, masses=known)
+                    # what it is before it trains: kept where it fails before a checkpoint
+                    result.model = described(cfg_c, datamodule)
                     last = out_dir / "checkpoints" / "last.ckpt"
                     if resume and last.exists():  # stopped half-way: continue it
                         cfg_c.ckpt_path = str(last)
+                    model = result.model
                     result = train_candidate(cand, cfg_c, candidate_deadline(deadline, remaining),
                                              run_dir, base, min_steps)
+                    result.model = model
                     if not result.untrained:
                         phase[0] = f"scoring candidate {cand.name}"
                         score_candidate(result, out_dir, val, train_split, sims, starts,
-                                        n_steps, horizons)
+                                        n_steps, horizons, deadline)
             except ConfigError as err:  # the cap reached while it read its data
                 if err.key != "trainer.max_time":
                     raise
                 result.untrained = "not trained (trainer.max_time was reached before it began)"
+            except OutOfTime:  # trained, but the cap came during its validation rollouts
+                result.errors, result.untrained = {}, (
+                    "not scored (trainer.max_time was reached during its validation rollouts)")
             except Exception as err:  # one candidate's failure is evidence, not the end
                 result.error = one_line(err)
                 log.error("auto: candidate %s failed: %s", cand.name, result.error)
                 log.debug("candidate %s", cand.name, exc_info=True)
+            result.wall_s = time.perf_counter() - start  # its own: training and scoring
             write_atomic(out_dir / "result.json", json.dumps(result.state(), default=float))
             info(f"auto: {cand.name} {result.status()}" + "".join(
                 f", val error @{h} {v:.4g}" for h, v in result.errors.items()))
         results.append(result)
-    formula = None
+    formula = kept_formula(auto_dir) if resume else None
     phase[0] = "the formula candidate"
-    if deadline.passed():
+    if formula is not None:
+        info(f"auto: {formula.candidate.name} kept from the run's earlier attempt "
+             f"({formula.status()})")
+    elif deadline.passed():
         if any(c.pair_force for c in admitted):
             cut.append("the formula candidate: not fitted (trainer.max_time was reached)")
     else:
         try:  # the best pair-force law as a formula, fine-tuned: a candidate of its own
             formula = formula_candidate(results, auto_dir, val, train_split, sims, starts,
-                                        n_steps, horizons, each, candidate_deadline(deadline, 1))
+                                        n_steps, horizons, each, deadline)
+        except OutOfTime:
+            formula = Result(Candidate("formula", [], pair_force=True), untrained=(
+                "not scored (trainer.max_time was reached during its validation rollouts)"))
+            cut.append(f"the formula candidate: {formula.untrained}")
         except Exception as err:
-            formula = Result(Candidate("formula", "the best pair-force law as a formula", []),
-                             error=one_line(err))
+            formula = Result(Candidate("formula", [], pair_force=True), error=one_line(err))
             log.error("auto: the formula candidate failed: %s", formula.error)
             log.debug("the formula candidate", exc_info=True)
+        if formula is not None and formula.candidate.name != "formula":  # kept on a resume
+            write_atomic(auto_dir / formula.candidate.name / "result.json",
+                         json.dumps(formula.state(), default=float))
     if formula is not None:
         info(f"auto: {formula.candidate.name} {formula.status()}" + "".join(
             f", val error @{h} {v:.4g}" for h, v in formula.errors.items()))
@@ -965,7 +1027,7 @@ def _run_auto(cfg: DictConfig, base: list[str], run_dir: Path, deadline: Deadlin
     if not stopped:
         try:
             metrics = train(final, law_stage=law_stage, deadline=deadline, run_dir=run_dir,
-                            overrides=base)
+                            overrides=base, closing=False)  # the job's summary: below
         except ConfigError as err:  # the cap reached while it read its data
             if err.key != "trainer.max_time":
                 raise
@@ -976,13 +1038,29 @@ def _run_auto(cfg: DictConfig, base: list[str], run_dir: Path, deadline: Deadlin
         log.warning("trainer.max_time: %s", cut[-1])
         write_report(auto_dir, results, winner, margin, protocol)  # protocol["cut"] is cut
     path = out_dir / "metrics.json"
-    record = json.loads(path.read_text()) if path.exists() else {"metrics": metrics}
-    record["auto"] = {"choice": winner.candidate.name, "label": winner.candidate.label,
+    record = json.loads(path.read_text()) if path.exists() and not stopped \
+        else {"metrics": dict(metrics)}
+    winner_s = record["metrics"].get("wall_time_s")
+    # the whole job's time: the candidates, their force matching, the formula candidate, the
+    # winner's continuation and its test (the winner's own record keeps its continuation's)
+    record["metrics"]["wall_time_s"] = time.perf_counter() - began
+    record.setdefault("model", winner.candidate.name)
+    record.setdefault("variant", winner.model or {})
+    record.setdefault("budget", {"steps": winner.steps, "max_steps": None,
+                                 "cut_by": "max_time", "cut": ["the winner's continuation"]})
+    record["auto"] = {"choice": winner.candidate.name, "label": winner.label,
                       "margin": margin, "report": str(report), "fallback": why_fallback,
                       "cut": cut, "status": {r.candidate.name: r.status() for r in results},
                       "steps": {r.candidate.name: r.steps for r in results},
-                      "val_errors": {r.candidate.name: r.errors for r in results}}
+                      "val_errors": {r.candidate.name: r.errors for r in results},
+                      "wall_s": {r.candidate.name: r.wall_s for r in results
+                                 if r.candidate.admitted},
+                      # candidates kept from an earlier attempt: their time is not this one's
+                      "kept": [r.candidate.name for r in results if r.kept],
+                      "winner_wall_time_s": winner_s}
     record["overrides"] = dict(o.split("=", 1) for o in base if "=" in o)
     write_atomic(run_dir / "metrics.json", json.dumps(record, indent=2, sort_keys=True,
                                                       default=float))
-    return metrics or {k: float(v) for k, v in record.get("metrics", {}).items()}
+    info(summary(record, run_dir))
+    out = metrics or {k: float(v) for k, v in record.get("metrics", {}).items()}
+    return {**out, "wall_time_s": record["metrics"]["wall_time_s"]}

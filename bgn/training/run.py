@@ -224,7 +224,7 @@ def fit_reserve(cfg: DictConfig, left: float | None) -> float:
 def train(cfg: DictConfig, spec: DatasetSpec | None = None,
           law_stage: LawStage | None = None, deadline: Deadline | None = None, *,
           run_dir: Path | None = None, overrides: list[str] | None = None,
-          ) -> dict[str, float]:
+          closing: bool = True) -> dict[str, float]:
     """Fit, test, and write metrics.json; returns the final metrics. ``spec``: as
     ``data_module``'s (``cfg`` validated already). ``law_stage``: with ``model.law=auto``,
     what reads the best checkpoint's law back as a formula and chooses between the two on
@@ -237,7 +237,8 @@ def train(cfg: DictConfig, spec: DatasetSpec | None = None,
     and the test check it; a run it cut says so (a warning, ``budget.cut_by`` in
     metrics.json). ``run_dir`` and ``overrides``: the run a signal's resume command names
     (default ``resume_target``; ``model.dynamics=auto`` passes its own run, not the
-    candidate's folder)."""
+    candidate's folder). ``closing``: end with the closing summary (``summary``); auto's fits
+    leave it to the job, whose summary states the whole job's time."""
     import lightning as L
 
     from bgn.coerce import ConfigError
@@ -371,7 +372,8 @@ def train(cfg: DictConfig, spec: DatasetSpec | None = None,
                                                         "rollout_substeps", "path", "report",
                                                         "budget")}
     write_atomic(output_dir / "metrics.json", json.dumps(record, indent=2, sort_keys=True))
-    info(summary(record, output_dir))
+    if closing:
+        info(summary(record, output_dir))
     return metrics
 
 
@@ -418,8 +420,15 @@ def summary(record: dict[str, Any], output_dir: Path) -> str:
                                           if budget.get("max_steps") else "")
     cut = f", CUT SHORT by trainer.max_time ({', '.join(budget['cut'])})" \
         if budget.get("cut_by") else ""
-    lines = [f"trained {label}: {steps} in {_clock(m.get('wall_time_s', 0.0))} (the whole "
-             f"job){cut}"]
+    auto = record.get("auto")  # model.dynamics=auto: wall_time_s is the whole job's
+    job = "the whole job" if not auto else (
+        f"the whole job: {len(auto.get('wall_s') or {})} candidates, the winner's "
+        "continuation and its test" + (f"; {', '.join(auto['kept'])} kept from an earlier "
+                                        "attempt" if auto.get("kept") else ""))
+    lines = [f"trained {label}: {steps} in {_clock(m.get('wall_time_s', 0.0))} ({job}){cut}"]
+    if auto:
+        lines.append(f"model.dynamics=auto chose {auto['choice']} on validation rollouts "
+                     f"(report: {auto['report']})")
     law = record.get("law")
     if law:
         lines.append(f"law: the {law.get('choice')} law validates better and is the run's "
@@ -441,7 +450,9 @@ def summary(record: dict[str, Any], output_dir: Path) -> str:
     elif not horizons:
         lines.append("not tested (test=false, or the cap reached first): python -m "
                      f"bgn.evaluate {output_dir} tests it")
-    lines.append(f"run: {output_dir} (metrics.json, checkpoints/)")
+    lines.append(f"run: {output_dir} (metrics.json, " + (
+        f"auto/report.md, the model's checkpoints in auto/{auto['choice']}/)" if auto
+        else "checkpoints/)"))
     lines.append(f"next: python -m bgn.evaluate {output_dir}   # the full report: "
                  "rollouts, references, inverse, figures")
     return "\n".join(lines)

@@ -8,6 +8,7 @@ import itertools
 import json
 import math
 import subprocess
+import time
 from dataclasses import replace
 from types import SimpleNamespace
 
@@ -453,6 +454,15 @@ def test_the_best_pair_force_law_becomes_a_formula_candidate(tmp_path, shared_da
     assert 0 < tuned["steps"] <= 3 * tuned["tunings"]
     # named by its model's describe(): the formula written into the pair-force head
     assert result.label == result.model["label"] and "law a formula" in result.label
+    # the job's deadline spent: its validation rollouts are not started (auto reports the
+    # candidate as not scored, trainer.max_time cut it)
+    from bgn.studies.auto import score_candidate
+    from bgn.training.budget import Deadline, OutOfTime
+
+    with pytest.raises(OutOfTime, match="the validation rollouts"):
+        score_candidate(Result(best), auto_dir / best.name, val, dm.datasets["train"], [0],
+                        rollout_starts(val, n_steps), n_steps, [n_steps],
+                        Deadline(time.monotonic() - 1))
     final = compose_candidate(base, result.candidate, auto_dir / result.candidate.name, {})
     assert final.model.law == "formula"
     assert json.loads(final.model.law_formula) == tuned["model_tuned"]  # the model's scale
@@ -621,7 +631,6 @@ def test_a_stopped_auto_run_resumes_with_the_command_it_printed(tmp_path, shared
     import shlex
     import signal
     import sys
-    import time
 
     run = tmp_path / "run"
     proc = subprocess.Popen(command_line(*TINY_AUTO, f"paths.data_dir={shared_data_dir}",

@@ -978,8 +978,9 @@ def _run_auto(cfg: DictConfig, base: list[str], run_dir: Path, deadline: Deadlin
             write_atomic(auto_dir / formula.candidate.name / "result.json",
                          json.dumps(formula.state(), default=float))
     if formula is not None:
-        info(f"auto: {formula.candidate.name} {formula.status()}" + "".join(
-            f", val error @{h} {v:.4g}" for h, v in formula.errors.items()))
+        if not formula.kept:
+            info(f"auto: {formula.candidate.name} {formula.status()}" + "".join(
+                f", val error @{h} {v:.4g}" for h, v in formula.errors.items()))
         results.append(formula)
     phase[0] = "the choice"
     why_fallback = ""

@@ -677,3 +677,29 @@ def test_a_stopped_auto_run_resumes_with_the_command_it_printed(tmp_path, shared
             reference["auto"]["val_errors"][name], rel=1e-6), name
     assert "kept from an earlier attempt" in (resumed.stdout + resumed.stderr)
     assert (run / "auto" / "report.md").exists()
+
+
+def test_a_candidate_is_described_by_the_model_its_config_builds(tmp_path, shared_data_dir):
+    """Before it trains (kept where it fails before a checkpoint): the describe() of the
+    model its config builds, untrained; None where that model cannot be built."""
+    from bgn.studies.auto import described
+    from bgn.training.run import data_module
+
+    base = ["dataset=spring", *SMALL["spring"], f"paths.data_dir={shared_data_dir}",
+            "model.hidden=16"]
+    dm = data_module(compose_config("train", base))
+    dm.prepare_data()
+    dm.setup()
+    pool = {c.name: c for c in candidates(dm.meta, dm.history, True, REFS)}
+    decoder = described(compose_candidate(base, pool["decoder"], tmp_path / "d", {}), dm)
+    assert decoder is not None and decoder["label"] == "BGN (paper decoder)"
+    inertial = described(compose_candidate(base, pool["newton_inertial"], tmp_path / "n", {}),
+                         dm)
+    assert inertial is not None and "pair-force head (masses inertial" in inertial["label"]
+    assert "mass_law=inertial" in inertial["physics"]
+    gns = described(compose_candidate(base, pool["gns"], tmp_path / "g", {}), dm)
+    assert gns is not None and gns["label"].startswith("GNS")
+    # a config no model builds from: no description, so the report names it by its name
+    bad = compose_candidate(base, pool["newton_source"], tmp_path / "b", {})
+    bad.model.mass_law = "bogus"
+    assert described(bad, dm) is None

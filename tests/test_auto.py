@@ -703,3 +703,30 @@ def test_a_candidate_is_described_by_the_model_its_config_builds(tmp_path, share
     bad = compose_candidate(base, pool["newton_source"], tmp_path / "b", {})
     bad.model.mass_law = "bogus"
     assert described(bad, dm) is None
+
+
+def test_the_closing_summary_of_an_auto_run_states_the_whole_job():
+    """bgn.training.run.summary of the run folder's record: the whole job's time, what was
+    kept from an earlier attempt, a choice not made by evidence said so, the run's report and
+    the winner's checkpoints."""
+    from pathlib import Path
+
+    from bgn.training.run import summary
+
+    record = {"metrics": {"wall_time_s": 75.0}, "model": "bgn",
+              "budget": {"steps": 5, "max_steps": None, "cut_by": "max_time",
+                         "cut": ["the winner's continuation"]},
+              "variant": {"label": "BGN (paper decoder)"},
+              "auto": {"choice": "decoder", "report": "r/auto/report.md", "fallback": "",
+                       "wall_s": {"decoder": 3.0}, "kept": ["decoder"]}}
+    lines = summary(record, Path("r")).splitlines()
+    assert lines[0] == ("trained BGN (paper decoder): 5 steps in 1 min 15 s (the whole job: "
+                        "1 candidate, the winner's continuation and its test; decoder kept "
+                        "from an earlier attempt), CUT SHORT by trainer.max_time (the "
+                        "winner's continuation)")
+    assert lines[1] == "model.dynamics=auto chose decoder on validation rollouts (report: " \
+        "r/auto/report.md)"
+    assert "run: r (metrics.json, auto/report.md, the model's checkpoints in auto/decoder/)" \
+        in lines
+    record["auto"]["fallback"] = "no candidate trained 100 steps"
+    assert "chose decoder not by evidence" in summary(record, Path("r"))

@@ -421,14 +421,17 @@ def summary(record: dict[str, Any], output_dir: Path) -> str:
     cut = f", CUT SHORT by trainer.max_time ({', '.join(budget['cut'])})" \
         if budget.get("cut_by") else ""
     auto = record.get("auto")  # model.dynamics=auto: wall_time_s is the whole job's
+    n = len((auto or {}).get("wall_s") or {})
     job = "the whole job" if not auto else (
-        f"the whole job: {len(auto.get('wall_s') or {})} candidates, the winner's "
-        "continuation and its test" + (f"; {', '.join(auto['kept'])} kept from an earlier "
-                                        "attempt" if auto.get("kept") else ""))
+        f"the whole job: {n} candidate{'s' * (n != 1)}, the winner's continuation and its "
+        "test" + (f"; {', '.join(auto['kept'])} kept from an earlier attempt"
+                  if auto.get("kept") else ""))
     lines = [f"trained {label}: {steps} in {_clock(m.get('wall_time_s', 0.0))} ({job}){cut}"]
     if auto:
-        lines.append(f"model.dynamics=auto chose {auto['choice']} on validation rollouts "
-                     f"(report: {auto['report']})")
+        why = "not by evidence: no candidate could be compared" if auto.get("fallback") \
+            else "on validation rollouts"
+        lines.append(f"model.dynamics=auto chose {auto['choice']} {why} (report: "
+                     f"{auto['report']})")
     law = record.get("law")
     if law:
         lines.append(f"law: the {law.get('choice')} law validates better and is the run's "

@@ -136,13 +136,13 @@ def rollout_many(model: Predictor, dataset: FrameDataset, sims: list[int], start
     parts = particles(dataset, sims)
     size = len(sims) if chunk is None else max(1, chunk // max(1, parts.masses.shape[1]))
     groups = [list(range(i, min(i + size, len(sims)))) for i in range(0, len(sims), size)]
+    batches = [[sims[i] for i in group] for group in groups]  # read once, not per start
+    group_parts = [parts if len(b) == len(sims) else particles(dataset, b) for b in batches]
     predicted, true, bad, seconds = [], [], [], []
     for start in starts:
-        for group in groups:
+        for batch, part in zip(batches, group_parts):
             if between is not None:
                 between()
-            batch = [sims[i] for i in group]
-            part = parts if len(group) == len(sims) else particles(dataset, batch)
             truth = true_positions(dataset, batch, start - k - 1, start + n_steps)
             result = sim_.rollout(torch.as_tensor(truth[:, :k + 2]), part, n_steps, start,
                                   driven=torch.as_tensor(truth[:, k + 2:]))

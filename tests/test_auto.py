@@ -18,7 +18,7 @@ import torch
 
 from bgn.metrics import ESCAPE_FACTOR, capped_rollout_error, rollout_scores
 from bgn.model.bgn import ModelConfig
-from bgn.model.newton import PairForceHead, build_head
+from bgn.model.newton import build_head
 from bgn.sim import make_scene
 from bgn.sim.scene import SceneMeta
 from bgn.studies.auto import (
@@ -27,7 +27,6 @@ from bgn.studies.auto import (
     candidates,
     choose,
     compose_candidate,
-    pair_law,
     split_budget,
     write_report,
 )
@@ -214,21 +213,6 @@ def test_choice_on_given_scores():
 
 
 # ----------------------------------------------------------------------------- evidence
-def test_pair_law_is_the_force_along_the_pair():
-    torch.manual_seed(0)
-    meta = SceneMeta("spring", 2, 2, 1, "pairwise", "acceleration", "full")
-    normalizer = SimpleNamespace(rel_position_scale=torch.tensor(0.7))
-    head = PairForceHead(meta, normalizer, 8, 1, "silu", "inertial")
-    s = np.array([0.3, 1.0, 2.5])
-    law = pair_law(head, s)
-    for d, f in zip(s, law):  # two particles at any orientation: F on 1 = f(s) u (0 -> 1)
-        u = torch.tensor([0.6, -0.8])
-        positions = torch.stack([torch.tensor([1.0, 2.0]), torch.tensor([1.0, 2.0]) + d * u])
-        g = SimpleNamespace(edge_index=torch.tensor([[0], [1]]), types=torch.zeros(2, dtype=int))
-        force = head.pair_terms(g, positions[:, None])[0, 0].detach()
-        assert torch.allclose(force, float(f) * u, atol=1e-6)
-
-
 def test_report_names_the_choice_and_shows_its_evidence(tmp_path):
     rng = np.random.default_rng(0)
     true_log = rng.normal(size=40)
@@ -422,7 +406,7 @@ def test_the_best_pair_force_law_becomes_a_formula_candidate(tmp_path, shared_da
     from omegaconf import OmegaConf
 
     from bgn.data.datamodule import ParticleDataModule
-    from bgn.eval.laws import law_stage
+    from bgn.laws.stage import law_stage
     from bgn.rollout import rollout_starts
     from bgn.studies.auto import formula_candidate
     from bgn.training.checkpoints import check_compatible
@@ -490,7 +474,7 @@ def test_a_winner_whose_budget_is_spent_is_tested_on_its_own_checkpoint(
     that state were still carried (``carried``: run.py's guard on its own)."""
     import lightning as L
 
-    from bgn.eval.laws import law_stage
+    from bgn.laws.stage import law_stage
     from bgn.rollout import rollout_starts
     from bgn.studies.auto import formula_candidate
     from bgn.training.run import data_module, train

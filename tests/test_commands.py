@@ -156,7 +156,7 @@ def test_an_option_is_refused_with_its_key_value_spelling(capsys):
 def test_a_key_the_command_lacks_is_refused_naming_the_closest(capsys, command, key, close):
     """Not Hydra's "to append use +key=...": the key, the closest the command has, --help."""
     main = importlib.import_module({"bgn.evaluate": "bgn.eval.evaluate", "bgn.laws":
-                                    "bgn.eval.laws", "bgn.render": "bgn.studies.render"}[
+                                    "bgn.laws.__main__", "bgn.render": "bgn.studies.render"}[
                                         command]).main
     with pytest.raises(SystemExit) as done:
         main(["some/run", f"{key}=1"])
@@ -213,7 +213,7 @@ def test_evaluate_render_laws_and_stability_take_the_run_folder_and_paths_data_d
     """The same run folder and ``paths.data_dir=`` for evaluate, render, laws and stability
     (in this process: the argument list each command's console entry parses)."""
     from bgn.eval.evaluate import main as evaluate
-    from bgn.eval.laws import main as laws
+    from bgn.laws.__main__ import main as laws
     from bgn.studies.render import main as render
     from bgn.studies.stability import main as stability
     from bgn.training.checkpoints import chosen_checkpoint
@@ -244,7 +244,7 @@ def test_evaluate_render_laws_and_stability_take_the_run_folder_and_paths_data_d
 
 
 def test_a_checkpoint_file_is_taken_where_a_run_folder_is(tiny_run, tmp_path):
-    from bgn.eval.laws import main as laws
+    from bgn.laws.__main__ import main as laws
     from bgn.studies.render import main as render
 
     run, data = tiny_run
@@ -276,7 +276,7 @@ def test_the_import_takes_paths_data_dir(tmp_path):
 def test_a_run_folder_of_the_formula_stage_gives_the_formula_checkpoint(tmp_path):
     """The resolver every command shares: a run whose formula stage kept the formula gives
     laws/formula.ckpt (with the formula's config), one that kept the network its best."""
-    from bgn.eval.evaluate import resolve_run
+    from bgn.training.checkpoints import resolve_run
 
     (tmp_path / "checkpoints").mkdir()
     (tmp_path / "checkpoints" / "best.ckpt").write_bytes(b"")

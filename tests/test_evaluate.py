@@ -349,7 +349,7 @@ def test_the_command_line_refuses_a_missing_path(tmp_path: Path) -> None:
 @pytest.mark.parametrize("model", ["newton", "decoder"])
 def test_the_report_reads_the_pair_law_of_a_pair_force_head(model: str, tmp_path: Path,
                                                             shared_data_dir: Path) -> None:
-    """model=newton has a pair-force head: its formula (bgn.eval.laws) and figure go into the
+    """model=newton has a pair-force head: its formula (bgn.laws) and figure go into the
     report; BGN with the paper's decoder has none, and the report says so."""
     from bgn.eval.evaluate import law_text, report_text
 
@@ -393,7 +393,7 @@ def test_the_lagrangebench_metrics_take_the_source_periodic_box() -> None:
 def test_an_auto_run_resolves_to_its_chosen_structure(tmp_path: Path) -> None:
     """``python -m bgn.evaluate <run>`` on a model.dynamics=auto run scores the structure
     that auto chose (``auto/auto.json``), with that candidate's own run config."""
-    from bgn.eval.evaluate import resolve_run
+    from bgn.training.checkpoints import resolve_run
 
     for name in ("decoder", "newton_source"):
         (tmp_path / "auto" / name / "checkpoints").mkdir(parents=True)

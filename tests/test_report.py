@@ -194,7 +194,7 @@ def test_the_laws_prose_is_written_from_the_table_rows() -> None:
     """The laws block's findings (``law_stage.findings``) quote the rows beside them: the
     seeds whose fitted form is the truth's, the worst constants and errors, the choice and
     the failed rollouts, never a figure of another run."""
-    from bgn.studies.law_stage import findings
+    from bgn.studies.laws_study import findings
 
     def row(scene: str, truth_form: float, constants: float, chosen: float) -> dict[str, Any]:
         return {"scene": scene, "form is the truth's": truth_form,

@@ -178,19 +178,19 @@ def test_a_cell_whose_law_stage_fails_is_named_and_fails_the_stage(tmp_path: Pat
                                                                    monkeypatch) -> None:
     """The other cells' tables are written; the failed cell is named in them and the stage
     raises, so the command exits non-zero."""
-    from bgn.studies import law_stage
+    from bgn.studies import laws_study
     from bgn.studies.cells import Cell
 
     cells = [Cell("spring", 50.0, "bgn", seed=s, seeded=True) for s in (0, 1)]
     done = iter([{"failed": "ValueError: boom"}, {"left_out": "no pair-force head"}])
-    monkeypatch.setattr(law_stage, "_law_job", lambda *job: next(done))
+    monkeypatch.setattr(laws_study, "_law_job", lambda *job: next(done))
     cfg = OmegaConf.create({"preset": {"name": "p", "seeds": [0, 1], "laws": {
         "model": "bgn", "seeds": None, "max_seconds": None}},
         "cells_dir": str(tmp_path / "cells"), "report_dir": str(tmp_path / "report"),
         "paths": {"data_dir": str(tmp_path / "data")}, "results_md": None})
     results = {c.name: {"eval": {"model": {"label": "BGN"}}} for c in cells}
     with pytest.raises(RuntimeError, match=r"1 cell\(s\) failed \(spring_fps50_bgn_full_s0\)"):
-        law_stage.laws_stage(cfg, cells, results, {"command": "c", "preset": "p"}, 1, None)
+        laws_study.laws_stage(cfg, cells, results, {"command": "c", "preset": "p"}, 1, None)
     text = (tmp_path / "report" / "laws" / "formulas.md").read_text()
     assert "FAILED (not in the tables): spring_fps50_bgn_full_s0: ValueError: boom" in text
     assert "spring: no pair-force head" in text

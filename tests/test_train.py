@@ -228,7 +228,7 @@ def test_trainer_gpu_trains_and_evaluates_end_to_end(tiny_train_cfg, tmp_path, s
     """trainer=gpu: training, validation rollouts, figures and the test evaluation of the best
     checkpoint (rollouts included) all run with the model on the GPU; gravity_r2's default
     formula stage (model.law=auto) too, handed in as the command line does."""
-    from bgn.eval.laws import law_stage
+    from bgn.laws.stage import law_stage
 
     metrics = train(tiny_train_cfg(scene, "trainer=gpu", "trainer.max_epochs=1",
                                    "+trainer.limit_train_batches=3",

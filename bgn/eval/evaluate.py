@@ -9,7 +9,6 @@ rollout metrics of the model and the no-learning references through the learned 
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -529,50 +528,6 @@ SPLITS = ("train", "val", "test")
 RELMASS_DECODES = ("median", "draw")  # evaluate_model's relmass_decode
 
 
-def resolve_run(path: str, run_config: str | None = None) -> tuple[Path, Path, Path]:
-    """``(checkpoint, run directory, run config)`` of a checkpoint or run directory: a run
-    directory gives its chosen checkpoint
-    (``bgn.training.checkpoints.chosen_checkpoint``: best.ckpt, the newest best-vN.ckpt, else
-    last.ckpt), or ``laws/formula.ckpt`` where the run's ``laws/formula.json`` chose the
-    formula law on validation (``model.law=auto``, or ``python -m bgn.laws <ckpt>
-    finetune=true``); a checkpoint in ``<run>/checkpoints/`` its
-    run. Bad input: one ``ConfigError`` naming the path and the fix."""
-    from bgn.training.checkpoints import chosen_checkpoint, run_config_paths
-
-    given = Path(path).expanduser()
-    if not given.exists():
-        raise ConfigError("ckpt", path, "no such file or directory: give a checkpoint (.ckpt) "
-                          "or a run directory of python -m bgn.train")
-    if given.is_dir():
-        choice = given / "auto" / "auto.json"  # a model.dynamics=auto run: its chosen structure
-        if not (given / "checkpoints").is_dir() and choice.is_file():
-            given = given / "auto" / str(json.loads(choice.read_text())["choice"])
-        run_dir = given
-        try:
-            ckpt = chosen_checkpoint(given)  # a model.law=auto run: the law it chose
-            if ckpt.parent == given / "laws":
-                run_dir = ckpt.parent  # its train_config.yaml has the formula's options
-        except FileNotFoundError:
-            raise ConfigError("ckpt", path, f"the run directory has no checkpoint (looked for "
-                              f"{given / 'checkpoints'}/best*.ckpt and last.ckpt): give a run "
-                              "that trained, or a checkpoint file") from None
-    else:
-        ckpt = given
-        run_dir = given.parent.parent if given.parent.name == "checkpoints" else given.parent
-    if run_config is not None:
-        config = Path(run_config).expanduser()
-        if not config.is_file():
-            raise ConfigError("run_config", run_config, "no such file: give the run's "
-                              ".hydra/config.yaml")
-        return ckpt, run_dir, config
-    for config in run_config_paths(ckpt, run_dir):
-        if config.is_file():
-            return ckpt, run_dir, config
-    looked = ", ".join(str(p) for p in run_config_paths(ckpt, run_dir))
-    raise ConfigError("ckpt", path, f"no run config beside the checkpoint (looked for {looked}): "
-                      "pass run_config=<the run's .hydra/config.yaml>")
-
-
 def validate_evaluate(cfg: Any) -> tuple[Path, Path, Path]:
     """Everything ``python -m bgn.evaluate`` is given, before any data or model is read;
     returns ``resolve_run``'s paths."""
@@ -604,6 +559,8 @@ def validate_evaluate(cfg: Any) -> tuple[Path, Path, Path]:
     if cfg.rollout.masses is not None and cfg.rollout.masses not in ROLLOUT_MASSES:
         raise ConfigError("rollout.masses", cfg.rollout.masses,
                           f"choose one of {list(ROLLOUT_MASSES)}, or null (the checkpoint's own)")
+    from bgn.training.checkpoints import resolve_run
+
     return resolve_run(str(cfg.ckpt), cfg.get("run_config"))
 
 
@@ -733,10 +690,12 @@ def lagrangebench_text(metrics: dict[str, Any]) -> list[str]:
 
 def law_text(module: PhysicsModule, dataset: FrameDataset, figure: str | None,
              ) -> tuple[str, Any]:
-    """The report's section on the learned pair law (``bgn.eval.laws``: its formula, constants
+    """The report's section on the learned pair law (``bgn.laws``: its formula, constants
     and errors over ``dataset``'s distances, the training split) and its figure (None
     without ``figure``); a model without a pair-force head says it has no pair law."""
-    from bgn.eval.laws import law_figure, markdown, pair_force_head, read_law
+    from bgn.laws.compare import read_law
+    from bgn.laws.report import law_figure, markdown
+    from bgn.laws.sample import pair_force_head
 
     try:
         pair_force_head(module)

@@ -1,14 +1,14 @@
-"""A pair law given as a formula: the torch twin of ``bgn.eval.laws``' fitted ``Formula``.
+"""A pair law given as a formula: the torch twin of ``bgn.laws.terms``' fitted ``Formula``.
 
 ``FormulaLaw(spec)`` evaluates ``f(r) = sum_k a_k term_k(r; c_k)`` at physical distances r with
-the term kinds of ``bgn.eval.laws.default_library`` (``const``, ``power`` r^p, ``log`` log r,
+the term kinds of ``bgn.laws.terms.default_library`` (``const``, ``power`` r^p, ``log`` log r,
 ``exp`` exp(-r/c), ``shifted`` (r + c)^p, ``plummer`` (r^2 + c^2)^(p/2)). The amplitudes
 ``a_k`` and the constants ``c_k`` are parameters (``c = exp(log_c)``: positive whatever an
 optimiser does); the powers are the formula's form and stay fixed. It is evaluated in float64
 (a power of a tiny r, or ``(r + c)^p`` near r = 0, loses every digit in float32) and returned
 in the input's dtype.
 
-The spec (``bgn.eval.laws.formula_spec`` writes it; a plain JSON string so that a checkpoint's
+The spec (``bgn.laws.finetune.formula_spec`` writes it; a plain JSON string so that a checkpoint's
 hyper-parameters stay ``weights_only``-loadable and Hydra-typed) is a list of pairs of particle
 types, each ``{"types": [a, b], "terms": [{"kind", "power", "a", "c"}, ...]}`` (``c`` null for
 a term without one). A pair of types the spec does not name feels no force.
@@ -34,10 +34,10 @@ def parse_spec(spec: str | list[dict[str, Any]]) -> list[dict[str, Any]]:
         pairs = json.loads(spec) if isinstance(spec, str) else spec
     except json.JSONDecodeError as err:
         raise ValueError(f"model.law_formula is not JSON ({err}): write it with "
-                         "bgn.eval.laws.formula_spec") from None
+                         "bgn.laws.finetune.formula_spec") from None
     if not isinstance(pairs, list) or not pairs:
         raise ValueError("model.law_formula must be a non-empty JSON list of pairs "
-                         "{types, terms} (bgn.eval.laws.formula_spec)")
+                         "{types, terms} (bgn.laws.finetune.formula_spec)")
     for p in pairs:
         terms = p.get("terms") if isinstance(p, dict) else None
         if not isinstance(terms, list) or not terms or len(p.get("types", ())) != 2:
@@ -108,7 +108,7 @@ class FormulaLaw(nn.Module):
         return (cols * mask).sum(-1).to(r.dtype)
 
     def spec(self) -> str:
-        """The spec with the current values of the constants (``bgn.eval.laws.formula_spec``'s
+        """The spec with the current values of the constants (``bgn.laws.finetune.formula_spec``'s
         format): what a fine-tuned law is, in a form a config can carry."""
         pairs: dict[int, dict[str, Any]] = {}
         # a constant the fit drove below exp(-745) underflows to 0, which no spec may hold:
@@ -126,7 +126,7 @@ class FormulaLaw(nn.Module):
 
 def term_text(term: dict[str, Any], digits: int = 4) -> str:
     """One term of a spec as plain text, e.g. ``-1.003*(r + 0.01067)**-2`` (model labels;
-    bgn.eval.laws prints whole formulas through sympy)."""
+    bgn.laws prints whole formulas through sympy)."""
     a, p, c = f"{term['a']:.{digits}g}", f"{term.get('power', 0.0):g}", term.get("c")
     c = None if c is None else f"{c:.{digits}g}"
     return {"const": a, "power": f"{a}*r**{p}", "log": f"{a}*log(r)",
@@ -135,7 +135,7 @@ def term_text(term: dict[str, Any], digits: int = 4) -> str:
 
 
 # auto: the network law is trained, then read back as a formula and fine-tuned after the fit,
-# and the one that validates better on rollouts is kept (bgn.eval.laws.law_stage, handed to
+# and the one that validates better on rollouts is kept (bgn.laws.stage.law_stage, handed to
 # bgn.training.run.train); the model itself carries the network law
 LAWS = ("mlp", "formula", "auto")
 

@@ -177,7 +177,7 @@ def edge_difference(x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
 def edge_period(g: Graph, receivers: torch.Tensor | None = None) -> torch.Tensor | None:
     """(E, D) the box lengths of the graph each edge's receiver belongs to (``Graph.period``;
     ``receivers`` (E,): those of a subset of edges), or None for a graph without periodic
-    boundaries (or a stand-in without the field, e.g. ``bgn.eval.laws.sample_law``'s two
+    boundaries (or a stand-in without the field, e.g. ``bgn.laws.sample.sample_law``'s two
     particles)."""
     period = getattr(g, "period", None)
     if period is None:

@@ -92,7 +92,7 @@ class ForceLawOptions(OptionGroup):
     mass_law: str = "inertial"
     substeps: int = 1                  # 1: Numerov's weights; > 1: integrate the frame (shoot)
     law: str = "mlp"                   # mlp: f(s) a network | formula: law_formula | auto
-    law_formula: str = ""              # the formula's JSON spec (bgn.eval.laws.formula_spec)
+    law_formula: str = ""              # the formula's JSON spec (bgn.laws.finetune.formula_spec)
     # what puts law_formula's amplitudes in physical units where the model keeps the formula in
     # the network law's free scale (inertial masses fitted to the window absorb any scale; the
     # formula stage sets it): read by the model's labels only, never by its predictions

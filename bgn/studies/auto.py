@@ -42,7 +42,6 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -288,21 +287,6 @@ def distance_range(dataset: Any, sims: int = 10, frames: int = 50) -> tuple[floa
     return lo, hi
 
 
-def pair_law(head: Any, distances: np.ndarray, types: tuple[int, int] = (0, 0)) -> np.ndarray:
-    """The learned pair law ``f(s)`` of a pair-force head at ``distances`` (physical units)
-    between particles of ``types``: the force on one particle along the unit vector from the
-    other (> 0 repulsive), in the head's own scale (the window's mass fit absorbs it). The law
-    reads distances only, so the pair is laid out on a line."""
-    import torch
-
-    dtype = next(head.parameters()).dtype
-    positions = torch.zeros(2, len(distances), 1, dtype=dtype)   # (particle, "frame", D)
-    positions[1, :, 0] = torch.as_tensor(distances, dtype=dtype)
-    g = SimpleNamespace(edge_index=torch.tensor([[0], [1]]), types=torch.tensor(types))
-    with torch.no_grad():
-        return head.pair_terms(g, positions)[0, :, 0].double().numpy()
-
-
 def fitted_masses(head: Any, dataset: Any, frames: int = MASS_FRAMES, batch_size: int = 16,
                   ) -> dict[str, Any]:
     """The pair-force head's least-squares masses on ``frames`` evenly spaced windows of
@@ -372,7 +356,7 @@ def error_figure(results: Sequence[Result], path: Path) -> Path:
     return save(fig, path)
 
 
-def law_figure(results: Sequence[Result], path: Path) -> Path:
+def candidate_laws_figure(results: Sequence[Result], path: Path) -> Path:
     """The pair-force candidates' learned laws against distance, each scaled to a largest
     magnitude of 1 and oriented by its fitted masses (scale and sign are the fit's)."""
     from bgn.figures import save
@@ -498,7 +482,7 @@ def write_report(auto_dir: Path, results: Sequence[Result], winner: Result, marg
     figures = auto_dir / "figures"
     paths = {"errors": error_figure(results, figures / "validation_error.png")}
     if any(r.law for r in results):
-        paths["law"] = law_figure(results, figures / "pair_law.png")
+        paths["law"] = candidate_laws_figure(results, figures / "pair_law.png")
     for r in results:
         if r.masses and protocol["masses_known"]:
             paths[f"masses_{r.candidate.name}"] = mass_figure(
@@ -663,7 +647,7 @@ def train_candidate(cand: Candidate, cfg: DictConfig, deadline: Deadline | None 
     steps or ``deadline``; a signal's resume command names ``run_dir`` with ``overrides``
     (the auto run's, not the candidate's folder). Fewer than ``min_steps`` steps: the result
     says it is not trained."""
-    from bgn.eval.laws import law_stage
+    from bgn.laws.stage import law_stage
     from bgn.training.checkpoints import read
     from bgn.training.run import train
 
@@ -707,7 +691,8 @@ def score_candidate(result: Result, out_dir: Path, val: Any, train_split: Any,
     and for a pair-force head its law over the training split's distances and its fitted
     masses on validation windows. ``deadline``: the job's, checked between rollout chunks
     (``OutOfTime``)."""
-    from bgn.eval.laws import checked_rollouts
+    from bgn.laws.finetune import checked_rollouts
+    from bgn.laws.sample import sample_law
     from bgn.model.newton import PairForceHead
     from bgn.training.checkpoints import best_checkpoint
     from bgn.training.module import load_model
@@ -728,7 +713,8 @@ def score_candidate(result: Result, out_dir: Path, val: Any, train_split: Any,
         n = head.types
         pairs = [(a, b) for a in range(n) for b in range(a, n)] if n > 1 else [(0, 0)]
         result.law = {"s": s.tolist(), "sign": 1.0 if masses["median_fit"] >= 0 else -1.0,
-                      "f": {f"{a}-{b}": pair_law(head, s, (a, b)).tolist() for a, b in pairs}}
+                      "f": {f"{a}-{b}": sample_law(head, s, 1, (a, b)).tolist()
+                            for a, b in pairs}}
 
 
 def own_checkpoint(source: Path, target: Path) -> None:
@@ -751,29 +737,31 @@ def formula_candidate(results: Sequence[Result], auto_dir: Path, val: Any, train
                       sims: list[int], starts: list[int], n_steps: int,
                       horizons: Sequence[int], each: Mapping[str, Any],
                       deadline: Deadline | None = None) -> Result | None:
-    """The best pair-force candidate's law read back as a formula (``bgn.eval.laws``), its
-    constants fine-tuned through substeps (``bgn.eval.laws.finetune_formula``: its default
+    """The best pair-force candidate's law read back as a formula (``bgn.laws``), its
+    constants fine-tuned through substeps (``bgn.laws.finetune.finetune_formula``: its default
     iterations, at most half the candidates' ``max_steps``) and scored as the others;
     eligible to win, and its checkpoint (``last.ckpt``: its own, carrying no other
     candidate's callback state, ``own_checkpoint``) the one the winner resumes from.
     ``deadline``: the job's; the fit stops at an even part of it (``candidate_deadline``),
     the validation rollouts at it (``OutOfTime``). None without a trained and scored
     pair-force candidate."""
-    from bgn.eval.laws import FINETUNE_STEPS, FINETUNE_SUBSTEPS, finetune_formula
+    from bgn.laws.finetune import finetune_formula
+    from bgn.laws.options import DEFAULTS
     from bgn.training.checkpoints import best_checkpoint
 
     scored = [r for r in results if r.candidate.pair_force and r.compared]
     if not scored:
         return None
     best = min(scored, key=lambda r: r.score(n_steps))
-    steps = min(FINETUNE_STEPS, max(1, int(each["max_steps"]) // 2)) if "max_steps" in each \
-        else FINETUNE_STEPS
+    steps = DEFAULTS.finetune_steps
+    if "max_steps" in each:
+        steps = min(steps, max(1, int(each["max_steps"]) // 2))
     out_dir = auto_dir / f"formula_{best.candidate.name}"
     start = time.perf_counter()
     part = None if deadline is None else candidate_deadline(deadline, 1).left()
     record = finetune_formula(best_checkpoint(auto_dir / best.candidate.name), train_split,
-                              val, steps=steps, substeps=FINETUNE_SUBSTEPS, out_dir=out_dir,
-                              max_seconds=part, deadline=deadline)
+                              val, steps=steps, substeps=DEFAULTS.finetune_substeps,
+                              out_dir=out_dir, max_seconds=part, deadline=deadline)
     spec = json.dumps(record["model_tuned"])  # the model's scale (finetune_formula)
     cand = Candidate(out_dir.name, [*best.candidate.overrides, "model.law=formula",
                       f"model.law_formula='{spec}'",
@@ -859,7 +847,7 @@ def _run_auto(cfg: DictConfig, base: list[str], run_dir: Path, deadline: Deadlin
               phase: list[str], began: float) -> dict[str, float]:
     from bgn.coerce import ConfigError
     from bgn.data.frames import evenly_spaced
-    from bgn.eval.laws import law_stage
+    from bgn.laws.stage import law_stage
     from bgn.rollout import rollout_starts
     from bgn.training.budget import OutOfTime
     from bgn.training.run import data_module, info, summary, train

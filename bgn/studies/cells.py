@@ -186,7 +186,7 @@ def compose_train(overrides: list[str]) -> DictConfig:
 
 def train_cell(cell: Cell, cfg: DictConfig) -> tuple[dict[str, Any], bool]:
     """Train a cell unless its metrics.json exists; returns (the metrics record, trained?)."""
-    from bgn.eval.laws import law_stage
+    from bgn.laws.stage import law_stage
     from bgn.training.run import train
 
     run_dir = Path(cfg.cells_dir) / cell.name

@@ -18,7 +18,7 @@ and ``laws`` keys; ``bgn.studies.grid.run`` calls ``run_stages`` after its own r
   model, else the scene's default), so the front is against inference time only (the
   training-time front is ``bgn.studies.pareto``'s study).
 - **laws** (``preset.laws``): the pair law of every cell with a pair-force head read back and
-  fitted as a formula, against the truth (``bgn.studies.law_stage``).
+  fitted as a formula, against the truth (``bgn.studies.laws_study``).
 
 Each writes report.md, its tables (md, csv) and figures under ``<report_dir>/<stage>/`` with
 the grid's provenance, and with ``results_md`` rewrites the block
@@ -40,7 +40,7 @@ from omegaconf import DictConfig, OmegaConf
 from bgn.coerce import ConfigError, need_int
 from bgn.eval.columns import VARIANT_COLUMNS
 from bgn.studies.cells import map_in_processes, plan_cells, preset_steps
-from bgn.studies.law_stage import laws_stage, validate_laws
+from bgn.studies.laws_study import laws_stage, validate_laws
 from bgn.studies.report import stage_provenance, write_stage
 from bgn.tables import fmt, write_table
 
@@ -52,7 +52,7 @@ STABILITY_KEYS = {"preset": "a stability preset (conf/stability/preset/<name>.ya
                   "fps": "the fps of those cells (one of preset.fps; null: the first)",
                   "seeds": "their seeds (a subset of preset.seeds; null: all)"}
 PARETO_KEYS = {"simulator_repeats": "timed runs of the exact simulator per scene (median)"}
-STAGES = ("stability", "pareto", "laws")  # laws: bgn.studies.law_stage
+STAGES = ("stability", "pareto", "laws")  # laws: bgn.studies.laws_study
 
 
 # ----------------------------------------------------------------------------- config

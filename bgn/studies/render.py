@@ -2,7 +2,7 @@
 checkpoint> [split=test] [sim=0] [steps=200] ...`` (``--help`` lists the keys,
 ``conf/render.yaml``).
 
-The model is the one ``python -m bgn.evaluate`` scores (``bgn.eval.evaluate.resolve_run``: a
+The model is the one ``python -m bgn.evaluate`` scores (``bgn.training.checkpoints.resolve_run``: a
 run folder's chosen checkpoint, or a checkpoint file), with the run's config
 (``<run>/.hydra/config.yaml``, or a study cell's ``train_config.yaml``) for the dataset; it is
 rolled out through the learned simulator from a frame of a simulation of the chosen split,
@@ -24,7 +24,7 @@ SPLITS = ("train", "val", "test")
 def validate_render(cfg: Any) -> tuple[Path, Path, Path]:
     """Everything ``python -m bgn.render`` is given, before any data or model is read;
     returns ``resolve_run``'s (checkpoint, run folder, run config)."""
-    from bgn.eval.evaluate import resolve_run
+    from bgn.training.checkpoints import resolve_run
 
     if not cfg.get("ckpt"):
         raise ConfigError("ckpt", None, "give a run folder or checkpoint: python -m bgn.render "
@@ -52,9 +52,9 @@ def _run_name(given: str, ckpt: Path) -> str:
 def main(cfg: Any) -> Path:
     """Roll the model out and write the animation; returns its path."""
     from bgn.data.datamodule import ParticleDataModule
-    from bgn.eval.evaluate import resolve_run
     from bgn.figures import rollout_animation
     from bgn.rollout import REFERENCE_START, rollout
+    from bgn.training.checkpoints import resolve_run
     from bgn.training.module import load_model
 
     ckpt, _, config = resolve_run(str(cfg.ckpt), cfg.get("run_config"))

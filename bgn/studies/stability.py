@@ -512,9 +512,9 @@ def run(cfg: DictConfig) -> Path:
 
 def resolve_checkpoints(cfg: DictConfig) -> None:
     """Each ``checkpoints.<scene>`` given (a run folder or checkpoint) replaced by the
-    checkpoint ``python -m bgn.evaluate`` would score (``bgn.eval.evaluate.resolve_run``); a
+    checkpoint ``python -m bgn.evaluate`` would score (``bgn.training.checkpoints.resolve_run``); a
     path that is neither: one line, exit 2, before any case runs."""
-    from bgn.eval.evaluate import resolve_run
+    from bgn.training.checkpoints import resolve_run
     from bgn.training.validate import ConfigError
 
     given = cfg.get("checkpoints") or {}

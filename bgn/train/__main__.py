@@ -30,7 +30,7 @@ def main(cfg: DictConfig) -> float:
 
             metrics = run_auto(cfg, deadline=deadline)
         else:
-            from bgn.eval.laws import law_stage  # model.law=auto's formula stage
+            from bgn.laws.stage import law_stage  # model.law=auto's formula stage
 
             metrics = train(cfg, spec, law_stage=law_stage, deadline=deadline)
     except CheckpointError as err:  # one line, no traceback

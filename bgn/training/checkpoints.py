@@ -189,6 +189,50 @@ def run_config_paths(ckpt: Path, run_dir: Path) -> list[Path]:
                                run_dir / "train_config.yaml"]))
 
 
+def resolve_run(path: str, run_config: str | None = None) -> tuple[Path, Path, Path]:
+    """``(checkpoint, run directory, run config)`` of a checkpoint or run directory: a run
+    directory gives its chosen checkpoint
+    (``bgn.training.checkpoints.chosen_checkpoint``: best.ckpt, the newest best-vN.ckpt, else
+    last.ckpt), or ``laws/formula.ckpt`` where the run's ``laws/formula.json`` chose the
+    formula law on validation (``model.law=auto``, or ``python -m bgn.laws <ckpt>
+    finetune=true``); a checkpoint in ``<run>/checkpoints/`` its
+    run. Bad input: one ``ConfigError`` naming the path and the fix."""
+    from bgn.training.validate import ConfigError  # the one-line refusal
+
+    given = Path(path).expanduser()
+    if not given.exists():
+        raise ConfigError("ckpt", path, "no such file or directory: give a checkpoint (.ckpt) "
+                          "or a run directory of python -m bgn.train")
+    if given.is_dir():
+        choice = given / "auto" / "auto.json"  # a model.dynamics=auto run: its chosen structure
+        if not (given / "checkpoints").is_dir() and choice.is_file():
+            given = given / "auto" / str(json.loads(choice.read_text())["choice"])
+        run_dir = given
+        try:
+            ckpt = chosen_checkpoint(given)  # a model.law=auto run: the law it chose
+            if ckpt.parent == given / "laws":
+                run_dir = ckpt.parent  # its train_config.yaml has the formula's options
+        except FileNotFoundError:
+            raise ConfigError("ckpt", path, f"the run directory has no checkpoint (looked for "
+                              f"{given / 'checkpoints'}/best*.ckpt and last.ckpt): give a run "
+                              "that trained, or a checkpoint file") from None
+    else:
+        ckpt = given
+        run_dir = given.parent.parent if given.parent.name == "checkpoints" else given.parent
+    if run_config is not None:
+        config = Path(run_config).expanduser()
+        if not config.is_file():
+            raise ConfigError("run_config", run_config, "no such file: give the run's "
+                              ".hydra/config.yaml")
+        return ckpt, run_dir, config
+    for config in run_config_paths(ckpt, run_dir):
+        if config.is_file():
+            return ckpt, run_dir, config
+    looked = ", ".join(str(p) for p in run_config_paths(ckpt, run_dir))
+    raise ConfigError("ckpt", path, f"no run config beside the checkpoint (looked for {looked}): "
+                      "pass run_config=<the run's .hydra/config.yaml>")
+
+
 def run_config(checkpoint: Path) -> Path:
     """The training config of the run that wrote ``checkpoint`` (``<run>/checkpoints/x.ckpt``)."""
     checkpoint = checkpoint.resolve()

@@ -48,7 +48,7 @@ if TYPE_CHECKING:  # Lightning and the data and model modules load when they are
 
 register_configs()  # the schemas (bgn.training.config), before Hydra composes conf/train.yaml
 
-# model.law=auto's stage (bgn.eval.laws.law_stage): (cfg, best checkpoint, datamodule, run
+# model.law=auto's stage (bgn.laws.stage.law_stage): (cfg, best checkpoint, datamodule, run
 # directory, world size, deadline=the job's Deadline) -> its record, "choice" the law that
 # validates better
 LawStage = Callable[..., dict[str, Any]]
@@ -228,7 +228,7 @@ def train(cfg: DictConfig, spec: DatasetSpec | None = None,
     """Fit, test, and write metrics.json; returns the final metrics. ``spec``: as
     ``data_module``'s (``cfg`` validated already). ``law_stage``: with ``model.law=auto``,
     what reads the best checkpoint's law back as a formula and chooses between the two on
-    validation, before the test and with ``test=false`` too (``bgn.eval.laws.law_stage``;
+    validation, before the test and with ``test=false`` too (``bgn.laws.stage.law_stage``;
     handed in by the commands above this stage).
 
     ``deadline``: the whole job's wall-clock cap (docs/design.md#budgets; default
@@ -252,7 +252,7 @@ def train(cfg: DictConfig, spec: DatasetSpec | None = None,
     if cfg.model.get("law") == "auto" and law_stage is None \
             and not cfg.trainer.get("fast_dev_run"):
         raise ValueError("model.law=auto needs the formula stage: run python -m bgn.train, or "
-                         "pass law_stage=bgn.eval.laws.law_stage")
+                         "pass law_stage=bgn.laws.stage.law_stage")
     start = time.perf_counter()
     if deadline is None:
         deadline = Deadline.after(job_cap(cfg))

@@ -59,7 +59,7 @@ def read_law_folder(laws: Path) -> dict[str, np.ndarray]:
     density = np.asarray(json.loads((laws / "law.json").read_text())["pairs"][0]["density"])
     cols["density"] = density
     if (laws / "formula.json").is_file():
-        from bgn.eval.laws import spec_values
+        from bgn.laws.report import spec_values
 
         record = json.loads((laws / "formula.json").read_text())
         cols["fitted"] = spec_values(json.dumps(record["tuned"]), (0, 0), cols["r"])

@@ -1,4 +1,4 @@
-"""The formula law (bgn.model.formula_law): the torch twin of bgn.eval.laws' Formula, and the
+"""The formula law (bgn.model.formula_law): the torch twin of bgn.laws.terms' Formula, and the
 pair-force head with ``law=formula`` on the true law of spring frames."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from bgn.eval.laws import Formula, Term, default_library
+from bgn.laws.terms import Formula, Term, default_library
 from bgn.model import build_model
 from bgn.model.formula_law import FormulaLaw, check_law
 from bgn.model.references import FrameOracle
@@ -85,7 +85,7 @@ def test_the_law_option_is_checked():
         check_law("mlp", '[{"types": [0, 0], "terms": [{"kind": "const", "a": 1}]}]')
 
 
-# the spring's law, f = -2 (s - 1) with s = r + 0.01 (bgn.eval.laws.TRUE_LAWS)
+# the spring's law, f = -2 (s - 1) with s = r + 0.01 (bgn.laws.compare.TRUE_LAWS)
 SPRING = json.dumps([{"types": [0, 0], "terms": [{"kind": "const", "power": 0, "a": 1.98},
                                                   {"kind": "power", "power": 1, "a": -2.0}]}])
 

@@ -199,7 +199,7 @@ def test_the_formula_stage_is_bounded_by_work_and_capped_by_the_job_deadline(mon
                                                                              tmp_path):
     """model.law=auto's stage gets the job's deadline (no share of max_time): its fit ends on
     its evaluation count, the same on any machine, unless the deadline comes first."""
-    import bgn.eval.laws as laws
+    import bgn.laws.stage as laws
 
     seen = {}
     monkeypatch.setattr(laws, "formula_stage", lambda *a, **options: (
@@ -208,7 +208,7 @@ def test_the_formula_stage_is_bounded_by_work_and_capped_by_the_job_deadline(mon
     deadline = Deadline.after(100.0)
     laws.law_stage(None, tmp_path / "best.ckpt", datamodule, tmp_path, world_size=1,
                    deadline=deadline)
-    assert seen == {"finetune.deadline": deadline}
+    assert seen == {"deadline": deadline}
 
 
 def test_a_tuning_past_the_deadline_stops_between_evaluations(monkeypatch):
@@ -216,7 +216,7 @@ def test_a_tuning_past_the_deadline_stops_between_evaluations(monkeypatch):
 
     import torch
 
-    import bgn.eval.laws as laws
+    import bgn.laws.finetune as laws
     from bgn.model.formula_law import FormulaLaw
 
     law = FormulaLaw(json.dumps([{"types": [0, 0], "terms": [

@@ -5,7 +5,7 @@ training frames, then scored against the scene's true law at every training dist
 Per cell of ``laws.model`` (``laws.seeds`` of its seeds), from its network checkpoint
 (``best_checkpoint``: the stage starts from the network law even where the cell's own
 ``model.law=auto`` stage chose a formula, so every scene is treated alike):
-``bgn.eval.laws.formula_stage`` with ``finetune=true`` (``python -m bgn.laws <ckpt>
+``bgn.laws.stage.formula_stage`` with ``finetune=true`` (``python -m bgn.laws <ckpt>
 finetune=true``), its fitting at most ``laws.max_seconds``, on the training and validation
 splits only; its report, law.png and formula checkpoint in ``<report_dir>/laws/<cell>/``.
 The table (``against_truth``): the law read back from the network and the formula fitted to
@@ -78,7 +78,8 @@ def _law_job(cell_dir: str, data_dir: str, out_dir: str,
              max_seconds: float | None) -> dict[str, Any]:
     """One cell's formula stage (in a pool process): its record and wall time, or
     ``{"left_out": reason}`` where the cell's model has no pair-force head."""
-    from bgn.eval.laws import formula_stage, pair_force_head
+    from bgn.laws.sample import pair_force_head
+    from bgn.laws.stage import formula_stage
     from bgn.studies.cells import cell_datamodule
     from bgn.training.checkpoints import best_checkpoint
     from bgn.training.module import load_model
@@ -91,10 +92,10 @@ def _law_job(cell_dir: str, data_dir: str, out_dir: str,
         return {"left_out": str(err).split(", so")[0]}
     datamodule = cell_datamodule(Path(cell_dir), data_dir)
     cfg = OmegaConf.load(Path(cell_dir) / "train_config.yaml")
-    options = {} if max_seconds is None else {"finetune.max_seconds": float(max_seconds)}
     try:
         record = formula_stage(best, datamodule.datasets["train"], datamodule.datasets["val"],
-                               cfg, Path(out_dir), **options)
+                               cfg, Path(out_dir),
+                               max_seconds=None if max_seconds is None else float(max_seconds))
     except Exception as err:  # one cell's failure is named in the table, not the stage's end
         traceback.print_exc()
         return {"failed": f"{type(err).__name__}: {err}"}
@@ -103,9 +104,10 @@ def _law_job(cell_dir: str, data_dir: str, out_dir: str,
 
 def law_row(record: dict[str, Any]) -> dict[str, Any]:
     """A table row's values from a formula stage's record (``against_truth`` and the
-    validation rollouts the choice reads, ``bgn.eval.laws.law_choice``: the failed rollouts
+    validation rollouts the choice reads, ``bgn.laws.finetune.law_choice``: the failed rollouts
     and the mean error after the stage's horizon, a failed one at the cap)."""
-    from bgn.eval.laws import failed_rollouts, spec_text
+    from bgn.laws.finetune import failed_rollouts
+    from bgn.laws.report import spec_text
 
     truth = record.get("against_truth") or {}
     v = record["validation"]
@@ -244,7 +246,7 @@ def laws_stage(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
         "(all of them, and between their 1st and 99th percentiles; near a zero crossing "
         "relative to the law's change over 10 % of r). `formula chosen`: the share of seeds "
         "whose formula validated better than the network law (the fewer failed validation "
-        "rollouts, then the lower mean error: bgn.eval.laws.law_choice); the two validation "
+        "rollouts, then the lower mean error: bgn.laws.finetune.law_choice); the two validation "
         f"errors: the mean position error after {h} steps over the validation rollouts, a "
         "failed one at the cap; `... failed`: how many of those rollouts failed.",
         empty="(no cell with a pair-force head)")

@@ -1,0 +1,23 @@
+"""The learned pair law as a formula: ``python -m bgn.laws <run folder or checkpoint>
+[finetune=true] ...`` (``bgn.laws.__main__``; ``--help`` lists the keys), and the formula
+stage of ``model.law=auto`` (``bgn.laws.stage``).
+
+A pair-force head (``bgn.model.newton``: ``model=newton``, or BGN with
+``model.dynamics=newton``) learns a scene's interaction as an MLP ``f(r)`` of the pair's
+distance (and types): the force on particle i from j is ``f(r_ij) u_ij``, ``u_ij`` the unit
+vector from j to i (positive: repulsive). This package reads that law back, one module per
+job:
+
+- ``terms``: the library of candidate terms and the sparse fit of a formula to a curve;
+- ``sample``: a head's law on a grid of distances, the data's pair distances, the scale;
+- ``compare``: the law read back (``read_law`` -> ``LawReport``) against the true law;
+- ``report``: report.md, law.csv, law.json and law.png, the evaluation report's section;
+- ``finetune``: the formula fitted to the frames as the model's law, scored on validation
+  rollouts against the network law (``law_choice``);
+- ``stage``: both in a run's ``laws/`` folder (``formula_stage``) and ``model.law=auto``'s
+  stage (``law_stage``);
+- ``options``: every setting above, typed (``LawOptions``).
+
+The package sits at the evaluation layer (docs/design.md#layers): it reads checkpoints and
+rolls out; no module of ``bgn.model`` imports it.
+"""

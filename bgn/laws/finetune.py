@@ -1,0 +1,621 @@
+"""The formula fitted to the frames as the model's law (``finetune_formula``).
+
+``finetune=true`` (``finetune_formula``): the formula as the model's law (``model.law=formula``,
+``model.law_formula``: ``formula_spec``'s JSON, ``bgn.model.formula_law``). Every form on
+the fit's front, every one-term form of the library and every nonlinear term twice
+(``candidate_specs``) has its constants fitted to the frames (``tune_constants``:
+Nelder-Mead on the head's law loss under a Cauchy loss, ``law_objective``, through
+``model.substeps``: a frame's finite-difference target averages the force over the frame)
+and is pruned of the terms the frames do not need (``prune_terms``); the lowest loss wins,
+and its constants are polished through finer substeps (``polish_constants``). The network
+law and the formula are then scored on the validation rollouts (``bgn.studies.auto``'s
+protocol) and the better chosen; ``<run>/laws/formula.ckpt`` (with its
+``train_config.yaml``) loads as any checkpoint. ``model.law=auto`` runs this after training
+(``bgn.laws.stage.law_stage``).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from scipy.optimize import minimize
+
+from bgn.laws.compare import LawReport, against_truth, read_law
+from bgn.laws.options import DEFAULTS
+from bgn.laws.sample import calibrate_scale, pair_distances, pair_force_head
+from bgn.laws.terms import Term, default_library, fit_formula
+from bgn.training.budget import NO_DEADLINE, Deadline, OutOfTime, check, clock_text
+
+log = logging.getLogger("bgn.train")
+
+
+def formula_spec(report: LawReport) -> str:
+    """The report's formulas as ``model.law_formula`` (``bgn.model.formula_law``'s format: a
+    JSON list of pairs of types, each with its terms: kind, power, amplitude a, constant c),
+    in physical units: the head with ``model.law=formula`` evaluates this law."""
+    return json.dumps([pair_spec(pair.types, pair.formula.terms, pair.formula.values)
+                       for pair in report.pairs])
+
+
+def pair_spec(types: tuple[int, int], terms: list[Term], values: np.ndarray) -> dict[str, Any]:
+    """One pair of types' entry of a ``model.law_formula`` spec: ``values`` the amplitudes,
+    then one constant c per nonlinear term."""
+    cs = iter(float(c) for c in values[len(terms):])
+    return {"types": [int(t) for t in types], "terms": [
+        {"kind": t.kind, "power": float(t.power), "a": float(a),
+         "c": next(cs) if t.nonlinear else None}
+        for t, a in zip(terms, values[:len(terms)])]}
+
+
+def formula_module(checkpoint: Path, spec: str, substeps: int) -> Any:
+    """The checkpoint's model rebuilt with ``law=formula`` (``spec``) and ``substeps``, every
+    weight but the law's copied from the checkpoint; (module, its hyperparameters)."""
+    import inspect
+
+    from bgn.training.checkpoints import read
+    from bgn.training.module import PhysicsModule
+
+    saved = read(checkpoint)  # once: the fine-tuning rebuilds the model for every form
+    hp = dict(saved.get("hyper_parameters") or {})
+    hp["model_config"] = {**hp["model_config"], "law": "formula", "law_formula": spec,
+                          "law_scale": 1.0, "substeps": int(substeps)}
+    keep = inspect.signature(PhysicsModule.__init__).parameters
+    module = PhysicsModule(**{k: v for k, v in hp.items() if k in keep})
+    old = saved["state_dict"]
+    missing, unexpected = module.load_state_dict(
+        {k: v for k, v in old.items() if ".force_law." not in k}, strict=False)
+    if [k for k in missing if ".force_law." not in k] or unexpected:
+        raise ValueError(f"checkpoint {checkpoint}: its weights do not fit the same model with "
+                         f"law=formula (missing {missing[:3]}, unexpected {unexpected[:3]})")
+    return module, hp
+
+
+def closest_frames(dataset: Any) -> np.ndarray:
+    """Indices of ``dataset``'s frames (a ``FrameDataset``) sorted by their closest pair,
+    nearest first: a handful of constants is pinned at small r only by the frames with a close
+    encounter, which a random batch rarely holds."""
+    from bgn.data.edges import minimum_image
+
+    file, n = dataset.file, dataset.meta.n_particles
+    i, j = np.triu_indices(n, k=1)
+    nearest = []
+    for s in dataset.sims:
+        t = dataset.history + 1 + np.arange(dataset.frames_per_sim)
+        x = np.asarray(file.read("positions", (s, slice(int(t[0]), int(t[-1]) + 1))), np.float64)
+        r = np.sqrt((minimum_image(x[:, i] - x[:, j], dataset.meta.period) ** 2).sum(-1))
+        nearest.append(r.min(axis=1) if len(i) else np.full(len(t), np.inf))
+    return np.argsort(np.concatenate(nearest), kind="stable")
+
+
+def tuning_batches(dataset: Any, size: int, seed: int = 0) -> list[tuple[float, Any]]:
+    """The fixed batches the constants are tuned on, with their weights in the loss: the
+    ``DEFAULTS.close_share`` of ``size`` frames with the closest pairs (weight: their share of the
+    split), and frames drawn at random from the rest (weight: the rest's share). The weighted
+    sum is an unbiased estimate of the loss over the whole split, with far less variance at
+    small r than a random batch of the same size."""
+    from bgn.graph import collate
+
+    n = len(dataset)
+    if size >= n:
+        return [(1.0, collate([dataset[i] for i in range(n)]))]
+    order = closest_frames(dataset)
+    k = max(1, int(round(size * DEFAULTS.close_share)))
+    rest = np.random.default_rng(seed).choice(order[k:], size - k, replace=False)
+    return [(k / n, collate([dataset[int(i)] for i in order[:k]])),
+            ((n - k) / n, collate([dataset[int(i)] for i in np.sort(rest)]))]
+
+
+def checked_rollouts(model: Any, val: Any, sims: list[int], starts: list[int], n_steps: int,
+                     deadline: Deadline | None = None) -> Any:
+    """Validation rollouts (``bgn.rollout.rollout_many``) in batches of at most
+    ``DEFAULTS.rollout_chunk`` particles, the job's ``deadline`` and SIGTERM checked before each
+    (``check``: ``OutOfTime`` past it): one batch of a large scene's validation split can
+    take minutes. The formula stage's and ``bgn.studies.auto``'s scoring."""
+    from bgn.rollout import rollout_many
+
+    with torch.no_grad():
+        return rollout_many(model.eval(), val, sims, starts, n_steps, chunk=DEFAULTS.rollout_chunk,
+                            between=lambda: check(deadline, "the validation rollouts"))
+
+
+def validation_errors(model: Any, val: Any, history: int, horizon: int = DEFAULTS.finetune_horizon,
+                      val_sims: int | None = None,
+                      deadline: Deadline | None = None) -> dict[str, Any]:
+    """bgn.studies.auto's scoring: every validation simulation (or ``val_sims`` of them)
+    rolled out from the shared start frames; after 10 and ``horizon`` steps the mean capped
+    error (a failed rollout at the cap) and its geometric mean over the rollouts
+    (``typical``, shown beside), and how many failed (``failed``, ``failed_share``).
+    ``deadline``: checked between batches (``checked_rollouts``)."""
+    from bgn.data.frames import evenly_spaced
+    from bgn.metrics import SHORT_HORIZON, failure_capped_errors
+    from bgn.rollout import rollout_starts
+
+    n_steps = min(horizon, val.file.n_frames - history - 2)
+    horizons = sorted({min(SHORT_HORIZON, n_steps), n_steps})
+    sims, starts = evenly_spaced(val.file.n_sims, val_sims), rollout_starts(val, n_steps)
+    t = checked_rollouts(model, val, sims, starts, n_steps, deadline)
+    capped, failed = failure_capped_errors(t.predicted, t.true, t.first_non_finite,
+                                           val.meta.box)
+    at = {h: capped[:, h - 1] for h in horizons}
+    return {"errors": {h: float(e.mean()) for h, e in at.items()},
+            "typical": {h: float(np.exp(np.log(e + DEFAULTS.typical_floor).mean()))
+                        for h, e in at.items()},
+            "failed": int(np.sum(failed >= 0)),
+            "failed_share": float(np.mean(failed >= 0)), "horizon": n_steps,
+            "rollouts": len(sims) * len(starts)}
+
+
+def law_objective(model: Any, head: Any, g: Any) -> torch.Tensor:
+    """The loss a pair law's constants are tuned on. Where the model trains its law with the
+    recorded masses (BGN's ``law`` head): each particle's relative error (``newton.law_loss``)
+    under a Cauchy loss, ``log(1 + rel / DEFAULTS.robust_scale^2)``. A frame whose encounter the
+    substeps do not resolve misses its target whatever the law; squared, those few frames
+    would decide the constants (they favour a law softer than the truth), where the robust loss
+    lets the many resolved frames decide (docs/notes/2026-11-26-results-history.md,
+    "The formula stage"). Else the
+    model's dynamics loss (the law through the window's mass fit). The other tasks' losses are
+    left out: the inverse model reads the head's mass fit (``mass_context=fit``), and its
+    likelihood would pull the law towards masses that are easy to predict."""
+    from bgn.model.newton import law_loss
+
+    if "law" in getattr(model, "heads", ()):
+        rel = law_loss(head, g, reduce=False)
+        return torch.log1p(rel / DEFAULTS.robust_scale ** 2).mean()
+    # the dynamics term of model.loss_terms through the head alone (forward_target): the
+    # encoders and the flow, whose losses are left out, need not run for every evaluation
+    return model.target_coder.loss(model.forward_target(g), g)
+
+
+class _Budget(Exception):
+    """The fine-tuning's evaluations or seconds are spent."""
+
+
+def n_constants(spec: str | list[dict[str, Any]]) -> int:
+    """Amplitudes and constants c of a ``model.law_formula`` spec."""
+    pairs = json.loads(spec) if isinstance(spec, str) else spec
+    return sum(1 + (t.get("c") is not None) for p in pairs for t in p["terms"])
+
+
+def candidate_specs(report: LawReport) -> list[str]:
+    """The forms the fine-tuning starts from: the formula read back, then (one pair of types
+    only) every other formula on its fit's front, every one-term form of the library with a
+    constant c, and every such term twice (``twice_form``), each fitted to the learned law.
+    The network's law can be off where the frames pin the form (gravity's close encounters),
+    so a form the fit passed over may fit the frames best."""
+    specs = [formula_spec(report)]
+    if len(report.pairs) != 1:
+        return specs
+    pair = report.pairs[0]
+    forms = list(pair.formula.alternatives)
+    nonlinear = [term for term in default_library() if term.nonlinear]
+    for term in nonlinear:  # (the fitter needs a linear term beside it: a constant)
+        one = fit_formula(pair.r, pair.learned, pair.density, max_terms=1,
+                          library=[Term("const"), term], n_boot=0)
+        forms += [(t, v) for t, v in one.alternatives if t == [term]]
+    forms += [form for term in nonlinear if (form := twice_form(pair, term)) is not None]
+    for terms, values in forms:
+        spec = json.dumps([pair_spec(pair.types, terms, values)])
+        if spec not in specs:
+            specs.append(spec)
+    return specs
+
+
+def negligible_term(spec: str, reach: np.ndarray | None) -> int | None:
+    """The smallest term of a one-pair ``spec`` whose size stays below ``DEFAULTS.negligible`` times
+    the law's RMS size at every distance of ``reach`` (where the data reach: the training
+    distances at ``DEFAULTS.distance_quantiles``, ``PairLaw.reach``), or None. Such a term
+    changes no
+    prediction the frames can check; the loss may still prefer it a little, where it absorbs
+    what the substeps miss at the closest encounters. Dropping it whatever the loss is
+    sequential thresholding, as sparse regression does."""
+    from bgn.model.formula_law import FormulaLaw
+
+    pairs = json.loads(spec)
+    if reach is None or len(reach) == 0 or len(pairs) != 1 or len(pairs[0]["terms"]) < 2:
+        return None
+    r = torch.as_tensor(reach, dtype=torch.float64)
+    with torch.no_grad():
+        values = FormulaLaw(spec).values(r).numpy()                      # (R, K)
+    size = np.sqrt(np.mean(values.sum(-1) ** 2))
+    peak = np.abs(values).max(0) / max(size, 1e-300)
+    k = int(np.argmin(peak))
+    return k if peak[k] < DEFAULTS.negligible else None
+
+
+def turning_term(spec: str, floor: float | None) -> int | None:
+    """The term of a one-pair ``spec`` that turns the law's sign below ``floor`` (the closest
+    ``DEFAULTS.turn_quantile`` of the training distances), or None: the term pulling
+    against the law's
+    sign at the floor that is largest at the closest distance where the law has turned. No
+    frame pins the law down there, so a turn there is the fit's extrapolation, not the data's
+    (REBOUND's softened attraction read back with a small 1/r^2 repulsion that takes over in
+    a close encounter; docs/design.md, "The formula stage"). A core the data reach (Morse,
+    Lennard-Jones) turns the law above the floor and is kept."""
+    from bgn.model.formula_law import FormulaLaw
+
+    pairs = json.loads(spec)
+    if floor is None or not floor > 0 or len(pairs) != 1 or len(pairs[0]["terms"]) < 2:
+        return None
+    r = torch.as_tensor(floor * DEFAULTS.below_floor, dtype=torch.float64)
+    with torch.no_grad():
+        values = FormulaLaw(spec).values(r).numpy()                      # (R, K), r ascending
+    law = values.sum(-1)
+    sign = np.sign(law[-1])
+    turned = np.flatnonzero(np.sign(law) == -sign) if sign != 0 else []
+    if len(turned) == 0:
+        return None
+    against = values[turned[0]] * sign < 0
+    return int(np.argmax(np.where(against, np.abs(values[turned[0]]), -np.inf)))
+
+
+def twice_form(pair: Any, term: Term) -> tuple[list[Term], np.ndarray] | None:
+    """``term`` twice, each with its own c (Morse: two exponentials), fitted to ``pair``'s
+    learned law in absolute terms: relative residuals are set by the many pairs where the law
+    is near zero (beyond a cut-off), as the frames' loss is not, and there the fit collapses
+    to one scale. None where the two amplitudes cancel to ``DEFAULTS.cancelling`` of the larger: a
+    finite difference of one term (its derivative in c), not two scales of the law."""
+    fit = fit_formula(pair.r, pair.learned, pair.density, max_terms=2,
+                      library=[Term("const"), term], scale=np.ones_like(pair.r), n_boot=0)
+    for terms, values in fit.alternatives:
+        a = np.abs(values[:2])
+        if terms == [term, term] and abs(values[0] + values[1]) > DEFAULTS.cancelling * a.max():
+            return terms, values
+    return None
+
+
+def drop_term(spec: str, k: int) -> str:
+    """A one-pair ``spec`` without its term ``k``."""
+    pair = json.loads(spec)[0]
+    return json.dumps([{**pair, "terms": [t for j, t in enumerate(pair["terms"]) if j != k]}])
+
+
+def prune_terms(tune: Callable[[str], tuple[float, Any, Any, str]], loss: float, module: Any,
+                hp: Any, spec: str, reach: np.ndarray | None = None,
+                floor: float | None = None) -> tuple[float, Any, Any, str]:
+    """Backward elimination on the frames: a negligible term (``negligible_term``, over the
+    distances the data ``reach``) or one that turns the law's sign below the ``floor`` of the
+    training distances (``turning_term``) is dropped, the rest tuned again, whatever the loss;
+    else a term is dropped while the loss rises by at most ``DEFAULTS.form_tolerance``: a term the
+    network's law needed in its tails (where the frames barely pin it) goes."""
+    while True:
+        pairs = json.loads(spec)
+        if len(pairs) != 1 or len(pairs[0]["terms"]) < 2:
+            return loss, module, hp, spec
+        drop = negligible_term(spec, reach)
+        if drop is None:
+            drop = turning_term(spec, floor)
+        if drop is not None:
+            loss, module, hp, spec = tune(drop_term(spec, drop))
+            continue
+        for k in range(len(pairs[0]["terms"])):
+            result = tune(drop_term(spec, k))
+            if not result[0] > loss * (1 + DEFAULTS.form_tolerance):
+                loss, module, hp, spec = min(result[0], loss), *result[1:]
+                break
+        else:
+            return loss, module, hp, spec
+
+
+def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], steps: int,
+                   deadline: Deadline | None) -> tuple[float, int]:
+    """The constants of ``head``'s formula law fitted in place to ``law_objective`` on the
+    weighted ``batches``, derivative-free (Nelder-Mead, at most ``steps`` evaluations): the
+    law's loss through the substeps of the closest encounters is smooth at the scale of the
+    constants' errors but rough at a quasi-Newton step's (its gradient jumps), where L-BFGS
+    stalls. A trial point where the loss is not finite counts as infinitely worse (a form
+    with no finite point returns inf and loses). Returns (the lowest loss, evaluations);
+    ``_Budget`` past ``deadline`` (the job's, ``bgn.training.budget``) before any; a
+    SIGTERM ends it between evaluations (``check``)."""
+    from bgn.model.formula_law import NONLINEAR
+
+    law = head.force_law
+    nonlinear = torch.tensor([k in NONLINEAR for k in law.kinds])
+    best: list[Any] = [math.inf, None]
+    count = [0]
+
+    def place(x: np.ndarray) -> None:
+        with torch.no_grad():
+            law.amplitude.copy_(torch.as_tensor(x[:len(law.kinds)]))
+            law.log_c[nonlinear] = torch.as_tensor(x[len(law.kinds):], dtype=law.log_c.dtype)
+
+    def objective(x: np.ndarray) -> float:
+        if count[0] >= steps:
+            raise _Budget
+        try:
+            check(deadline, "the formula stage")  # and SIGTERM, between evaluations
+        except OutOfTime:
+            raise _Budget from None
+        place(x)
+        with torch.no_grad():
+            loss = float(sum(w * law_objective(model, head, g) for w, g in batches))
+        count[0] += 1
+        if not math.isfinite(loss):  # constants the law cannot take: a worse point, not a stop
+            return math.inf
+        if loss < best[0]:
+            best[:] = [loss, x.copy()]
+        return loss
+
+    x0 = np.concatenate([law.amplitude.detach().numpy(),
+                         law.log_c.detach()[nonlinear].numpy()]).astype(np.float64)
+    simplex = np.vstack([x0, x0 + np.diag(np.where(np.arange(len(x0)) < len(law.kinds),
+                                                   DEFAULTS.amplitude_step,
+                                                   math.log(DEFAULTS.c_step)))])
+    try:
+        minimize(objective, x0, method="Nelder-Mead",
+                 options={"initial_simplex": simplex, "maxfev": steps, "xatol": 1e-3,
+                          "fatol": 1e-6})
+    except _Budget:
+        if best[1] is None and count[0] == 0:
+            raise
+    place(x0 if best[1] is None else best[1])  # no finite point: the form loses (loss inf)
+    return best[0], count[0]
+
+
+def polish_constants(model: Any, head: Any, batches: list[tuple[float, Any]], steps: int,
+                     deadline: Deadline | None) -> dict[str, Any] | None:
+    """The chosen form's constants tuned once more (``steps`` evaluations, as every form)
+    through ``DEFAULTS.polish_factor`` times finer substeps: through the coarser substeps the forms
+    are compared with, the loss is rough at the scale of a softening constant, and its minimum
+    spans a band around the truth (docs/notes/2026-11-26-results-history.md,
+    "The formula stage"). The substeps are put back after. None where no time is left."""
+    coarse = head.substeps
+    head.substeps = fine = DEFAULTS.polish_factor * coarse
+    try:
+        loss, n = tune_constants(model, head, batches, steps, deadline)
+    except _Budget:
+        return None
+    finally:
+        head.substeps = coarse
+    return {"substeps": fine, "loss": loss, "evaluations": n}
+
+
+def failed_rollouts(score: dict[str, Any]) -> int:
+    """How many of a ``validation_errors`` score's rollouts failed (from its share where an
+    older record lacks the count)."""
+    if "failed" in score:
+        return int(score["failed"])
+    return int(round(score.get("failed_share", 0.0) * score.get("rollouts", 0)))
+
+
+def law_choice(scores: dict[str, dict[str, Any]], horizon: int) -> str:
+    """The law a formula stage keeps, of ``scores`` (law -> ``validation_errors``): the fewest
+    failed rollouts first, so a law that fails more never wins; then the lower mean error
+    after ``horizon`` steps with each failed rollout at the cap (``model.dynamics=auto``'s
+    rule, ``bgn.metrics.capped_step_errors``), in which a failure weighs its cap where a
+    geometric mean would let it weigh little; the network law on a tie."""
+    return min(scores, key=lambda k: (failed_rollouts(scores[k]),
+                                      scores[k]["errors"].get(horizon, math.inf),
+                                      k != "network"))
+
+
+def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
+                     report: LawReport | None = None, steps: int = DEFAULTS.finetune_steps,
+                     substeps: int = DEFAULTS.finetune_substeps,
+                     batch_size: int = DEFAULTS.finetune_batch_size,
+                     horizon: int = DEFAULTS.finetune_horizon,
+                     val_sims: int | None = None, out_dir: Path | None = None,
+                     seed: int = 0, start: str | None = None,
+                     max_seconds: float | None = None,
+                     deadline: Deadline | None = None) -> dict[str, Any]:
+    """The fitted formula as the model's law, its constants fine-tuned end to end: the
+    checkpoint's model with ``law=formula`` (``formula_module``), the law's constants alone
+    fitted by Nelder-Mead (``steps`` evaluations) to the head's own loss (``law_objective``)
+    on a fixed batch of ``batch_size`` training frames (``tuning_batches``: the closest
+    encounters and a random rest, weighted to the split), through ``substeps`` (a frame's
+    finite-difference target averages the force over the frame, as the substeps integrate
+    it); the chosen form's constants are then polished through finer substeps
+    (``polish_constants``). Only the law is fitted: the rest of the model is the
+    checkpoint's, validated with the network law, and a handful of constants cannot overfit
+    a split. Both laws are then scored on the validation rollouts (``validation_errors``)
+    and one is kept (``law_choice``: the fewer failed rollouts, then the lower mean error
+    after the horizon, a failed rollout at the cap).
+    ``out_dir``: writes ``formula.ckpt`` (loadable as any checkpoint) and ``formula.json``.
+    ``start``: a spec to start from in place of the law read back (tests). The fit is
+    bounded by its evaluation count (``steps`` per form); ``deadline`` (the job's wall-clock
+    cap, ``bgn.training.budget``) and ``max_seconds`` (from now) stop it earlier, and the
+    record's ``budget.cut_by`` says so. The validation rollouts check ``deadline`` alone
+    between their batches (``checked_rollouts``); past it the network law is kept (the
+    run stays usable), ``validation`` is empty and ``budget.cut`` names them. A line per
+    tuned form shows its progress. Returns the record (specs before and after, errors,
+    choice)."""
+    from bgn.training.module import load_model
+
+    network = load_model(checkpoint)
+    if start is None and report is None:
+        report = read_law(network, train_split)
+    batches = tuning_batches(train_split, batch_size, seed)
+    reach, floor = _data_reach(report, train_split)
+    job = deadline or NO_DEADLINE  # the validation rollouts' (max_seconds bounds the fit)
+    deadline = job.sooner(max_seconds)
+    began = time.monotonic()
+    evaluations = [0, 0]  # loss evaluations, tunings (each at most `steps` evaluations)
+
+    def tune(spec: str) -> tuple[float, Any, Any, str]:
+        """(tuned loss, module, hp, tuned spec) of the checkpoint's model with law ``spec``."""
+        module, hp = formula_module(checkpoint, spec, substeps)
+        model, head = pair_force_head(module)
+        model.requires_grad_(False)
+        model.eval()  # no dropout in the inverse model: the loss is one function
+        loss, n = tune_constants(model, head, batches, steps, deadline)
+        evaluations[0] += n
+        evaluations[1] += 1
+        log.info("formula stage: tuning %d done (%d evaluations, loss %.4g, %s so far)",
+                 evaluations[1], n, loss, clock_text(time.monotonic() - began))
+        return loss, module, hp, head.force_law.spec()
+
+    starts = [start] if start is not None else candidate_specs(report)
+    forms = _tuned_forms(tune, starts, checkpoint, substeps, reach, floor)
+    form = _chosen_form(forms)
+    module, hp = form["module"], form["hp"]
+    model, head = pair_force_head(module)
+    polish = polish_constants(model, head, batches, steps, deadline) \
+        if math.isfinite(form["loss"]) else None
+    if polish:
+        evaluations[0] += polish["evaluations"]
+        evaluations[1] += 1
+    # the fit ended by the cap, not by its evaluation count: another machine fits otherwise
+    budget = {"steps_per_form": steps, "evaluations": evaluations[0],
+              "cut_by": "max_time" if deadline.passed() else None,
+              "cut": ["the fit"] if deadline.passed() else []}
+    log.info("formula stage: tuned in %s%s; rolling out both laws on validation",
+             clock_text(time.monotonic() - began),
+             " (cut short by the job's wall-clock cap)" if budget["cut_by"] else "")
+    scale, model_scale = 1.0, 1.0
+    if "law" not in getattr(model, "heads", ()):
+        # tuned through the window's mass fit, which absorbs the law's scale (law_objective):
+        # the constants put back in physical units, as the law read back is (calibrate_scale).
+        # The mass flow reads the window's fitted masses (mass_context=fit) in the network
+        # law's free scale, which it was trained on: the model keeps the formula in that
+        # scale (its rollouts are the same at any scale), the record in physical units
+        scale = calibrate_scale(head, train_split)[0]
+        model_scale = 1 / calibrate_scale(pair_force_head(network)[1], train_split)[0]
+    with torch.no_grad():
+        head.force_law.amplitude.mul_(scale)
+    spec = head.force_law.spec()
+    with torch.no_grad():
+        head.force_law.amplitude.mul_(model_scale)
+    hp["model_config"] = {**hp["model_config"], "law_formula": head.force_law.spec(),
+                          "law_scale": 1 / model_scale}  # its labels in physical units
+    history = int(hp["history"])
+    try:
+        scores, by_substeps = _validated_laws(network, model, head, val, history, horizon,
+                                              val_sims, substeps, job)
+        choice = law_choice(scores, scores["network"]["horizon"])
+    except OutOfTime:  # nothing compared: the law the checkpoint validated with stays
+        scores, by_substeps, choice = {}, {}, "network"
+        budget["cut_by"] = "max_time"
+        budget["cut"].append("the validation rollouts")
+        log.warning("formula stage: the validation rollouts reached the job's wall-clock cap "
+                    "(trainer.max_time): the network law is kept; raise trainer.max_time to "
+                    "compare the formula")
+    hp["model_config"] = {**hp["model_config"], "substeps": head.substeps}
+    record = {"checkpoint": str(checkpoint), "substeps": substeps,
+              "steps": evaluations[0], "tunings": evaluations[1], "batch_size": batch_size,
+              "budget": budget,
+              "forms": [{k: f[k] for k in ("start", "tuned", "loss", "constants")}
+                        for f in forms],
+              "rollout_substeps": head.substeps,
+              "formula_by_substeps": {str(k): v for k, v in by_substeps.items()},
+              "start": form["start"], "tuned": json.loads(spec),
+              "scale": scale, "model_scale": model_scale,
+              "model_tuned": json.loads(hp["model_config"]["law_formula"]),
+              "loss": form["loss"], "polish": polish, "floor": floor,
+              "validation": scores, "choice": choice,
+              "against_truth": {} if report is None else against_truth(report,
+                                                                        json.loads(spec)),
+              "truth": None if report is None else report.truth_text}
+    if out_dir is not None:
+        record["path"] = str(_write_formula(Path(out_dir), checkpoint, module, hp, record))
+    return record
+
+
+def _data_reach(report: LawReport | None, train_split: Any) -> tuple[Any, float | None]:
+    """(reach, floor) of the training distances: where the data reach (the report's, for one
+    pair of types; else the split's distance quantiles), and the floor below which a law may
+    not turn (``DEFAULTS.turn_quantile``); None where the split has no pairs."""
+    seen = np.concatenate([np.zeros(0), *pair_distances(train_split).values()])
+    floor = float(np.quantile(seen, DEFAULTS.turn_quantile)) if seen.size else None
+    if report is not None and len(report.pairs) == 1:
+        reach = report.pairs[0].reach
+    else:
+        reach = np.quantile(seen, DEFAULTS.distance_quantiles) if seen.size else None
+    return reach, floor
+
+
+def _tuned_forms(tune: Callable[[str], tuple[float, Any, Any, str]], starts: list[str],
+                 checkpoint: Path, substeps: int, reach: Any,
+                 floor: float | None) -> list[dict[str, Any]]:
+    """Every candidate form, each tuned on the frames (``tune``) and pruned of the terms the
+    frames do not need, until the budget runs out; with no time for even one evaluation, the
+    form read back, untuned, less the terms that turn it below the data (``turning_term``
+    needs no evaluation)."""
+    forms = []
+    for spec in starts:
+        try:
+            loss, module, hp, tuned = tune(spec)
+            loss, module, hp, tuned = prune_terms(tune, loss, module, hp, tuned, reach, floor)
+        except _Budget:
+            break
+        forms.append({"start": json.loads(spec), "tuned": json.loads(tuned), "loss": loss,
+                      "constants": n_constants(tuned), "module": module, "hp": hp})
+    if not forms:
+        spec = starts[0]
+        while (drop := turning_term(spec, floor)) is not None:
+            spec = drop_term(spec, drop)
+        module, hp = formula_module(checkpoint, spec, substeps)
+        forms.append({"start": json.loads(starts[0]), "tuned": json.loads(spec),
+                      "loss": math.nan, "constants": n_constants(spec),
+                      "module": module, "hp": hp})
+    return forms
+
+
+def _chosen_form(forms: list[dict[str, Any]]) -> dict[str, Any]:
+    """The lowest loss wins, the fewest constants among those within ``DEFAULTS.form_tolerance``."""
+    lowest = min(f["loss"] for f in forms)
+    near = [f for f in forms if not f["loss"] > lowest * (1 + DEFAULTS.form_tolerance)] or forms
+    return min(near, key=lambda f: (f["constants"], f["loss"]))
+
+
+def _validated_laws(network: Any, model: Any, head: Any, val: Any, history: int, horizon: int,
+                    val_sims: int | None, substeps: int, deadline: Deadline | None = None,
+                    ) -> tuple[dict[str, Any], dict[int, Any]]:
+    """Validation rollouts of the network law and of the formula (``scores``), the formula
+    rolled out with the substeps it was tuned through and with the network's own
+    (``by_substeps``); ``head.substeps`` is left at the better of the two on the mean error:
+    the shooting's velocity estimate can cost more over a rollout than the substeps gain
+    (docs/notes/2026-11-26-results-history.md, "The formula stage"), and substeps are there
+    for the rare close encounters, which a typical (geometric-mean) error discounts.
+    ``deadline``: the job's, checked between rollout batches (``OutOfTime``, with
+    ``head.substeps`` put back)."""
+    scores = {"network": validation_errors(network.model, val, history, horizon, val_sims,
+                                           deadline)}
+    n = scores["network"]["horizon"]
+    by_substeps = {}
+    for k in sorted({substeps, pair_force_head(network)[1].substeps}):
+        head.substeps = k
+        try:
+            by_substeps[k] = validation_errors(model, val, history, horizon, val_sims,
+                                               deadline)
+        except OutOfTime:
+            head.substeps = substeps
+            raise
+    head.substeps = min(by_substeps, key=lambda k: by_substeps[k]["errors"].get(n, math.inf))
+    scores["formula"] = by_substeps[head.substeps]
+    return scores, by_substeps
+
+
+def _write_formula(out: Path, checkpoint: Path, module: Any, hp: dict[str, Any],
+                   record: dict[str, Any]) -> Path:
+    """``formula.ckpt`` (the checkpoint with the formula law: loadable as any checkpoint) and
+    ``formula.json`` (the record) in ``out``; returns the checkpoint's path."""
+    from bgn.training.checkpoints import read, write_atomic
+
+    out.mkdir(parents=True, exist_ok=True)
+    ckpt = read(checkpoint)
+    # the run's optimiser settings kept for bgn.train ckpt_path, its moments dropped: they
+    # belonged to the network law's weights; one parameter group, the first's settings
+    # (a matched network law trained in a slower second group: the formula is not matched)
+    n_params = len(list(module.parameters()))
+    for state in ckpt.get("optimizer_states", []):
+        state["param_groups"] = state.get("param_groups", [{}])[:1]
+        state["state"], state["param_groups"][0]["params"] = {}, list(range(n_params))
+    for state in ckpt.get("lr_schedulers", []):
+        for key in ("min_lrs", "_last_lr"):
+            if isinstance(state.get(key), list):
+                state[key] = state[key][:1]
+    ckpt["hyper_parameters"], ckpt["state_dict"] = hp, module.state_dict()
+    tmp = out / ".formula.ckpt.tmp"  # then a rename: never a half-written checkpoint
+    torch.save(ckpt, tmp)
+    tmp.replace(out / "formula.ckpt")
+    write_atomic(out / "formula.json", json.dumps(record, indent=2, default=float))
+    return out / "formula.ckpt"
+
+

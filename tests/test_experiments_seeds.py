@@ -221,6 +221,9 @@ def test_tiny_preset_two_seeds_two_workers(tmp_path: Path) -> None:
         "preset.sample_efficiency=null", "workers=2", f"paths.data_dir={tmp_path / 'data'}",
         f"cells_dir={tmp_path / 'cells'}", f"report_dir={tmp_path / 'report'}",
         f"results_md={tmp_path / 'results.md'}"])
+    # the network law: the formula stage, not under test here, was most of this test's time
+    # (tests/test_experiments.py runs the tiny preset with it)
+    cfg.preset.model_overrides.bgn.append("model.law=mlp")
     report = run(cfg)
     cells = plan_cells(cfg.preset)
     assert len(cells) == 4 and {c.name[-3:] for c in cells} == {"_s0", "_s1"}

@@ -126,6 +126,9 @@ def test_tiny_study_of_two_variants_on_validation(tmp_path: Path, shared_data_di
         f"paths.data_dir={shared_data_dir}", f"cells_dir={tmp_path / 'cells'}",
         f"report_dir={tmp_path / 'report'}", f"results_md={tmp_path / 'results.md'}"])
     cfg.preset.overrides.extend(["test=false", "+dataset.generate_workers=1"])
+    # the network law: the formula stage, not under test here, was most of this test's time
+    # (tests/test_experiments.py runs the tiny preset with it)
+    cfg.preset.model_overrides.bgn.append("model.law=mlp")
     validate_grid(cfg.preset)
     report = run(cfg)
     cells = plan_cells(cfg.preset)

@@ -152,6 +152,82 @@ def test_a_candidate_below_min_steps_is_never_compared_and_a_result_survives_a_r
     assert stored_result(decoder, tmp_path / "none") is None
 
 
+def test_the_warning_of_candidates_left_out_says_what_became_of_each():
+    """A candidate the cap stopped during its validation rollouts trained all its steps: the
+    warning says it was not scored, not that it trained fewer than auto.min_steps."""
+    from bgn.studies.auto import not_compared
+
+    short = "not trained (40 steps of auto.min_steps=100 before trainer.max_time)"
+    unscored = "not scored (trainer.max_time was reached during its validation rollouts)"
+    text = not_compared([
+        Result(Candidate("decoder", []), untrained=short, steps=40),
+        Result(Candidate("gns", [], eligible=False), untrained=unscored, steps=300),
+        Result(Candidate("newton_inertial", [], pair_force=True), errors={50: 0.1}, steps=300)])
+    assert text == f"decoder {short}; gns {unscored}"
+    assert not_compared([Result(Candidate("decoder", []), errors={50: 0.1}, steps=300)]) == ""
+
+
+def test_a_kept_formula_candidate_is_kept_only_while_its_law_is_the_best_ones(tmp_path,
+                                                                             caplog):
+    """On a resume a candidate the cap left untrained is trained and may now be the best
+    pair-force one: the formula fitted from the former best's law is then not kept (the log
+    says so, and the new best's is fitted); while its candidate is the best it is kept."""
+    from bgn.studies.auto import best_pair_force, kept_formula
+
+    formula = Result(Candidate("formula_newton_inertial", ["model.law=formula"],
+                               pair_force=True), errors={50: 0.05}, steps=300)
+    (tmp_path / formula.candidate.name).mkdir()
+    (tmp_path / formula.candidate.name / "result.json").write_text(json.dumps(formula.state()))
+    decoder = Result(Candidate("decoder", []), errors={50: 0.01}, steps=300)  # no pair law
+    inertial = Result(Candidate("newton_inertial", [], pair_force=True), errors={50: 0.2},
+                      steps=300)
+    # not trained in the first attempt, trained on the resume: now the best pair-force one
+    source = Result(Candidate("newton_source", [], pair_force=True), errors={50: 0.1},
+                    steps=300)
+    kept = kept_formula(tmp_path, [decoder, inertial], 50)
+    assert kept is not None and kept.kept and kept.candidate.name == "formula_newton_inertial"
+    assert best_pair_force([decoder, inertial, source], 50) is source
+    with caplog.at_level("INFO", logger="bgn.train"):
+        assert kept_formula(tmp_path, [decoder, inertial, source], 50) is None
+    assert "formula_newton_inertial (the run's earlier attempt) not kept" in caplog.text
+    assert "now newton_source, whose law is fitted in its place" in caplog.text
+
+
+def test_a_candidates_training_time_is_its_fits_over_the_runs_attempts(tmp_path,
+                                                                      monkeypatch):
+    """``train_s``: the fit's own wall time (train()'s wall_time_s, not auto's scoring of
+    it), ``train_steps`` the steps it added to the checkpoint it continued; an earlier
+    attempt's record of that checkpoint adds its time and steps, so that their ratio is the
+    candidate's steps per second (the engines' baselines' rate)."""
+    from omegaconf import OmegaConf
+
+    import bgn.training.run as run
+    from bgn.studies.auto import train_candidate
+
+    last = tmp_path / "checkpoints" / "last.ckpt"
+    last.parent.mkdir()
+
+    def fit(cfg, **kwargs):  # continues the checkpoint to step 250 in 6 s
+        torch.save({"state_dict": {}, "global_step": 250}, last)
+        return {"wall_time_s": 6.0}
+
+    monkeypatch.setattr(run, "train", fit)
+    cfg = OmegaConf.create({"paths": {"output_dir": str(tmp_path)}, "ckpt_path": str(last)})
+    cand = Candidate("gns", ["model=gns"], eligible=False)
+    earlier = Result(cand, steps=40, train_s=2.0, train_steps=40, wall_s=9.0,
+                     untrained="not trained (40 steps of auto.min_steps=100 ...)")
+    torch.save({"state_dict": {}, "global_step": 40}, last)
+    result = train_candidate(cand, cfg, min_steps=100, earlier=earlier)
+    assert (result.steps, result.train_steps, result.train_s) == (250, 250, 8.0)
+    assert not result.untrained and math.isnan(result.wall_s)  # the run's loop times it
+    # an attempt a signal stopped records nothing: this attempt's steps in its own time
+    torch.save({"state_dict": {}, "global_step": 40}, last)
+    alone = train_candidate(cand, cfg, min_steps=100)
+    assert (alone.steps, alone.train_steps, alone.train_s) == (250, 210, 6.0)
+    again = Result.restored(Candidate("gns", []), json.loads(json.dumps(result.state())))
+    assert (again.train_s, again.train_steps) == (8.0, 250)
+
+
 def test_each_fit_gets_an_even_part_of_the_time_left():
     from bgn.studies.auto import WINNER_RESERVE, candidate_deadline
     from bgn.training.budget import NO_DEADLINE, Deadline
@@ -222,7 +298,8 @@ def test_report_names_the_choice_and_shows_its_evidence(tmp_path):
              "physics": "central pair forces, equal and opposite"}
     pair = Result(Candidate("newton_inertial", [], pair_force=True), model=about,
                   errors={10: 0.01, 50: 0.1}, failed_share=0.0, curve=[0.05] * 50, steps=30,
-                  wall_s=2.0, law={"s": s.tolist(), "sign": 1.0, "f": {"0-0": (1 - s).tolist()}},
+                  wall_s=2.0, train_s=1.5, train_steps=30,
+                  law={"s": s.tolist(), "sign": 1.0, "f": {"0-0": (1 - s).tolist()}},
                   masses={"true_log": true_log.tolist(), "fitted_log": (true_log + 1).tolist(),
                           "relative_r2": 1.0, "median_fit": 0.5},
                   law_match={"val_error": 2e-4, "val_error_before": 0.99,
@@ -257,7 +334,11 @@ def test_report_names_the_choice_and_shows_its_evidence(tmp_path):
     assert "simulations 0-2, 5 from" in report
     assert "- newton_inertial: 0.0002 (the initial law: 0.99; the table it was fitted to: " \
         "5e-05); kept" in report and "- decoder:" not in report
+    # its training time beside its wall time (training and scoring)
+    assert "| steps | train s | wall s |" in report and "| 0 | 30 | 1.5 | 2 | 1 |" in report
     record = json.loads((tmp_path / "auto.json").read_text())
+    assert (record["candidates"][1]["train_s"], record["candidates"][1]["train_steps"]) == (
+        1.5, 30)
     assert record["choice"] == "newton_inertial" and record["margin"] == 4.0
     rows = (tmp_path / "auto.csv").read_text().splitlines()
     # the chosen one, no error, trained in this attempt
@@ -586,8 +667,9 @@ def test_every_candidate_is_named_by_its_models_description(tiny_auto):
 @pytest.mark.slow
 def test_the_runs_wall_time_is_the_whole_jobs(tiny_auto):
     """metrics.json's wall_time_s at the run folder counts the whole job (every candidate,
-    the formula candidate, the winner's continuation); each candidate keeps its own; the
-    closing summary states the whole job's time."""
+    the formula candidate, the winner's continuation); each candidate keeps its own, and its
+    training alone (train_s: less than its own, which counts its scoring too); the closing
+    summary states the whole job's time and its parts."""
     from bgn.training.budget import clock_text
     from bgn.training.run import summary
 
@@ -596,6 +678,11 @@ def test_the_runs_wall_time_is_the_whole_jobs(tiny_auto):
     record = json.loads((tiny_auto / "auto" / "auto.json").read_text())
     admitted = {c["candidate"]: c["wall_s"] for c in record["candidates"] if c["admitted"]}
     assert own == pytest.approx(admitted) and all(t > 0 for t in own.values())
+    for c in record["candidates"]:
+        if c["admitted"] and not c["candidate"].startswith("formula_"):
+            assert 0 < c["train_s"] < c["wall_s"] and c["train_steps"] == c["steps"], c
+    assert top["auto"]["train_s"] == pytest.approx(
+        {c["candidate"]: c["train_s"] for c in record["candidates"] if c["admitted"]})
     job = top["metrics"]["wall_time_s"]
     assert job >= sum(own.values()) + top["auto"]["winner_wall_time_s"]
     winner = json.loads((tiny_auto / "auto" / top["auto"]["choice"] / "metrics.json")
@@ -604,7 +691,9 @@ def test_the_runs_wall_time_is_the_whole_jobs(tiny_auto):
     assert top["auto"]["kept"] == []
     text = summary(top, tiny_auto)
     first = text.splitlines()[0]
-    assert f"in {clock_text(job)} (the whole job: {len(own)} candidates" in first
+    trained = [n for n in own if not n.startswith("formula_")]
+    assert f"in {clock_text(job)} (the whole job: {len(trained)} candidates, the formula " \
+        "candidate, the winner's continuation)" in first  # test=false: no test
     assert f"chose {top['auto']['choice']}" in text
     assert f"next: python -m bgn.evaluate {tiny_auto}" in text
 
@@ -694,27 +783,50 @@ def test_a_candidate_is_described_by_the_model_its_config_builds(tmp_path, share
 
 
 def test_the_closing_summary_of_an_auto_run_states_the_whole_job():
-    """bgn.training.run.summary of the run folder's record: the whole job's time, what was
-    kept from an earlier attempt, a choice not made by evidence said so, the run's report and
-    the winner's checkpoints."""
+    """bgn.training.run.summary of the run folder's record: the whole job's time and the
+    parts of it that ran (the candidates that trained, the formula candidate, the winner's
+    continuation and its test: a stopped run names neither), what was kept from an earlier
+    attempt, a choice not made by evidence said so, the run's report and the winner's
+    checkpoints."""
     from pathlib import Path
 
     from bgn.training.run import summary
 
+    status = {"decoder": "trained", "newton_inertial": "trained",
+              "newton_source": "not trained (3 steps of auto.min_steps=4 before "
+                               "trainer.max_time)",
+              "gns": "not scored (trainer.max_time was reached during its validation "
+                     "rollouts)", "impulse": "-",
+              "formula_newton_inertial": "not scored (trainer.max_time was reached during "
+                                         "its validation rollouts)"}
     record = {"metrics": {"wall_time_s": 75.0}, "model": "bgn",
               "budget": {"steps": 5, "max_steps": None, "cut_by": "max_time",
                          "cut": ["the winner's continuation"]},
               "variant": {"label": "BGN (paper decoder)"},
               "auto": {"choice": "decoder", "report": "r/auto/report.md", "fallback": "",
-                       "wall_s": {"decoder": 3.0}, "kept": ["decoder"]}}
+                       "status": status, "continued": False,
+                       "wall_s": dict.fromkeys(status, 3.0), "kept": ["decoder"]}}
     lines = summary(record, Path("r")).splitlines()
     assert lines[0] == ("trained BGN (paper decoder): 5 steps in 1 min 15 s (the whole job: "
-                        "1 candidate, the winner's continuation and its test; decoder kept "
-                        "from an earlier attempt), CUT SHORT by trainer.max_time (the "
-                        "winner's continuation)")
+                        "3 candidates; decoder kept from an earlier attempt), CUT SHORT by "
+                        "trainer.max_time (the winner's continuation)")
     assert lines[1] == "model.dynamics=auto chose decoder on validation rollouts (report: " \
         "r/auto/report.md)"
     assert "run: r (metrics.json, auto/report.md, the model's checkpoints in auto/decoder/)" \
         in lines
     record["auto"]["fallback"] = "no candidate trained 100 steps"
     assert "chose decoder not by evidence" in summary(record, Path("r"))
+    # a whole job: the formula candidate scored, the winner continued, tested or not
+    status["formula_newton_inertial"] = "trained"
+    record["auto"].update(continued=True, kept=[])
+    record["budget"] = {"steps": 9, "max_steps": 9, "cut_by": None, "cut": []}
+    first = summary(record, Path("r")).splitlines()[0]
+    assert first.endswith("(the whole job: 3 candidates, the formula candidate, the winner's "
+                          "continuation)")
+    record["metrics"]["test/nmse"] = 0.1
+    assert summary(record, Path("r")).splitlines()[0].endswith(
+        "the formula candidate, the winner's continuation and its test)")
+    for name in status:
+        status[name] = "-" if name == "impulse" else "not trained (0 steps ...)"
+    assert "(the whole job: no candidate trained, the winner's continuation and its test)" \
+        in summary(record, Path("r"))

@@ -149,7 +149,8 @@ def test_summary_aggregates_seeds_and_keeps_failures(tmp_path, monkeypatch):
         write(run / "auto" / "auto.json", json.dumps({
             "choice": "newton_source", "margin": 2.0,
             "protocol": {"horizon": 50, "balance": {"linear": 1e-9}},
-            "candidates": [{"candidate": c, "admitted": True, "val_err@50": v, "wall_s": 5.0}
+            "candidates": [{"candidate": c, "admitted": True, "val_err@50": v, "wall_s": 5.0,
+                            "train_s": 4.0}
                            for c, v in (("decoder", 0.2), ("newton_source", 0.1))]}))
         for cand, scale in (("newton_source", 1.0), ("decoder", 10.0)):
             write(run / "auto" / cand / "eval" / "test" / "metrics.json", json.dumps({
@@ -178,6 +179,7 @@ def test_summary_aggregates_seeds_and_keeps_failures(tmp_path, monkeypatch):
     assert (tests[0]["trained with"], tests[0]["given at inference"]) == (
         "recorded masses (mass_nll, relmass)", "-")
     assert tests[1]["trained with"] == "" and tests[1]["steps"] is None
+    assert tests[1]["budget s"] == 4.0  # a candidate's training, not auto's scoring of it
     md, _ = summary.table([r for r in tests if r["model"].startswith("chosen")],
                           ["data", "model"])
     assert "0.02 ± 0.01414 (0.01–0.03)" in md          # @100 over the two seeds
@@ -217,15 +219,17 @@ def equal_time(*args: str) -> subprocess.CompletedProcess:
 
 def fake_bgn_run(run: Path, job_s: float | None, candidates: dict[str, tuple]) -> Path:
     """A BGN auto run folder with what equal_time.py reads: job_time.json (``job_s``; None:
-    absent) and auto/auto.json's candidates (name: (steps, wall_s))."""
+    absent) and auto/auto.json's candidates (name: (steps, train_s[, wall_s]); its training
+    alone trained all its steps; wall_s, its training and scoring, default train_s + 30)."""
     (run / "auto").mkdir(parents=True)
     if job_s is not None:
         (run / "job_time.json").write_text(json.dumps({"wall_s": job_s}))
     (run / "auto" / "auto.json").write_text(json.dumps({
         "choice": "decoder", "margin": 2.0, "protocol": {"horizon": 50},
-        "candidates": [{"candidate": c, "admitted": True, "val_err@50": 0.1, "steps": s,
-                        "wall_s": w, "status": "trained"}
-                       for c, (s, w) in candidates.items()]}))
+        "candidates": [{"candidate": c, "admitted": True, "val_err@50": 0.1, "steps": s[0],
+                        "train_steps": s[0], "train_s": s[1],
+                        "wall_s": s[2] if len(s) > 2 else s[1] + 30, "status": "trained"}
+                       for c, s in candidates.items()]}))
     return run
 
 
@@ -241,6 +245,28 @@ def test_equal_time_gives_a_baseline_the_steps_of_bgns_wall_time(tmp_path):
     record = json.loads(out.read_text())
     assert (record["steps"], record["bgn_job_s"], record["steps_per_s"]) == (2400, 300.0, 8.0)
     assert equal_time("steps", str(run), "cranmer_gn").stdout.strip() == "1500"
+
+
+def test_equal_time_rates_a_candidate_by_its_training_alone(tmp_path, monkeypatch):
+    """A candidate's wall_s also counts auto's scoring of it (its validation rollouts, the
+    law and the masses): the rate is its training's (train_steps over train_s), and a record
+    without that time (a run from before it was recorded) is refused in one line."""
+    monkeypatch.syspath_prepend(str(ENGINES))
+    import equal_time as et
+
+    run = fake_bgn_run(tmp_path / "run", 300.0, {"gns": (400, 50.0, 80.0)})
+    record = et.equal_steps(run, "gns")
+    assert (record["steps"], record["steps_per_s"], record["candidate_train_s"]) == (
+        2400, 8.0, 50.0)                                # not 400 / 80 s x 300 s = 1500
+    assert "in 50.0 s of training" in record["reason"]
+    auto = run / "auto" / "auto.json"
+    old = json.loads(auto.read_text())
+    for c in old["candidates"]:
+        del c["train_s"], c["train_steps"]
+    auto.write_text(json.dumps(old))
+    res = equal_time("steps", str(run), "gns")
+    assert res.returncode == 1 and res.stdout == "" and res.stderr.count("\n") == 1
+    assert "records no training time (train_s" in res.stderr and "Traceback" not in res.stderr
 
 
 def test_equal_time_steps_follow_the_rate_and_the_job(tmp_path_factory, monkeypatch):
@@ -303,6 +329,49 @@ def test_equal_time_times_the_job_and_records_only_a_success(tmp_path):
     failed.mkdir()
     res = equal_time("time", str(failed), "--", sys.executable, "-c", "raise SystemExit(3)")
     assert res.returncode == 3 and list(failed.iterdir()) == []  # no budget from a failure
+
+
+# ----------------------------------------------------------------------------- regenerate.sh
+FAKE_PYTHON = """#!/usr/bin/env bash
+# a stand-in for python: the BGN job and every evaluation succeed, a baseline's training fails
+case "$1 $2" in
+  "examples/engines/equal_time.py time") mkdir -p "$3" ;;
+  "examples/engines/equal_time.py steps") echo '{"steps": 5}' > "$6"; echo 5 ;;
+  "-m bgn.train") exit 1 ;;
+esac
+exit 0
+"""
+
+
+def regenerate(tmp_path: Path, **env: str) -> subprocess.CompletedProcess:
+    """regenerate.sh with a stand-in ``python`` first on the PATH (nothing trains)."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir(exist_ok=True)
+    (bin_dir / "python").write_text(FAKE_PYTHON)
+    (bin_dir / "python").chmod(0o755)
+    env = {**os.environ, "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}",
+           "OUT": str(tmp_path / "out"), "NAMES": "gas", "BASELINES": "gns", "JOBS": "1",
+           "RESULTS_MD": str(tmp_path / "results.md"), **env}
+    return subprocess.run(["bash", str(ENGINES / "regenerate.sh")], capture_output=True,
+                          text=True, env=env, timeout=120)
+
+
+def test_regenerate_refuses_seeds_without_the_one_that_gives_the_budget(tmp_path):
+    """Every baseline's budget is the seed-0 BGN job's: SEEDS without 0 is refused in one
+    line before anything runs."""
+    res = regenerate(tmp_path, SEEDS="1 2")
+    assert res.returncode == 2 and res.stderr.count("\n") == 1
+    assert 'SEEDS="1 2" lacks seed 0' in res.stderr and "add 0 to SEEDS" in res.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_regenerate_a_failed_baseline_leaves_no_budget_record_behind(tmp_path):
+    res = regenerate(tmp_path, SEEDS="0")
+    out = tmp_path / "out"
+    assert res.returncode != 0 and f"FAILED {out}/gas_gns_s0" in res.stdout, res.stdout
+    assert (out / "gas_s0" / "regenerate.done").exists()  # the BGN job: done
+    assert not (out / "gas_gns_s0.equal_time.json").exists()
+    assert not (tmp_path / "results.md").exists()  # no tables from a failed set
 
 
 def test_summary_states_each_baselines_budget(tmp_path, monkeypatch):

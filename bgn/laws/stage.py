@@ -73,12 +73,15 @@ def law_stage(cfg: Any, best: Path, datamodule: Any, output_dir: Path,
               world_size: int, deadline: Deadline | None = None) -> dict[str, Any]:
     """``model.law=auto``'s stage (``bgn.training.run.train``'s ``law_stage``): the best
     checkpoint's network law read back as a formula, the formula fine-tuned as the law and
-    kept where it validates better on rollouts (``formula_stage``, in ``<run>/laws/``); run
+    kept where it validates better on rollouts (``formula_stage``, in ``<run>/laws/``; the
+    network law where the job's wall-clock cap stopped the comparison); run
     before the test, on the training and validation splits only. Returns its record
     (``choice``: network or formula; ``path``: formula.ckpt). Bounded by its evaluation
     count (``LawOptions.finetune_steps`` per form), so the same run fits the same formula on any
     machine; ``deadline`` (the job's wall-clock cap) stops it earlier, and its record's
     ``budget`` says so (docs/design.md#budgets)."""
+    from bgn.training.run import law_verdict  # what the closing summary says of it too
+
     if world_size > 1:  # one process would tune while the others wait at the test's barrier
         log.info("model.law=auto: the formula stage runs in a single process; run python -m "
                  f"bgn.laws {best} finetune=true after this DDP run")
@@ -86,8 +89,7 @@ def law_stage(cfg: Any, best: Path, datamodule: Any, output_dir: Path,
     log.info("model.law=auto: reading the learned law back as a formula and fine-tuning it")
     record = formula_stage(best, datamodule.datasets["train"], datamodule.datasets["val"],
                            cfg, output_dir / "laws", deadline=deadline)
-    log.info(f"model.law=auto: the {record['choice']} law validates better "
-             f"(report: {record['report']})")
+    log.info(f"model.law=auto: {law_verdict(record)} (report: {record['report']})")
     return record
 
 

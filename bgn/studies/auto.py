@@ -2,8 +2,10 @@
 
 Model only what a scene needs (docs/design.md#the-scene-record), found from the data where
 nobody wrote the answer down (docs/design.md#choosing-a-structure). Every structure BGN has that the
-data admit is trained for a share of the budget (``auto.share`` of each of ``trainer.max_time``,
-``max_steps`` and ``max_epochs``, split evenly), each in ``<run>/auto/<candidate>/``:
+data admit is trained for an even part of ``auto.share`` of the job's optimiser steps
+(``trainer.max_steps``; ``split_budget``), with no time limit of its own (``trainer.max_time``
+is one deadline over the whole job, ``candidate_deadline``), each in
+``<run>/auto/<candidate>/``:
 
 - the paper's decoder (Eq. 5): always; it writes no physics in, so it can express any;
 - the pair-force head (``bgn.model.newton``) with each way masses can enter (``mass_law``
@@ -188,15 +190,18 @@ def candidate_deadline(deadline: Deadline, remaining: int,
 
 # ----------------------------------------------------------------------------- scores
 # what result.json keeps of a Result besides its overrides and errors
-STATE_KEYS = ("failed_share", "curve", "steps", "wall_s", "error", "law", "masses",
-              "law_match", "untrained", "model")
+STATE_KEYS = ("failed_share", "curve", "steps", "wall_s", "train_s", "train_steps", "error",
+              "law", "masses", "law_match", "untrained", "model")
 
 
 @dataclass
 class Result:
     """A candidate's validation evidence: the capped error after each horizon, the share of
-    failed rollouts, the mean capped error per step (``curve``), its steps and its own wall
-    time (training and scoring); ``error``: why it could not be trained or scored;
+    failed rollouts, the mean capped error per step (``curve``), its steps, its own wall
+    time (``wall_s``: training and scoring, this attempt's) and its training time alone
+    (``train_s``: its ``train()`` runs over the run's attempts, ``train_steps`` the optimiser
+    steps they trained: its steps per second, which the engines' baselines are given;
+    the formula candidate's: its fine-tuning); ``error``: why it could not be trained or scored;
     ``model``: its model's ``describe()`` (the trained one's, or, where training failed,
     the one its config builds; None where none could be built)."""
 
@@ -206,6 +211,8 @@ class Result:
     curve: list[float] = field(default_factory=list)
     steps: int = 0
     wall_s: float = float("nan")
+    train_s: float = float("nan")
+    train_steps: int = 0
     error: str = ""
     law: dict[str, Any] | None = None
     masses: dict[str, Any] | None = None
@@ -497,6 +504,7 @@ def write_report(auto_dir: Path, results: Sequence[Result], winner: Result, marg
                      "admitted": c.admitted, "reason": c.reason, "eligible": c.eligible,
                      **{f"val_err@{h}": r.errors.get(h, float("nan")) for h in horizons},
                      "failed_share": r.failed_share, "steps": r.steps, "wall_s": r.wall_s,
+                     "train_s": r.train_s, "train_steps": r.train_steps,
                      "mass_relative_r2": (r.masses or {}).get("relative_r2", float("nan")),
                      "chosen": c.name == winner.candidate.name, "error": r.error,
                      "status": r.status(), "kept": r.kept})
@@ -520,13 +528,16 @@ def write_report(auto_dir: Path, results: Sequence[Result], winner: Result, marg
              f"{protocol['budget_each']['max_steps']} optimiser steps (at least "
              f"{protocol['min_steps']} to count as trained: fewer, it is neither scored nor "
              f"compared); the winner then resumed to {protocol['budget_winner']['max_steps']}.",
-             "`wall s`: the candidate's own time, its training and scoring; "
+             "`wall s`: the candidate's own time in this attempt, its training and scoring; "
+             "`train s`: its training alone, over the run's attempts (the formula "
+             "candidate's: its fine-tuning); "
              f"`{TRAINED_WITH}` (beyond the frames), `{GIVEN}` (beyond the position window) "
              f"and `{PHYSICS}`: its model's, as Table 1 says them.",
              "", f"| candidate | model | {TRAINED_WITH} | {GIVEN} | {PHYSICS} | admitted | "
              "may win | trained | " + " | ".join(f"val err @{k}" for k in horizons)
-             + " | failed | steps | wall s | rel. mass R^2 |",
-             "|---|---|---|---|---|---|---|---|" + "---|" * len(horizons) + "---|---|---|---|"]
+             + " | failed | steps | train s | wall s | rel. mass R^2 |",
+             "|---|---|---|---|---|---|---|---|" + "---|" * len(horizons)
+             + "---|---|---|---|---|"]
     for row in rows:
         name = f"**{row['candidate']}**" if row["chosen"] else row["candidate"]
         admitted = "yes" if row["admitted"] else f"no: {row['reason']}"
@@ -537,7 +548,8 @@ def write_report(auto_dir: Path, results: Sequence[Result], winner: Result, marg
         lines.append(f"| {name} | {about} | {admitted} | {may_win} | {status} | "
                      + " | ".join(_fmt(row[f"val_err@{k}"]) for k in horizons)
                      + f" | {_fmt(row['failed_share'])} | {row['steps'] or '-'} | "
-                     f"{_fmt(row['wall_s'])} | {_fmt(row['mass_relative_r2'])} |")
+                     f"{_fmt(row['train_s'])} | {_fmt(row['wall_s'])} | "
+                     f"{_fmt(row['mass_relative_r2'])} |")
     if protocol.get("fallback"):
         lines += ["", f"Not chosen by evidence: **{winner.candidate.name}** "
                   f"({winner.label}) is the run's model because "
@@ -642,11 +654,15 @@ def compose_candidate(base: Sequence[str], cand: Candidate, out_dir: Path,
 
 def train_candidate(cand: Candidate, cfg: DictConfig, deadline: Deadline | None = None,
                     run_dir: Path | None = None, overrides: Sequence[str] | None = None,
-                    min_steps: int = 0) -> Result:
+                    min_steps: int = 0, earlier: Result | None = None) -> Result:
     """Train one candidate (``bgn.training.run.train``) in its own directory until its
     steps or ``deadline``; a signal's resume command names ``run_dir`` with ``overrides``
     (the auto run's, not the candidate's folder). Fewer than ``min_steps`` steps: the result
-    says it is not trained."""
+    says it is not trained. ``train_s`` is the fit's own time (its ``wall_time_s``) and
+    ``train_steps`` the steps it added to its checkpoint (``cfg.ckpt_path``: the one it
+    continues); ``earlier``: the result an earlier attempt recorded of that checkpoint,
+    whose training time and steps are added (an attempt a signal stopped recorded none: its
+    steps are then left out with its time)."""
     from bgn.laws.stage import law_stage
     from bgn.training.checkpoints import read
     from bgn.training.run import train
@@ -655,12 +671,18 @@ def train_candidate(cand: Candidate, cfg: DictConfig, deadline: Deadline | None 
     out_dir.mkdir(parents=True, exist_ok=True)
     write_atomic(out_dir / "train_config.yaml", OmegaConf.to_yaml(cfg, resolve=False))
     result = Result(cand)
+    begun = cfg.get("ckpt_path")
+    before = int(read(begun).get("global_step", 0)) if begun and Path(begun).exists() else 0
     start = time.perf_counter()
     metrics = train(cfg, law_stage=law_stage, deadline=deadline, run_dir=run_dir,
                     overrides=None if overrides is None else list(overrides), closing=False)
-    result.wall_s = float(metrics.get("wall_time_s", time.perf_counter() - start))
+    result.train_s = float(metrics.get("wall_time_s", time.perf_counter() - start))
     last = out_dir / "checkpoints" / "last.ckpt"
     result.steps = int(read(last).get("global_step", 0)) if last.exists() else 0
+    result.train_steps = max(0, result.steps - before)
+    if earlier is not None and math.isfinite(earlier.train_s):
+        result.train_s += earlier.train_s
+        result.train_steps += int(earlier.train_steps)
     record = out_dir / "metrics.json"
     if record.exists():
         result.law_match = json.loads(record.read_text()).get("law_match")
@@ -749,10 +771,9 @@ def formula_candidate(results: Sequence[Result], auto_dir: Path, val: Any, train
     from bgn.laws.options import DEFAULTS
     from bgn.training.checkpoints import best_checkpoint
 
-    scored = [r for r in results if r.candidate.pair_force and r.compared]
-    if not scored:
+    best = best_pair_force(results, n_steps)
+    if best is None:
         return None
-    best = min(scored, key=lambda r: r.score(n_steps))
     steps = DEFAULTS.finetune_steps
     if "max_steps" in each:
         steps = min(steps, max(1, int(each["max_steps"]) // 2))
@@ -770,11 +791,18 @@ def formula_candidate(results: Sequence[Result], auto_dir: Path, val: Any, train
                      pair_force=True)
     (out_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
     own_checkpoint(out_dir / "formula.ckpt", out_dir / "checkpoints" / "last.ckpt")
-    result = Result(cand, steps=best.steps)
+    result = Result(cand, steps=best.steps, train_s=time.perf_counter() - start)
     score_candidate(result, out_dir, val, train_split, sims, starts, n_steps, horizons,
                     deadline)
     result.wall_s = time.perf_counter() - start
     return result
+
+
+def best_pair_force(results: Sequence[Result], n_steps: int) -> Result | None:
+    """The trained and scored pair-force candidate with the lowest error after ``n_steps``
+    (the first of a tie), whose law the formula candidate is; None where there is none."""
+    scored = [r for r in results if r.candidate.pair_force and r.compared]
+    return min(scored, key=lambda r: r.score(n_steps)) if scored else None
 
 
 def one_line(err: BaseException) -> str:
@@ -782,14 +810,37 @@ def one_line(err: BaseException) -> str:
     return " ".join(f"{type(err).__name__}: {err}".split())[:300]
 
 
-def kept_formula(auto_dir: Path) -> Result | None:
+def kept_formula(auto_dir: Path, results: Sequence[Result], n_steps: int) -> Result | None:
     """The formula candidate an earlier attempt of this run fitted and scored
-    (``formula_<candidate>/result.json``), or None."""
+    (``formula_<candidate>/result.json``) from the law of the candidate that is still the
+    best pair-force one of ``results`` (``best_pair_force``), or None: one fitted from
+    another candidate's law (a candidate retrained on this resume may now be the best) is
+    not kept, and the log says it is replaced."""
+    from bgn.training.run import info
+
+    best = best_pair_force(results, n_steps)
+    source = None if best is None else f"formula_{best.candidate.name}"
+    others = []
     for path in sorted(auto_dir.glob("formula_*/result.json")):
         kept = stored_result(Candidate(path.parent.name, [], pair_force=True), path.parent)
-        if kept is not None and not kept.untrained and not kept.error:
+        if kept is None or kept.untrained or kept.error:
+            continue
+        if path.parent.name == source:
             return kept
+        others.append(path.parent.name)
+    if others:
+        info(f"auto: {', '.join(others)} (the run's earlier attempt) not kept: the best "
+             "pair-force candidate is now "
+             + (f"{best.candidate.name}, whose law is fitted in its place" if best is not None
+                else "none (none was trained and scored), so no formula is fitted"))
     return None
+
+
+def not_compared(results: Sequence[Result]) -> str:
+    """The candidates the wall-clock cap kept out of the choice, each with what became of
+    it ("decoder not trained (40 steps of auto.min_steps=100 ...)", "gns not scored (...)"),
+    for the log's warning; "" where there are none."""
+    return "; ".join(f"{r.candidate.name} {r.untrained}" for r in results if r.untrained)
 
 
 def stored_result(cand: Candidate, out_dir: Path) -> Result | None:
@@ -823,7 +874,8 @@ def run_auto(cfg: DictConfig, overrides: Sequence[str] | None = None,
     keeps every candidate already trained and scored (``result.json``) and continues one
     stopped half-way from its ``last.ckpt``. Returns the winner's final metrics; the run
     directory gets ``metrics.json`` (the winner's, with the choice; its ``wall_time_s`` the
-    whole job's, each candidate's own in ``auto.wall_s``) and ``auto/``, and the job ends
+    whole job's, each candidate's own in ``auto.wall_s``, its training alone in
+    ``auto.train_s``) and ``auto/``, and the job ends
     with the closing summary (``bgn.training.run.summary``)."""
     from lightning.pytorch.utilities.exceptions import SIGTERMException
 
@@ -916,11 +968,13 @@ def _run_auto(cfg: DictConfig, base: list[str], run_dir: Path, deadline: Deadlin
                     # what it is before it trains: kept where it fails before a checkpoint
                     result.model = described(cfg_c, datamodule)
                     last = out_dir / "checkpoints" / "last.ckpt"
-                    if resume and last.exists():  # stopped half-way: continue it
+                    continued = resume and last.exists()
+                    if continued:  # stopped half-way: continue it
                         cfg_c.ckpt_path = str(last)
                     model = result.model
                     result = train_candidate(cand, cfg_c, candidate_deadline(deadline, remaining),
-                                             run_dir, base, min_steps)
+                                             run_dir, base, min_steps,
+                                             earlier=kept if continued else None)
                     result.model = model
                     if not result.untrained:
                         phase[0] = f"scoring candidate {cand.name}"
@@ -937,12 +991,13 @@ def _run_auto(cfg: DictConfig, base: list[str], run_dir: Path, deadline: Deadlin
                 result.error = one_line(err)
                 log.error("auto: candidate %s failed: %s", cand.name, result.error)
                 log.debug("candidate %s", cand.name, exc_info=True)
-            result.wall_s = time.perf_counter() - start  # its own: training and scoring
+            # its own in this attempt: training and scoring (train_s: training alone)
+            result.wall_s = time.perf_counter() - start
             write_atomic(out_dir / "result.json", json.dumps(result.state(), default=float))
             info(f"auto: {cand.name} {result.status()}" + "".join(
                 f", val error @{h} {v:.4g}" for h, v in result.errors.items()))
         results.append(result)
-    formula = kept_formula(auto_dir) if resume else None
+    formula = kept_formula(auto_dir, results, n_steps) if resume else None
     phase[0] = "the formula candidate"
     if formula is not None:
         info(f"auto: {formula.candidate.name} kept from the run's earlier attempt "
@@ -994,11 +1049,10 @@ def _run_auto(cfg: DictConfig, base: list[str], run_dir: Path, deadline: Deadlin
                 "velocity": asdict(velocity) if velocity is not None else None,
                 "cut": cut, "fallback": why_fallback}
     report = write_report(auto_dir, results, winner, margin, protocol)
-    short = [r.candidate.name for r in results if r.untrained]
+    short = not_compared(results)
     if short:
-        log.warning("trainer.max_time cut model.dynamics=auto short: %s not trained %d "
-                    "steps (auto.min_steps), so not compared; see %s", ", ".join(short),
-                    min_steps, report)
+        log.warning("trainer.max_time cut model.dynamics=auto short, so these were not "
+                    "compared: %s; see %s", short, report)
     info(f"auto: chose {winner.candidate.name} "
          + (f"(runner-up / winner at {n_steps} steps: {margin:.3g})" if not why_fallback
             else "(not by evidence: see the report)") + f"; report: {report}")
@@ -1044,6 +1098,10 @@ def _run_auto(cfg: DictConfig, base: list[str], run_dir: Path, deadline: Deadlin
                       "val_errors": {r.candidate.name: r.errors for r in results},
                       "wall_s": {r.candidate.name: r.wall_s for r in results
                                  if r.candidate.admitted},
+                      "train_s": {r.candidate.name: r.train_s for r in results
+                                  if r.candidate.admitted},
+                      # the parts of the job that ran after the choice (the closing summary)
+                      "continued": not stopped,
                       # candidates kept from an earlier attempt: their time is not this one's
                       "kept": [r.candidate.name for r in results if r.kept],
                       "winner_wall_time_s": winner_s}

@@ -49,8 +49,8 @@ if TYPE_CHECKING:  # Lightning and the data and model modules load when they are
 register_configs()  # the schemas (bgn.training.config), before Hydra composes conf/train.yaml
 
 # model.law=auto's stage (bgn.laws.stage.law_stage): (cfg, best checkpoint, datamodule, run
-# directory, world size, deadline=the job's Deadline) -> its record, "choice" the law that
-# validates better
+# directory, world size, deadline=the job's Deadline) -> its record, "choice" the law kept
+# (the one that validates better; the network law where the cap stopped the comparison)
 LawStage = Callable[..., dict[str, Any]]
 
 log = logging.getLogger("bgn.train")  # not __main__ under python -m bgn.train
@@ -409,6 +409,37 @@ def _g(value: Any) -> str:
     return "-" if value is None else f"{float(value):.3g}"
 
 
+def law_verdict(law: dict[str, Any]) -> str:
+    """What model.law=auto's formula stage decided (its record, ``finetune_formula``'s), as
+    its log line and the closing summary say it: the law that validates better, or, where
+    the job's wall-clock cap stopped the validation rollouts (``validation`` empty), the
+    network law kept with nothing compared."""
+    cut = "the validation rollouts" in ((law.get("budget") or {}).get("cut") or [])
+    if cut or not law.get("validation"):
+        return "the network law kept: the formula was not compared (trainer.max_time)"
+    return f"the {law.get('choice')} law validates better and is the run's model"
+
+
+def auto_job(auto: dict[str, Any], metrics: dict[str, Any]) -> str:
+    """The parts of a ``model.dynamics=auto`` job that ran, as the closing summary names
+    them: the candidates that trained (kept from an earlier attempt or not), the formula
+    candidate where it was fitted and scored, the winner's continuation where it ran and its
+    test where it was tested."""
+    status = auto.get("status") or {}
+    ran = [n for n, s in status.items() if not n.startswith("formula_")
+           and (s == "trained" or s.startswith("not scored"))]
+    parts = [f"{len(ran)} candidate{'s' * (len(ran) != 1)}" if ran
+             else "no candidate trained"]
+    if any(s == "trained" for n, s in status.items() if n.startswith("formula_")):
+        parts.append("the formula candidate")
+    if auto.get("continued"):
+        tested = any(k.startswith("test/") for k in metrics)
+        parts.append("the winner's continuation" + (" and its test" if tested else ""))
+    kept = f"; {', '.join(auto['kept'])} kept from an earlier attempt" if auto.get("kept") \
+        else ""
+    return ", ".join(parts) + kept
+
+
 def summary(record: dict[str, Any], output_dir: Path) -> str:
     """The closing lines of ``python -m bgn.train``: what was trained (and chosen), its
     steps and time, whether the cap cut it, the test rollouts beside the no-learning
@@ -421,11 +452,7 @@ def summary(record: dict[str, Any], output_dir: Path) -> str:
     cut = f", CUT SHORT by trainer.max_time ({', '.join(budget['cut'])})" \
         if budget.get("cut_by") else ""
     auto = record.get("auto")  # model.dynamics=auto: wall_time_s is the whole job's
-    n = len((auto or {}).get("wall_s") or {})
-    job = "the whole job" if not auto else (
-        f"the whole job: {n} candidate{'s' * (n != 1)}, the winner's continuation and its "
-        "test" + (f"; {', '.join(auto['kept'])} kept from an earlier attempt"
-                  if auto.get("kept") else ""))
+    job = "the whole job" if not auto else f"the whole job: {auto_job(auto, m)}"
     lines = [f"trained {label}: {steps} in {_clock(m.get('wall_time_s', 0.0))} ({job}){cut}"]
     if auto:
         why = "not by evidence: no candidate could be compared" if auto.get("fallback") \
@@ -434,8 +461,7 @@ def summary(record: dict[str, Any], output_dir: Path) -> str:
                      f"{auto['report']})")
     law = record.get("law")
     if law:
-        lines.append(f"law: the {law.get('choice')} law validates better and is the run's "
-                     f"model (report: {law.get('report')})")
+        lines.append(f"law: {law_verdict(law)} (report: {law.get('report')})")
     horizons = [h for h in (10, 50, 100) if f"test/rollout_error@{h}" in m]
     if horizons:
         h = horizons[-1]

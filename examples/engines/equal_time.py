@@ -8,8 +8,10 @@ whole job's wall time (every candidate, force matching, the formula stage, the t
 ``<bgn run>/job_time.json``, measured around the command itself; its exit status is the
 command's. ``steps`` prints the steps a baseline trains in that time: the baseline's steps per
 second as ``auto`` measured them in the same run (its candidate of that name in
-``<bgn run>/auto/auto.json``: steps over its training run's wall time, start-up and validation
-included, under the same load as the job) times the job's wall time. It writes one line of its
+``<bgn run>/auto/auto.json``: ``train_steps`` over ``train_s``, the steps its training runs
+trained over their wall time, start-up and validation included, under the same load as the
+job; not ``wall_s``, which also counts auto's scoring of it) times the job's wall time. It
+writes one line of its
 reasoning to stderr (``regenerate.sh`` sends it to the baseline's log) and, with ``--json``,
 the record ``summary.py`` states each baseline's budget from. A missing or unusable record is
 refused in one line on stderr, exit status 1.
@@ -95,17 +97,22 @@ def equal_steps(run: Path, model: str) -> dict[str, Any]:
     if not found:
         raise _fail(f"{auto}: no candidate {model}: run the BGN job with {model} among "
                     "auto.references")
-    steps, wall = found[0].get("steps"), found[0].get("wall_s")
-    if not steps or wall is None or not math.isfinite(float(wall)) or float(wall) <= 0:
-        raise _fail(f"{auto}: candidate {model} records {steps} steps in {wall} s, no rate "
-                    f"(status: {found[0].get('status', '?')}): its steps per second cannot "
-                    "be measured; rerun the BGN job")
-    rate = int(steps) / float(wall)
+    # its training alone: wall_s also counts auto's validation rollouts of it
+    steps, train = found[0].get("train_steps"), found[0].get("train_s")
+    if "train_s" not in found[0]:
+        raise _fail(f"{auto}: candidate {model} records no training time (train_s: the run "
+                    "predates it, and its wall_s counts its scoring too): rerun the BGN job")
+    if not steps or train is None or not math.isfinite(float(train)) or float(train) <= 0:
+        raise _fail(f"{auto}: candidate {model} records {steps} steps in {train} s of "
+                    f"training, no rate (status: {found[0].get('status', '?')}): its steps "
+                    "per second cannot be measured; rerun the BGN job")
+    rate = int(steps) / float(train)
     budget = max(1, round(rate * job_s))
-    reason = (f"{model}: {budget} steps = its {int(steps)} steps in {float(wall):.1f} s as "
-              f"auto's candidate ({rate:.3g} steps/s) x the BGN job's {job_s:.1f} s ({run})")
+    reason = (f"{model}: {budget} steps = its {int(steps)} steps in {float(train):.1f} s of "
+              f"training as auto's candidate ({rate:.3g} steps/s) x the BGN job's "
+              f"{job_s:.1f} s ({run})")
     return {"model": model, "steps": budget, "bgn_run": str(run), "bgn_job_s": job_s,
-            "candidate_steps": int(steps), "candidate_wall_s": float(wall),
+            "candidate_steps": int(steps), "candidate_train_s": float(train),
             "steps_per_s": rate, "reason": reason}
 
 

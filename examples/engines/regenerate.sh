@@ -11,11 +11,12 @@
 # model of BASELINES alone (seed 0) for BGN's wall time: the steps it fits in the seed-0 BGN
 # job's whole wall time at the steps/s its auto candidate had in that job (equal_time.py
 # steps; its reasoning in the baseline's log and <run>/equal_time.json), so the budget
-# repeats on any machine. Then summary.py writes the tables into RESULTS_MD's block
-# `engines`. JOBS runs at a time, each with OMP_NUM_THREADS torch threads. A finished run (its
-# regenerate.done) is kept (delete the folder to redo it; a baseline's budget is its BGN
-# run's: redo both); a failed run is named and the script exits non-zero after the others,
-# without writing the tables. Logs: OUT/<run>.log.
+# repeats on any machine; SEEDS must include 0 (refused up front otherwise). Then summary.py
+# writes the tables into RESULTS_MD's block `engines`. JOBS runs at a time, each with
+# OMP_NUM_THREADS torch threads. A finished run (its regenerate.done) is kept (delete the
+# folder to redo it; a baseline's budget is its BGN run's: redo both); a failed run is named
+# and the script exits non-zero after the others, without writing the tables. Logs:
+# OUT/<run>.log.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 NAMES=${NAMES:-"rebound_nbody ase_morse_gas pymunk_granular"}
@@ -26,6 +27,11 @@ OUT=${OUT:-outputs/engines}
 RESULTS_MD=${RESULTS_MD:-docs/results.md}
 DATA=${DATA:-data/external}
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} OUT DATA
+if [[ " $SEEDS " != *" 0 "* ]]; then  # before anything runs: every baseline would fail
+  echo "regenerate.sh: SEEDS=\"$SEEDS\" lacks seed 0, whose BGN job gives each baseline" \
+    "($BASELINES) its budget: add 0 to SEEDS" >&2
+  exit 2
+fi
 mkdir -p "$OUT"
 
 one() {  # <name> <seed> <model>: train, evaluate, the engine's energy
@@ -40,7 +46,8 @@ one() {  # <name> <seed> <model>: train, evaluate, the engine's energy
     else  # the steps of the seed-0 BGN job's wall time
       steps=$(python examples/engines/equal_time.py steps "$OUT/${name}_s0" "$model" \
         --json "$run.equal_time.json") || exit 1
-      "${train[@]}" trainer.max_steps="$steps" || exit 1
+      # a failed training leaves no budget record behind (it moves into the run when done)
+      "${train[@]}" trainer.max_steps="$steps" || { rm -f "$run.equal_time.json"; exit 1; }
       mv "$run.equal_time.json" "$run/equal_time.json" || exit 1
     fi
     python -m bgn.evaluate "$run" progress=false || exit 1

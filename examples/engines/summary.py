@@ -97,9 +97,11 @@ def test_row(name: str, seed: int, model: str, metrics: dict[str, Any],
              budget: float | None, directory: Path | None = None,
              job: float | None = None) -> dict[str, Any]:
     """One model's test rollouts (mean over all rollouts, a failed one at the cap), with what
-    the model in ``directory`` was trained with and given (``_variant``), its steps and wall
-    time (``budget``), and ``job``: the whole BGN job's wall time (the winner's row: its own
-    job's; a baseline's: the seed-0 job whose time it was given, ``equal_time.py``)."""
+    the model in ``directory`` was trained with and given (``_variant``), its steps and
+    training time (``budget``: a run's ``wall_time_s``; an auto candidate's ``train_s``, its
+    training alone, not auto's scoring of it), and ``job``: the whole BGN job's wall time (the
+    winner's row: its own job's; a baseline's: the seed-0 job whose time it was given,
+    ``equal_time.py``)."""
     about = _variant(directory) if directory is not None else {}
     row: dict[str, Any] = {"data": name, "model": model, **about, "seed": seed,
                            "steps": _steps(directory) if directory is not None else None,
@@ -156,7 +158,7 @@ def rows_of(run: Path) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
         metrics = _metrics(run / "auto" / c["candidate"])
         if metrics and c["candidate"] != choice:
             rows.append(test_row(name, seed, f"{c['candidate']} (candidate)", metrics,
-                                 c.get("wall_s"), run / "auto" / c["candidate"]))
+                                 c.get("train_s"), run / "auto" / c["candidate"]))
     balance = record["protocol"].get("balance") or {}
     choice_row["momentum imbalance"] = balance.get("linear")
     rows += energy_rows(run, name, seed, f"chosen ({choice.split('_')[0]})")

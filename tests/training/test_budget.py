@@ -192,6 +192,17 @@ def test_the_summary_says_when_the_cap_cut_the_run_and_nothing_was_tested(tmp_pa
     text = summary(record, tmp_path)
     assert "120 steps of 900 in 1 min 15 s" in text and "CUT SHORT" in text
     assert "not tested" in text and f"python -m bgn.evaluate {tmp_path}" in text
+    # model.law=auto: where the cap stopped the formula stage's validation rollouts, nothing
+    # was compared, and the summary does not say that the network law validates better
+    record["law"] = {"choice": "network", "validation": {}, "report": "r.md",
+                     "budget": {"cut_by": "max_time", "cut": ["the validation rollouts"]}}
+    text = summary(record, tmp_path)
+    assert "law: the network law kept: the formula was not compared (trainer.max_time) " \
+        "(report: r.md)" in text and "validates better" not in text
+    record["law"].update(choice="formula", validation={"network": {}, "formula": {}},
+                         budget={"cut_by": None, "cut": []})
+    assert "law: the formula law validates better and is the run's model (report: r.md)" \
+        in summary(record, tmp_path)
 
 
 # ----------------------------------------------------------------------------- formula stage
@@ -209,6 +220,26 @@ def test_the_formula_stage_is_bounded_by_work_and_capped_by_the_job_deadline(mon
     laws.law_stage(None, tmp_path / "best.ckpt", datamodule, tmp_path, world_size=1,
                    deadline=deadline)
     assert seen == {"deadline": deadline}
+
+
+@pytest.mark.parametrize("validation, said", [
+    ({}, "the network law kept: the formula was not compared (trainer.max_time)"),
+    ({"network": {"mean": 2.0}, "formula": {"mean": 1.0}},
+     "the formula law validates better and is the run's model")])
+def test_the_formula_stage_says_what_it_compared(monkeypatch, tmp_path, caplog, validation,
+                                                 said):
+    """Its log line: the law that validates better, or, where the job's cap stopped the
+    validation rollouts (nothing compared), the network law kept without a comparison."""
+    import bgn.laws.stage as laws
+
+    choice = "formula" if validation else "network"
+    monkeypatch.setattr(laws, "formula_stage", lambda *a, **options: {
+        "choice": choice, "validation": validation, "report": "report.md"})
+    datamodule = type("DM", (), {"datasets": {"train": None, "val": None}})()
+    with caplog.at_level("INFO", logger="bgn.train"):
+        laws.law_stage(None, tmp_path / "best.ckpt", datamodule, tmp_path, world_size=1)
+    assert f"model.law=auto: {said} (report: report.md)" in caplog.text
+    assert ("validates better" in caplog.text) == bool(validation)
 
 
 def test_a_tuning_past_the_deadline_stops_between_evaluations(monkeypatch):

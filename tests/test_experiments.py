@@ -1,15 +1,17 @@
 """The experiments command: the tiny preset end to end (every report file, one row per cell)
-and resumability."""
+and resumability; a cell the wall-clock cap cut is continued on a resume, never kept, and
+named in the report and its provenance (fake cell folders: no training)."""
 
 from __future__ import annotations
 
 import csv
 import json
 from pathlib import Path
+from typing import Any
 
 import pytest
 
-from bgn.studies.cells import plan_cells
+from bgn.studies.cells import Cell, plan_cells, train_cell
 from bgn.studies.grid import run
 from bgn.studies.report import INVERSE_REFERENCES
 from tests.conftest import compose_config
@@ -24,6 +26,125 @@ def tiny_cfg(tmp_path: Path):
 def csv_rows(path: Path) -> list[dict[str, str]]:
     with open(path, newline="") as fh:
         return list(csv.DictReader(fh))
+
+
+def finished_record(max_steps: int, steps: int | None = None,
+                    wall: float = 100.0) -> dict[str, Any]:
+    """A cell's metrics.json as ``bgn.training.run.train`` writes it, nothing cut."""
+    return {"metrics": {"wall_time_s": wall, "test/nmse": 0.5},
+            "budget": {"max_steps": max_steps, "steps": max_steps if steps is None else steps,
+                       "cut_by": None, "cut": [], "max_time_s": 300.0}}
+
+
+def cut_record(max_steps: int, steps: int, wall: float = 300.0,
+               cut: tuple[str, ...] = ("training",)) -> dict[str, Any]:
+    """A cell's metrics.json where the wall-clock cap cut ``cut``."""
+    return {"metrics": {"wall_time_s": wall, "test/nmse": 0.9},
+            "budget": {"max_steps": max_steps, "steps": steps, "cut_by": "max_time",
+                       "cut": list(cut), "max_time_s": 300.0}}
+
+
+def fake_cell(cells_dir: Path, cell: Cell, record: dict[str, Any]) -> Path:
+    """A cell folder with a last.ckpt and ``record`` as its metrics.json."""
+    run_dir = cells_dir / cell.name
+    (run_dir / "checkpoints").mkdir(parents=True, exist_ok=True)
+    (run_dir / "checkpoints" / "last.ckpt").write_bytes(b"")
+    (run_dir / "metrics.json").write_text(json.dumps(record))
+    return run_dir
+
+
+def test_a_cell_the_cap_cut_continues_from_its_last_checkpoint(tmp_path: Path, monkeypatch,
+                                                                capsys) -> None:
+    """A cut cell's metrics.json is not kept: the cell continues from its last.ckpt toward
+    its step budget, each attempt the cap cut recorded and its time counted in the cell's
+    wall time; a record that trained its budget (or stopped early on its own) is kept."""
+    import bgn.training.run as run_module
+
+    cfg = tiny_cfg(tmp_path)
+    cell = Cell("spring", 50.0, "gns")
+    run_dir = fake_cell(tmp_path / "cells", cell, cut_record(2, 1, wall=300.0))
+    outcomes = [cut_record(2, 1, wall=200.0, cut=("test",)), finished_record(2, wall=50.0)]
+    resumed = []
+
+    def train(train_cfg, law_stage=None) -> None:  # writes metrics.json, as the real one
+        resumed.append(train_cfg.ckpt_path)
+        (run_dir / "metrics.json").write_text(json.dumps(outcomes.pop(0)))
+
+    monkeypatch.setattr(run_module, "train", train)
+    record, trained = train_cell(cell, cfg)  # cut again, in its test this time
+    assert trained and resumed == [str(run_dir / "checkpoints" / "last.ckpt")]
+    assert "cut by trainer.max_time: training; trained 1 of 2 steps; continuing from its " \
+        "last checkpoint" in capsys.readouterr().out
+    record, trained = train_cell(cell, cfg)  # then finished
+    assert trained and len(resumed) == 2
+    assert record["budget"]["attempts"] == [
+        {"steps": 1, "wall_time_s": 300.0, "cut": ["training"]},
+        {"steps": 1, "wall_time_s": 200.0, "cut": ["test"]}]
+    assert record["metrics"]["wall_time_s"] == 550.0  # every attempt's together
+    assert json.loads((run_dir / "metrics.json").read_text()) == record
+    assert train_cell(cell, cfg) == (record, False) and len(resumed) == 2  # kept now
+
+    early = fake_cell(tmp_path / "cells", Cell("spring", 10.0, "gns"),
+                      finished_record(2, steps=1))
+    assert train_cell(Cell("spring", 10.0, "gns"), cfg)[1] is False  # early stopping
+    assert json.loads((early / "metrics.json").read_text())["budget"]["steps"] == 1
+
+
+def test_the_cut_cells_are_named_in_the_report_and_its_provenance(tmp_path: Path,
+                                                                 monkeypatch) -> None:
+    """A study whose cells the cap cut (faked: no training) names each in report.md, in
+    provenance.json and in the results_md block, with what was cut and the steps trained."""
+    import bgn.studies.grid as grid
+    from tests.test_experiments_seeds import record as eval_record
+
+    cfg = tiny_cfg(tmp_path)
+    for key in ("scenes", "fps", "models"):
+        cfg.preset[key] = {"scenes": ["spring"], "fps": [50], "models": ["bgn", "gns"]}[key]
+    cfg.preset.ablations = cfg.preset.sample_efficiency = None
+    cfg.results_md = str(tmp_path / "results.md")
+    bgn_cell, gns_cell = plan_cells(cfg.preset)
+
+    def train_cell(cell: Cell, cfg) -> tuple[dict[str, Any], bool]:
+        rec = cut_record(2, 1, cut=("training", "formula stage")) if cell.model == "bgn" \
+            else finished_record(2)
+        fake_cell(tmp_path / "cells", cell, rec)
+        return rec, True
+
+    def evaluate_cell(cell: Cell, cfg) -> dict[str, Any]:
+        return eval_record(Cell("spring", 50.0, "bgn", seed=0, seeded=True))["eval"]
+
+    monkeypatch.setattr(grid, "train_cell", train_cell)
+    monkeypatch.setattr(grid, "evaluate_cell", evaluate_cell)
+    report = run(cfg)
+    named = (f"{bgn_cell.name} (cut by trainer.max_time: training, formula stage; trained 1 "
+             "of 2 steps)")
+    provenance = json.loads((tmp_path / "report" / "provenance.json").read_text())
+    assert provenance["cut_cells"] == [named]
+    text = report.read_text()
+    assert "**1 cell(s) cut by the wall-clock cap**" in text and named in text
+    assert gns_cell.name not in text.split("## Cells")[0]  # the other is not named as cut
+    assert "cells cut by the wall-clock cap (trainer.max_time" in (
+        tmp_path / "results.md").read_text()
+    assert named in (tmp_path / "results.md").read_text()
+
+
+def test_parallel_workers_continue_a_cut_cell_and_skip_a_finished_one(
+        tmp_path: Path, monkeypatch) -> None:
+    """workers > 1: a cell whose record the cap cut gets a process (which continues it) even
+    where its evaluation is cached; a finished, evaluated cell does not."""
+    import bgn.studies.grid as grid
+
+    cfg = tiny_cfg(tmp_path)
+    cut, done = Cell("spring", 50.0, "bgn"), Cell("spring", 50.0, "gns")
+    fake_cell(tmp_path / "cells", cut, cut_record(2, 1))
+    fake_cell(tmp_path / "cells", done, finished_record(2))
+    started = []
+    monkeypatch.setattr(grid, "prepare_datasets", lambda cells, cfg: None)
+    monkeypatch.setattr(grid, "cached_eval", lambda cell, cfg: {"metrics": {}})
+    monkeypatch.setattr(grid, "cell_process",
+                        lambda cell, cfg, threads: (started.append(cell.name), (True, None))[1])
+    assert grid.train_all([cut, done], cfg, workers=2, threads=1) == []
+    assert started == [cut.name]
 
 
 @pytest.mark.slow  # the tiny study end to end: every cell trained, evaluated, reported
@@ -122,7 +243,6 @@ def test_a_damaged_study_file_is_named_and_its_cell_redone(tmp_path: Path, share
                                                            caplog) -> None:
     """A half-written eval.json (or metrics.json) is named in a warning and the cell is
     evaluated (trained) again, instead of a JSONDecodeError that blocks the study."""
-    from bgn.studies.cells import Cell, train_cell
     from bgn.studies.grid import evaluate_cell
 
     cfg = tiny_cfg(tmp_path)

@@ -213,8 +213,8 @@ def test_a_failed_cell_is_named_and_the_others_reported(tmp_path: Path, monkeypa
 
 
 def test_tiny_preset_two_seeds_two_workers(tmp_path: Path) -> None:
-    """Four tiny cells (2 models x 2 seeds) trained and evaluated in two worker processes
-    (about 30 s on 2 cores), then one aggregated report with its provenance."""
+    """Four tiny cells (2 models x 2 seeds) trained and evaluated in two worker processes,
+    then one aggregated report with its provenance."""
     cfg = compose_config("experiments", [
         "preset=tiny", "preset.scenes=[spring]", "preset.fps=[50]",
         "preset.models=[bgn,gns]", "preset.seeds=[0,1]", "preset.ablations=null",

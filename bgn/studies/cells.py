@@ -104,15 +104,27 @@ def default_steps(scene: str) -> int | None:
     return int(OmegaConf.load(path).max_steps) if path.exists() else None
 
 
+STEPS_SHAPE = (f"must be a mapping scene -> model -> optimiser steps or {DEFAULT_STEPS}, "
+               "e.g. preset.max_steps.spring.bgn=1500 (one budget per scene and model: "
+               "their steps differ)")
+
+
 def preset_steps(preset: DictConfig, scene: str, model: str) -> tuple[int, bool]:
     """(``trainer.max_steps`` of the preset's cells of ``scene`` and ``model``, whether the
     preset names it). ``preset.max_steps`` maps scene -> model -> a number of optimiser steps
     or ``default`` (the scene's default budget, ``default_steps``, kept in one place); a pair
     it leaves out also trains the scene's default, named by ``unnamed_budgets`` (a budget in
     steps repeats on any machine, where ``max_time`` trains as many as the load allows; it
-    stays a cap only)."""
+    stays a cap only). A table or scene entry that is not a mapping is one ``ConfigError``
+    naming it."""
     key = f"preset.max_steps.{scene}.{model}"
-    steps = ((preset.get("max_steps") or {}).get(scene) or {}).get(model)
+    table = preset.get("max_steps")
+    if table is not None and not isinstance(table, (DictConfig, dict)):
+        raise ConfigError("preset.max_steps", table, STEPS_SHAPE)
+    row = (table or {}).get(scene)
+    if row is not None and not isinstance(row, (DictConfig, dict)):
+        raise ConfigError(f"preset.max_steps.{scene}", row, STEPS_SHAPE)
+    steps = (row or {}).get(model)
     if steps is None or steps == DEFAULT_STEPS:
         default = default_steps(scene)
         if default is None:
@@ -126,13 +138,33 @@ def preset_steps(preset: DictConfig, scene: str, model: str) -> tuple[int, bool]
     return steps, True
 
 
+def sets_steps(override: str) -> bool:
+    """Whether a train override sets (or deletes) ``trainer.max_steps``."""
+    return override.lstrip("+~").split("=", 1)[0] == "trainer.max_steps"
+
+
 def step_budget(cell: Cell, preset: DictConfig) -> list[str]:
     """The cell's ``trainer.max_steps`` override (``preset_steps``): every cell gets one, so
     its ``cell.json`` records the steps it was given; none where the cell's own overrides set
     it (a Pareto cell's time schedule, a variant)."""
-    if any(o.lstrip("+").startswith("trainer.max_steps=") for o in cell.extra):
+    if any(sets_steps(o) for o in cell.extra):
         return []
     return [f"++trainer.max_steps={preset_steps(preset, cell.scene, cell.model)[0]}"]
+
+
+def preset_overrides(preset: DictConfig, key: str) -> list[str]:
+    """The train overrides at ``preset.<key>`` (``overrides``, ``model_overrides.<model>``,
+    ...; absent or null: none). One that sets ``trainer.max_steps`` is refused: it would
+    silently beat the cell's budget from ``preset.max_steps``, which cell.json, the
+    report and the note of unnamed budgets all state."""
+    overrides = [str(o) for o in (OmegaConf.select(preset, key, default=None) or [])]
+    for override in overrides:
+        if sets_steps(override):
+            raise ConfigError(f"preset.{key}", override, (
+                "a step budget belongs in preset.max_steps (scene -> model -> steps, e.g. "
+                "preset.max_steps.spring.bgn=1500), so each cell's record and the report "
+                "state the steps it was given"))
+    return overrides
 
 
 def unnamed_budgets(preset: DictConfig) -> list[str]:
@@ -154,14 +186,15 @@ def cell_overrides(cell: Cell, cfg: DictConfig) -> list[str]:
            # null: the default job's cap (conf/trainer/default.yaml)
            *([f"trainer.max_time={preset.max_time}"] if preset.get("max_time") else []),
            *step_budget(cell, preset),
-           *preset.get("overrides", []),
-           *(preset.get("model_overrides", {}) or {}).get(cell.model, []),
-           *(preset.get("scene_overrides", {}) or {}).get(cell.scene, [])]
+           *preset_overrides(preset, "overrides"),
+           *preset_overrides(preset, f"model_overrides.{cell.model}"),
+           *preset_overrides(preset, f"scene_overrides.{cell.scene}")]
     if cell.train_sims is not None:
         se = preset.sample_efficiency
         # n_sims is per split and must hold the largest train_sims; val/test use them all
         out += [f"dataset.n_sims={max(int(n) for n in se.train_sims)}",
-                f"++dataset.train_sims={cell.train_sims}", *se.get("overrides", [])]
+                f"++dataset.train_sims={cell.train_sims}",
+                *preset_overrides(preset, "sample_efficiency.overrides")]
     if cell.seeded or cell.seed != 0:  # seed 0 is train.yaml's: one-seed cells as before
         out.append(f"seed={cell.seed}")
     out += [*cell.extra,
@@ -184,27 +217,77 @@ def compose_train(overrides: list[str]) -> DictConfig:
         return compose(config_name="train", overrides=overrides)
 
 
+def cut_by_cap(record: dict[str, Any]) -> bool:
+    """Whether the wall-clock cap (``trainer.max_time``) cut a cell's run: its metrics.json
+    ``budget.cut_by`` (the fit, the formula stage or the test ended before its work)."""
+    return bool((record.get("budget") or {}).get("cut_by"))
+
+
+def shortfall(record: dict[str, Any]) -> str | None:
+    """How a cell's training record (metrics.json) falls short of its step budget: what the
+    cap cut and the steps trained, or the steps where it stopped before its budget on its own
+    (early stopping on validation, ``max_epochs``: the same on any machine); None where it
+    trained its budget whole (or has none, a Pareto cell's time schedule) and nothing was
+    cut."""
+    budget = record.get("budget") or {}
+    steps, top = budget.get("steps"), budget.get("max_steps")
+    trained = f"{steps} of {top} steps" if top else f"{steps} steps"
+    if cut_by_cap(record):
+        return f"cut by trainer.max_time: {', '.join(budget.get('cut') or ['its run'])}; " \
+            f"trained {trained}"
+    if top and steps is not None and steps < top:
+        return f"stopped early (early stopping or trainer.max_epochs) at {trained}"
+    return None
+
+
+def with_earlier_attempts(record: dict[str, Any], earlier: dict[str, Any]) -> dict[str, Any]:
+    """A continued cell's metrics.json record with the attempts the cap cut before it
+    (``earlier``: their last record): ``budget.attempts`` lists each one's steps, wall time and
+    what was cut, and ``metrics.wall_time_s`` is every attempt's together, so the report's
+    ``train s`` is the cell's whole training."""
+    before = (earlier.get("budget") or {}).get("attempts") or []
+    own = earlier["metrics"].get("wall_time_s", 0.0) - sum(a["wall_time_s"] for a in before)
+    attempts = [*before, {"steps": earlier["budget"].get("steps"), "wall_time_s": own,
+                          "cut": earlier["budget"].get("cut") or []}]
+    record["budget"]["attempts"] = attempts
+    record["metrics"]["wall_time_s"] += sum(a["wall_time_s"] for a in attempts)
+    return record
+
+
 def train_cell(cell: Cell, cfg: DictConfig) -> tuple[dict[str, Any], bool]:
-    """Train a cell unless its metrics.json exists; returns (the metrics record, trained?)."""
+    """Train a cell unless its metrics.json exists; returns (the metrics record, trained?).
+    A record the wall-clock cap cut (``cut_by_cap``) is not kept: the cell continues from its
+    last.ckpt toward its step budget (the fit ends at once where it had trained them, and the
+    formula stage and the test run again), so a resumed study holds the cells the same
+    command trains on an idle machine; the cap of this attempt is the preset's as it is now
+    (raise ``preset.max_time`` where it cuts again)."""
     from bgn.laws.stage import law_stage
     from bgn.training.run import train
 
     run_dir = Path(cfg.cells_dir) / cell.name
     metrics_path = run_dir / "metrics.json"
     record = read_record(metrics_path)  # None: missing, or damaged (named in a warning)
-    if record is not None:
+    if record is not None and not cut_by_cap(record):
         return record, False
     overrides = cell_overrides(cell, cfg)
     train_cfg = compose_train(overrides)
     last = run_dir / "checkpoints" / "last.ckpt"
-    if last.exists():  # an interrupted cell continues from its last checkpoint
+    if last.exists():  # an interrupted (or cut) cell continues from its last checkpoint
         train_cfg.ckpt_path = str(last)
+    if record is not None:
+        print(f"  {cell.name}: {shortfall(record)}; "
+              + ("continuing from its last checkpoint" if last.exists()
+                 else "no last.ckpt: trained again"), flush=True)
     run_dir.mkdir(parents=True, exist_ok=True)
     write_atomic(run_dir / "cell.json", json.dumps(
         {**asdict(cell), "name": cell.name, "overrides": overrides}, indent=2))
     write_atomic(run_dir / "train_config.yaml", OmegaConf.to_yaml(train_cfg, resolve=False))
     train(train_cfg, law_stage=law_stage)
-    return json.loads(metrics_path.read_text()), True
+    result = json.loads(metrics_path.read_text())
+    if record is not None:
+        result = with_earlier_attempts(result, record)
+        write_atomic(metrics_path, json.dumps(result, indent=2, sort_keys=True))
+    return result, True
 
 
 def cell_datamodule(run_dir: Path, data_dir: str) -> Any:

@@ -12,8 +12,10 @@ and spread per row) under ``report_dir``, and with ``results_md=<file>`` the pre
 block of that file. A preset with ``stability`` or ``pareto`` then writes those tables from the
 same cells (``bgn.studies.headline``: ``report_dir``/stability, /pareto; their own blocks).
 Resumable: a cell whose ``metrics.json`` exists is not retrained (an interrupted cell
-continues from its ``last.ckpt``), a cell whose ``eval.json`` is newer than its checkpoint is not
-re-evaluated; the report is always rewritten from what is on disk. Those files are written
+continues from its ``last.ckpt``, and so does one the wall-clock cap cut, ``budget.cut_by``,
+toward its step budget: ``bgn.studies.cells.train_cell``), a cell whose ``eval.json`` is newer
+than its checkpoint is not re-evaluated; the report is always rewritten from what is on disk
+and names every cell the cap cut. Those files are written
 atomically (a temporary file, then a rename); a damaged one (an older bgn killed while writing
 it, a hand edit) is named in a warning and its cell trained or evaluated again.
 """
@@ -42,6 +44,7 @@ from bgn.studies.cells import (
     cell_datamodule,
     cell_overrides,
     compose_train,
+    cut_by_cap,
     plan_cells,
     preset_seeds,
     set_threads,
@@ -49,7 +52,7 @@ from bgn.studies.cells import (
     unnamed_budgets,
 )
 from bgn.studies.headline import STAGES, run_stages
-from bgn.studies.report import CALIBRATION_SPLIT, write_report
+from bgn.studies.report import CALIBRATION_SPLIT, cut_cells, write_report
 from bgn.training.checkpoints import chosen_checkpoint, read_record, write_atomic
 
 
@@ -284,7 +287,9 @@ def train_all(cells: list[Cell], cfg: DictConfig, workers: int,
     prepare_datasets(cells, cfg)
 
     def one(i: int, cell: Cell) -> None:
-        done = (Path(cfg.cells_dir) / cell.name / "metrics.json").exists()
+        # a record the cap cut is not done: its process continues it (train_cell)
+        record = read_record(Path(cfg.cells_dir) / cell.name / "metrics.json")
+        done = record is not None and not cut_by_cap(record)
         # a cell trained and evaluated before needs no process (a resumed study)
         ok, log = (True, None) if done and cached_eval(cell, cfg) is not None \
             else cell_process(cell, cfg, threads)
@@ -317,10 +322,12 @@ def code_state() -> dict[str, Any]:
 
 
 def study_provenance(cfg: DictConfig, workers: int, threads: int | None, wall_s: float,
-                     failed: list[str], code: dict[str, Any]) -> dict[str, Any]:
+                     failed: list[str], code: dict[str, Any],
+                     cut: list[str] | None = None) -> dict[str, Any]:
     """What regenerates the report: the command, the preset and a hash of its composed
     config, the code's commit (and whether the tree had changes: ``code_state``), the
-    machine, threads, workers, seeds and wall time."""
+    machine, threads, workers, seeds and wall time, the failed cells and those the wall-clock
+    cap cut (``cut``: ``bgn.studies.report.cut_cells``)."""
     import hashlib
     import platform
 
@@ -344,7 +351,7 @@ def study_provenance(cfg: DictConfig, workers: int, threads: int | None, wall_s:
             "seeds": preset_seeds(cfg.preset), "eval_split": eval_split(cfg.preset),
             "calibration_split": CALIBRATION_SPLIT[eval_split(cfg.preset)],
             "wall_time_s": round(wall_s, 1),
-            "failed_cells": failed, "preset_config": preset}
+            "failed_cells": failed, "cut_cells": cut or [], "preset_config": preset}
 
 
 # ----------------------------------------------------------------------------- command
@@ -378,7 +385,7 @@ def run(cfg: DictConfig) -> Path:
             print(f"  FAILED (evaluation): {cell.name}", flush=True)
             failed.append(cell.name)
     provenance = study_provenance(cfg, workers, threads, time.perf_counter() - start, failed,
-                                  code)
+                                  code, cut_cells(cells, results))
     report = write_report(cfg.report_dir, cfg.preset.name, cfg.cells_dir, cells, results,
                           provenance, cfg.get("results_md"), split=eval_split(cfg.preset))
     print(f"report: {report} ({time.perf_counter() - start:.0f} s)")

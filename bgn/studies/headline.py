@@ -16,7 +16,8 @@ and ``laws`` keys; ``bgn.studies.grid.run`` calls ``run_stages`` after its own r
   references; the Pareto front per scene and its figure. No training, no rollout of its own.
   Training compute is the preset's step budget for every cell (``max_steps`` per scene and
   model, else the scene's default), so the front is against inference time only (the
-  training-time front is ``bgn.studies.pareto``'s study).
+  training-time front is ``bgn.studies.pareto``'s study); the table's notes state the
+  budgets from the cells' records and name any cell that did not train its budget whole.
 - **laws** (``preset.laws``): the pair law of every cell with a pair-force head read back and
   fitted as a formula, against the truth (``bgn.studies.laws_study``).
 
@@ -39,7 +40,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from bgn.coerce import ConfigError, need_int
 from bgn.eval.columns import VARIANT_COLUMNS
-from bgn.studies.cells import map_in_processes, plan_cells, preset_steps
+from bgn.studies.cells import map_in_processes
 from bgn.studies.laws_study import laws_stage, validate_laws
 from bgn.studies.report import stage_provenance, write_stage
 from bgn.tables import fmt, write_table
@@ -339,18 +340,42 @@ def mark_fronts(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return means
 
 
-def training_budget(preset: DictConfig) -> str:
-    """The sentence on what every cell trained: its step budget per scene and model
-    (``preset.max_steps``, else the scene's default: ``bgn.studies.cells.preset_steps``)."""
-    pairs = dict.fromkeys((c.scene, c.model) for c in plan_cells(preset))
-    scenes = dict.fromkeys(scene for scene, _ in pairs)
-    budgets = "; ".join(f"{scene}: " + ", ".join(
-        f"{m} {preset_steps(preset, s, m)[0]}" for s, m in pairs if s == scene)
-        for scene in scenes)
-    return ("Every cell trained its step budget (trainer.max_steps per scene and model, the "
-            f"same for every seed: {budgets}; cell_minutes: the cell's whole run, where the "
-            "preset sets the budgets to equal wall time), so training compute is not an "
-            "axis here.")
+def training_budget(cells: list[Cell], results: dict[str, Any]) -> str:
+    """The sentence on what the cells trained, from their records (metrics.json's
+    ``budget``): the step budget per scene and model, and every cell that fell short of it
+    named (``bgn.studies.cells.shortfall``: cut by the wall-clock cap, or stopped early on
+    its own); "every cell trained its step budget" only where that holds."""
+    from bgn.studies.cells import cut_by_cap, shortfall
+    from bgn.studies.report import cut_cells
+
+    trained = [c for c in cells if c.name in results]
+    steps: dict[str, dict[str, list[str]]] = {}
+    for c in trained:
+        top = (results[c.name]["train"].get("budget") or {}).get("max_steps")
+        label = "not recorded" if top is None else str(top)
+        shown = steps.setdefault(c.scene, {}).setdefault(c.model, [])
+        if label not in shown:  # one value where every seed was given the same
+            shown.append(label)
+    budgets = "; ".join(f"{scene}: " + ", ".join(f"{m} {'/'.join(v)}" for m, v in models.items())
+                        for scene, models in steps.items())
+    given = (f"trainer.max_steps per scene and model, as each cell's metrics.json records it: "
+             f"{budgets}; cell_minutes: the cell's whole run, where the preset sets the "
+             "budgets to equal wall time")
+    cut = cut_cells(trained, results)
+    early = [f"{c.name} ({why})" for c in trained
+             if not cut_by_cap(record := results[c.name]["train"]) and (why := shortfall(record))]
+    if not cut and not early:
+        return (f"Every cell trained its step budget ({given}), so training compute is not "
+                "an axis here.")
+    text = f"Each cell was given its step budget ({given}), but not every cell trained it:"
+    if cut:
+        text += (" the wall-clock cap (trainer.max_time) cut " + "; ".join(cut) + ", so "
+                 "those rows depend on the machine's load (a rerun of the command continues "
+                 "them)" + (";" if early else "."))
+    if early:
+        text += (" stopped before it by early stopping or trainer.max_epochs (the same on "
+                 "any machine): " + "; ".join(early) + ".")
+    return text
 
 
 def pareto_stage(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
@@ -387,7 +412,8 @@ def pareto_stage(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
         f"{provenance.get('threads_per_worker')} torch thread(s) per cell, "
         f"{provenance.get('workers')} cell(s) at once). on front: the model's mean over the "
         "seeds is on the scene's Pareto front of error against inference time (no model is "
-        f"both faster and more accurate). {training_budget(cfg.preset)} "
+        "both faster and more accurate). "
+        f"{training_budget([c for c in cells if 'main' in c.groups], results)} "
         "The extrapolations learn nothing (one seed's cell); "
         "parameters: the trained model's.")
     sim_text = write_table(

@@ -30,6 +30,7 @@ from bgn.eval.columns import (
     supervision_text,
 )
 from bgn.provenance import write_block
+from bgn.studies.cells import cut_by_cap, shortfall
 from bgn.tables import fmt, write_csv, write_table
 
 if TYPE_CHECKING:
@@ -258,8 +259,19 @@ PAPER_SOURCE = {"bgn": "BGN", "cranmer_gn": "Cranmer et al.", "gns": "Sanchez-Go
 BUDGET_COLUMNS = ["train steps", "train s"]
 BUDGET_NOTE = ("train steps: the optimiser steps the cell trained (its last checkpoint); "
                "train s: the wall time of its whole training run (the fit, BGN's formula "
-               "stage where it has one, the test), on the machine and load of the provenance "
-               "above: the two show what \"trained for the same wall time\" held.")
+               "stage where it has one, the test; a cell the wall-clock cap cut and a rerun "
+               "continued: every attempt's together), on the machine and load of the "
+               "provenance above: the two show what \"trained for the same wall time\" "
+               "held. A cell the cap cut is named in the provenance (cells cut by the "
+               "wall-clock cap).")
+
+
+def cut_cells(cells: list[Cell], results: Results) -> list[str]:
+    """Every cell whose training record says the wall-clock cap (``trainer.max_time``) cut
+    it, with what was cut and the steps it trained (``bgn.studies.cells.shortfall``): its
+    rows depend on the machine's load, so the report and provenance.json name it."""
+    return [f"{c.name} ({shortfall(results[c.name]['train'])})" for c in cells
+            if c.name in results and cut_by_cap(results[c.name]["train"])]
 
 
 def budget_columns(results: Results, cell: Cell) -> dict[str, Any]:
@@ -521,7 +533,9 @@ PROVENANCE_FIELDS = {
     "calibration_split": "mass flow recalibrated on",
     "wall_time_s": "wall time of this command (s)",
     "stage_wall_time_s": "then this table's stage, from the trained cells (s)",
-    "failed_cells": "failed cells (not in the tables)"}
+    "failed_cells": "failed cells (not in the tables)",
+    "cut_cells": "cells cut by the wall-clock cap (trainer.max_time; in the tables, their rows "
+                 "depend on the load; a rerun continues them)"}
 
 
 def provenance_lines(provenance: dict[str, Any]) -> list[str]:
@@ -547,6 +561,17 @@ def regenerate_line(provenance: dict[str, Any] | None) -> list[str]:
             f"{provenance.get('config_hash')}, seeds {fmt(provenance.get('seeds'))}).", ""]
 
 
+def cut_paragraph(cut: list[str]) -> list[str]:
+    """report.md's lines naming the cells the wall-clock cap cut (none: no lines)."""
+    if not cut:
+        return []
+    return [f"**{len(cut)} cell(s) cut by the wall-clock cap** (`trainer.max_time`, their "
+            "metrics.json `budget.cut_by`) before their step budget, formula stage or test "
+            "ended: " + "; ".join(cut) + ". Their rows are not what the same command trains "
+            "on an idler machine; running the command again continues each from its "
+            "last.ckpt (raise `preset.max_time` where the cap cuts it again).", ""]
+
+
 def report_md(report_dir: Path, preset: str, cells_dir: str | Path, cells: list[Cell],
               results: Results, tables: dict[str, str],
               provenance: dict[str, Any] | None = None, split: str = "test") -> Path:
@@ -566,6 +591,7 @@ def report_md(report_dir: Path, preset: str, cells_dir: str | Path, cells: list[
              f"(total training wall time {total / 60:.1f} min). Every number comes from "
              f"the checkpoints of these cells, evaluated on the {name} split, except the "
              "paper's published values (labelled).", "",
+             *cut_paragraph(cut_cells(cells, results)),
              "- [Table 1: one-step MSE and NMSE per scene, fps and model](table1.md) "
              "([csv](table1.csv))",
              "- [Rollouts: trajectory error, energy, failures, beside the no-learning "

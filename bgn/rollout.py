@@ -136,8 +136,10 @@ def rollout_many(model: Predictor, dataset: FrameDataset, sims: list[int], start
     parts = particles(dataset, sims)
     size = len(sims) if chunk is None else max(1, chunk // max(1, parts.masses.shape[1]))
     groups = [list(range(i, min(i + size, len(sims)))) for i in range(0, len(sims), size)]
-    batches = [[sims[i] for i in group] for group in groups]  # read once, not per start
-    group_parts = [parts if len(b) == len(sims) else particles(dataset, b) for b in batches]
+    batches = [[sims[i] for i in group] for group in groups]
+    # the particles read once for every batch and start: each batch's rows of ``parts``
+    group_parts = [parts if len(g) == len(sims) else parts.select(torch.as_tensor(g))
+                   for g in groups]
     predicted, true, bad, seconds = [], [], [], []
     for start in starts:
         for batch, part in zip(batches, group_parts):

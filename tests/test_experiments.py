@@ -36,7 +36,7 @@ def finished_record(max_steps: int, steps: int | None = None,
                        "cut_by": None, "cut": [], "max_time_s": 300.0}}
 
 
-def cut_record(max_steps: int, steps: int, wall: float = 300.0,
+def cut_record(max_steps: int | None, steps: int, wall: float = 300.0,
                cut: tuple[str, ...] = ("training",)) -> dict[str, Any]:
     """A cell's metrics.json where the wall-clock cap cut ``cut``."""
     return {"metrics": {"wall_time_s": wall, "test/nmse": 0.9},
@@ -88,6 +88,10 @@ def test_a_cell_the_cap_cut_continues_from_its_last_checkpoint(tmp_path: Path, m
                       finished_record(2, steps=1))
     assert train_cell(Cell("spring", 10.0, "gns"), cfg)[1] is False  # early stopping
     assert json.loads((early / "metrics.json").read_text())["budget"]["steps"] == 1
+    # a cell without a step budget (a Pareto cell: its time schedule ends it) is kept as it is
+    scheduled = Cell("collisions", 50.0, "gns")
+    fake_cell(tmp_path / "cells", scheduled, cut_record(None, 7))
+    assert train_cell(scheduled, cfg)[1] is False and len(resumed) == 2
 
 
 def test_the_cut_cells_are_named_in_the_report_and_its_provenance(tmp_path: Path,

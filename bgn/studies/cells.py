@@ -218,9 +218,12 @@ def compose_train(overrides: list[str]) -> DictConfig:
 
 
 def cut_by_cap(record: dict[str, Any]) -> bool:
-    """Whether the wall-clock cap (``trainer.max_time``) cut a cell's run: its metrics.json
-    ``budget.cut_by`` (the fit, the formula stage or the test ended before its work)."""
-    return bool((record.get("budget") or {}).get("cut_by"))
+    """Whether the wall-clock cap (``trainer.max_time``) cut a cell's run short of its step
+    budget: its metrics.json ``budget.cut_by`` (the fit, the formula stage or the test ended
+    before its work). A cell without a step budget (a Pareto cell: ``max_steps=-1``, its time
+    schedule is its budget) is never cut: its clock ending the run is the plan."""
+    budget = record.get("budget") or {}
+    return bool(budget.get("cut_by")) and budget.get("max_steps") is not None
 
 
 def shortfall(record: dict[str, Any]) -> str | None:

@@ -627,7 +627,7 @@ TINY_AUTO = ["dataset=spring", *SMALL["spring"], "model.dynamics=auto", "model.h
 def tiny_auto(tmp_path_factory, shared_data_dir):
     """A whole model.dynamics=auto run in this process on SMALL spring data (the decoder and
     three pair-force candidates of 5 steps each, the formula candidate, the winner to 25
-    steps; about 30 s on one core): its run directory."""
+    steps): its run directory."""
     from bgn.studies.auto import run_auto
 
     run = tmp_path_factory.mktemp("tiny_auto") / "run"

@@ -87,6 +87,13 @@ def test_every_entry_complete(laws):
             assert law["radius"] < 0.5 * law["system"]["box"], law["name"]
 
 
+def test_a_law_not_made_says_why(laws):
+    """A law the engine could not make stays in the manifest, marked with its reason."""
+    for law in laws:
+        if "not_made" in law:
+            assert isinstance(law["not_made"], str) and len(law["not_made"]) > 20, law["name"]
+
+
 def test_constants_complete(laws, make):
     """Every name in the force (and its definitions) and every `{name}` of the engine's
     commands is a constant or a definition of the law; no constant goes unused; the truth

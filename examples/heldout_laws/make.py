@@ -501,6 +501,11 @@ def main() -> None:
         return
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    for law in laws:
+        if law.get("not_made") and not args.only:
+            console.print(f"[yellow]skipped[/] {law['name']}: not made ({law['not_made']}); "
+                          "name it in --only to try again")
+    laws = [law for law in laws if args.only or not law.get("not_made")]
     rows = []
     with Progress(TextColumn("{task.description:16s}"), BarColumn(), MofNCompleteColumn(),
                   TimeElapsedColumn(), console=console) as progress:

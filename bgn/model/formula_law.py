@@ -11,21 +11,80 @@ in the input's dtype.
 The spec (``bgn.laws.finetune.formula_spec`` writes it; a plain JSON string so that a checkpoint's
 hyper-parameters stay ``weights_only``-loadable and Hydra-typed) is a list of pairs of particle
 types, each ``{"types": [a, b], "terms": [{"kind", "power", "a", "c"}, ...]}`` (``c`` null for
-a term without one). A pair of types the spec does not name feels no force.
+a term without one), or a general expression ``{"types": [a, b], "expr": "<sympy text in r and
+the constants>", "constants": {"k1": ..., ...}}`` (``bgn.laws.search.expression_spec`` writes
+one from the law search): the expression is evaluated in torch float64 through
+``sympy.lambdify`` (``EXPRESSION_FUNCTIONS``), each constant a parameter relative to its spec
+value (of either sign: a general tree has no positive-only constant). A pair of types the spec
+does not name feels no force.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import re
 import sys
+from collections.abc import Callable
 from typing import Any
 
+import sympy
 import torch
 from torch import nn
 
 KINDS = ("const", "power", "log", "exp", "shifted", "plummer")
 NONLINEAR = ("exp", "shifted", "plummer")
+# the functions an expression pair may use, and their torch twins (powers, sums, products and
+# quotients are Python's operators); pi and E are numbers
+EXPRESSION_FUNCTIONS: dict[str, Callable[..., Any]] = {
+    "exp": torch.exp, "log": torch.log, "sqrt": torch.sqrt, "sin": torch.sin, "cos": torch.cos,
+    "tanh": torch.tanh, "Abs": torch.abs}
+_NUMBERS = {"pi": math.pi, "E": math.e}
+_R = sympy.Symbol("r", positive=True)
+
+
+def parse_expression(expr: Any, constants: Any) -> sympy.Expr:
+    """An expression pair's ``expr`` (text in r and the names of ``constants``) as sympy,
+    refused in one line where it is not one: other characters or names than numbers,
+    ``+ - * / ** ( )``, r, the constants, ``EXPRESSION_FUNCTIONS`` and pi, E (the text is
+    checked before sympy reads it), a constant not a finite number or not in the expression."""
+    if not isinstance(expr, str) or not expr.strip():
+        raise ValueError(f"model.law_formula: an expression pair's 'expr' must be a non-empty "
+                         f"string, got {expr!r}")
+    if not isinstance(constants, dict):
+        raise ValueError(f"model.law_formula: an expression pair's 'constants' must be a "
+                         f"mapping of names to numbers, got {constants!r}")
+    for name, value in constants.items():
+        if (not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", str(name)) or name in ("r", *_NUMBERS)
+                or name in EXPRESSION_FUNCTIONS):
+            raise ValueError(f"model.law_formula: constant name {name!r} must be an identifier "
+                             "other than r, pi, E and the functions")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(
+                value):
+            raise ValueError(f"model.law_formula: constant {name} = {value!r} must be a "
+                             "finite number")
+    if re.search(r"[^\w\s.+\-*/()]|\.\s*[A-Za-z_]|__", expr):
+        raise ValueError(f"model.law_formula: expression {expr!r} may hold only numbers, names, "
+                         "+ - * / ** and parentheses")
+    allowed = {"r", *constants, *EXPRESSION_FUNCTIONS, *_NUMBERS}
+    for name in re.findall(r"(?<![\w.])[A-Za-z_][A-Za-z0-9_]*", expr):
+        if name not in allowed:
+            raise ValueError(f"model.law_formula: expression {expr!r} names {name!r}: use r, "
+                             f"the constants {sorted(constants)}, "
+                             f"{sorted(EXPRESSION_FUNCTIONS)}, pi and E")
+    local = {"r": _R, **{n: sympy.Symbol(n, real=True) for n in constants}}
+    try:
+        parsed = sympy.sympify(expr, locals=local)
+    except (sympy.SympifyError, SyntaxError, TypeError, ValueError, AttributeError) as err:
+        raise ValueError(f"model.law_formula: expression {expr!r} does not parse "
+                         f"({type(err).__name__})") from None
+    if not isinstance(parsed, sympy.Expr):
+        raise ValueError(f"model.law_formula: expression {expr!r} is not a formula")
+    unused = sorted(set(constants) - {str(s) for s in parsed.free_symbols})
+    if unused:
+        raise ValueError(f"model.law_formula: constant {unused[0]!r} is not in the expression "
+                         f"{expr!r}")
+    return parsed
 
 
 def parse_spec(spec: str | list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -39,10 +98,18 @@ def parse_spec(spec: str | list[dict[str, Any]]) -> list[dict[str, Any]]:
         raise ValueError("model.law_formula must be a non-empty JSON list of pairs "
                          "{types, terms} (bgn.laws.finetune.formula_spec)")
     for p in pairs:
+        if isinstance(p, dict) and "expr" in p:
+            types = p.get("types")
+            if (not isinstance(types, list) or len(types) != 2 or "terms" in p
+                    or not all(isinstance(t, int) and t >= 0 for t in types)):
+                raise ValueError(f"model.law_formula: expression pair {p!r} needs 'types' "
+                                 "[a, b] (types >= 0), 'expr' and 'constants', no 'terms'")
+            parse_expression(p["expr"], p.get("constants", {}))
+            continue
         terms = p.get("terms") if isinstance(p, dict) else None
         if not isinstance(terms, list) or not terms or len(p.get("types", ())) != 2:
             raise ValueError(f"model.law_formula: pair {p!r} needs 'types' [a, b] and a "
-                             "non-empty list of 'terms'")
+                             "non-empty list of 'terms' (or 'expr' and 'constants')")
         for t in terms:
             if t.get("kind") not in KINDS:
                 raise ValueError(f"model.law_formula: term kind {t.get('kind')!r}; choose "
@@ -60,7 +127,8 @@ class FormulaLaw(nn.Module):
         super().__init__()
         pairs = parse_spec(spec)
         self.n_types = n_types
-        flat = [(sorted(p["types"]), t) for p in pairs for t in p["terms"]]
+        self.pairs = pairs  # the spec's order: spec() writes the pairs back in it
+        flat = [(sorted(p["types"]), t) for p in pairs if "expr" not in p for t in p["terms"]]
         self.kinds = [t["kind"] for _, t in flat]
         self.powers = [float(t.get("power", 0.0)) for _, t in flat]
         self.pair_ids = [a * n_types + b for (a, b), _ in flat]
@@ -72,10 +140,47 @@ class FormulaLaw(nn.Module):
         self.log_c = nn.Parameter(torch.tensor(
             [math.log(float(t["c"])) if t["kind"] in NONLINEAR else 0.0 for _, t in flat],
             dtype=torch.float64))
+        # expression pairs: one column each, after the terms'; their constants, relative to
+        # the spec's values as the amplitudes are, of either sign
+        exprs = [p for p in pairs if "expr" in p]
+        self.expressions = [p["expr"] for p in exprs]
+        self.expression_names = [list(p.get("constants", {})) for p in exprs]
+        self.pair_ids += [min(p["types"]) * n_types + max(p["types"]) for p in exprs]
+        self._functions = [
+            sympy.lambdify([_R, *(sympy.Symbol(n, real=True) for n in names)],
+                           parse_expression(p["expr"], p.get("constants", {})),
+                           modules=[{**EXPRESSION_FUNCTIONS, **_NUMBERS}])
+            for p, names in zip(exprs, self.expression_names)]
+        if exprs:  # registered only then: a term-kind law's state is what checkpoints hold
+            k = torch.tensor([float(v) for p in exprs for v in p.get("constants", {}).values()],
+                             dtype=torch.float64)
+            self.register_buffer("constant_scale",
+                                 torch.where(k != 0, k.abs(), torch.ones_like(k)))
+            self.constant = nn.Parameter(k / self.constant_scale)
 
     def values(self, r: torch.Tensor) -> torch.Tensor:
-        """(..., K) each term times its amplitude at r (...), in float64."""
+        """(..., K) each term times its amplitude at r (...), then each expression pair's law,
+        in float64."""
         r = r.double()
+        terms = self._term_values(r) if self.kinds else r.new_zeros(*r.shape, 0)
+        if not self.expressions:
+            return terms
+        constants = self.constants()
+        cols, i = [], 0
+        for fn, names in zip(self._functions, self.expression_names):
+            value = fn(r, *constants[i:i + len(names)])
+            cols.append(torch.as_tensor(value, dtype=torch.float64,
+                                        device=r.device).expand_as(r))
+            i += len(names)
+        return torch.cat([terms, torch.stack(cols, -1)], -1)
+
+    def constants(self) -> torch.Tensor:
+        """(C,) the expression pairs' constants in the spec's order, float64."""
+        if not self.expressions:
+            return self.log_c.new_zeros(0)
+        return self.constant.double() * self.constant_scale.double()
+
+    def _term_values(self, r: torch.Tensor) -> torch.Tensor:
         c = self.log_c.double().exp()
         cols = []
         for k, (kind, p) in enumerate(zip(self.kinds, self.powers)):
@@ -111,17 +216,30 @@ class FormulaLaw(nn.Module):
         """The spec with the current values of the constants (``bgn.laws.finetune.formula_spec``'s
         format): what a fine-tuned law is, in a form a config can carry."""
         pairs: dict[int, dict[str, Any]] = {}
+        out: list[dict[str, Any]] = []
         # a constant the fit drove below exp(-745) underflows to 0, which no spec may hold:
         # the least positive double is the same law to every digit
         c = self.log_c.detach().double().exp().clamp_min(sys.float_info.min).tolist()
         a = self.amplitudes().detach().tolist()
-        for k, (kind, p, pid) in enumerate(zip(self.kinds, self.powers, self.pair_ids)):
-            entry = pairs.setdefault(pid, {"types": [pid // self.n_types, pid % self.n_types],
-                                           "terms": []})
-            entry["terms"].append({"kind": kind, "power": p,
-                                   "a": a[k],
-                                   "c": c[k] if kind in NONLINEAR else None})
-        return json.dumps(list(pairs.values()))
+        values = iter(self.constants().detach().tolist())
+        terms = iter(enumerate(zip(self.kinds, self.powers, self.pair_ids)))
+        exprs = iter(zip(self.expressions, self.expression_names,
+                         self.pair_ids[len(self.kinds):]))
+        for pair in self.pairs:  # the spec's order; term pairs of one pair of types merged
+            if "expr" in pair:
+                text, names, pid = next(exprs)
+                out.append({"types": [pid // self.n_types, pid % self.n_types], "expr": text,
+                            "constants": {n: next(values) for n in names}})
+                continue
+            for _ in pair["terms"]:
+                k, (kind, p, pid) = next(terms)
+                if pid not in pairs:
+                    pairs[pid] = {"types": [pid // self.n_types, pid % self.n_types],
+                                  "terms": []}
+                    out.append(pairs[pid])
+                pairs[pid]["terms"].append({"kind": kind, "power": p, "a": a[k],
+                                            "c": c[k] if kind in NONLINEAR else None})
+        return json.dumps(out)
 
 
 def term_text(term: dict[str, Any], digits: int = 4) -> str:
@@ -132,6 +250,17 @@ def term_text(term: dict[str, Any], digits: int = 4) -> str:
     return {"const": a, "power": f"{a}*r**{p}", "log": f"{a}*log(r)",
             "exp": f"{a}*exp(-r/{c})", "shifted": f"{a}*(r + {c})**{p}",
             "plummer": f"{a}*(r**2 + {c}**2)**({p}/2)"}[term["kind"]]
+
+
+def pair_text(pair: dict[str, Any], scale: float = 1.0, digits: int = 4) -> str:
+    """One pair of a spec as plain text, its law times ``scale`` (a head's ``law_scale``):
+    the terms joined by ``+`` (``term_text``), or an expression pair's expression with its
+    constants' values."""
+    if "expr" in pair:
+        expr = parse_expression(pair["expr"], pair.get("constants", {}))
+        values = {sympy.Symbol(n, real=True): v for n, v in pair.get("constants", {}).items()}
+        return sympy.sstr(sympy.N(scale * expr.subs(values), digits))
+    return " + ".join(term_text({**t, "a": t["a"] * scale}) for t in pair["terms"])
 
 
 # auto: the network law is trained, then read back as a formula and fine-tuned after the fit,

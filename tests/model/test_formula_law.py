@@ -146,3 +146,85 @@ def test_a_constant_driven_to_zero_still_writes_a_valid_spec():
     again = FormulaLaw(law.spec())  # refused before: c = 0.0
     r = torch.tensor([0.5, 1.0, 2.0], dtype=torch.float64)
     torch.testing.assert_close(again.values(r), law.values(r))
+
+
+# ----------------------------------------------------------------------------- expression pairs
+
+EXPR = {"types": [0, 0], "expr": "a1*exp(k1*r)/Abs(r + k2)**(3/2) + a2*sin(k3*r) + a3*log(r)",
+        "constants": {"a1": 1.7, "k1": -0.8, "k2": 0.3, "a2": -0.4, "k3": 2.1, "a3": 0.05}}
+
+
+def numpy_law(pair: dict, r: np.ndarray) -> np.ndarray:
+    import sympy
+
+    rs = sympy.Symbol("r", positive=True)
+    expr = sympy.sympify(pair["expr"], locals={"r": rs}).subs(
+        {sympy.Symbol(k): v for k, v in pair["constants"].items()})
+    return np.asarray(sympy.lambdify(rs, expr, "numpy")(r), np.float64) * np.ones_like(r)
+
+
+def test_an_expression_pair_gives_numpys_values_and_writes_its_spec_back():
+    law = FormulaLaw(json.dumps([EXPR]))
+    r = np.geomspace(1e-3, 10, 200)
+    got = law(torch.tensor(r)[:, None])[:, 0].detach().numpy()
+    np.testing.assert_allclose(got, numpy_law(EXPR, r), rtol=1e-12, atol=0)
+    assert law(torch.tensor(r, dtype=torch.float32)[:, None]).dtype == torch.float32
+    assert json.loads(law.spec()) == [EXPR]
+    # changed constants are written back; the spec rebuilds the same law
+    with torch.no_grad():
+        law.constant.mul_(1.1)
+    spec = json.loads(law.spec())[0]
+    assert spec["constants"]["k1"] == pytest.approx(-0.88)
+    again = FormulaLaw(law.spec())(torch.tensor(r)[:, None])
+    torch.testing.assert_close(again, law(torch.tensor(r)[:, None]), rtol=1e-14, atol=0)
+
+
+def test_gradients_reach_an_expressions_constants():
+    law = FormulaLaw(json.dumps([EXPR]))
+    r = torch.logspace(-1, 0.7, 50, dtype=torch.float64)
+    law(r[:, None]).sum().backward()
+    assert law.constant.grad is not None and torch.isfinite(law.constant.grad).all()
+    assert (law.constant.grad != 0).all()
+
+
+def test_expression_and_term_pairs_mix_per_pair_of_types():
+    """Types (0, 0) a term-kind law, (0, 1) an expression: each pair of types feels its own;
+    a term-kind law keeps the state a checkpoint holds (no expression parameters)."""
+    terms = json.loads(SPRING)[0]
+    spec = json.dumps([terms, {**EXPR, "types": [0, 1]}])
+    law = FormulaLaw(spec, n_types=2)
+    r = torch.tensor([[0.5], [1.0], [2.0]], dtype=torch.float64)
+    same = law(r, torch.zeros(3, dtype=torch.long))[:, 0].detach().numpy()
+    other = law(r, torch.ones(3, dtype=torch.long))[:, 0].detach().numpy()
+    np.testing.assert_allclose(same, 1.98 - 2.0 * r[:, 0].numpy(), rtol=1e-14)
+    np.testing.assert_allclose(other, numpy_law(EXPR, r[:, 0].numpy()), rtol=1e-12)
+    assert [p.get("expr") for p in json.loads(law.spec())] == [None, EXPR["expr"]]
+    assert set(FormulaLaw(SPRING).state_dict()) == {"amplitude", "amplitude_scale", "log_c"}
+
+
+def test_pair_text_reads_both_kinds():
+    from bgn.model.formula_law import pair_text
+
+    assert pair_text(json.loads(SPRING)[0]) == "1.98 + -2*r**1"
+    assert pair_text({"types": [0, 0], "expr": "a*r**(-2)", "constants": {"a": -1.5}},
+                     scale=2.0) == "-3.0/r**2"
+
+
+@pytest.mark.parametrize("bad", [
+    {"types": [0, 0], "expr": 3, "constants": {}},
+    {"types": [0, 0], "expr": "a*r +", "constants": {"a": 1.0}},
+    {"types": [0, 0], "expr": "__import__('os').getcwd()", "constants": {}},
+    {"types": [0, 0], "expr": "r.conjugate()", "constants": {}},
+    {"types": [0, 0], "expr": "a*gamma(r)", "constants": {"a": 1.0}},
+    {"types": [0, 0], "expr": "a*r", "constants": {"a": float("nan")}},
+    {"types": [0, 0], "expr": "a*r", "constants": {"a": 1.0, "b": 2.0}},
+    {"types": [0, 0], "expr": "r*r", "constants": {"r": 1.0}},
+    {"types": [0, 0], "expr": "a*r", "constants": [1.0]},
+    {"types": [0], "expr": "a*r", "constants": {"a": 1.0}},
+    {"types": [0, 0], "expr": "a*r", "constants": {"a": 1.0}, "terms": []},
+    {"types": [0, 0], "expr": "Piecewise((a, r < 1), (0, True))", "constants": {"a": 1.0}},
+], ids=lambda b: str(b.get("expr"))[:20])
+def test_a_bad_expression_pair_is_refused_in_one_line(bad):
+    with pytest.raises(ValueError, match="law_formula") as err:
+        check_law("formula", json.dumps([bad]))
+    assert "\n" not in str(err.value)

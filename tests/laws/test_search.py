@@ -1,0 +1,147 @@
+"""The law search (bgn.laws.search): a random member of its grammar sampled with noise is found
+in form, a law outside it is "no formula fits" at a tight tolerance, the clean-up, same_form,
+and the spec of a member."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import sympy
+import torch
+
+from bgn.laws.search import (
+    PRIMITIVES,
+    TERMS,
+    Form,
+    R,
+    SearchOptions,
+    complexity,
+    expression_spec,
+    same_form,
+    search_law,
+)
+from bgn.model.formula_law import FormulaLaw
+
+# a smaller search than the default, so that each test takes seconds: one or two terms
+FAST = SearchOptions(max_terms=2, beam=3, random_starts=3, random_forms=2)
+FASTER = SearchOptions(max_terms=2, beam=2, random_starts=2, random_forms=1, fixed_starts=2)
+
+
+def grammar_member(seed: int, s: float = 1.0) -> sympy.Expr:
+    """A random one-term member of the grammar (a primitive or a product of two), constants
+    drawn so that the law is finite on r in [0.3 s, 3 s]: exponents random non-zero halves,
+    shifts positive, decaying exponentials and Gaussians, a sine of less than a period."""
+    rng = np.random.default_rng(seed)
+    term = TERMS[1 + rng.integers(len(TERMS) - 1)]
+    kinds = {"exponent": lambda: float(rng.choice([-3, -2.5, -2, -1.5, -1, -0.5, 0.5, 1, 1.5])),
+             "shift": lambda: rng.uniform(0.2, 1.0) * s, "shift2": lambda: rng.uniform(0.2, 1.0),
+             "rate": lambda: -rng.uniform(0.5, 2.0) / s, "rate2": lambda: -rng.uniform(0.2, 0.8)}
+    expr: sympy.Expr = sympy.Float(rng.choice([-1, 1]) * math.exp(rng.uniform(-1, 1)))
+    for p in term:
+        prim = PRIMITIVES[p]
+        ks = [kinds[k]() for k in prim.kinds]
+        if prim.name == "sine":
+            ks = [rng.uniform(0.4, 0.9)]  # under half a period over the range
+        ks = [sympy.nsimplify(k) if kind == "exponent" else sympy.Float(k)
+              for k, kind in zip(ks, prim.kinds)]
+        expr = expr * prim.expr(R, ks)
+    return expr
+
+
+def noisy(expr: sympy.Expr, r: np.ndarray, noise: float, seed: int = 0) -> np.ndarray:
+    f = np.asarray(sympy.lambdify(R, expr, "numpy")(r), np.float64) * np.ones_like(r)
+    return f * (1 + noise * np.random.default_rng(seed).standard_normal(len(r)))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_a_random_member_of_the_grammar_is_found_in_form(seed):
+    """0.1 % noise, 240 log-spaced distances, a tolerance of the noise's size (the data's own
+    uncertainty): the chosen law is the member's form (sympy). (At 1 % noise a smooth
+    product of two powers has simpler look-alikes within the noise, which the choice rule
+    then rightly prefers.)"""
+    truth = grammar_member(seed)
+    r = np.geomspace(0.3, 3.0, 240)
+    found = search_law(r, noisy(truth, r, 0.001, seed), tolerance=0.0012, options=FAST)
+    assert found.chosen is not None, (truth, [m.text for m in found.front])
+    assert same_form(found.chosen.expr, truth, r), (truth, found.chosen.text)
+
+
+def test_a_sum_of_two_powers_is_found_with_its_exponents_rounded():
+    """Lennard-Jones' force is no term of the grammar: a sum of two free powers, whose
+    exponents the clean-up rounds to -13 and -7."""
+    truth = sympy.Float(48) / R**13 - sympy.Float(24) / R**7
+    r = np.geomspace(0.9, 2.5, 240)
+    found = search_law(r, noisy(truth, r, 0.01), tolerance=0.012, options=FAST)
+    assert found.chosen is not None and same_form(found.chosen.expr, truth, r), (
+        found.chosen and found.chosen.text)
+    assert any("exponent" in c for c in found.chosen.cleaned)
+
+
+@pytest.mark.parametrize("truth", [
+    # four exponentials a decade of rates apart: more terms than the grammar's sums
+    (sympy.exp(-10 * R) + sympy.exp(-3 * R) + sympy.exp(-R) + sympy.exp(-R / 3)) / R,
+    # a log of 1 - exp(-r^2): no tree of the grammar
+    -sympy.log(1 - sympy.exp(-R**2)),
+], ids=["four exponentials", "log(1 - exp(-r^2))"])
+def test_a_law_outside_the_grammar_fits_no_formula_at_a_tight_tolerance(truth):
+    r = np.geomspace(0.1, 10.0, 240)
+    found = search_law(r, noisy(truth, r, 0.0), tolerance=1e-5, options=FASTER)
+    assert found.outcome == "no formula fits" and found.chosen is None, found.chosen.text
+    assert found.front and all(m.error > 1e-5 for m in found.front)
+    # the front is ordered: more complex, less error
+    assert all(a.complexity < b.complexity and a.error > b.error
+               for a, b in zip(found.front, found.front[1:]))
+
+
+def test_same_form_tells_a_family_from_a_larger_or_another_one():
+    r = np.geomspace(0.5, 3.0, 200)
+    a, c = sympy.symbols("A c", positive=True)
+    truth = -a / (r_plus := R + c) ** 2
+    values = {a: 1.0, c: 0.1}
+    assert same_form(-1.013 / (R + 0.0987) ** 2, truth, r, values)
+    assert not same_form(-1.0 / (R + 0.1) ** sympy.Float(2.05), truth, r, values)  # larger
+    assert not same_form(-1.0 / R**2, truth, r, values)                # smaller family
+    assert not same_form(-1.0 * sympy.exp(-R), truth, r, values)       # another
+    # no constants given: the truth's floats are its family
+    assert same_form(-2.0 / (R + 0.3) ** 2, truth.subs(values), r)
+    assert r_plus.has(R)
+
+
+def test_complexity_counts_nodes():
+    power, shifted = 0, 1
+    assert complexity(Form(None, ((),))) == 1                          # a
+    assert complexity(Form(None, ((power,),))) == 5                    # a * r^k
+    assert complexity(Form(None, ((power,), ()))) == 7                 # a * r^k + b
+    assert complexity(Form(power, ((shifted,), ()))) == 1 + 3 + 7 + 1 + 1
+
+
+def test_a_member_writes_an_expression_spec():
+    r = np.geomspace(0.5, 3.0, 240)
+    truth = 2.0 * R / (R**2 + 0.3) ** sympy.Rational(3, 2)
+    found = search_law(r, noisy(truth, r, 0.0), tolerance=1e-6, options=FASTER)
+    spec = expression_spec(found.chosen, (0, 1))
+    assert spec["types"] == [0, 1] and set(spec["constants"]) == {
+        str(s) for s in sympy.sympify(spec["expr"]).free_symbols} - {"r"}
+    back = sympy.sympify(spec["expr"]).subs({sympy.Symbol(k): v
+                                              for k, v in spec["constants"].items()})
+    got = sympy.lambdify(sympy.Symbol("r"), back, "numpy")(r)
+    np.testing.assert_allclose(got, noisy(truth, r, 0.0), rtol=1e-9)
+    # the model's law of that spec: the same values, in torch
+    law = FormulaLaw(json.dumps([spec]), n_types=2)
+    pair = torch.ones(len(r), dtype=torch.long)
+    np.testing.assert_allclose(law(torch.tensor(r)[:, None], pair)[:, 0].detach().numpy(), got,
+                               rtol=1e-12)
+
+
+@pytest.mark.parametrize("r, y, weight, match", [
+    (np.array([1.0, 2.0]), np.array([1.0, 2.0]), None, "8 finite points"),
+    (np.linspace(0, 1, 20), np.ones(20), None, "r > 0"),
+    (np.linspace(1, 2, 20), np.ones(20), -np.ones(20), "weights"),
+])
+def test_bad_points_are_refused_in_one_line(r, y, weight, match):
+    with pytest.raises(ValueError, match=match) as err:
+        search_law(r, y, weight)
+    assert "\n" not in str(err.value)

@@ -436,7 +436,7 @@ def _screen(pb: Problem, options: SearchOptions) -> list[tuple[float, Form, np.n
     pairs.sort()
     out = [(loss, *form_of(idx)) for loss, idx in pairs[:options.refine_per_size]]
     triples: dict[tuple[int, ...], tuple[float, tuple[int, ...]]] = {}
-    for _, (i, j) in pairs[:options.screen_keep]:
+    for _, (i, j) in pairs[:options.screen_keep if options.max_terms >= 3 else 0]:
         g = np.empty((len(kinds), 3, 3))
         g[:, 0, 0] = g[:, 1, 1] = g[:, 2, 2] = 1
         g[:, 0, 1] = g[:, 1, 0] = gram[i, j]

@@ -26,7 +26,7 @@ from bgn.laws.search import (
 from bgn.model.formula_law import FormulaLaw
 
 # a smaller search than the default, so that each test takes seconds: one or two terms
-FAST = SearchOptions(max_terms=2, beam=3, random_starts=3, random_forms=2)
+FAST = SearchOptions(max_terms=2, beam=3, random_starts=3, random_forms=2, refine_per_size=10)
 FASTER = SearchOptions(max_terms=2, beam=2, random_starts=2, random_forms=1, fixed_starts=2)
 
 

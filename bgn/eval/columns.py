@@ -13,7 +13,8 @@ INVERSE_COLUMNS = ["coverage50", "coverage90", "coverage_max_dev", "sbc_p", "tar
 # the type-only sampler only where the mass law has one component per type
 INVERSE_REFERENCES = {"prior": "prior-only sampler",
                       "type_prior": "type-only sampler (the true type's mass law)",
-                      "physical": "physical estimator (force law, no learning)"}
+                      "physical": "physical estimator (force law, no learning)",
+                      "learned_law": "law estimator (the model's learned pair law)"}
 # the columns that say what a model is, beside its name in every model table: what its
 # training loss reads beyond the frames, what it reads at inference beyond the position window
 # (PhysicsModel.describe) and the physics written into it
@@ -35,13 +36,19 @@ def supervision_text(info: dict[str, Any]) -> str:
 
 def inverse_reference_variant(key: str, contact_scene: bool) -> dict[str, str]:
     """What an inverse reference (``INVERSE_REFERENCES``) reads and has written in: the
-    physical estimator reads the recorded contacts and the types on contact scenes only."""
+    physical estimator reads the recorded contacts and the types on contact scenes only; the
+    law estimator learns nothing of its own: it reads the masses off the frames through the
+    pair law the model learned (trained as the model's row says)."""
     given = {"prior": "-", "type_prior": "types",
-             "physical": "recorded contacts, types" if contact_scene else "-"}[key]
+             "physical": "recorded contacts, types" if contact_scene else "-",
+             "learned_law": "-"}[key]
     physics = {"prior": "the scene's mass law", "type_prior": "each type's mass law",
                "physical": ("momentum exchange at impacts, each type's mass law"
-                            if contact_scene else "the scene's force law and mass law")}[key]
-    return {TRAINED_WITH: NO_LEARNING, GIVEN: given, PHYSICS: physics}
+                            if contact_scene else "the scene's force law and mass law"),
+               "learned_law": ("the model's learned pair law (least squares per window), its "
+                               "free scale placed by the scene's mass law")}[key]
+    trained = "the model's pair law" if key == "learned_law" else NO_LEARNING
+    return {TRAINED_WITH: trained, GIVEN: given, PHYSICS: physics}
 
 ROLLOUT_COLUMNS = ["pos_err_mean@1", "pos_err_mean@10", "pos_err_mean@50", "pos_err_mean@100",
                    "pos_err_median@100", "pos_err_mean@all", "pos_mse_mean@all",

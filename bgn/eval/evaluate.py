@@ -20,7 +20,12 @@ from scipy.stats import norm
 
 from bgn.data.dataset import FrameDataset
 from bgn.data.frames import evenly_spaced
-from bgn.eval.mass_baselines import MassPrior, impact_log_mass, physical_log_mass
+from bgn.eval.mass_baselines import (
+    MassPrior,
+    impact_log_mass,
+    physical_log_mass,
+    place_by_prior,
+)
 from bgn.graph import Graph, collate
 from bgn.metrics import (
     COVERAGE_LEVELS,
@@ -313,6 +318,7 @@ class _MassDraws:
     per_sim: dict[int, list[tuple[np.ndarray, np.ndarray | None]]] = field(default_factory=dict)
     sim_types: dict[int, np.ndarray] = field(default_factory=dict)   # each simulation's (N,)
     model_contacts: dict[int, list[np.ndarray]] = field(default_factory=dict)
+    law_fit: list[np.ndarray] = field(default_factory=list)  # (P, 2) per batch: see add_law_fit
     offset: int = 0     # particles gathered so far: where the next batch's edges start
 
     def add_posterior(self, model: Any, g: Graph, mass_samples: int) -> torch.Tensor:
@@ -331,6 +337,13 @@ class _MassDraws:
         self.edge_rel.append(g.edge_rel_log_mass.double().numpy())
         self.offset += len(g.mass)
         return first_node
+
+    def add_law_fit(self, head: Any, g: Graph) -> None:
+        """The masses the pair-force head's learned law fits to each window of batch ``g``
+        (its own least squares, ``PairForceHead.least_squares``), as log-mass up to the law's
+        free scale and the log of the fit's relative standard error (P, 2)."""
+        fit, error = head.least_squares(g, head.window(g)[1], with_error=True)
+        self.law_fit.append(head.fitted_log_mass(g, fit, error).double().numpy())
 
     def add_windows(self, dataset: FrameDataset, prior: MassPrior, chunk: np.ndarray,
                     g: Graph, first_node: torch.Tensor, rows: torch.Tensor | None) -> None:
@@ -363,11 +376,14 @@ def _gather_draws(model: Any, dataset: FrameDataset, prior: MassPrior, indices: 
     # the contact head's impacts in each window: its per-simulation mass solve
     head = getattr(model, "force_head", None)
     seen_contacts = (head.window_contacts if isinstance(head, ContactImpulseHead) else None)
+    law_head = pair_force_head_of(model)
     draws = _MassDraws()
     for s in range(0, len(indices), batch_size):
         chunk = indices[s:s + batch_size]
         g = collate([dataset[i] for i in chunk])
         first_node = draws.add_posterior(model, g, mass_samples)
+        if law_head is not None:
+            draws.add_law_fit(law_head, g)
         draws.add_windows(dataset, prior, chunk, g, first_node,
                           None if seen_contacts is None else seen_contacts(g))
     return draws
@@ -419,6 +435,19 @@ def _physical_reference(dataset: FrameDataset, prior: MassPrior, draws: _MassDra
         "sim_identified": float(np.mean(np.isfinite(sim_estimate)))}
 
 
+def _learned_law_reference(prior: MassPrior, draws: _MassDraws, a: _MassArrays,
+                           ) -> dict[str, float]:
+    """The estimator through the model's own learned pair law (no truth, no learning of its
+    own): each window's least-squares masses under that law (the head's fit), one common
+    shift for the law's free scale placed by the scene's mass law (``place_by_prior``), and
+    per simulation the windows' estimates pooled with the fit's own errors as variances (a
+    sharp window weighs more)."""
+    fit = np.concatenate(draws.law_fit)
+    estimate = place_by_prior(fit[:, 0], prior)
+    variance = np.exp(2 * fit[:, 1])  # the relative error of m is the std of log m
+    return _point_metrics(estimate, a.true_log, a.particles, a.edges, a.edge_rel, variance)
+
+
 def _type_reference(prior: MassPrior, a: _MassArrays, log_prior: np.ndarray,
                     rng: np.random.Generator) -> tuple[dict[str, float], np.ndarray]:
     """The type-only sampler's metrics (draws from each particle's own type's mass law, its
@@ -446,8 +475,10 @@ def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: 
     aggregates (``sim_mass_rel_err``): the product of the model's per-frame posteriors (as
     Gaussians) over the evaluated frames of a simulation; the estimator's least squares over
     all those windows at once (``physical/sim_identified``: the share of particles it could
-    estimate). Arrays for the figure: true and sampled masses and the coverage curves of the
-    model and the prior."""
+    estimate). ``learned_law/...`` (a model with a pair-force head): the masses its learned law
+    fits to each window, placed by the scene's mass law (``_learned_law_reference``): what the
+    law alone tells, beside what the flow makes of it. Arrays for the figure: true and sampled
+    masses and the coverage curves of the model and the prior."""
     prior = MassPrior.of_scene(dataset.scene, module.hparams.stats.get("log_mass"))
     rng = np.random.default_rng(seed)
     draws = _gather_draws(module.model, dataset, prior,
@@ -459,6 +490,8 @@ def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: 
     references = {"prior": _posterior_metrics(a.true_log, prior_samples, log_prior, log_prior,
                                               a.particles),
                   "physical": _physical_reference(dataset, prior, draws, a)}
+    if draws.law_fit:
+        references["learned_law"] = _learned_law_reference(prior, draws, a)
     arrays = {"true_mass": np.exp(a.true_log), "sampled_mass": np.exp(a.sampled),
               "coverage_levels": COVERAGE_LEVELS,
               "coverage": coverage_curve(a.true_log, a.sampled),

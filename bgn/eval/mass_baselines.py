@@ -16,6 +16,10 @@ docs/design.md#identifiability).
     alone cannot give an absolute mass scale without a force constant), chosen as the most
     probable under the prior.
 
+- ``place_by_prior``: log-masses known up to one shift (an impact group's ratios, or the
+  masses a model's learned pair law fits to each window: its scale is free) placed where the
+  prior makes them most probable together (``bgn.eval.evaluate``'s learned-law reference).
+
 Accelerations are second differences of the frames, ``(x[t+1] - 2 x[t] + x[t-1]) / dt^2``:
 the force scenes' targets (``bgn.data.targets``), exact for frames stepped by the matching
 rule (Stormer-Verlet), and O(dt^2) off the adaptive integrator's frames. Velocities are the
@@ -222,17 +226,29 @@ def impact_log_mass(prior: MassPrior, windows: np.ndarray, dt: float,
     out[seen] = np.linalg.lstsq(a[:, seen], np.asarray(rhs), rcond=None)[0]
     adjacency = (np.abs(a[:, seen]).T @ np.abs(a[:, seen])) > 0
     _, labels = connected_components(adjacency, directed=False)
-    shifts = np.linspace(prior.means.min() - 3 * prior.stds.max(),
-                         prior.means.max() + 3 * prior.stds.max(), 2001)
     for group in np.unique(labels):
         members = seen[labels == group]
         if gauge is not None:       # the shift of most probability under Gaussians: closed form
             weight = 1.0 / np.maximum(gauge[1][members], 1e-12)
             out[members] += np.sum(weight * (gauge[0][members] - out[members])) / weight.sum()
             continue
-        score = prior.log_pdf(out[members][None, :] + shifts[:, None]).sum(axis=1)
-        out[members] += shifts[np.argmax(score)]
+        out[members] = place_by_prior(out[members], prior)
     return out
+
+
+def place_by_prior(log_mass: np.ndarray, prior: MassPrior) -> np.ndarray:
+    """Log-masses known up to one common shift (only their ratios observed), shifted to
+    where they are most probable together under ``prior``: a grid of shifts over the law's
+    range around their mean. NaN entries stay NaN and do not vote."""
+    log_mass = np.asarray(log_mass, dtype=np.float64)
+    known = np.isfinite(log_mass)
+    if not known.any():
+        return log_mass.copy()
+    centred = log_mass - log_mass[known].mean()
+    shifts = np.linspace(prior.means.min() - 3 * prior.stds.max(),
+                         prior.means.max() + 3 * prior.stds.max(), 2001)
+    score = prior.log_pdf(centred[known][None, :] + shifts[:, None]).sum(axis=1)
+    return centred + shifts[np.argmax(score)]
 
 
 def physical_log_mass(scene: Scene, prior: MassPrior, windows: np.ndarray, dt: float,

@@ -79,6 +79,7 @@ class SearchOptions:
     random_starts: int = 6           # starts drawn at random, for the best forms of each size
     random_forms: int = 3            # ... that many of each size (by error), and each front member
     evaluations: int = 40            # residual evaluations per inner constant, per start
+    max_exponent: float = 30.0       # a fit with an exponent beyond +-this is refused
     seed: int = 0                    # of the random starts
     snap_step: float = 0.5           # exponents rounded to multiples of this ...
     snap_distance: float = 0.15      # ... when within this distance of one
@@ -100,10 +101,11 @@ SEARCH_DEFAULTS = SearchOptions()
 
 @dataclass(frozen=True)
 class Primitive:
-    """A parametric primitive: ``fn(r, constants, s)`` in numpy, ``expr(r, constants)`` in
-    sympy; ``nodes`` its node count (each constant a node); ``starts`` in units of the data's
-    median distance ``s`` (``start(s)``); ``exponent``: which constant is a power (rounded by
-    the clean-up), or None; ``kinds``: each constant's kind for the random starts."""
+    """A parametric primitive: ``fn(r, constants)`` in numpy, ``expr(r, constants)`` in
+    sympy; ``nodes`` its node count (each constant a node); ``starts`` its fixed starts, in
+    units of the data's median distance ``s`` by each constant's kind (``kinds``: exponent,
+    shift of r or of r^2, rate of r or of r^2); ``exponent``: which constant is a power
+    (rounded by the clean-up), or None."""
 
     name: str
     fn: Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -168,6 +170,16 @@ class Form:
     @property
     def n_inner(self) -> int:
         return sum(PRIMITIVES[p].n for p in self.primitives)
+
+    @property
+    def exponent_slots(self) -> list[int]:
+        """The slots of the inner constants that are exponents."""
+        out, i = [], 0
+        for p in self.primitives:
+            if PRIMITIVES[p].exponent is not None:
+                out.append(i + PRIMITIVES[p].exponent)
+            i += PRIMITIVES[p].n
+        return out
 
     @property
     def key(self) -> tuple[Any, ...]:
@@ -277,6 +289,7 @@ def _fit_form(form: Form, pb: Problem, starts: list[np.ndarray],
               options: SearchOptions) -> Fit | None:
     fixed = dict(form.fixed)
     free = [i for i in range(form.n_inner) if i not in fixed]
+    powers = form.exponent_slots
     best: Fit | None = None
     for start in starts:
         inner = np.array(start, np.float64)
@@ -286,6 +299,8 @@ def _fit_form(form: Form, pb: Problem, starts: list[np.ndarray],
         def residual(x: np.ndarray, inner: np.ndarray = inner) -> np.ndarray:
             trial = inner.copy()
             trial[free] = x
+            if np.any(np.abs(trial[powers]) > options.max_exponent):
+                return np.full_like(pb.b, 1e6)  # no power of the data's distances is that steep
             return _project(form, trial, pb)[1]
 
         if free:
@@ -295,6 +310,8 @@ def _fit_form(form: Form, pb: Problem, starts: list[np.ndarray],
             except (ValueError, np.linalg.LinAlgError):
                 continue
             inner[free] = sol.x
+        if np.any(np.abs(inner[powers]) > options.max_exponent):
+            continue
         amps, res = _project(form, inner, pb)
         loss = float(np.mean(res * res))
         if np.isfinite(loss) and loss < 1e11 and (best is None or loss < best.loss):
@@ -575,11 +592,10 @@ def _member(fit: Fit, cleaned: list[str], options: SearchOptions) -> Member:
 
 def clean_up(fit: Fit, pb: Problem, options: SearchOptions = SEARCH_DEFAULTS
              ) -> tuple[Fit, list[str]]:
-    """Engine-neutral simplification of a fitted form, each step kept only while the refitted
-    error stays within ``clean_factor`` times the form's own: drop terms (the one whose
+    """Engine-neutral simplification of a fitted form, each step kept only while its refitted
+    error stays within ``clean_factor`` times the error before it: drop terms (the one whose
     removal costs least, repeatedly), then round each free exponent within
     ``snap_distance`` of a non-zero multiple of ``snap_step`` (closest first)."""
-    limit = (options.clean_factor * fit.error) ** 2
     done: list[str] = []
     while len(fit.form.terms) > 1:
         trials = []
@@ -590,17 +606,12 @@ def clean_up(fit: Fit, pb: Problem, options: SearchOptions = SEARCH_DEFAULTS
             start = np.concatenate(keep or [np.zeros(0)])
             if (one := fit_form(form, pb, [start], options)) is not None:
                 trials.append((one.loss, k, one))
-        if not trials or min(trials, key=lambda e: e[0])[0] > limit:
+        if not trials or min(trials, key=lambda e: e[0])[0] > (options.clean_factor
+                                                                 * fit.error) ** 2:
             break
         _, k, fit = min(trials, key=lambda e: e[0])
         done.append(f"dropped term {k + 1}")
-    slots = []
-    i = 0
-    for p in fit.form.primitives:
-        if PRIMITIVES[p].exponent is not None and i + PRIMITIVES[p].exponent not in dict(
-                fit.form.fixed):
-            slots.append(i + PRIMITIVES[p].exponent)
-        i += PRIMITIVES[p].n
+    slots = [j for j in fit.form.exponent_slots if j not in dict(fit.form.fixed)]
     step = options.snap_step
     near = sorted(slots, key=lambda j: abs(fit.inner[j] - step * round(fit.inner[j] / step)))
     for j in near:
@@ -612,7 +623,7 @@ def clean_up(fit: Fit, pb: Problem, options: SearchOptions = SEARCH_DEFAULTS
         start = fit.inner.copy()
         start[j] = h
         one = fit_form(form, pb, [start], options)
-        if one is not None and one.loss <= limit:
+        if one is not None and one.loss <= (options.clean_factor * fit.error) ** 2:
             fit = one
             done.append(f"exponent {v:.4g} -> {h:g}")
     return fit, done

@@ -2,7 +2,8 @@
 default_library) on the TUNE half of the held-out law set: each law's exact force from
 laws.yaml, sampled at the training split's own pair distances with 1 % relative noise.
 
-    python examples/heldout_laws/search_trial.py [LAW ...] [--seeds 3] [--json out.json]
+    python examples/heldout_laws/search_trial.py [LAW ...] [--seeds 3] [--first-seed 0]
+        [--json out.json]
 
 Per law and seed: the distances of the train split (every 10th frame, the pairs within the
 layout's radius, as make.py's statistics), a log-spaced grid over them with the density of
@@ -90,66 +91,71 @@ def median_error(expr: sp.Expr | None, exact: sp.Expr, lo: float, hi: float) -> 
     return float(np.median(np.abs(g - f) / law_scale(r, f, smooth=False)))
 
 
-def run_law(law: dict[str, Any], root: Path, seeds: int, noise: float, tolerance: float,
-            ) -> list[dict[str, Any]]:
+def prepare(law: dict[str, Any], root: Path) -> dict[str, Any]:
+    """The law's grid, weights, exact values and family over its train distances."""
     d = train_distances(law, root)
     d = d[d > 0]
     lo, hi = (float(q) for q in np.quantile(d, [0.01, 0.99]))
     family, constants = truth_family(law, float(d.min()), float(d.max()))
     exact = family.subs(constants)
     r = np.geomspace(d.min(), d.max(), DEFAULTS.grid_points)
-    weight = log_density(d, r)
     f = np.asarray(sp.lambdify(R, exact, "numpy")(r), np.float64) * np.ones_like(r)
-    judge_r = np.geomspace(lo, hi, 400)
-    rows = []
-    for seed in range(seeds):
-        y = f * (1 + noise * np.random.default_rng([56, seed]).standard_normal(len(r)))
-        t = time.perf_counter()
-        found = search_law(r, y, weight, tolerance=tolerance)
-        t_search = time.perf_counter() - t
-        best = min(found.front, key=lambda m: m.error)
-        pick = found.chosen or best
-        t = time.perf_counter()
-        listed = fit_formula(r, y, weight, tolerance=tolerance, n_boot=0)
-        t_list = time.perf_counter() - t
-        listed_expr = listed.expr(digits=15)
-        rows.append({
-            "law": law["name"], "seed": seed, "n_distances": int(len(d)),
-            "quantiles_1_99": [lo, hi],
-            "search": {"outcome": found.outcome,
-                       "chosen": found.chosen.text if found.chosen else None,
-                       "best_on_front": best.text,
-                       "right_form": bool(found.chosen is not None and same_form(
-                           found.chosen.expr, family, judge_r, constants)),
-                       "right_form_on_front": any(same_form(m.expr, family, judge_r, constants)
-                                                  for m in found.front),
-                       "median_error": median_error(pick.expr, exact, lo, hi),
-                       "front": len(found.front), "wall_s": t_search,
-                       "forms": found.n_forms},
-            "list": {"chosen": sp.sstr(listed.expr()),
-                     "right_form": bool(same_form(listed_expr, family, judge_r, constants)),
-                     "median_error": median_error(listed_expr, exact, lo, hi),
-                     "front": len(listed.front), "wall_s": t_list},
-        })
-        row = rows[-1]
-        s, li = row["search"], row["list"]
-        print(f"{law['name']:16s} seed {seed}  search: {s['outcome']:15s} "
-              f"right={'yes' if s['right_form'] else 'no ':3s} "
-              f"(on front {'yes' if s['right_form_on_front'] else 'no'}) "
-              f"err={s['median_error']:.2%} front={s['front']} {s['wall_s']:.0f}s "
-              f"| list: right={'yes' if li['right_form'] else 'no ':3s} "
-              f"err={li['median_error']:.2%} front={li['front']} {li['wall_s']:.0f}s",
-              flush=True)
-        chosen = s["chosen"] or f"(none; most accurate on the front: {s['best_on_front']})"
-        print(f"    search chose: {chosen}")
-        print(f"    list chose:   {li['chosen']}", flush=True)
-    return rows
+    return {"n": int(len(d)), "lo": lo, "hi": hi, "family": family, "constants": constants,
+            "exact": exact, "r": r, "weight": log_density(d, r), "f": f,
+            "judge_r": np.geomspace(lo, hi, 400)}
+
+
+def run_law(law: dict[str, Any], p: dict[str, Any], seed: int, noise: float,
+            tolerance: float) -> dict[str, Any]:
+    """Both searches on the law's samples with noise drawn from seed [56, seed]."""
+    r, weight, lo, hi = p["r"], p["weight"], p["lo"], p["hi"]
+    family, constants, exact, judge_r = p["family"], p["constants"], p["exact"], p["judge_r"]
+    y = p["f"] * (1 + noise * np.random.default_rng([56, seed]).standard_normal(len(r)))
+    t = time.perf_counter()
+    found = search_law(r, y, weight, tolerance=tolerance)
+    t_search = time.perf_counter() - t
+    best = min(found.front, key=lambda m: m.error)
+    pick = found.chosen or best
+    t = time.perf_counter()
+    listed = fit_formula(r, y, weight, tolerance=tolerance, n_boot=0)
+    t_list = time.perf_counter() - t
+    listed_expr = listed.expr(digits=15)
+    row = {
+        "law": law["name"], "seed": seed, "n_distances": p["n"], "quantiles_1_99": [lo, hi],
+        "tolerance": tolerance,
+        "search": {"outcome": found.outcome,
+                   "chosen": found.chosen.text if found.chosen else None,
+                   "best_on_front": best.text,
+                   "right_form": bool(found.chosen is not None and same_form(
+                       found.chosen.expr, family, judge_r, constants)),
+                   "right_form_on_front": any(same_form(m.expr, family, judge_r, constants)
+                                              for m in found.front),
+                   "median_error": median_error(pick.expr, exact, lo, hi),
+                   "front": len(found.front), "wall_s": t_search, "forms": found.n_forms,
+                   "front_members": [[m.complexity, m.error, m.text] for m in found.front]},
+        "list": {"chosen": sp.sstr(listed.expr()),
+                 "right_form": bool(same_form(listed_expr, family, judge_r, constants)),
+                 "median_error": median_error(listed_expr, exact, lo, hi),
+                 "front": len(listed.front), "wall_s": t_list},
+    }
+    s, li = row["search"], row["list"]
+    print(f"{law['name']:16s} seed {seed}  search: {s['outcome']:15s} "
+          f"right={'yes' if s['right_form'] else 'no ':3s} "
+          f"(on front {'yes' if s['right_form_on_front'] else 'no'}) "
+          f"err={s['median_error']:.2%} front={s['front']} {s['wall_s']:.0f}s "
+          f"| list: right={'yes' if li['right_form'] else 'no ':3s} "
+          f"err={li['median_error']:.2%} front={li['front']} {li['wall_s']:.0f}s", flush=True)
+    chosen = s["chosen"] or f"(none; most accurate on the front: {s['best_on_front']})"
+    print(f"    search chose: {chosen}")
+    print(f"    list chose:   {li['chosen']}", flush=True)
+    return row
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("laws", nargs="*", help="laws to run (default: the whole tune half)")
     parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--noise", type=float, default=0.01, help="relative noise")
     parser.add_argument("--margin", type=float, default=1.25,
                         help="tolerance = noise x margin (the samples' own uncertainty)")
@@ -169,10 +175,14 @@ def main() -> None:
                  "search is frozen (--report-half); tune on the tune half")
     names = args.laws or [n for n, law in manifest.items()
                           if law["half"] == "tune" and "not_made" not in law]
+    prepared = {name: prepare(manifest[name], args.data) for name in names}
     rows = []
-    for name in names:
-        rows += run_law(manifest[name], args.data, args.seeds, args.noise,
-                        args.noise * args.margin)
+    for seed in range(args.first_seed, args.first_seed + args.seeds):  # every law, then more seeds
+        for name in names:
+            rows.append(run_law(manifest[name], prepared[name], seed, args.noise,
+                                args.noise * args.margin))
+            if args.json:  # after each row: a run cut short keeps what it made
+                args.json.write_text(json.dumps(rows, indent=1))
     print("\nlaw              | search: right form (seeds), on front, median err, front, wall s"
           " | list: right form, median err, wall s")
     for name in names:
@@ -187,8 +197,6 @@ def main() -> None:
               f"{sum(x['right_form'] for x in li)}/{len(li)}, "
               f"{np.median([x['median_error'] for x in li]):.2%}, "
               f"{np.median([x['wall_s'] for x in li]):.0f}")
-    if args.json:
-        args.json.write_text(json.dumps(rows, indent=1))
 
 
 if __name__ == "__main__":

@@ -16,10 +16,13 @@ from bgn.laws.search import (
     PRIMITIVES,
     TERMS,
     Form,
+    Problem,
     R,
     SearchOptions,
     complexity,
     expression_spec,
+    fit_form,
+    relative_weights,
     same_form,
     search_law,
 )
@@ -145,3 +148,31 @@ def test_bad_points_are_refused_in_one_line(r, y, weight, match):
     with pytest.raises(ValueError, match=match) as err:
         search_law(r, y, weight)
     assert "\n" not in str(err.value)
+
+
+def test_a_fit_with_an_absurd_exponent_is_refused():
+    """A power steeper than max_exponent of the data's distances is no law (it overflows
+    where the data end): such a fit is refused, not kept."""
+    r = np.geomspace(0.5, 2.0, 40)
+    y = noisy(R ** sympy.Float(-2.0), r, 0.0)
+    w = relative_weights(r, y, None)
+    pb = Problem(r, y * w, w, float(np.median(r)))
+    form = Form(None, ((0,),), fixed=((0, 40.0),))
+    assert fit_form(form, pb, [np.array([40.0])]) is None
+    assert fit_form(Form(None, ((0,),)), pb, [np.array([-1.0])]).error < 1e-8
+
+
+def test_the_trial_refuses_a_report_half_law(monkeypatch, capsys):
+    """examples/heldout_laws/search_trial.py runs the tune half only, unless told otherwise."""
+    import importlib.util
+    import sys
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "examples" / "heldout_laws" / "search_trial.py"
+    spec = importlib.util.spec_from_file_location("search_trial", path)
+    trial = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(trial)
+    monkeypatch.setattr(sys, "argv", ["search_trial.py", "lj_cut", "buck"])
+    with pytest.raises(SystemExit) as err:
+        trial.main()
+    assert "buck is in the report half" in str(err.value) and "\n" not in str(err.value)

@@ -59,7 +59,7 @@ from bgn.model.base import (
     contact_pos_weight,
 )
 from bgn.model.encoder import DIRECTION_EPS
-from bgn.model.formula_law import FormulaLaw, check_law, term_text
+from bgn.model.formula_law import FormulaLaw, check_law, pair_text
 from bgn.model.impulse import ContactImpulseHead
 from bgn.model.message_passing import edge_vector
 from bgn.model.normalizer import Normalizer
@@ -467,8 +467,8 @@ def head_physics(head: nn.Module) -> str:
     if isinstance(head.force_law, FormulaLaw):  # the law itself written in, as a formula
         terms = json.loads(head.force_law.spec())
         law = "; the pair law a fitted formula " + "; ".join(
-            " + ".join(term_text({**t, "a": t["a"] * head.law_scale}) for t in p["terms"]) + (
-                f" (types {p['types']})" if head.types > 1 else "") for p in terms)
+            pair_text(p, head.law_scale) + (f" (types {p['types']})" if head.types > 1 else "")
+            for p in terms)
     held = ("; in a rollout fitted once, to its first window, and held"
             if head.rollout_masses == "held" and head.mass_law != "type" else "")
     return (f"central pair forces, equal and opposite; {masses[head.mass_law]} "

@@ -118,6 +118,18 @@ def test_the_label_gives_the_formula_in_physical_units_and_law_scale_changes_no_
     torch.testing.assert_close(models[0].predict(g), models[1].predict(g), rtol=0, atol=0)
 
 
+def test_the_label_prints_an_expression_pair(small_cfg):
+    """A law the search writes as an expression (no term kinds) is printed in the model's
+    physics label with its constants' values, times law_scale."""
+    ds, _ = frames(small_cfg, "spring")
+    spec = json.dumps([{"types": [0, 0], "expr": "a1*exp(k1*r)/r**2",
+                        "constants": {"a1": 1.5, "k1": -0.5}}])
+    model = build_model({"name": "newton", "mass_law": "inertial", "law": "formula",
+                         "law_formula": spec, "law_scale": 2.0}, ds.meta, ds.file.stats(),
+                        ds.history)
+    assert model.physics.endswith("the pair law a fitted formula 3.0*exp(-0.5*r)/r**2")
+
+
 @pytest.mark.parametrize("config", [{"name": "newton"}, {"name": "bgn", "dynamics": "newton"}])
 def test_a_head_with_the_true_formula_predicts_the_frame_oracles_targets(small_cfg, config):
     """Same law, same masses, same substeps: the head with law=formula and the FrameOracle

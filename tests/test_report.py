@@ -144,8 +144,8 @@ def test_inverse_table_lists_full_cells_with_a_figure(tmp_path: Path) -> None:
     # only where it was evaluated (each type its own mass law)
     # (the model's label says what it is: older records without it show the cell's model)
     assert [(r["scene"], r["fps"], r["model"]) for r in rows] == [
-        ("collisions", "10", label) for label in (VARIANTS["bgn"]["label"],
-                                                  *INVERSE_REFERENCES.values())] + [
+        ("collisions", "10", label) for label in (VARIANTS["bgn"]["label"], *(
+            INVERSE_REFERENCES[k] for k in ("prior", "type_prior", "physical")))] + [
         ("spring", "25", label) for label in ("bgn", INVERSE_REFERENCES["prior"],
                                               INVERSE_REFERENCES["physical"])]
     assert [r[GIVEN] for r in rows[:4]] == ["radii", "-", "types", "recorded contacts, types"]

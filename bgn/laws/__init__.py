@@ -9,6 +9,10 @@ vector from j to i (positive: repulsive). This package reads that law back, one 
 job:
 
 - ``terms``: the library of candidate terms and the sparse fit of a formula to a curve;
+- ``search``: a symbolic search over expression trees for the law (``search_law``: the
+  complexity-error front, the choice within a tolerance or "no formula fits"), and
+  ``same_form``, the sympy check of two laws' forms; not yet the formula stage's (it still
+  reads the law with ``terms``);
 - ``sample``: a head's law on a grid of distances, the data's pair distances, the scale;
 - ``compare``: the law read back (``read_law`` -> ``LawReport``) against the true law;
 - ``report``: report.md, law.csv, law.json and law.png, the evaluation report's section;

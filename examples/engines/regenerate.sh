@@ -16,17 +16,20 @@
 # OMP_NUM_THREADS torch threads. A finished run (its regenerate.done) is kept (delete the
 # folder to redo it; a baseline's budget is its BGN run's: redo both); a failed run is named
 # and the script exits non-zero after the others, without writing the tables. Logs:
-# OUT/<run>.log.
+# OUT/<run>.log. MAX_TIME is every run's trainer.max_time, a safety cap far above the work:
+# the default 40 minutes cut the 64-atom Morse gas's default job at 1 137 of its 2 920 steps
+# on one core (docs/results.md, "Budgets"), and a cut run's figures depend on the load.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 NAMES=${NAMES:-"rebound_nbody ase_morse_gas pymunk_granular"}
 SEEDS=${SEEDS:-"0 1 2"}
 BASELINES=${BASELINES:-"gns cranmer_gn"}
 JOBS=${JOBS:-2}
+MAX_TIME=${MAX_TIME:-"00:04:00:00"}
 OUT=${OUT:-outputs/engines}
 RESULTS_MD=${RESULTS_MD:-docs/results.md}
 DATA=${DATA:-data/external}
-export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} OUT DATA
+export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1} OUT DATA MAX_TIME
 if [[ " $SEEDS " != *" 0 "* ]]; then  # before anything runs: every baseline would fail
   echo "regenerate.sh: SEEDS=\"$SEEDS\" lacks seed 0, whose BGN job gives each baseline" \
     "($BASELINES) its budget: add 0 to SEEDS" >&2
@@ -40,7 +43,7 @@ one() {  # <name> <seed> <model>: train, evaluate, the engine's energy
   [ -f "$run/regenerate.done" ] && { echo "kept $run"; return 0; }
   (
     train=(python -m bgn.train dataset=imported dataset.name="$name" model="$model" \
-      seed="$seed" hydra.run.dir="$run")
+      seed="$seed" trainer.max_time="$MAX_TIME" hydra.run.dir="$run")
     if [ "$model" = bgn ]; then  # the whole job's wall time: the baselines' budget
       python examples/engines/equal_time.py time "$run" -- "${train[@]}" || exit 1
     else  # the steps of the seed-0 BGN job's wall time

@@ -27,14 +27,16 @@ factor grow a term at a time (a beam): every one-term form (a product started al
 best point of its grid), then from the best ``beam`` fits of each size every such form with
 one more term (a product's factor may become the common factor of the new sum), up to
 ``product_terms`` terms. Each form's complexity is its node count (``complexity``); the front
-of complexity against error is kept, each member cleaned up
-(``clean_up``: drop terms, round exponents within ``snap_distance`` of a multiple of
-``snap_step``, each step kept only while the refitted error stays within ``clean_factor``
-times the member's). The law chosen is the simplest front member whose error is within the
-caller's ``tolerance`` (the learned law's own uncertainty), else none: "no formula fits", and
-the front is returned anyway. ``same_form`` says whether two expressions are the same form
-up to constants (sympy), ``expression_spec`` writes a member as a ``model.law_formula`` pair
-(``bgn.model.formula_law``).
+of complexity against error is kept (with ``potentials``, the forms of a second search, run
+alike on potentials ``U(r)`` of the same grammar whose force ``-dU/dr`` is fitted, in the same
+pool, each counted on the potential's tree): the best fit of each complexity of each search
+cleaned up (``clean_up``: drop terms, round exponents within ``snap_distance`` of a multiple
+of ``snap_step``, each step kept only while the refitted error stays within ``clean_factor``
+times the member's), and the front formed of the cleaned fits. The law chosen is the
+simplest front member whose error is within the caller's ``tolerance`` (the learned law's own
+uncertainty), else none: "no formula fits", and the front is returned anyway.
+``same_form`` says whether two expressions are the same form up to constants (sympy),
+``expression_spec`` writes a member as a ``model.law_formula`` pair (``bgn.model.formula_law``).
 """
 
 from __future__ import annotations
@@ -81,6 +83,7 @@ class SearchOptions:
     evaluations: int = 40            # residual evaluations per inner constant, per start
     max_exponent: float = 30.0       # a fit with an exponent beyond +-this is refused
     seed: int = 0                    # of the random starts
+    potentials: bool = True          # search potentials U(r) too, the law read as -dU/dr
     snap_step: float = 0.5           # exponents rounded to multiples of this ...
     snap_distance: float = 0.15      # ... when within this distance of one
     clean_factor: float = 1.05       # a clean-up step kept while the error stays within this x
@@ -102,14 +105,18 @@ SEARCH_DEFAULTS = SearchOptions()
 @dataclass(frozen=True)
 class Primitive:
     """A parametric primitive: ``fn(r, constants)`` in numpy, ``expr(r, constants)`` in
-    sympy; ``nodes`` its node count (each constant a node); ``starts`` its fixed starts, in
-    units of the data's median distance ``s`` by each constant's kind (``kinds``: exponent,
-    shift of r or of r^2, rate of r or of r^2); ``exponent``: which constant is a power
-    (rounded by the clean-up), or None."""
+    sympy, ``dfn`` and ``dexpr`` its derivative in r (written with ``Abs`` and no ``sign``, so
+    that ``bgn.model.formula_law`` evaluates it: d|x|^k/dx = k x |x|^(k-2)); ``nodes`` its
+    node count (each constant a node); ``starts`` its fixed starts, in units of the data's
+    median distance ``s`` by each constant's kind (``kinds``: exponent, shift of r or of r^2,
+    rate of r or of r^2); ``exponent``: which constant is a power (rounded by the clean-up),
+    or None."""
 
     name: str
     fn: Callable[[np.ndarray, np.ndarray], np.ndarray]
     expr: Callable[[Any, list[Any]], sympy.Expr]
+    dfn: Callable[[np.ndarray, np.ndarray], np.ndarray]
+    dexpr: Callable[[Any, list[Any]], sympy.Expr]
     nodes: int
     starts: tuple[tuple[float, ...], ...]
     kinds: tuple[str, ...]
@@ -126,21 +133,32 @@ def _exp(x: np.ndarray) -> np.ndarray:
 
 # starts: exponent as is; a shift in units of s (or s^2 for r^2); a rate in units of 1/s (1/s^2)
 PRIMITIVES: tuple[Primitive, ...] = (
-    Primitive("power", lambda r, k: r ** k[0], lambda r, k: r ** k[0], 3,
+    Primitive("power", lambda r, k: r ** k[0], lambda r, k: r ** k[0],
+              lambda r, k: k[0] * r ** (k[0] - 1), lambda r, k: k[0] * r ** (k[0] - 1), 3,
               ((-1.0,), (1.0,), (-6.0,)), ("exponent",), 0),
     Primitive("shifted power", lambda r, k: np.abs(r + k[1]) ** k[0],
-              lambda r, k: sympy.Abs(r + k[1]) ** k[0], 5,
+              lambda r, k: sympy.Abs(r + k[1]) ** k[0],
+              lambda r, k: k[0] * (r + k[1]) * np.abs(r + k[1]) ** (k[0] - 2),
+              lambda r, k: k[0] * (r + k[1]) * sympy.Abs(r + k[1]) ** (k[0] - 2), 5,
               ((-1.0, 0.1), (-2.0, 0.1), (-6.0, -0.5)), ("exponent", "shift"), 0),
     Primitive("softened power", lambda r, k: np.abs(r * r + k[1]) ** k[0],
-              lambda r, k: sympy.Abs(r**2 + k[1]) ** k[0], 7,
-              ((-1.5, 0.1), (-0.5, 1.0)), ("exponent", "shift2"), 0),
-    Primitive("exponential", lambda r, k: _exp(k[0] * r), lambda r, k: sympy.exp(k[0] * r), 4,
+              lambda r, k: sympy.Abs(r**2 + k[1]) ** k[0],
+              lambda r, k: 2 * k[0] * r * (r * r + k[1]) * np.abs(r * r + k[1]) ** (k[0] - 2),
+              lambda r, k: 2 * k[0] * r * (r**2 + k[1]) * sympy.Abs(r**2 + k[1]) ** (k[0] - 2),
+              7, ((-1.5, 0.1), (-0.5, 1.0)), ("exponent", "shift2"), 0),
+    Primitive("exponential", lambda r, k: _exp(k[0] * r), lambda r, k: sympy.exp(k[0] * r),
+              lambda r, k: k[0] * _exp(k[0] * r), lambda r, k: k[0] * sympy.exp(k[0] * r), 4,
               ((-1.0,), (-5.0,)), ("rate",)),
     Primitive("gaussian", lambda r, k: _exp(k[0] * r * r), lambda r, k: sympy.exp(k[0] * r**2),
+              lambda r, k: 2 * k[0] * r * _exp(k[0] * r * r),
+              lambda r, k: 2 * k[0] * r * sympy.exp(k[0] * r**2),
               6, ((-1.0,),), ("rate2",)),
     Primitive("log", lambda r, k: np.log(np.abs(r + k[0]) + 1e-300),
-              lambda r, k: sympy.log(sympy.Abs(r + k[0])), 4, ((0.1,),), ("shift",)),
-    Primitive("sine", lambda r, k: np.sin(k[0] * r), lambda r, k: sympy.sin(k[0] * r), 4,
+              lambda r, k: sympy.log(sympy.Abs(r + k[0])),
+              lambda r, k: 1.0 / (r + k[0]), lambda r, k: 1 / (r + k[0]), 4,
+              ((0.1,),), ("shift",)),
+    Primitive("sine", lambda r, k: np.sin(k[0] * r), lambda r, k: sympy.sin(k[0] * r),
+              lambda r, k: k[0] * np.cos(k[0] * r), lambda r, k: k[0] * sympy.cos(k[0] * r), 4,
               ((1.0,), (2.5,)), ("rate",)),
 )
 
@@ -156,11 +174,12 @@ TERMS: tuple[Term, ...] = ((), *((i,) for i in range(len(PRIMITIVES))),
 class Form:
     """``F * sum_k a_k T_k``: ``factor`` the index of F (None: 1), ``terms`` the T's;
     ``fixed``: inner constants held at a value (slot, value), the exponents the clean-up
-    rounded."""
+    rounded; ``potential``: the tree is a potential U(r) and the law its force ``-dU/dr``."""
 
     factor: int | None
     terms: tuple[Term, ...]
     fixed: tuple[tuple[int, float], ...] = ()
+    potential: bool = False
 
     @property
     def primitives(self) -> list[int]:
@@ -183,14 +202,15 @@ class Form:
 
     @property
     def key(self) -> tuple[Any, ...]:
-        return (self.factor, tuple(sorted(self.terms)), self.fixed)
+        return (self.factor, tuple(sorted(self.terms)), self.fixed, self.potential)
 
 
 def complexity(form: Form) -> int:
     """The node count of the form's tree: a primitive's nodes (every constant, fitted or
     rounded, one node); a term ``a T``: the amplitude and a product node, and one more for a
     product of two primitives; the constant term ``a``: 1; ``m`` terms: ``m - 1`` sum nodes;
-    a common factor: its nodes and a product node."""
+    a common factor: its nodes and a product node. A potential's form is counted on the
+    potential's tree (the force ``-dU/dr`` is read from it, not written)."""
     def term_nodes(t: Term) -> int:
         return 1 if not t else 1 + len(t) + sum(PRIMITIVES[p].nodes for p in t)
 
@@ -199,19 +219,27 @@ def complexity(form: Form) -> int:
 
 
 def _columns(form: Form, inner: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """(n, m) each term (times the common factor) at r for the inner constants ``inner``."""
+    """(n, m) each term (times the common factor) at r for the inner constants ``inner``; of
+    a potential's form, each term's force ``-d/dr (F T)`` (the product rule)."""
     blocks, i = [], 0
     for p in form.primitives:
         blocks.append(inner[i:i + PRIMITIVES[p].n])
         i += PRIMITIVES[p].n
     it = iter(blocks)
-    common = np.ones_like(r) if form.factor is None else PRIMITIVES[form.factor].fn(r, next(it))
+    # each factor as (value, derivative)
+    if form.factor is None:
+        common = (np.ones_like(r), np.zeros_like(r))
+    else:
+        k = next(it)
+        common = (PRIMITIVES[form.factor].fn(r, k), PRIMITIVES[form.factor].dfn(r, k))
     out = np.empty((len(r), len(form.terms)))
-    for k, t in enumerate(form.terms):
-        col = common
+    for j, t in enumerate(form.terms):
+        val, der = common
         for p in t:
-            col = col * PRIMITIVES[p].fn(r, next(it))
-        out[:, k] = col
+            k = next(it)
+            v, d = PRIMITIVES[p].fn(r, k), PRIMITIVES[p].dfn(r, k)
+            val, der = val * v, der * v + val * d
+        out[:, j] = -der if form.potential else val
     return out
 
 
@@ -372,14 +400,17 @@ def _children(parent: Form) -> list[Form]:
     """Every form with one more term that holds a product or a common factor (sums of single
     primitives are screened, ``_screen``): any term added to the sum (a product term only,
     where the parent has neither); and where the parent is one product ``P Q``,
-    ``P (a Q + b T)`` and ``Q (a P + b T)`` (its factor made common)."""
+    ``P (a Q + b T)`` and ``Q (a P + b T)`` (its factor made common). A potential's forms
+    stay potentials (a constant term without a factor exerts no force: never added)."""
     plain = parent.factor is None and all(len(t) < 2 for t in parent.terms)
-    out = [Form(parent.factor, parent.terms + (t,)) for t in TERMS
-           if t not in parent.terms and not (plain and len(t) < 2)]
+    pot = parent.potential
+    out = [Form(parent.factor, parent.terms + (t,), potential=pot) for t in TERMS
+           if t not in parent.terms and not (plain and len(t) < 2)
+           and not (pot and parent.factor is None and not t)]
     if parent.factor is None and len(parent.terms) == 1 and len(parent.terms[0]) == 2:
         p, q = parent.terms[0]
         for common, other in ((p, q), (q, p)):
-            out += [Form(common, ((other,), t)) for t in TERMS
+            out += [Form(common, ((other,), t), potential=pot) for t in TERMS
                     if len(t) < 2 and t != (other,)]
     return out
 
@@ -406,16 +437,20 @@ def _grid(p: int, s: float, options: SearchOptions) -> list[np.ndarray]:
     return [np.array(c) for c in itertools.product(*axes)]
 
 
-def _screen(pb: Problem, options: SearchOptions) -> list[tuple[float, Form, np.ndarray]]:
+def _screen(pb: Problem, options: SearchOptions, potential: bool = False
+            ) -> list[tuple[float, Form, np.ndarray]]:
     """Sums of two and three single primitives (or the constant) by linear least squares over
     every grid point of their constants (pairs exhaustively; each of the best
     ``screen_keep`` pairs with every third): the best of each combination of kinds as
-    (loss, form, start of the inner constants), the best ``refine_per_size`` of each size."""
-    cols, kinds, consts = [pb.w.copy()], [-1], [np.zeros(0)]
+    (loss, form, start of the inner constants), the best ``refine_per_size`` of each size.
+    ``potential``: the sums are potentials, each column a primitive's force ``-dP/dr`` (no
+    constant: it exerts none)."""
+    cols, kinds, consts = ([], [], []) if potential else ([pb.w.copy()], [-1], [np.zeros(0)])
     with np.errstate(all="ignore"):
         for p in range(len(PRIMITIVES)):
             for k in _grid(p, pb.s, options):
-                col = PRIMITIVES[p].fn(pb.r, k) * pb.w
+                col = (-PRIMITIVES[p].dfn(pb.r, k) if potential
+                       else PRIMITIVES[p].fn(pb.r, k)) * pb.w
                 if np.isfinite(col).all() and np.abs(col).max() > 0:
                     cols.append(col)
                     kinds.append(p)
@@ -436,7 +471,7 @@ def _screen(pb: Problem, options: SearchOptions) -> list[tuple[float, Form, np.n
 
     def form_of(idx: tuple[int, ...]) -> tuple[Form, np.ndarray]:
         order = sorted(idx, key=lambda i: kinds[i])
-        return (Form(None, tuple(term(i) for i in order)),
+        return (Form(None, tuple(term(i) for i in order), potential=potential),
                 np.concatenate([np.zeros(0), *(consts[i] for i in order)]))
 
     pairs: list[tuple[float, tuple[int, int]]] = []
@@ -474,23 +509,34 @@ def _screen(pb: Problem, options: SearchOptions) -> list[tuple[float, Form, np.n
     return out + [(loss, *form_of(idx)) for loss, idx in best3]
 
 
-def _screen_products(pb: Problem, options: SearchOptions) -> dict[Term, np.ndarray]:
+def _screen_products(pb: Problem, options: SearchOptions, potential: bool = False
+                     ) -> dict[Term, np.ndarray]:
     """Each one-term product ``P Q``'s best point on the grid of both primitives' constants
-    (one column's least squares, all grid points at once): a start for its fit."""
-    grids, banks = {}, {}
+    (one column's least squares, all grid points at once): a start for its fit. ``potential``:
+    the column is the product's force ``-(P' Q + P Q')``."""
+    grids, banks, dbanks = {}, {}, {}
     with np.errstate(all="ignore"):
         for p in range(len(PRIMITIVES)):
             ks = _grid(p, pb.s, options)
             cols = np.stack([PRIMITIVES[p].fn(pb.r, k) for k in ks])
-            ok = np.isfinite(cols).all(1)
-            grids[p], banks[p] = [k for k, good in zip(ks, ok) if good], cols[ok]
+            dcols = np.stack([PRIMITIVES[p].dfn(pb.r, k) for k in ks])
+            ok = np.isfinite(cols).all(1) & np.isfinite(dcols).all(1)
+            grids[p], banks[p], dbanks[p] = ([k for k, good in zip(ks, ok) if good], cols[ok],
+                                             dcols[ok])
         out: dict[Term, np.ndarray] = {}
+        wb, w2 = pb.w * pb.b, pb.w**2
         for t in TERMS:
             if len(t) != 2 or not len(grids[t[0]]) or not len(grids[t[1]]):
                 continue
             a, b = banks[t[0]], banks[t[1]]
-            dot = (a * (pb.w * pb.b)) @ b.T
-            norm2 = (a * a) @ (b * b * pb.w**2).T
+            if potential:  # the column -(a' b + a b'): its products, expanded
+                da, db = dbanks[t[0]], dbanks[t[1]]
+                dot = -((da * wb) @ b.T + (a * wb) @ db.T)
+                norm2 = ((da * da) @ (b * b * w2).T + 2 * (da * a) @ (b * db * w2).T
+                         + (a * a) @ (db * db * w2).T)
+            else:
+                dot = (a * wb) @ b.T
+                norm2 = (a * a) @ (b * b * w2).T
             score = np.where(norm2 > 0, dot**2 / norm2, -np.inf)
             score[~np.isfinite(score)] = -np.inf
             i, j = divmod(int(np.argmax(score)), score.shape[1])
@@ -509,11 +555,13 @@ def _rational(v: float, options: SearchOptions) -> sympy.Expr | None:
 
 
 def form_expression(fit: Fit, named: bool = False, digits: int = 15,
-                    options: SearchOptions = SEARCH_DEFAULTS
+                    options: SearchOptions = SEARCH_DEFAULTS, force: bool = True
                     ) -> tuple[sympy.Expr, dict[str, float]]:
     """The fit as a sympy expression in ``R``: its constants as numbers (``named`` False) or
     as symbols ``a1, ...`` (amplitudes) and ``k1, ...`` (inner constants) with their values;
-    a rounded exponent is a number either way."""
+    a rounded exponent is a number either way. Of a potential's fit: its force ``-dU/dr``
+    (the product rule on each primitive's ``dexpr``), or with ``force`` False the potential
+    ``U`` itself."""
     fixed = dict(fit.form.fixed)
     values: dict[str, float] = {}
     inner_syms: list[Any] = []
@@ -531,19 +579,28 @@ def form_expression(fit: Fit, named: bool = False, digits: int = 15,
         blocks.append(inner_syms[i:i + PRIMITIVES[p].n])
         i += PRIMITIVES[p].n
     it = iter(blocks)
-    common = (sympy.Integer(1) if fit.form.factor is None
-              else PRIMITIVES[fit.form.factor].expr(R, next(it)))
-    total = sympy.Integer(0)
-    for k, (t, a) in enumerate(zip(fit.form.terms, fit.amplitudes)):
+    derive = fit.form.potential and force
+    if fit.form.factor is None:
+        common: tuple[sympy.Expr, sympy.Expr] = (sympy.Integer(1), sympy.Integer(0))
+    else:
+        k = next(it)
+        common = (PRIMITIVES[fit.form.factor].expr(R, k), PRIMITIVES[fit.form.factor].dexpr(R, k))
+    total, dtotal = sympy.Integer(0), sympy.Integer(0)
+    for j, (t, a) in enumerate(zip(fit.form.terms, fit.amplitudes)):
         if named:
-            values[f"a{k + 1}"] = float(a)
-            term: sympy.Expr = sympy.Symbol(f"a{k + 1}", real=True)
+            values[f"a{j + 1}"] = float(a)
+            amp: sympy.Expr = sympy.Symbol(f"a{j + 1}", real=True)
         else:
-            term = sympy.Float(a, digits)
+            amp = sympy.Float(a, digits)
+        val, der = sympy.Integer(1), sympy.Integer(0)
         for p in t:
-            term = term * PRIMITIVES[p].expr(R, next(it))
-        total = total + term
-    return common * total, values
+            k = next(it)
+            v, d = PRIMITIVES[p].expr(R, k), PRIMITIVES[p].dexpr(R, k)
+            val, der = val * v, der * v + val * d
+        total, dtotal = total + amp * val, dtotal + amp * der
+    if derive:  # -d/dr (F sum) = -(F' sum + F sum')
+        return -(common[1] * total + common[0] * dtotal), values
+    return common[0] * total, values
 
 
 # ----------------------------------------------------------------------------- the search
@@ -553,7 +610,8 @@ def form_expression(fit: Fit, named: bool = False, digits: int = 15,
 class Member:
     """A front member: ``complexity`` (nodes), ``error`` (RMS weighted relative residual),
     ``expr`` (sympy, constants as numbers), ``template`` (constants as symbols) and
-    ``constants`` (their values), ``cleaned``: what the clean-up changed."""
+    ``constants`` (their values), ``cleaned``: what the clean-up changed; ``potential``: of a
+    member read as a potential, U(r) (its ``expr`` is the force ``-dU/dr``), else None."""
 
     complexity: int
     error: float
@@ -562,9 +620,13 @@ class Member:
     constants: dict[str, float]
     fit: Fit
     cleaned: list[str] = field(default_factory=list)
+    potential: sympy.Expr | None = None
 
     @property
     def text(self) -> str:
+        """The force; of a potential's member, ``-d/dr[U]`` with U written out."""
+        if self.potential is not None:
+            return f"-d/dr[{sympy.sstr(sympy.N(self.potential, DEFAULTS.significant))}]"
         return sympy.sstr(sympy.N(self.expr, DEFAULTS.significant))
 
 
@@ -587,7 +649,9 @@ class SearchResult:
 def _member(fit: Fit, cleaned: list[str], options: SearchOptions) -> Member:
     expr, _ = form_expression(fit, options=options)
     template, constants = form_expression(fit, named=True, options=options)
-    return Member(fit.complexity, fit.error, expr, template, constants, fit, cleaned)
+    potential = (form_expression(fit, options=options, force=False)[0] if fit.form.potential
+                 else None)
+    return Member(fit.complexity, fit.error, expr, template, constants, fit, cleaned, potential)
 
 
 def clean_up(fit: Fit, pb: Problem, options: SearchOptions = SEARCH_DEFAULTS
@@ -600,7 +664,8 @@ def clean_up(fit: Fit, pb: Problem, options: SearchOptions = SEARCH_DEFAULTS
     while len(fit.form.terms) > 1:
         trials = []
         for k in range(len(fit.form.terms)):
-            form = Form(fit.form.factor, fit.form.terms[:k] + fit.form.terms[k + 1:])
+            form = Form(fit.form.factor, fit.form.terms[:k] + fit.form.terms[k + 1:],
+                        potential=fit.form.potential)
             head, per_term = _term_blocks(fit)
             keep = head + [b for j, blk in enumerate(per_term) if j != k for b in blk]
             start = np.concatenate(keep or [np.zeros(0)])
@@ -619,7 +684,8 @@ def clean_up(fit: Fit, pb: Problem, options: SearchOptions = SEARCH_DEFAULTS
         h = step * round(v / step)
         if h == 0 or abs(v - h) > options.snap_distance:
             continue
-        form = Form(fit.form.factor, fit.form.terms, fit.form.fixed + ((j, h),))
+        form = Form(fit.form.factor, fit.form.terms, fit.form.fixed + ((j, h),),
+                    fit.form.potential)
         start = fit.inner.copy()
         start[j] = h
         one = fit_form(form, pb, [start], options)
@@ -689,42 +755,57 @@ def search_law(r: np.ndarray, y: np.ndarray, weight: np.ndarray | None = None,
                 run(f.form, [f.inner] + _random_starts(f.form, pb.s, rng,
                                                       options.random_starts, options))
 
-    screened = _screen(pb, options)
-    product_starts = _screen_products(pb, options)
-    for _, form, start in screened:
-        if len(form.terms) <= options.max_terms:
-            run(form, [start])
-    t_screen = time.perf_counter() - t0
-    parents: list[Fit] = []
-    for size in range(1, min(options.max_terms, options.product_terms) + 1):
-        if size > 1:
-            seen = set(fitted)
-            for parent in parents:
-                for child in _children(parent.form):
-                    if child.key in seen:
-                        continue
-                    seen.add(child.key)
-                    run(child, _fixed_starts(child, pb.s, _blocks(parent),
-                                             options.child_starts))
-        else:
-            for t in TERMS:
-                form = Form(None, (t,))
-                grid = [product_starts[t]] if t in product_starts else []
-                run(form, grid + _fixed_starts(form, pb.s, [], options.fixed_starts))
-        this = sorted((f for f in fitted.values() if len(f.form.terms) == size),
-                      key=lambda f: f.loss)
-        restart(this[:options.random_forms])
-        this = sorted((f for f in fitted.values() if len(f.form.terms) == size),
-                      key=lambda f: f.loss)
-        parents = this[:options.beam]
+    t_screen = 0.0
+    # the force's trees, then (``potentials``) the potential's, each searched alike
+    for potential in (False, True) if options.potentials else (False,):
+        t = time.perf_counter()
+        screened = _screen(pb, options, potential)
+        product_starts = _screen_products(pb, options, potential)
+        for _, form, start in screened:
+            if len(form.terms) <= options.max_terms:
+                run(form, [start])
+        t_screen += time.perf_counter() - t
+        parents: list[Fit] = []
+        for size in range(1, min(options.max_terms, options.product_terms) + 1):
+            if size > 1:
+                seen = set(fitted)
+                for parent in parents:
+                    for child in _children(parent.form):
+                        if child.key in seen:
+                            continue
+                        seen.add(child.key)
+                        run(child, _fixed_starts(child, pb.s, _blocks(parent),
+                                                 options.child_starts))
+            else:
+                for term in TERMS:
+                    if potential and not term:
+                        continue  # a constant potential exerts no force
+                    form = Form(None, (term,), potential=potential)
+                    grid = [product_starts[term]] if term in product_starts else []
+                    run(form, grid + _fixed_starts(form, pb.s, [], options.fixed_starts))
+            this = sorted((f for f in fitted.values()
+                           if len(f.form.terms) == size and f.form.potential == potential),
+                          key=lambda f: f.loss)
+            restart(this[:options.random_forms])
+            this = sorted((f for f in fitted.values()
+                           if len(f.form.terms) == size and f.form.potential == potential),
+                          key=lambda f: f.loss)
+            parents = this[:options.beam]
     t_search = time.perf_counter() - t0
     raw = _pareto(list(fitted.values()), options.front_margin)
     restart([f for f in raw if f.form.key in fitted])
-    raw = _pareto(list(fitted.values()), options.front_margin)
     t_restart = time.perf_counter() - t0 - t_search
+    # the best fit of each complexity of each search (force, potential) cleaned up, and only
+    # cleaned fits compared: a rounded exponent costs a little error, so an unrounded fit of
+    # the same size would otherwise always beat its cleaned twin
+    best: dict[tuple[int, bool], Fit] = {}
+    for f in fitted.values():
+        at = (f.complexity, f.form.potential)
+        if at not in best or f.loss < best[at].loss:
+            best[at] = f
     cleaned: dict[int, tuple[Fit, list[str]]] = {}
-    pool = [f for f in fitted.values() if all(f is not g for g in raw)]
-    for f in raw:
+    pool = []
+    for f in best.values():
         g, done = clean_up(f, pb, options)
         cleaned[id(g)] = (g, done)
         pool.append(g)

@@ -13,7 +13,8 @@ the noise's RMS with a quarter's margin (``--margin``; 1.25 % for 1 % noise; the
 passes the learned law's, ``LawOptions.tolerance``). Printed per law and seed: the form
 chosen, whether it is the manifest's form (``bgn.laws.search.same_form``: same form up to
 constants), the median relative error against the exact law over the 1-99 % distance
-quantiles, the front's size and the wall time.
+quantiles, the front's size and the wall time; a law the search read as a potential's force
+is printed ``-d/dr[U]``.
 
 The report half (laws.yaml ``half: report``) is refused unless ``--report-half`` is given: it is
 run once, after the search is frozen (examples/heldout_laws/README.md, "The rule").
@@ -125,6 +126,8 @@ def run_law(law: dict[str, Any], p: dict[str, Any], seed: int, noise: float,
         "tolerance": tolerance,
         "search": {"outcome": found.outcome,
                    "chosen": found.chosen.text if found.chosen else None,
+                   "chosen_is_potential": bool(found.chosen is not None
+                                               and found.chosen.potential is not None),
                    "best_on_front": best.text,
                    "right_form": bool(found.chosen is not None and same_form(
                        found.chosen.expr, family, judge_r, constants)),

@@ -4,6 +4,7 @@ and the spec of a member."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -176,3 +177,44 @@ def test_the_trial_refuses_a_report_half_law(monkeypatch, capsys):
     with pytest.raises(SystemExit) as err:
         trial.main()
     assert "buck is in the report half" in str(err.value) and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("p", range(len(PRIMITIVES)), ids=[q.name for q in PRIMITIVES])
+def test_each_primitives_derivative_is_its_derivative(p):
+    """A potential's force is read through ``dfn`` (numpy) and ``dexpr`` (sympy, no sign()):
+    both are d/dr of the primitive, on either side of a shift."""
+    prim = PRIMITIVES[p]
+    k = {"power": [-2.5], "shifted power": [-1.5, -0.4], "softened power": [-0.5, -0.2],
+         "exponential": [-1.3], "gaussian": [-0.7], "log": [-0.4], "sine": [2.1]}[prim.name]
+    r = np.linspace(0.3, 3.0, 50)
+    r = r[np.abs(r - 0.4) > 0.05]  # away from the shifts' poles
+    h = 1e-6
+    numeric = (prim.fn(r + h, np.array(k)) - prim.fn(r - h, np.array(k))) / (2 * h)
+    np.testing.assert_allclose(prim.dfn(r, np.array(k)), numeric, rtol=1e-6, atol=1e-8)
+    exact = sympy.lambdify(R, sympy.diff(prim.expr(R, k), R), "numpy")(r)
+    written = sympy.lambdify(R, prim.dexpr(R, k), "numpy")(r)
+    np.testing.assert_allclose(written * np.ones_like(r), exact * np.ones_like(r), rtol=1e-10)
+    assert not prim.dexpr(R, k).has(sympy.sign)
+
+
+def test_a_screened_coulomb_force_is_read_as_minus_the_derivative_of_a_potential():
+    """exp(-k r)(1 + k r)/r^2 is -d/dr of -exp(-k r)/r: the potential's tree (10 nodes) is
+    simpler than any force tree that holds it, and is chosen; its spec (the force, written
+    out) evaluates in FormulaLaw to -dU/dr. Without potentials no one-term tree holds it."""
+    truth = sympy.exp(-R) * (1 + R) / R**2
+    r = np.geomspace(0.3, 4.0, 240)
+    y = noisy(truth, r, 0.0)
+    one_term = dataclasses.replace(FASTER, max_terms=1)  # the law is one term of each tree
+    found = search_law(r, y, tolerance=1e-6, options=one_term)
+    chosen = found.chosen
+    assert chosen is not None and chosen.potential is not None, [m.text for m in found.front]
+    assert chosen.complexity == 10 and same_form(chosen.expr, truth, r), chosen.text
+    force = sympy.lambdify(R, -sympy.diff(chosen.potential, R), "numpy")(r)
+    np.testing.assert_allclose(force, y, rtol=1e-6)
+    spec = expression_spec(chosen)
+    law = FormulaLaw(json.dumps([spec]), n_types=1)
+    got = law(torch.tensor(r)[:, None], torch.zeros(len(r), dtype=torch.long))[:, 0]
+    np.testing.assert_allclose(got.detach().numpy(), force, rtol=1e-10)
+    alone = search_law(r, y, tolerance=1e-6,
+                       options=dataclasses.replace(one_term, potentials=False))
+    assert alone.chosen is None

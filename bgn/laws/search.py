@@ -21,8 +21,8 @@ root of its loss.
 
 The search, in two parts. Sums of up to ``max_terms`` single primitives (and the constant)
 are screened: every primitive's constants on a grid (``_grid``), the amplitudes of every pair
-of grid columns by linear least squares, and of each of the best pairs with every third
-column; the best of each combination of kinds is refined. Forms with a product or a common
+and of every triple of grid columns by linear least squares; the best of each combination of
+kinds is refined. Forms with a product or a common
 factor grow a term at a time (a beam): every one-term form (a product started also from the
 best point of its grid), then from the best ``beam`` fits of each size every such form with
 one more term (a product's factor may become the common factor of the new sum), up to
@@ -64,14 +64,13 @@ class SearchOptions:
 
     max_terms: int = 3               # additive terms of the sum at most
     # sums of single primitives: screened on a grid of their constants (linear least squares
-    # of every pair, and of the best pairs with every third), then refined
+    # of every pair and every triple of grid columns), then refined
     exponent_step: float = 0.5       # the grid's exponents: this apart over exponent_range
     grid_shifts: tuple[float, ...] = (-0.6, -0.3, -0.1, 0.03, 0.1, 0.3, 1.0, 3.0)  # c / s
     grid_rates: int = 32             # rates per sign, log-spaced over rate_range
     grid_exponents_shifted: tuple[float, ...] = (-12.0, -6.0, -3.0, -2.0, -1.5, -1.0, -0.5,
                                                  0.5, 1.0, 2.0)  # of shifted powers
     collinear: float = 1e-4          # a pair of grid columns this near collinear is skipped
-    screen_keep: int = 36            # best pairs (one per pair of kinds) grown into triples
     refine_per_size: int = 30        # screened sums of each size refined (Levenberg-Marquardt)
     # forms with a product or a common factor: grown a term at a time from the best fits
     product_terms: int = 2           # terms of such a form at most
@@ -440,8 +439,9 @@ def _grid(p: int, s: float, options: SearchOptions) -> list[np.ndarray]:
 def _screen(pb: Problem, options: SearchOptions, potential: bool = False
             ) -> list[tuple[float, Form, np.ndarray]]:
     """Sums of two and three single primitives (or the constant) by linear least squares over
-    every grid point of their constants (pairs exhaustively; each of the best
-    ``screen_keep`` pairs with every third): the best of each combination of kinds as
+    every grid point of their constants (every pair and every triple of grid columns; a
+    triple as column i and the best pair of the others with i projected out): the best of each
+    combination of kinds as
     (loss, form, start of the inner constants), the best ``refine_per_size`` of each size.
     ``potential``: the sums are potentials, each column a primitive's force ``-dP/dr`` (no
     constant: it exerts none)."""
@@ -487,24 +487,39 @@ def _screen(pb: Problem, options: SearchOptions, potential: bool = False
                 pairs.append((float(block.flat[k]), divmod(k, len(kinds))))
     pairs.sort()
     out = [(loss, *form_of(idx)) for loss, idx in pairs[:options.refine_per_size]]
+    if options.max_terms < 3:
+        return out
+    # every triple: project each column i out of the others and of b, then screen the pairs
+    # of the residuals as above (the best triple's pairs need not be the best pairs)
+    first = {a: (int(np.flatnonzero(kinds_a == a)[0]), int(np.flatnonzero(kinds_a == a)[-1]) + 1)
+             for a in sorted(set(kinds))}  # the columns are grouped by kind
     triples: dict[tuple[int, ...], tuple[float, tuple[int, ...]]] = {}
-    for _, (i, j) in pairs[:options.screen_keep if options.max_terms >= 3 else 0]:
-        g = np.empty((len(kinds), 3, 3))
-        g[:, 0, 0] = g[:, 1, 1] = g[:, 2, 2] = 1
-        g[:, 0, 1] = g[:, 1, 0] = gram[i, j]
-        g[:, 0, 2] = g[:, 2, 0] = gram[i]
-        g[:, 1, 2] = g[:, 2, 1] = gram[j]
-        vv = np.stack([np.full(len(kinds), v[i]), np.full(len(kinds), v[j]), v], 1)
-        ok = np.linalg.det(g) > options.collinear
-        ok[[i, j]] = False
-        if not ok.any():
-            continue
-        expl = (vv[ok] * np.linalg.solve(g[ok], vv[ok][..., None])[..., 0]).sum(1)
-        for k, e in zip(np.flatnonzero(ok), expl):
-            key = tuple(sorted((kinds[i], kinds[j], kinds[k])))
-            loss = (bb - e) / n
-            if key not in triples or loss < triples[key][0]:
-                triples[key] = (loss, (i, j, int(k)))
+    with np.errstate(all="ignore"):
+        for i in range(len(kinds)):
+            g = gram[i]
+            d = 1 - g * g  # each column's squared norm once column i is projected out
+            norm = np.sqrt(np.where(d > options.collinear, d, np.inf))
+            gp = (gram - np.outer(g, g)) / np.outer(norm, norm)
+            vp = (v - g * v[i]) / norm
+            det = 1 - gp * gp
+            ex = (vp[:, None] ** 2 + vp[None, :] ** 2 - 2 * gp * vp[:, None] * vp[None, :]) / det
+            ex[(det < options.collinear) | ~np.isfinite(ex)] = -np.inf
+            ex[i, :] = ex[:, i] = -np.inf
+            for a, (sa, ea) in first.items():
+                for b, (sb, eb) in first.items():
+                    if b < a:
+                        continue
+                    block = ex[sa:ea, sb:eb]
+                    if a == b:
+                        block = np.where(np.triu(np.ones_like(block, bool), 1), block, -np.inf)
+                    k = int(np.argmax(block))
+                    if not np.isfinite(block.flat[k]):
+                        continue
+                    j, m = divmod(k, block.shape[1])
+                    key = tuple(sorted((kinds[i], a, b)))
+                    loss = (bb - v[i] ** 2 - block.flat[k]) / n
+                    if key not in triples or loss < triples[key][0]:
+                        triples[key] = (float(loss), (i, sa + j, sb + m))
     best3 = sorted(triples.values())[:options.refine_per_size]
     return out + [(loss, *form_of(idx)) for loss, idx in best3]
 

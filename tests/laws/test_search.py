@@ -20,6 +20,7 @@ from bgn.laws.search import (
     Problem,
     R,
     SearchOptions,
+    _screen,
     complexity,
     expression_spec,
     fit_form,
@@ -218,3 +219,21 @@ def test_a_screened_coulomb_force_is_read_as_minus_the_derivative_of_a_potential
     alone = search_law(r, y, tolerance=1e-6,
                        options=dataclasses.replace(one_term, potentials=False))
     assert alone.chosen is None
+
+
+def test_the_screen_reaches_a_triple_whose_pairs_are_not_the_best():
+    """Born-Mayer-Huggins' force, an exponential and two powers over r in [0.62, 2.5]: the best
+    pair of each two kinds is another law's (r^-8 with exp(-3 r)), so extending the best pairs
+    missed it; every triple screened, its start refines to the law."""
+    truth = (sympy.Rational(10, 3) * sympy.exp((1 - R) / sympy.Rational(3, 20))
+             - 6 / R**7 + sympy.Rational(12, 5) / R**9)
+    r = np.geomspace(0.62, 2.5, 240)
+    y = noisy(truth, r, 0.0)
+    w = relative_weights(r, y, None)
+    pb = Problem(r, y * w, w, float(np.median(r)))
+    power, exponential = 0, 3
+    starts = [start for _, form, start in _screen(pb, SearchOptions())
+              if sorted(p for t in form.terms for p in t) == [power, power, exponential]]
+    assert starts
+    fit = fit_form(Form(None, ((power,), (power,), (exponential,))), pb, starts)
+    assert fit.error < 1e-6, (fit.inner, fit.error)

@@ -53,7 +53,7 @@ import sympy
 from scipy.optimize import least_squares
 
 from bgn.laws.options import DEFAULTS
-from bgn.laws.terms import law_scale
+from bgn.laws.terms import floored_scale, law_scale
 
 R = sympy.Symbol("r", positive=True)
 
@@ -277,13 +277,9 @@ class Problem:
 
 def relative_weights(r: np.ndarray, y: np.ndarray, weight: np.ndarray | None) -> np.ndarray:
     """Each point's weight over its scale, the rule of ``bgn.laws.terms.fit_formula``:
-    ``sqrt(weight / mean weight) / scale``, scale ``law_scale`` floored at
-    ``DEFAULTS.size_floor`` of its value at the weights' median point (r sorted)."""
+    ``sqrt(weight / mean weight) / scale``, scale ``bgn.laws.terms.floored_scale``."""
     share = np.ones_like(r) if weight is None else weight
-    scale = law_scale(r, y)
-    middle = scale[np.searchsorted(np.cumsum(share), share.sum() / 2)]
-    scale = np.maximum(scale, DEFAULTS.size_floor * middle)
-    return np.sqrt(share / share.mean()) / scale
+    return np.sqrt(share / share.mean()) / floored_scale(r, y, share)
 
 
 def _project(form: Form, inner: np.ndarray, pb: Problem) -> tuple[np.ndarray, np.ndarray]:

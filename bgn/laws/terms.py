@@ -117,6 +117,16 @@ def law_scale(r: np.ndarray, y: np.ndarray, smooth: bool = True) -> np.ndarray:
     return np.maximum(size, 1e-12 * (size.max() + 1e-300))
 
 
+def floored_scale(r: np.ndarray, y: np.ndarray, share: np.ndarray) -> np.ndarray:
+    """``law_scale`` floored at ``DEFAULTS.size_floor`` of its value at the weights' median
+    point (r sorted, ``share`` each point's weight): a law far weaker than where most points
+    are (beyond a cut-off) counts in absolute terms, since its relative error there would be
+    the network's noise over nothing."""
+    scale = law_scale(r, y)
+    middle = scale[np.searchsorted(np.cumsum(share), share.sum() / 2)]
+    return np.maximum(scale, DEFAULTS.size_floor * middle)
+
+
 @dataclass
 class Formula:
     """A fitted law ``sum_k a_k term_k(r; c_k)``; ``values`` holds the amplitudes, then one
@@ -307,11 +317,7 @@ def fit_formula(r: np.ndarray, y: np.ndarray, weight: np.ndarray | None = None,
                          f"{len(r)} points, {int((r <= 0).sum())} at r <= 0, "
                          f"{int((~np.isfinite(y)).sum())} not finite")
     if scale is None:
-        scale = law_scale(r, y)
-        # a law far weaker than where most points are (beyond a cut-off) counts in absolute
-        # terms: its relative error there would be the network's noise over nothing
-        middle = scale[np.searchsorted(np.cumsum(share), share.sum() / 2)]
-        scale = np.maximum(scale, DEFAULTS.size_floor * middle)
+        scale = floored_scale(r, y, share)
     w = np.sqrt(share / share.mean()) / scale
     b = y * w
     candidates = _candidates(r, b, w, default_library() if library is None else library,

@@ -8,16 +8,19 @@ distance (and types): the force on particle i from j is ``f(r_ij) u_ij``, ``u_ij
 vector from j to i (positive: repulsive). This package reads that law back, one module per
 job:
 
-- ``terms``: the library of candidate terms and the sparse fit of a formula to a curve;
-- ``search``: a symbolic search over expression trees for the law (``search_law``: the
-  complexity-error front, the choice within a tolerance or "no formula fits"), and
-  ``same_form``, the sympy check of two laws' forms; not yet the formula stage's (it still
-  reads the law with ``terms``);
+- ``search``: the symbolic search over expression trees that reads a law back
+  (``search_law``: the complexity-error front, the choice within a tolerance or "no formula
+  fits"), ``same_form`` (sympy: the same form up to constants) and ``expression_spec`` (a
+  member as the model's law);
+- ``terms``: the relative scale of a law's residuals, and the old term list's fit
+  (``fit_formula``, the baseline the search is measured against);
 - ``sample``: a head's law on a grid of distances, the data's pair distances, the scale;
-- ``compare``: the law read back (``read_law`` -> ``LawReport``) against the true law;
+- ``compare``: the law read back by the search (``read_law`` -> ``LawReport``) against the
+  true law;
 - ``report``: report.md, law.csv, law.json and law.png, the evaluation report's section;
-- ``finetune``: the formula fitted to the frames as the model's law, scored on validation
-  rollouts against the network law (``law_choice``);
+- ``finetune``: the search's front members fitted to the frames as the model's law, the
+  best scored on validation rollouts against the network law (``law_choice``); none where
+  no formula fits;
 - ``stage``: both in a run's ``laws/`` folder (``formula_stage``) and ``model.law=auto``'s
   stage (``law_stage``);
 - ``options``: every setting above, typed (``LawOptions``).

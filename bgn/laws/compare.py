@@ -1,10 +1,12 @@
 """The law read back and compared with the truth (``read_law`` -> ``LawReport``).
 
-``read_law`` -> ``LawReport``: the formula, how masses enter (the head's ``mass_law``),
-relative errors in quantile bands of the data's distances (formula against the learned
-law, and both against the true law where the scene is a built-in one of ``bgn.sim``);
-``against_truth`` scores a fine-tuned formula against the truth. ``bgn.laws.report``
-presents them.
+``read_law`` -> ``LawReport``: each pair of types' learned law read back by the law search
+(``bgn.laws.search.search_law``: its front and the member chosen within the tolerance, or
+"no formula fits"), how masses enter (the head's ``mass_law``), relative errors in quantile
+bands of the data's distances (the pair's formula against the learned law, and both against
+the true law where the scene is a built-in one of ``bgn.sim``); ``against_truth`` scores the
+laws and a fine-tuned formula against the truth (``same_form``: the same form up to
+constants). ``bgn.laws.report`` presents them.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import copy
 import itertools
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,18 +23,33 @@ import sympy
 import torch
 from scipy.stats import gaussian_kde
 
-from bgn.laws.options import DEFAULTS
+from bgn.laws.options import DEFAULTS, LawOptions
 from bgn.laws.sample import calibrate_scale, pair_distances, pair_force_head, sample_law
-from bgn.laws.terms import (
-    Formula,
-    Term,
-    fit_formula,
-    law_scale,
-    refine_constants,
-    relative_residual,
-)
+from bgn.laws.search import Member, R, SearchResult, constant_difference, same_form, search_law
+from bgn.laws.terms import law_scale
 
-TRUE_LAWS = {"spring": "-2*(s - 1)", "r1": "-1/s", "r2": "-1/s**2"}  # f = -dphi/ds, s = r + eps
+# f = -dphi/ds, s = r + eps: each law's family, its amplitude A (the softening eps a constant
+# of the family where the scene has one), and A's value
+TRUE_LAWS = {"spring": "-A*(s - 1)", "r1": "-A/s", "r2": "-A/s**2"}
+TRUE_AMPLITUDES = {"spring": 2, "r1": 1, "r2": 1}
+_A, _EPS = sympy.Symbol("A", real=True), sympy.Symbol("eps", real=True)
+
+
+def true_family(scene: Any) -> tuple[sympy.Expr, dict[str, float]] | None:
+    """The built-in scene's law (``true_law``) as a family in ``R``: its constants as symbols
+    (the amplitude ``A``; the softening ``eps`` where the scene has one) and their values by
+    name; None for a scene without a simulator. ``same_form`` judges a law against it."""
+    from bgn.sim.nbody import NBodyScene
+
+    if not isinstance(scene, NBodyScene):
+        return None
+    soft = float(scene.softening)
+    expr = sympy.sympify(TRUE_LAWS[scene.potential], locals={"A": _A}).subs(
+        "s", R + (_EPS if soft else 0))
+    values = {"A": float(TRUE_AMPLITUDES[scene.potential])}
+    if soft:
+        values["eps"] = soft
+    return expr, values
 
 
 def true_law(scene: Any) -> tuple[sympy.Expr, str] | None:
@@ -42,9 +60,8 @@ def true_law(scene: Any) -> tuple[sympy.Expr, str] | None:
 
     if not isinstance(scene, NBodyScene):
         return None
-    r = sympy.Symbol("r", positive=True)
-    expr = sympy.sympify(TRUE_LAWS[scene.potential]).subs(
-        "s", r + sympy.nsimplify(scene.softening))
+    expr = sympy.sympify(TRUE_LAWS[scene.potential], locals={"A": _A}).subs(
+        {"s": R + sympy.nsimplify(scene.softening)}).subs(_A, TRUE_AMPLITUDES[scene.potential])
     # how masses enter: the receiver's acceleration with a heavier source, a heavier receiver
     pos = np.array([[[0.0] * scene.dim, [1.5] + [0.0] * (scene.dim - 1)]])
     unit = scene.accelerations(pos, np.ones(2))[0, 1, 0]
@@ -78,22 +95,36 @@ SCALE_TEXT = {
 
 @dataclass
 class PairLaw:
-    """The law of one pair of types: the grid, the learned law (physical scale), the
-    formula, the truth (or None), the data's distance histogram and the band errors."""
+    """The law of one pair of types: the grid, the learned law (physical scale), the law
+    search's result (``search``: its front and the member chosen, or none), the truth (or
+    None), the data's distance histogram and the band errors. ``formula`` is the pair's ONE
+    formula, which the report, the figure, the bands and ``against_truth`` all read."""
 
     types: tuple[int, int]
     r: np.ndarray
     learned: np.ndarray
-    formula: Formula
+    search: SearchResult
     truth: np.ndarray | None
-    density: np.ndarray        # the data's density of log r on the grid: the fit's weights
+    density: np.ndarray        # the data's density of log r on the grid: the search's weights
     hist_edges: np.ndarray
     hist_counts: np.ndarray
     bands: list[dict[str, Any]]
     n_distances: int
+    # the formula against the truth's family (``judge_form``), where the truth is known
     truth_in_form: dict[str, Any] | None = None
     # the training distances at DEFAULTS.distance_quantiles: where the data reach (negligible_term)
     reach: np.ndarray | None = None
+
+    @property
+    def chosen(self) -> bool:
+        """Whether a formula fits: the search chose a member within its tolerance."""
+        return self.search.chosen is not None
+
+    @property
+    def formula(self) -> Member:
+        """The member chosen, or where no formula fits the front's most accurate member (not
+        chosen: ``chosen`` is False, and the report says so)."""
+        return self.search.chosen if self.search.chosen is not None else self.search.front[-1]
 
 
 @dataclass
@@ -110,24 +141,32 @@ class LawReport:
     pairs: list[PairLaw]
     truth_text: str | None = None
     truth_masses: str | None = None
+    # the truth's family (``true_family``) as text in r and its constants, and their values
+    truth_family: str | None = None
+    truth_constants: dict[str, float] | None = None
+
+    @property
+    def outcome(self) -> str:
+        """"formula" where every pair of types' law has a formula, else "no formula fits"."""
+        return "formula" if all(p.chosen for p in self.pairs) else "no formula fits"
 
 
 def relative_error(a: np.ndarray, b: np.ndarray, r: np.ndarray) -> np.ndarray:
     return np.abs(a - b) / law_scale(r, b, smooth=False)
 
 
-def _bands(head: Any, dim: int, types: tuple[int, int], distances: np.ndarray, factor: float,
-           formula: Formula, truth: sympy.Expr | None) -> list[dict[str, Any]]:
+def _bands(law: Callable[[np.ndarray], np.ndarray], distances: np.ndarray, formula: Member,
+           truth: sympy.Expr | None) -> list[dict[str, Any]]:
     """Median and largest relative errors in quantile bands of the data's distances, on 48
-    log-spaced points in each band."""
+    log-spaced points in each band: the formula against the learned ``law``, and both
+    against the ``truth`` (numbers for its constants) where known."""
     edges = np.quantile(distances, DEFAULTS.band_quantiles)
-    truth_f = None if truth is None else sympy.lambdify(sympy.Symbol("r", positive=True),
-                                                        truth, "numpy")
+    truth_f = None if truth is None else sympy.lambdify(R, truth, "numpy")
     rows = []
     for (q0, q1), (lo, hi) in zip(itertools.pairwise(DEFAULTS.band_quantiles),
                                   itertools.pairwise(edges)):
         r = np.geomspace(lo, max(hi, lo * (1 + 1e-9)), 48)
-        learned = factor * sample_law(head, r, dim, types)
+        learned = law(r)
         fitted = formula(r)
         row = {"quantiles": [q0, q1], "r": [float(lo), float(hi)],
                "formula_vs_learned": _stats(relative_error(fitted, learned, r))}
@@ -154,11 +193,56 @@ def log_density(distances: np.ndarray, r: np.ndarray) -> np.ndarray:
     return density / density.mean()
 
 
-def read_law(module_or_model: Any, dataset: Any, max_terms: int = DEFAULTS.max_terms,
-             tolerance: float = DEFAULTS.tolerance, parsimony: float = DEFAULTS.parsimony,
-             ) -> LawReport:
-    """The learned pair law of a model with a pair-force head as a formula, over the
-    distances of ``dataset`` (a ``FrameDataset``: the training split); see the module doc."""
+def _truth_symbols(constants: dict[str, float]) -> dict[str, Any]:
+    return {"r": R, **{name: sympy.Symbol(name, real=True) for name in constants}}
+
+
+def judge_form(found: sympy.Expr, family: sympy.Expr, constants: dict[str, float],
+               r: np.ndarray) -> dict[str, Any]:
+    """A found law (constants as numbers) against the truth's ``family`` (its ``constants``
+    by name) over the distances ``r``: whether it is the same form up to constants
+    (``same_form``), and where it is, the largest relative difference of its constants from
+    the truth's in its own family (``constant_difference``: the found family fitted to the
+    truth); NaN where the form differs (another form's constants are not the truth's)."""
+    symbols = {sympy.Symbol(name, real=True): v for name, v in constants.items()}
+    same = same_form(found, family, r, symbols)
+    return {"same_form": bool(same),
+            "constants_vs_truth": (constant_difference(found, family.subs(symbols), r) if same
+                                   else math.nan)}
+
+
+def read_pair(types: tuple[int, int], distances: np.ndarray,
+              law: Callable[[np.ndarray], np.ndarray], options: LawOptions = DEFAULTS,
+              truth: tuple[sympy.Expr, dict[str, float]] | None = None) -> PairLaw:
+    """One pair of types' learned ``law`` (a function of physical distances, in physical
+    units) read back over the data's ``distances`` of that pair: sampled on
+    ``options.grid_points`` log-spaced distances over them, each weighted by the data's
+    density of log r, and searched (``search_law`` within ``options.tolerance``, with
+    ``options.search``); ``truth``: the true law's family and constants (``true_family``),
+    which the formula is judged against (``judge_form``)."""
+    r = np.geomspace(distances.min(), distances.max(), options.grid_points)
+    density = log_density(distances, r)
+    learned = law(r)
+    found = search_law(r, learned, density, options.tolerance, options.search)
+    true, numeric = None, None
+    if truth is not None:
+        numeric = truth[0].subs({sympy.Symbol(k, real=True): v for k, v in truth[1].items()})
+        true = np.broadcast_to(np.asarray(sympy.lambdify(R, numeric, "numpy")(r), np.float64),
+                               r.shape).copy()
+    edges = np.geomspace(distances.min(), distances.max(), 61)
+    pair = PairLaw(types, r, learned, found, true, density, edges,
+                   np.histogram(distances, edges)[0], [], len(distances), None,
+                   np.quantile(distances, DEFAULTS.distance_quantiles))
+    pair.bands = _bands(law, distances, pair.formula, numeric)
+    if truth is not None:
+        pair.truth_in_form = judge_form(pair.formula.expr, truth[0], truth[1], r)
+    return pair
+
+
+def read_law(module_or_model: Any, dataset: Any, options: LawOptions = DEFAULTS) -> LawReport:
+    """The learned pair law of a model with a pair-force head read back by the law search,
+    over the distances of ``dataset`` (a ``FrameDataset``: the training split), each pair of
+    types by ``read_pair``; see the module doc."""
     model, head = pair_force_head(module_or_model)
     head = copy.deepcopy(head).double().eval()  # the law in float64: smooth to the last digit
     dim = dataset.meta.dim
@@ -168,31 +252,19 @@ def read_law(module_or_model: Any, dataset: Any, max_terms: int = DEFAULTS.max_t
     k, error = calibrate_scale(head, _as_double(dataset))
     factor = 1.0 if pinned else k  # the scale the head does not pin, from the data
     truth = true_law(dataset.scene)
-    pairs = []
-    for types, distances in pair_distances(dataset).items():
-        r = np.geomspace(distances.min(), distances.max(), DEFAULTS.grid_points)
-        density = log_density(distances, r)
-        learned = factor * sample_law(head, r, dim, types)
-        formula = fit_formula(r, learned, density, max_terms=max_terms, tolerance=tolerance,
-                              parsimony=parsimony)
-        true = None
-        in_form = None
-        if truth is not None:
-            truth_f = sympy.lambdify(sympy.Symbol("r", positive=True), truth[0], "numpy")
-            true = np.broadcast_to(np.asarray(truth_f(r), np.float64), r.shape).copy()
-            in_form = _in_form(formula, r, density, true)
-        edges = np.geomspace(distances.min(), distances.max(), 61)
-        pairs.append(PairLaw(
-            types, r, learned, formula, true, density, edges, np.histogram(distances, edges)[0],
-            _bands(head, dim, types, distances, factor, formula,
-                   None if truth is None else truth[0]), len(distances), in_form,
-            np.quantile(distances, DEFAULTS.distance_quantiles)))
+    family = true_family(dataset.scene)
+    pairs = [read_pair(types, distances,
+                       lambda r, types=types: factor * sample_law(head, r, dim, types),
+                       options, family)
+             for types, distances in pair_distances(dataset).items()]
     return LawReport(
         scene=dataset.meta.name, model=getattr(model, "name", type(model).__name__),
         mass_law=head.mass_law, scale=scale,
         scale_factor=k, calibration_error=error, length_scale=float(head.length_scale),
         pairs=pairs, truth_text=None if truth is None else sympy.sstr(truth[0]),
-        truth_masses=None if truth is None else truth[1])
+        truth_masses=None if truth is None else truth[1],
+        truth_family=None if family is None else sympy.sstr(family[0]),
+        truth_constants=None if family is None else dict(family[1]))
 
 
 def _as_double(dataset: Any) -> Any:
@@ -211,46 +283,31 @@ def _as_double(dataset: Any) -> Any:
     return Double()
 
 
-def _in_form(formula: Formula, r: np.ndarray, density: np.ndarray, y: np.ndarray,
-             ) -> dict[str, Any]:
-    """The truth ``y`` (at ``r``) fitted in the formula's own terms (same weights): its
-    constants beside the formula's and its relative residual there (about 0: the form is the
-    truth's)."""
-    w = np.sqrt(density / density.mean()) / law_scale(r, y, smooth=False)
-    values, _ = refine_constants(formula.terms, r, y, w, formula.values)
-    res = relative_residual(formula.terms, r, y, w, values)
-    return {"values": [float(v) for v in values],
-            "relative_difference": [float(abs(a - b) / abs(b)) if b else float("inf")
-                                    for a, b in zip(formula.values, values)],
-            "residual_rms": float(np.sqrt(np.mean(res * res))),
-            "residual_max": float(np.max(np.abs(res)))}
+def spec_law(pair: dict[str, Any]) -> Callable[[np.ndarray], np.ndarray]:
+    """One pair of a ``model.law_formula`` spec as a function of distances (numpy)."""
+    from bgn.model.formula_law import pair_expression
 
-
-def spec_formula(pair: dict[str, Any]) -> Formula:
-    """One pair of types of a ``model.law_formula`` spec (``pair_spec``'s entry) as a
-    ``Formula`` (no error estimates)."""
-    terms = [Term(t["kind"], t["power"]) for t in pair["terms"]]
-    values = np.array([t["a"] for t in pair["terms"]]
-                      + [t["c"] for t in pair["terms"] if Term(t["kind"], t["power"]).nonlinear],
-                      dtype=np.float64)
-    zeros = np.zeros_like(values)
-    return Formula(terms, values, zeros, zeros, 0.0, len(values))
+    fn = sympy.lambdify(R, pair_expression(pair), "numpy")
+    return lambda r: np.broadcast_to(np.asarray(fn(r), np.float64), np.shape(r))
 
 
 def against_truth(report: LawReport, tuned: list[dict[str, Any]] | None = None,
                   ) -> dict[str, Any]:
     """How far the laws are from the scene's true law at every training distance (empty
-    where the truth is unknown): the largest relative error (``relative_error``) of the network's
-    law, of the formula read back from it and of the ``tuned`` spec (the formula fitted to
-    the frames, ``finetune_formula``'s ``tuned``) over the grid of the training pairs'
-    distances (``<law>_max``: all of them; ``<law>_max_1_99``: between their 1st and 99th
-    percentiles), the worst over the pairs of types. For the tuned formula also whether its
-    form is the truth's (``tuned_form_is_truth``: the truth fitted in its terms leaves a
-    relative residual below ``DEFAULTS.truth_form``; 1 or 0) and the largest relative difference of
-    its constants from the truth's in that form (``tuned_constants_vs_truth``)."""
-    if report.truth_text is None:
+    where the truth is unknown): the largest relative error (``relative_error``) of the
+    network's law, of the formula read back from it (``PairLaw.formula``) and of the ``tuned``
+    spec (the formula fitted to the frames, ``finetune_formula``'s ``tuned``) over the grid of
+    the training pairs' distances (``<law>_max``: all of them; ``<law>_max_1_99``: between
+    their 1st and 99th percentiles), the worst over the pairs of types. For the read-back and
+    the tuned formula also whether the form is the truth's (``<law>_form_is_truth``: the same
+    form up to constants, ``judge_form``, for every pair of types; 1 or 0) and where it is,
+    the largest relative difference of its constants from the truth's in its own family
+    (``<law>_constants_vs_truth``; NaN where the form is not the truth's)."""
+    if report.truth_text is None or report.truth_family is None:
         return {}
-    tuned_by_types = {tuple(p["types"]): spec_formula(p) for p in tuned or []}
+    constants = report.truth_constants or {}
+    family = sympy.sympify(report.truth_family, locals=_truth_symbols(constants))
+    tuned_by_types = {tuple(sorted(p["types"])): p for p in tuned or []}
     out: dict[str, Any] = {}
 
     def worst(key: str, value: float) -> None:
@@ -261,19 +318,23 @@ def against_truth(report: LawReport, tuned: list[dict[str, Any]] | None = None,
         lo, hi = (pair.reach[0], pair.reach[-1]) if pair.reach is not None else (r[0], r[-1])
         inner = (r >= lo) & (r <= hi)
         laws = {"network": pair.learned, "read_back": pair.formula(r)}
-        formula = tuned_by_types.get(tuple(pair.types))
-        if formula is not None:
-            laws["tuned"] = formula(r)
-            in_form = _in_form(formula, r, pair.density, true)
-            worst("tuned_form_is_truth_residual", in_form["residual_max"])
-            worst("tuned_constants_vs_truth", max(in_form["relative_difference"]))
+        forms = {"read_back": pair.formula.expr}
+        spec = tuned_by_types.get(tuple(sorted(pair.types)))
+        if spec is not None:
+            from bgn.model.formula_law import pair_expression
+
+            laws["tuned"] = spec_law(spec)(r)
+            forms["tuned"] = pair_expression(spec)
+        for name, expr in forms.items():
+            judged = judge_form(expr, family, constants, r)
+            out[f"{name}_form_is_truth"] = min(out.get(f"{name}_form_is_truth", 1.0),
+                                               float(judged["same_form"]))
+            worst(f"{name}_constants_vs_truth", judged["constants_vs_truth"])
         for name, values in laws.items():
             err = relative_error(values, true, r)
             worst(f"{name}_max", float(err.max()))
             worst(f"{name}_max_1_99", float(err[inner].max()) if inner.any() else math.nan)
-    if "tuned_form_is_truth_residual" in out:
-        out["tuned_form_is_truth"] = float(out["tuned_form_is_truth_residual"]
-                                           < DEFAULTS.truth_form)
-        if not out["tuned_form_is_truth"]:  # constants of another form are not the truth's
-            out["tuned_constants_vs_truth"] = math.nan
+    for name in ("read_back", "tuned"):  # another form's constants are not the truth's
+        if out.get(f"{name}_form_is_truth") == 0.0:
+            out[f"{name}_constants_vs_truth"] = math.nan
     return out

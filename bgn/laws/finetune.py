@@ -1,16 +1,18 @@
 """The formula fitted to the frames as the model's law (``finetune_formula``).
 
 ``finetune=true`` (``finetune_formula``): the formula as the model's law (``model.law=formula``,
-``model.law_formula``: ``formula_spec``'s JSON, ``bgn.model.formula_law``). Every form on
-the fit's front, every one-term form of the library and every nonlinear term twice
-(``candidate_specs``) has its constants fitted to the frames (``tune_constants``:
-Nelder-Mead on the head's law loss under a Cauchy loss, ``law_objective``, through
-``model.substeps``: a frame's finite-difference target averages the force over the frame)
-and is pruned of the terms the frames do not need (``prune_terms``); the lowest loss wins,
-and its constants are polished through finer substeps (``polish_constants``). The network
-law and the formula are then scored on the validation rollouts (``bgn.studies.auto``'s
-protocol) and the better chosen; ``<run>/laws/formula.ckpt`` (with its
-``train_config.yaml``) loads as any checkpoint. ``model.law=auto`` runs this after training
+``model.law_formula``: expression pairs, ``bgn.laws.search.expression_spec``, evaluated by
+``bgn.model.formula_law``). The law search's front members (``candidate_specs``: the member
+chosen first, then the others simplest first, at most ``LawOptions.finetune_members``) each
+have their constants fitted to the frames (``tune_constants``: Nelder-Mead on the head's law
+loss under a Cauchy loss, ``law_objective``, through ``model.substeps``: a frame's
+finite-difference target averages the force over the frame); the lowest loss wins, the
+simplest within ``form_tolerance`` of it, and its constants are polished through finer
+substeps (``polish_constants``). The network law and the formula are then scored on the
+validation rollouts (``bgn.studies.auto``'s protocol) and the better chosen;
+``<run>/laws/formula.ckpt`` (with its ``train_config.yaml``) loads as any checkpoint. Where
+no formula fits the learned law (the search chose no member), nothing is tuned: the network
+law is kept and the record says so (``outcome``). ``model.law=auto`` runs this after training
 (``bgn.laws.stage.law_stage``).
 """
 
@@ -31,28 +33,17 @@ from scipy.optimize import minimize
 from bgn.laws.compare import LawReport, against_truth, read_law
 from bgn.laws.options import DEFAULTS
 from bgn.laws.sample import calibrate_scale, pair_distances, pair_force_head
-from bgn.laws.terms import Term, default_library, fit_formula
+from bgn.laws.search import expression_spec
 from bgn.training.budget import NO_DEADLINE, Deadline, OutOfTime, check, clock_text
 
 log = logging.getLogger("bgn.train")
 
 
 def formula_spec(report: LawReport) -> str:
-    """The report's formulas as ``model.law_formula`` (``bgn.model.formula_law``'s format: a
-    JSON list of pairs of types, each with its terms: kind, power, amplitude a, constant c),
-    in physical units: the head with ``model.law=formula`` evaluates this law."""
-    return json.dumps([pair_spec(pair.types, pair.formula.terms, pair.formula.values)
-                       for pair in report.pairs])
-
-
-def pair_spec(types: tuple[int, int], terms: list[Term], values: np.ndarray) -> dict[str, Any]:
-    """One pair of types' entry of a ``model.law_formula`` spec: ``values`` the amplitudes,
-    then one constant c per nonlinear term."""
-    cs = iter(float(c) for c in values[len(terms):])
-    return {"types": [int(t) for t in types], "terms": [
-        {"kind": t.kind, "power": float(t.power), "a": float(a),
-         "c": next(cs) if t.nonlinear else None}
-        for t, a in zip(terms, values[:len(terms)])]}
+    """The report's formulas (each pair's ``PairLaw.formula``) as ``model.law_formula``: a JSON
+    list of expression pairs (``bgn.laws.search.expression_spec``; ``bgn.model.formula_law``'s
+    format), in physical units: the head with ``model.law=formula`` evaluates this law."""
+    return json.dumps([expression_spec(pair.formula, pair.types) for pair in report.pairs])
 
 
 def formula_module(checkpoint: Path, spec: str, substeps: int) -> Any:
@@ -179,33 +170,29 @@ class _Budget(Exception):
 
 
 def n_constants(spec: str | list[dict[str, Any]]) -> int:
-    """Amplitudes and constants c of a ``model.law_formula`` spec."""
+    """Amplitudes and constants c of a ``model.law_formula`` spec, and the constants of its
+    expression pairs."""
     pairs = json.loads(spec) if isinstance(spec, str) else spec
-    return sum(1 + (t.get("c") is not None) for p in pairs for t in p["terms"])
+    return sum(len(p.get("constants", {})) if "expr" in p
+               else sum(1 + (t.get("c") is not None) for t in p["terms"]) for p in pairs)
 
 
-def candidate_specs(report: LawReport) -> list[str]:
-    """The forms the fine-tuning starts from: the formula read back, then (one pair of types
-    only) every other formula on its fit's front, every one-term form of the library with a
-    constant c, and every such term twice (``twice_form``), each fitted to the learned law.
-    The network's law can be off where the frames pin the form (gravity's close encounters),
-    so a form the fit passed over may fit the frames best."""
-    specs = [formula_spec(report)]
-    if len(report.pairs) != 1:
-        return specs
-    pair = report.pairs[0]
-    forms = list(pair.formula.alternatives)
-    nonlinear = [term for term in default_library() if term.nonlinear]
-    for term in nonlinear:  # (the fitter needs a linear term beside it: a constant)
-        one = fit_formula(pair.r, pair.learned, pair.density, max_terms=1,
-                          library=[Term("const"), term], n_boot=0)
-        forms += [(t, v) for t, v in one.alternatives if t == [term]]
-    forms += [form for term in nonlinear if (form := twice_form(pair, term)) is not None]
-    for terms, values in forms:
-        spec = json.dumps([pair_spec(pair.types, terms, values)])
-        if spec not in specs:
-            specs.append(spec)
-    return specs
+def candidate_specs(report: LawReport, limit: int = DEFAULTS.finetune_members,
+                    ) -> list[tuple[str, int]]:
+    """The forms the fine-tuning starts from, each with its complexity (the search's node
+    count): the formula read back (the member each pair of types' search chose), then (one
+    pair of types only) the other members of its front, simplest first, at most ``limit`` in
+    all. The network's law can be off where the frames pin the form (gravity's close
+    encounters), so a member the search passed over may fit the frames best. Empty where no
+    formula fits (a pair's search chose none): there is no formula to tune."""
+    if report.outcome != "formula":
+        return []
+    starts = [(formula_spec(report), sum(p.formula.complexity for p in report.pairs))]
+    if len(report.pairs) == 1:
+        pair = report.pairs[0]
+        starts += [(json.dumps([expression_spec(m, pair.types)]), m.complexity)
+                   for m in pair.search.front if m is not pair.formula]
+    return starts[:max(1, limit)]
 
 
 def negligible_term(spec: str, reach: np.ndarray | None) -> int | None:
@@ -219,7 +206,7 @@ def negligible_term(spec: str, reach: np.ndarray | None) -> int | None:
     from bgn.model.formula_law import FormulaLaw
 
     pairs = json.loads(spec)
-    if reach is None or len(reach) == 0 or len(pairs) != 1 or len(pairs[0]["terms"]) < 2:
+    if reach is None or len(reach) == 0 or not _term_pair(pairs):
         return None
     r = torch.as_tensor(reach, dtype=torch.float64)
     with torch.no_grad():
@@ -242,7 +229,7 @@ def turning_term(spec: str, floor: float | None) -> int | None:
     from bgn.model.formula_law import FormulaLaw
 
     pairs = json.loads(spec)
-    if floor is None or not floor > 0 or len(pairs) != 1 or len(pairs[0]["terms"]) < 2:
+    if floor is None or not floor > 0 or not _term_pair(pairs):
         return None
     r = torch.as_tensor(floor * DEFAULTS.below_floor, dtype=torch.float64)
     with torch.no_grad():
@@ -256,19 +243,10 @@ def turning_term(spec: str, floor: float | None) -> int | None:
     return int(np.argmax(np.where(against, np.abs(values[turned[0]]), -np.inf)))
 
 
-def twice_form(pair: Any, term: Term) -> tuple[list[Term], np.ndarray] | None:
-    """``term`` twice, each with its own c (Morse: two exponentials), fitted to ``pair``'s
-    learned law in absolute terms: relative residuals are set by the many pairs where the law
-    is near zero (beyond a cut-off), as the frames' loss is not, and there the fit collapses
-    to one scale. None where the two amplitudes cancel to ``DEFAULTS.cancelling`` of the larger: a
-    finite difference of one term (its derivative in c), not two scales of the law."""
-    fit = fit_formula(pair.r, pair.learned, pair.density, max_terms=2,
-                      library=[Term("const"), term], scale=np.ones_like(pair.r), n_boot=0)
-    for terms, values in fit.alternatives:
-        a = np.abs(values[:2])
-        if terms == [term, term] and abs(values[0] + values[1]) > DEFAULTS.cancelling * a.max():
-            return terms, values
-    return None
+def _term_pair(pairs: list[dict[str, Any]]) -> bool:
+    """Whether a spec is one pair of types given as two or more terms (the term kinds of
+    ``bgn.model.formula_law``): the only spec whose terms can be pruned (``prune_terms``)."""
+    return len(pairs) == 1 and "terms" in pairs[0] and len(pairs[0]["terms"]) >= 2
 
 
 def drop_term(spec: str, k: int) -> str:
@@ -284,10 +262,16 @@ def prune_terms(tune: Callable[[str], tuple[float, Any, Any, str]], loss: float,
     distances the data ``reach``) or one that turns the law's sign below the ``floor`` of the
     training distances (``turning_term``) is dropped, the rest tuned again, whatever the loss;
     else a term is dropped while the loss rises by at most ``DEFAULTS.form_tolerance``: a term the
-    network's law needed in its tails (where the frames barely pin it) goes."""
+    network's law needed in its tails (where the frames barely pin it) goes.
+
+    Only a spec of terms (a ``start`` given so) is pruned; an expression pair (a member of the
+    law search's front) is not: the search's clean-up already dropped each term whose removal
+    kept the error within its ``clean_factor``, and a tree's top-level sum is not its terms (a
+    common factor, or a potential's derivative by the product rule, mixes them), so dropping
+    sympy's addends would make forms the grammar does not hold."""
     while True:
         pairs = json.loads(spec)
-        if len(pairs) != 1 or len(pairs[0]["terms"]) < 2:
+        if not _term_pair(pairs):
             return loss, module, hp, spec
         drop = negligible_term(spec, reach)
         if drop is None:
@@ -306,8 +290,9 @@ def prune_terms(tune: Callable[[str], tuple[float, Any, Any, str]], loss: float,
 
 def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], steps: int,
                    deadline: Deadline | None) -> tuple[float, int]:
-    """The constants of ``head``'s formula law fitted in place to ``law_objective`` on the
-    weighted ``batches``, derivative-free (Nelder-Mead, at most ``steps`` evaluations): the
+    """The constants of ``head``'s formula law (the terms' amplitudes and c's, the expression
+    pairs' constants) fitted in place to ``law_objective`` on the weighted ``batches``,
+    derivative-free (Nelder-Mead, at most ``steps`` evaluations): the
     law's loss through the substeps of the closest encounters is smooth at the scale of the
     constants' errors but rough at a quasi-Newton step's (its gradient jumps), where L-BFGS
     stalls. A trial point where the loss is not finite counts as infinitely worse (a form
@@ -317,14 +302,20 @@ def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], step
     from bgn.model.formula_law import NONLINEAR
 
     law = head.force_law
-    nonlinear = torch.tensor([k in NONLINEAR for k in law.kinds])
+    nonlinear = torch.tensor([k in NONLINEAR for k in law.kinds], dtype=torch.bool)
+    n_a, n_c = len(law.kinds), int(nonlinear.sum())
+    # x: the terms' amplitudes and log c's, then the expression pairs' constants (each
+    # relative to its spec value, as the amplitudes are: a relative step)
+    expressions = law.constant if law.expressions else None
     best: list[Any] = [math.inf, None]
     count = [0]
 
     def place(x: np.ndarray) -> None:
         with torch.no_grad():
-            law.amplitude.copy_(torch.as_tensor(x[:len(law.kinds)]))
-            law.log_c[nonlinear] = torch.as_tensor(x[len(law.kinds):], dtype=law.log_c.dtype)
+            law.amplitude.copy_(torch.as_tensor(x[:n_a]))
+            law.log_c[nonlinear] = torch.as_tensor(x[n_a:n_a + n_c], dtype=law.log_c.dtype)
+            if expressions is not None:
+                expressions.copy_(torch.as_tensor(x[n_a + n_c:], dtype=expressions.dtype))
 
     def objective(x: np.ndarray) -> float:
         if count[0] >= steps:
@@ -343,11 +334,12 @@ def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], step
             best[:] = [loss, x.copy()]
         return loss
 
-    x0 = np.concatenate([law.amplitude.detach().numpy(),
-                         law.log_c.detach()[nonlinear].numpy()]).astype(np.float64)
-    simplex = np.vstack([x0, x0 + np.diag(np.where(np.arange(len(x0)) < len(law.kinds),
-                                                   DEFAULTS.amplitude_step,
-                                                   math.log(DEFAULTS.c_step)))])
+    x0 = np.concatenate([law.amplitude.detach().numpy(), law.log_c.detach()[nonlinear].numpy(),
+                         np.zeros(0) if expressions is None
+                         else expressions.detach().numpy()]).astype(np.float64)
+    step = np.full(len(x0), DEFAULTS.amplitude_step)
+    step[n_a:n_a + n_c] = math.log(DEFAULTS.c_step)
+    simplex = np.vstack([x0, x0 + np.diag(step)])
     try:
         minimize(objective, x0, method="Nelder-Mead",
                  options={"initial_simplex": simplex, "maxfev": steps, "xatol": 1e-3,
@@ -404,7 +396,8 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
                      val_sims: int | None = None, out_dir: Path | None = None,
                      seed: int = 0, start: str | None = None,
                      max_seconds: float | None = None,
-                     deadline: Deadline | None = None) -> dict[str, Any]:
+                     deadline: Deadline | None = None,
+                     members: int = DEFAULTS.finetune_members) -> dict[str, Any]:
     """The fitted formula as the model's law, its constants fine-tuned end to end: the
     checkpoint's model with ``law=formula`` (``formula_module``), the law's constants alone
     fitted by Nelder-Mead (``steps`` evaluations) to the head's own loss (``law_objective``)
@@ -418,6 +411,9 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     and one is kept (``law_choice``: the fewer failed rollouts, then the lower mean error
     after the horizon, a failed rollout at the cap).
     ``out_dir``: writes ``formula.ckpt`` (loadable as any checkpoint) and ``formula.json``.
+    The forms tuned: the law search's front members (``candidate_specs``, at most
+    ``members``); where no formula fits (the search chose no member for a pair of types)
+    nothing is tuned or rolled out and the network law is kept (``no_formula_record``).
     ``start``: a spec to start from in place of the law read back (tests). The fit is
     bounded by its evaluation count (``steps`` per form); ``deadline`` (the job's wall-clock
     cap, ``bgn.training.budget``) and ``max_seconds`` (from now) stop it earlier, and the
@@ -428,9 +424,13 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     choice)."""
     from bgn.training.module import load_model
 
+    if start is None and report is not None and report.outcome != "formula":
+        return no_formula_record(checkpoint, report)
     network = load_model(checkpoint)
     if start is None and report is None:
         report = read_law(network, train_split)
+        if report.outcome != "formula":
+            return no_formula_record(checkpoint, report)
     batches = tuning_batches(train_split, batch_size, seed)
     reach, floor = _data_reach(report, train_split)
     job = deadline or NO_DEADLINE  # the validation rollouts' (max_seconds bounds the fit)
@@ -451,7 +451,8 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
                  evaluations[1], n, loss, clock_text(time.monotonic() - began))
         return loss, module, hp, head.force_law.spec()
 
-    starts = [start] if start is not None else candidate_specs(report)
+    starts = ([(start, n_constants(start))] if start is not None
+              else candidate_specs(report, members))
     forms = _tuned_forms(tune, starts, checkpoint, substeps, reach, floor)
     form = _chosen_form(forms)
     module, hp = form["module"], form["hp"]
@@ -497,10 +498,13 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
                     "(trainer.max_time): the network law is kept; raise trainer.max_time to "
                     "compare the formula")
     hp["model_config"] = {**hp["model_config"], "substeps": head.substeps}
-    record = {"checkpoint": str(checkpoint), "substeps": substeps,
+    record = {"checkpoint": str(checkpoint), "outcome": "formula",
+              "tolerance": None if report is None else report.pairs[0].search.tolerance,
+              "substeps": substeps,
               "steps": evaluations[0], "tunings": evaluations[1], "batch_size": batch_size,
               "budget": budget,
-              "forms": [{k: f[k] for k in ("start", "tuned", "loss", "constants")}
+              "forms": [{k: f[k] for k in ("start", "tuned", "loss", "constants",
+                                           "complexity")}
                         for f in forms],
               "rollout_substeps": head.substeps,
               "formula_by_substeps": {str(k): v for k, v in by_substeps.items()},
@@ -530,38 +534,62 @@ def _data_reach(report: LawReport | None, train_split: Any) -> tuple[Any, float 
     return reach, floor
 
 
-def _tuned_forms(tune: Callable[[str], tuple[float, Any, Any, str]], starts: list[str],
-                 checkpoint: Path, substeps: int, reach: Any,
+def _tuned_forms(tune: Callable[[str], tuple[float, Any, Any, str]],
+                 starts: list[tuple[str, int]], checkpoint: Path, substeps: int, reach: Any,
                  floor: float | None) -> list[dict[str, Any]]:
-    """Every candidate form, each tuned on the frames (``tune``) and pruned of the terms the
-    frames do not need, until the budget runs out; with no time for even one evaluation, the
-    form read back, untuned, less the terms that turn it below the data (``turning_term``
-    needs no evaluation)."""
+    """Every candidate form (a spec and its complexity), each tuned on the frames (``tune``)
+    and, a spec of terms, pruned of the terms the frames do not need (``prune_terms``), until
+    the budget runs out; with no time for even one evaluation, the first form, untuned, less
+    the terms that turn it below the data (``turning_term`` needs no evaluation)."""
     forms = []
-    for spec in starts:
+    for spec, size in starts:
         try:
             loss, module, hp, tuned = tune(spec)
             loss, module, hp, tuned = prune_terms(tune, loss, module, hp, tuned, reach, floor)
         except _Budget:
             break
+        pruned = n_constants(tuned) < n_constants(spec)  # a term spec's complexity: constants
         forms.append({"start": json.loads(spec), "tuned": json.loads(tuned), "loss": loss,
-                      "constants": n_constants(tuned), "module": module, "hp": hp})
+                      "constants": n_constants(tuned),
+                      "complexity": n_constants(tuned) if pruned else size,
+                      "module": module, "hp": hp})
     if not forms:
-        spec = starts[0]
+        spec = starts[0][0]
         while (drop := turning_term(spec, floor)) is not None:
             spec = drop_term(spec, drop)
         module, hp = formula_module(checkpoint, spec, substeps)
-        forms.append({"start": json.loads(starts[0]), "tuned": json.loads(spec),
+        forms.append({"start": json.loads(starts[0][0]), "tuned": json.loads(spec),
                       "loss": math.nan, "constants": n_constants(spec),
+                      "complexity": (starts[0][1] if spec == starts[0][0]
+                                     else n_constants(spec)),
                       "module": module, "hp": hp})
     return forms
 
 
 def _chosen_form(forms: list[dict[str, Any]]) -> dict[str, Any]:
-    """The lowest loss wins, the fewest constants among those within ``DEFAULTS.form_tolerance``."""
+    """The lowest loss wins, the simplest among those within ``DEFAULTS.form_tolerance`` (the
+    least complexity: the search's node count of a front member; then the fewest constants)."""
     lowest = min(f["loss"] for f in forms)
     near = [f for f in forms if not f["loss"] > lowest * (1 + DEFAULTS.form_tolerance)] or forms
-    return min(near, key=lambda f: (f["constants"], f["loss"]))
+    return min(near, key=lambda f: (f["complexity"], f["constants"], f["loss"]))
+
+
+def no_formula_record(checkpoint: Path, report: LawReport) -> dict[str, Any]:
+    """``finetune_formula``'s record where no formula fits the learned law (a pair of types'
+    search chose no member within its tolerance): nothing tuned or rolled out, the network
+    law kept (``choice``), the ``outcome`` said, with the tolerance and each such pair's most
+    accurate member and its error (``best_error``: the worst of them)."""
+    missed = [p for p in report.pairs if not p.chosen]
+    return {"checkpoint": str(checkpoint), "outcome": "no formula fits", "choice": "network",
+            "tolerance": missed[0].search.tolerance,
+            "best_error": max(p.formula.error for p in missed),
+            "best": [{"types": list(p.types), "formula": p.formula.text,
+                      "complexity": p.formula.complexity, "error": p.formula.error}
+                     for p in missed],
+            "steps": 0, "tunings": 0, "forms": [], "start": None, "tuned": None,
+            "validation": {}, "polish": None,
+            "budget": {"steps_per_form": 0, "evaluations": 0, "cut_by": None, "cut": []},
+            "against_truth": against_truth(report), "truth": report.truth_text}
 
 
 def _validated_laws(network: Any, model: Any, head: Any, val: Any, history: int, horizon: int,

@@ -1,6 +1,8 @@
 """The law's report: its markdown (``markdown``, ``law_section`` for an evaluation report),
 its figure (``law_figure``), ``write_report``'s files (report.md, law.csv, law.json,
-law.png) and the fine-tuning's section (``finetune_markdown``).
+law.png) and the fine-tuning's section (``finetune_markdown``). Each pair of types' formula is
+``PairLaw.formula`` (the law search's member chosen, or where no formula fits its most
+accurate member, said not chosen), beside the search's front (``front_table``).
 """
 
 from __future__ import annotations
@@ -8,8 +10,7 @@ from __future__ import annotations
 import csv
 import io
 import json
-import math
-from dataclasses import asdict
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
@@ -17,9 +18,9 @@ import numpy as np
 import sympy
 import torch
 
-from bgn.laws.compare import MASS_TEXT, SCALE_TEXT, LawReport, read_law, relative_error
+from bgn.laws.compare import MASS_TEXT, SCALE_TEXT, LawReport, PairLaw, read_law, relative_error
 from bgn.laws.options import DEFAULTS
-from bgn.laws.terms import Term
+from bgn.laws.search import SearchResult, expression_spec
 
 
 def truth_markdown(truth: dict[str, Any], truth_text: str | None) -> list[str]:
@@ -35,10 +36,11 @@ def truth_markdown(truth: dict[str, Any], truth_text: str | None) -> list[str]:
             "brackets): " + "; ".join(f"{name} {_g(truth[f'{k}_max'], 2)} "
                                        f"({_g(truth[f'{k}_max_1_99'], 2)})" for k, name in laws)
             + ".")
-    if "tuned_form_is_truth" in truth:
-        text += (f" The fine-tuned form is the truth's, its constants within "
-                 f"{_g(truth['tuned_constants_vs_truth'], 2)} of the truth's."
-                 if truth["tuned_form_is_truth"] else " The fine-tuned form is NOT the truth's.")
+    for k, name in (("read_back", "The formula read back"), ("tuned", "The fine-tuned formula")):
+        if f"{k}_form_is_truth" in truth:
+            text += (f" {name} has the truth's form (the same up to constants), its constants "
+                     f"within {_g(truth[f'{k}_constants_vs_truth'], 2)} of the truth's."
+                     if truth[f"{k}_form_is_truth"] else f" {name} does NOT have the truth's form.")
     return [text, ""]
 
 
@@ -48,6 +50,29 @@ def _g(x: float, digits: int = 3) -> str:
 
 def _pair_name(report: LawReport, types: tuple[int, int]) -> str:
     return "" if len(report.pairs) == 1 else f" (types {types[0]}-{types[1]})"
+
+
+def outcome_sentence(pair: PairLaw) -> str:
+    """The search's outcome in one sentence: the member chosen, or "no formula fits"."""
+    found = pair.search
+    if pair.chosen:
+        return (f"The simplest member of the front within the tolerance {_g(found.tolerance)} "
+                f"(RMS relative error against the learned law): complexity "
+                f"{pair.formula.complexity}, error {_g(pair.formula.error)}.")
+    return (f"**No formula fits**: no member of the front is within the tolerance "
+            f"{_g(found.tolerance)} of the learned law (the most accurate, above, has error "
+            f"{_g(pair.formula.error)} and is NOT chosen); the network law is kept.")
+
+
+def front_table(found: SearchResult) -> list[str]:
+    """The search's front as a markdown table: complexity, error, formula, its tree (a force
+    or a potential), the member chosen marked."""
+    lines = ["| complexity | error | formula | tree | chosen |", "|---|---|---|---|---|"]
+    for m in found.front:
+        lines.append(f"| {m.complexity} | {_g(m.error)} | `{m.text}` | "
+                     f"{'potential' if m.potential is not None else 'force'} | "
+                     f"{'yes' if m is found.chosen else ''} |")
+    return lines
 
 
 def markdown(report: LawReport, figure: str | None = None, level: int = 2) -> str:
@@ -72,38 +97,28 @@ def markdown(report: LawReport, figure: str | None = None, level: int = 2) -> st
     for pair in report.pairs:
         f = pair.formula
         lines += [f"{h}# Formula{_pair_name(report, pair.types)}", "",
-                  f"    f(r) = {f.text}", "",
-                  f"Fitted on {DEFAULTS.grid_points} log-spaced distances over the "
-                  f"{pair.n_distances} "
-                  f"training pair distances (r = {_g(pair.r[0])} to {_g(pair.r[-1])}), each "
-                  "weighted by the data's density of log r: the RMS relative residual "
-                  f"{_g(math.sqrt(f.loss))} is the mean over the training pairs. Complexity "
-                  f"(constants) {f.complexity}; the best formula of each complexity and its "
-                  "residual: "
-                  + ", ".join(f"{e['complexity']}: {' + '.join(e['terms'])} "
-                              f"({_g(math.sqrt(e['loss']))})" for e in f.front) + ".", ""]
+                  f"    f(r) = {f.text}", "", outcome_sentence(pair), "",
+                  f"Searched on {len(pair.r)} log-spaced distances over the "
+                  f"{pair.n_distances} training pair distances (r = {_g(pair.r[0])} to "
+                  f"{_g(pair.r[-1])}), each weighted by the data's density of log r: a "
+                  "member's error is its RMS relative residual over the training pairs. The "
+                  "search's front (simplest first; a potential's member is written "
+                  "-d/dr[U], its complexity that of U's tree):", "",
+                  *front_table(pair.search), ""]
         if report.truth_text is not None:
             lines += [f"Truth (bgn.sim): f(r) = {report.truth_text}."]
             if pair.truth_in_form is not None:
-                lines += [f"The truth in the formula's terms: relative residual "
-                          f"{_g(pair.truth_in_form['residual_rms'])} (RMS), "
-                          f"{_g(pair.truth_in_form['residual_max'])} (max): "
-                          + ("the form is the truth's." if pair.truth_in_form["residual_max"]
-                             < DEFAULTS.truth_form else "the form is NOT the truth's.")]
+                lines += [("The formula has the truth's form (the same up to constants), its "
+                           "constants within "
+                           f"{_g(pair.truth_in_form['constants_vs_truth'], 2)} of the truth's "
+                           "in its family." if pair.truth_in_form["same_form"]
+                           else "The formula does NOT have the truth's form.")]
             lines += [""]
-        header = "| constant | term | value | std. error (Jacobian) | std (bootstrap) |"
-        rule = "|---|---|---|---|---|"
-        if pair.truth_in_form is not None:
-            header += " truth in this form | relative difference |"
-            rule += "---|---|"
-        lines += [header, rule]
-        for i, row in enumerate(f.constants()):
-            line = (f"| {row['name']} | `{row['term']}` | {_g(row['value'], 5)} | "
-                    f"{_g(row['stderr'], 2)} | {_g(row['bootstrap_std'], 2)} |")
-            if pair.truth_in_form is not None:
-                line += (f" {_g(pair.truth_in_form['values'][i], 5)} | "
-                         f"{_g(pair.truth_in_form['relative_difference'][i], 2)} |")
-            lines.append(line)
+        lines += [f"The formula with its constants named: `f(r) = {sympy.sstr(f.template)}`" + (
+            f" (the force of U(r) = `{sympy.sstr(sympy.N(f.potential, DEFAULTS.significant))}`)"
+            if f.potential is not None else "") + ":", "",
+            "| constant | value |", "|---|---|"]
+        lines += [f"| {name} | {_g(value, 5)} |" for name, value in f.constants.items()]
         lines += ["", "Relative errors (|a - b| / |b|, |b| floored near a zero crossing) in "
                   "bands of the training distances (median / max):", ""]
         cols = ["formula_vs_learned"] + (["learned_vs_truth", "formula_vs_truth"]
@@ -158,7 +173,9 @@ def law_figure(report: LawReport, tuned: str | None = None) -> Any:
         law_ax.set_ylabel(("-f(r)" if flip < 0 else "f(r)") + " (force between unit masses)")
         law_ax.legend(fontsize=8)
         law_ax.set_title(f"{report.scene}{_pair_name(report, pair.types)}: "
-                         f"f = {pair.formula.text}", fontsize=9)
+                         f"f = {pair.formula.text}"
+                         + ("" if pair.chosen else " (no formula fits: most accurate)"),
+                         fontsize=9)
         err_ax.plot(pair.r, relative_error(curves["formula"], pair.learned, pair.r),
                     label="formula vs learned")
         if pair.truth is not None:
@@ -200,13 +217,21 @@ def spec_values(spec: str, types: tuple[int, int], r: np.ndarray) -> np.ndarray:
 
 
 def _jsonable(report: LawReport) -> dict[str, Any]:
-    out = {k: v for k, v in asdict(report).items() if k != "pairs"}
+    out = {f.name: getattr(report, f.name) for f in fields(report) if f.name != "pairs"}
+    out["outcome"] = report.outcome
     out["pairs"] = []
     for pair in report.pairs:
-        f = pair.formula
+        f, found = pair.formula, pair.search
         out["pairs"].append({
-            "types": list(pair.types), "formula": f.text, "complexity": f.complexity,
-            "relative_rms": math.sqrt(f.loss), "constants": f.constants(), "front": f.front,
+            "types": list(pair.types), "formula": f.text, "chosen": pair.chosen,
+            "outcome": found.outcome, "tolerance": found.tolerance,
+            "complexity": f.complexity, "relative_rms": f.error,
+            "expression": sympy.sstr(f.template), "constants": f.constants,
+            "spec": expression_spec(f, pair.types),
+            "front": [{"complexity": m.complexity, "error": m.error, "formula": m.text,
+                       "tree": "potential" if m.potential is not None else "force",
+                       "chosen": m is found.chosen} for m in found.front],
+            "search_seconds": found.timings.get("total_s"),
             "r": pair.r.tolist(), "density": pair.density.tolist(),
             "n_distances": pair.n_distances,
             "bands": pair.bands, "truth_in_form": pair.truth_in_form,
@@ -250,6 +275,13 @@ def finetune_markdown(record: dict[str, Any], level: int = 2) -> str:
     """The comparison table of ``finetune_formula``'s record."""
     h = "#" * level
     v = record["validation"]
+    if record.get("outcome") == "no formula fits":  # nothing tuned (no_formula_record)
+        return (f"{h} The formula as the law, fine-tuned\n\nNo formula fits the learned law "
+                f"within the tolerance {_g(record['tolerance'])} (the most accurate member of "
+                f"the front has error {_g(record['best_error'])}): no formula was fine-tuned, "
+                "and the network law is kept.\n\n"
+                + "".join(line + "\n" for line in truth_markdown(
+                    record.get("against_truth") or {}, record.get("truth"))))
     if not v:  # the validation rollouts were cut (finetune_formula)
         return (f"{h} The formula as the law, fine-tuned\n\nThe fitted formula as the model's "
                 f"pair law, its constants fitted in {record['steps']} evaluations: "
@@ -280,13 +312,15 @@ def finetune_markdown(record: dict[str, Any], level: int = 2) -> str:
             f"{_g(s['errors'][k])} | {_g(typical[k]) if k in typical else ''}"
             for k in horizons) + f" | {s['failed_share']:.0%} |")
     if record.get("forms"):
-        lines += ["", "Forms tried (the fit's front, the library's one-term forms and each "
-                  "nonlinear term twice: each form's constants fitted to the law's loss on the "
-                  "frames, then pruned of terms the frames do not need; the lowest loss wins, "
-                  f"the fewest constants within {DEFAULTS.form_tolerance:.0%} of it):",
-                  "", "| from | tuned and pruned | constants | loss |", "|---|---|---|---|"]
+        lines += ["", "Forms tried (the law search's front: the member chosen, then the others "
+                  "simplest first; each form's constants fitted to the law's loss on the "
+                  "frames; the lowest loss wins, the least complex within "
+                  f"{DEFAULTS.form_tolerance:.0%} of it):",
+                  "", "| from | tuned | complexity | constants | loss |",
+                  "|---|---|---|---|---|"]
         lines += [f"| `{spec_text(f['start'])}` | `{spec_text(f['tuned'])}` | "
-                  f"{f['constants']} | {_g(f['loss'])} |" for f in record["forms"]]
+                  f"{f.get('complexity', '')} | {f['constants']} | {_g(f['loss'])} |"
+                  for f in record["forms"]]
     lines += ["", f"Fitted before fine-tuning: `{spec_text(record['start'])}`; the formula "
               f"rolls out with substeps {record['rollout_substeps']} (the lower mean error: "
               "substeps are for the rare close encounters).", ""]
@@ -308,16 +342,14 @@ def finetune_markdown(record: dict[str, Any], level: int = 2) -> str:
     return "\n".join(lines) + "\n"
 
 
-def spec_text(pairs: list[dict[str, Any]]) -> str:
-    """A ``model.law_formula`` spec (parsed) as text: each pair of types' law in r."""
-    r = sympy.Symbol("r", positive=True)
-    out = []
-    for p in pairs:
-        expr = sum((sympy.Float(t["a"], DEFAULTS.significant) * Term(t["kind"], t["power"]).expr(
-            r, None if t["c"] is None else sympy.Float(t["c"], DEFAULTS.significant))
-            for t in p["terms"]), sympy.Integer(0))
-        out.append((f"{p['types'][0]}-{p['types'][1]}: " if len(pairs) > 1 else "")
-                   + sympy.sstr(expr))
-    return "; ".join(out)
+def spec_text(pairs: list[dict[str, Any]] | None) -> str:
+    """A ``model.law_formula`` spec (parsed) as text: each pair of types' law in r (terms or
+    expression pairs, ``bgn.model.formula_law.pair_expression``); "none" for no spec (no
+    formula fits)."""
+    from bgn.model.formula_law import pair_expression
 
-
+    if not pairs:
+        return "none"
+    return "; ".join((f"{p['types'][0]}-{p['types'][1]}: " if len(pairs) > 1 else "")
+                     + sympy.sstr(sympy.N(pair_expression(p), DEFAULTS.significant))
+                     for p in pairs)

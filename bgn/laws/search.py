@@ -35,8 +35,11 @@ of ``snap_step``, each step kept only while the refitted error stays within ``cl
 times the member's), and the front formed of the cleaned fits. The law chosen is the
 simplest front member whose error is within the caller's ``tolerance`` (the learned law's own
 uncertainty), else none: "no formula fits", and the front is returned anyway.
-``same_form`` says whether two expressions are the same form up to constants (sympy),
+``same_form`` says whether two expressions are the same form up to constants (sympy), and
+``constant_difference`` how far one's constants are from the other's in its family;
 ``expression_spec`` writes a member as a ``model.law_formula`` pair (``bgn.model.formula_law``).
+The formula stage reads each pair of types' learned law with ``search_law``
+(``bgn.laws.compare.read_law``) and fine-tunes the front's members (``bgn.laws.finetune``).
 """
 
 from __future__ import annotations
@@ -52,50 +55,10 @@ import numpy as np
 import sympy
 from scipy.optimize import least_squares
 
-from bgn.laws.options import DEFAULTS
+from bgn.laws.options import DEFAULTS, SEARCH_DEFAULTS, SearchOptions
 from bgn.laws.terms import floored_scale, law_scale
 
 R = sympy.Symbol("r", positive=True)
-
-
-@dataclass(frozen=True)
-class SearchOptions:
-    """Every setting of the law search; the same for every dataset."""
-
-    max_terms: int = 3               # additive terms of the sum at most
-    # sums of single primitives: screened on a grid of their constants (linear least squares
-    # of every pair and every triple of grid columns), then refined
-    exponent_step: float = 0.5       # the grid's exponents: this apart over exponent_range
-    grid_shifts: tuple[float, ...] = (-0.6, -0.3, -0.1, 0.03, 0.1, 0.3, 1.0, 3.0)  # c / s
-    grid_rates: int = 32             # rates per sign, log-spaced over rate_range
-    grid_exponents_shifted: tuple[float, ...] = (-12.0, -6.0, -3.0, -2.0, -1.5, -1.0, -0.5,
-                                                 0.5, 1.0, 2.0)  # of shifted powers
-    collinear: float = 1e-4          # a pair of grid columns this near collinear is skipped
-    refine_per_size: int = 30        # screened sums of each size refined (Levenberg-Marquardt)
-    # forms with a product or a common factor: grown a term at a time from the best fits
-    product_terms: int = 2           # terms of such a form at most
-    beam: int = 3                    # forms of each size grown by one more term
-    fixed_starts: int = 4            # fixed starts of a one-term form's constants at most
-    child_starts: int = 2            # ... of a grown form's (the parent's fit and the new term's)
-    random_starts: int = 6           # starts drawn at random, for the best forms of each size
-    random_forms: int = 3            # ... that many of each size (by error), and each front member
-    evaluations: int = 40            # residual evaluations per inner constant, per start
-    max_exponent: float = 30.0       # a fit with an exponent beyond +-this is refused
-    seed: int = 0                    # of the random starts
-    potentials: bool = True          # search potentials U(r) too, the law read as -dU/dr
-    snap_step: float = 0.5           # exponents rounded to multiples of this ...
-    snap_distance: float = 0.15      # ... when within this distance of one
-    clean_factor: float = 1.05       # a clean-up step kept while the error stays within this x
-    front_margin: float = 0.999      # a more complex member joins the front below this x error
-    same_form_tolerance: float = 1e-6  # RMS relative residual of one family fitted to the other
-    same_form_starts: int = 4        # starts of that fit (the expression's own, then perturbed)
-    # ranges the random starts are drawn from (scales: the data's median distance s)
-    exponent_range: tuple[float, float] = (-14.0, 4.0)
-    rate_range: tuple[float, float] = (0.1, 20.0)   # |k| s (exp, sin); k s^2 (Gaussian)
-    shift_range: tuple[float, float] = (-0.9, 2.0)  # c / s (shifted r), c / s^2 (shifted r^2)
-
-
-SEARCH_DEFAULTS = SearchOptions()
 
 
 # ----------------------------------------------------------------------------- the grammar
@@ -633,6 +596,12 @@ class Member:
     cleaned: list[str] = field(default_factory=list)
     potential: sympy.Expr | None = None
 
+    def __call__(self, r: np.ndarray) -> np.ndarray:
+        """The member's force at distances ``r`` (its fit's columns and amplitudes)."""
+        r = np.asarray(r, np.float64)
+        with np.errstate(all="ignore"):
+            return _columns(self.fit.form, self.fit.inner, r) @ self.fit.amplitudes
+
     @property
     def text(self) -> str:
         """The force; of a potential's member, ``-d/dr[U]`` with U written out."""
@@ -842,9 +811,10 @@ def family(expr: sympy.Expr) -> tuple[sympy.Expr, list[sympy.Symbol], list[float
 
 
 def _reach(fam: sympy.Expr, syms: list[sympy.Symbol], x0: list[float], r: np.ndarray,
-           target: np.ndarray, scale: np.ndarray, options: SearchOptions) -> float:
+           target: np.ndarray, scale: np.ndarray, options: SearchOptions
+           ) -> tuple[float, np.ndarray]:
     """The least RMS of ``(fam - target) / scale`` over the family's constants, from ``x0``
-    and perturbed starts."""
+    and perturbed starts, and the constants that reach it."""
     fn = sympy.lambdify([R, *syms], fam, "numpy")
 
     def resid(p: np.ndarray) -> np.ndarray:
@@ -854,9 +824,9 @@ def _reach(fam: sympy.Expr, syms: list[sympy.Symbol], x0: list[float], r: np.nda
         return np.where(np.isfinite(out), out, 1e6)
 
     if not syms:
-        return float(np.sqrt(np.mean(resid(np.zeros(0)) ** 2)))
+        return float(np.sqrt(np.mean(resid(np.zeros(0)) ** 2))), np.zeros(0)
     rng = np.random.default_rng(1)
-    best = np.inf
+    best, at = np.inf, np.array(x0, np.float64)
     for k in range(options.same_form_starts):
         p0 = np.array(x0, np.float64) * (1 if k == 0 else np.exp(rng.normal(0, 0.3, len(x0))))
         try:
@@ -865,8 +835,10 @@ def _reach(fam: sympy.Expr, syms: list[sympy.Symbol], x0: list[float], r: np.nda
                                 gtol=1e-15)
         except (ValueError, np.linalg.LinAlgError):
             continue
-        best = min(best, float(np.sqrt(np.mean(sol.fun ** 2))))
-    return best
+        rms = float(np.sqrt(np.mean(sol.fun ** 2)))
+        if rms < best:
+            best, at = rms, sol.x
+    return best, at
 
 
 def same_form(found: sympy.Expr, truth: sympy.Expr, r: np.ndarray,
@@ -896,8 +868,30 @@ def same_form(found: sympy.Expr, truth: sympy.Expr, r: np.ndarray,
     scale = law_scale(r, f_true, smooth=False)
     fam, syms, x0 = family(found)
     tol = options.same_form_tolerance
-    return bool(_reach(fam, syms, x0, r, f_true, scale, options) < tol
-                and _reach(t_fam, t_syms, t_x0, r, f_found, scale, options) < tol)
+    return bool(_reach(fam, syms, x0, r, f_true, scale, options)[0] < tol
+                and _reach(t_fam, t_syms, t_x0, r, f_found, scale, options)[0] < tol)
+
+
+def constant_difference(found: sympy.Expr, truth: sympy.Expr, r: np.ndarray,
+                        options: SearchOptions = SEARCH_DEFAULTS) -> float:
+    """How far ``found``'s constants are from the truth's in ``found``'s own family: the
+    family (every float of ``found`` free) fitted to ``truth`` (constants as numbers) over
+    ``r`` as ``same_form`` fits it, and the largest relative difference ``|found - fitted| /
+    |fitted|`` of its constants (inf where a fitted constant is 0 and the found one is not;
+    meaningful where ``same_form`` holds). 0 for a family without constants."""
+    r = np.sort(np.asarray(r, np.float64))
+    with np.errstate(all="ignore"):
+        f_true = np.broadcast_to(np.asarray(sympy.lambdify(R, sympy.sympify(truth), "numpy")(r),
+                                            np.float64), r.shape)
+    fam, syms, x0 = family(sympy.sympify(found))
+    if not syms:
+        return 0.0
+    _, fitted = _reach(fam, syms, x0, r, f_true, law_scale(r, f_true, smooth=False), options)
+    found_x = np.asarray(x0, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        diff = np.abs(found_x - fitted) / np.abs(fitted)
+    diff = np.where(found_x == fitted, 0.0, diff)
+    return float(np.max(diff))
 
 
 # ----------------------------------------------------------------------------- the spec

@@ -25,21 +25,23 @@ def formula_stage(checkpoint: Path, train_split: Any, val: Any, config: Any,
                   out_dir: Path, finetune: bool = True, options: LawOptions = DEFAULTS,
                   max_seconds: float | None = None, deadline: Deadline | None = None,
                   ) -> dict[str, Any]:
-    """The law of ``checkpoint`` read back over ``train_split`` (``read_law``) and written to
-    ``out_dir`` (report.md, law.csv, law.json, law.png); with ``finetune`` the formula also
-    fine-tuned as the law and scored against the network law on ``val``'s rollouts
-    (``finetune_formula``): ``formula.ckpt`` with its ``train_config.yaml`` (``config``, the
-    run's, with the formula's model options) and a section of report.md. ``options``: the
-    fit's (max_terms, tolerance, parsimony) and the fine-tuning's (``finetune_<key>``);
-    ``max_seconds`` and ``deadline`` stop the fine-tuning early (``finetune_formula``). Returns the
-    fine-tuning record (``{}`` without ``finetune``) with ``report`` (report.md's path)."""
+    """The law of ``checkpoint`` read back over ``train_split`` (``read_law``: the law search,
+    ``options.search`` within ``options.tolerance``) and written to ``out_dir`` (report.md,
+    law.csv, law.json, law.png); with ``finetune`` the formula also fine-tuned as the law and
+    scored against the network law on ``val``'s rollouts (``finetune_formula``, from the
+    search's front: at most ``options.finetune_members`` members): ``formula.ckpt`` with its
+    ``train_config.yaml`` (``config``, the run's, with the formula model's options) and a
+    section of report.md. Where no formula fits, nothing is fine-tuned: the network law is
+    kept and the section says so. ``options``: the search's and the fine-tuning's
+    (``finetune_<key>``); ``max_seconds`` and ``deadline`` stop the fine-tuning early
+    (``finetune_formula``). Returns the fine-tuning record (``{}`` without ``finetune``) with
+    ``report`` (report.md's path)."""
     from omegaconf import OmegaConf, open_dict
 
     from bgn.training.checkpoints import read, write_atomic
     from bgn.training.module import load_model
 
-    report = read_law(load_model(checkpoint), train_split, max_terms=options.max_terms,
-                      tolerance=options.tolerance, parsimony=options.parsimony)
+    report = read_law(load_model(checkpoint), train_split, options)
     path = write_report(report, out_dir, title=f"Learned law of {checkpoint}")
     if not finetune:
         return {"report": str(path)}
@@ -49,10 +51,13 @@ def formula_stage(checkpoint: Path, train_split: Any, val: Any, config: Any,
                               batch_size=options.finetune_batch_size,
                               horizon=options.finetune_horizon,
                               val_sims=options.finetune_val_sims, out_dir=out_dir,
-                              max_seconds=max_seconds, deadline=deadline)
+                              max_seconds=max_seconds, deadline=deadline,
+                              members=options.finetune_members)
     section = finetune_markdown(record)
     print(section)
     write_atomic(path, path.read_text() + "\n" + section)
+    if record.get("outcome") == "no formula fits":  # no formula model: nothing more to write
+        return {**record, "report": str(path)}
     from bgn.figures import save
 
     tmp = Path(out_dir) / "law.tmp.png"  # the figure again, with the formula fitted to frames
@@ -77,9 +82,10 @@ def law_stage(cfg: Any, best: Path, datamodule: Any, output_dir: Path,
     network law where the job's wall-clock cap stopped the comparison); run
     before the test, on the training and validation splits only. Returns its record
     (``choice``: network or formula; ``path``: formula.ckpt). Bounded by its evaluation
-    count (``LawOptions.finetune_steps`` per form), so the same run fits the same formula on any
-    machine; ``deadline`` (the job's wall-clock cap) stops it earlier, and its record's
-    ``budget`` says so (docs/design.md#budgets)."""
+    count (``LawOptions.finetune_steps`` per form), so the same run fits the same formula on
+    any machine; ``deadline`` (the job's wall-clock cap) stops it earlier, and its record's
+    ``budget`` says so (docs/design.md#budgets). Where no formula fits the learned law,
+    nothing is tuned and the network law is kept (the record's ``outcome``)."""
     from bgn.training.run import law_verdict  # what the closing summary says of it too
 
     if world_size > 1:  # one process would tune while the others wait at the test's barrier
@@ -88,7 +94,7 @@ def law_stage(cfg: Any, best: Path, datamodule: Any, output_dir: Path,
         return {}
     log.info("model.law=auto: reading the learned law back as a formula and fine-tuning it")
     record = formula_stage(best, datamodule.datasets["train"], datamodule.datasets["val"],
-                           cfg, output_dir / "laws", deadline=deadline)
+                           cfg, output_dir / "laws", options=DEFAULTS, deadline=deadline)
     log.info(f"model.law=auto: {law_verdict(record)} (report: {record['report']})")
     return record
 

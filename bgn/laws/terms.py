@@ -1,4 +1,9 @@
-"""The term library and the sparse fit of a formula (``fit_formula``).
+"""The term library and the sparse fit of a formula (``fit_formula``), and the relative scale
+of a law's residuals (``law_scale``, ``floored_scale``), which the law search uses too.
+
+The formula stage reads a law with the law search (``bgn.laws.search``), not with this list:
+``fit_formula`` stays as the baseline the search is measured against
+(examples/heldout_laws/search_trial.py), and ``Term``, ``Formula``, ``default_library`` with it.
 
 ``fit_formula``: sparse regression over a library of candidate terms (``default_library``:
 powers ``r^p`` (Lennard-Jones' among them), ``log r``, ``exp(-r/c)``, softened ``(r + c)^p``
@@ -292,8 +297,8 @@ def _candidates(r: np.ndarray, b: np.ndarray, w: np.ndarray, library: list[Term]
 
 
 def fit_formula(r: np.ndarray, y: np.ndarray, weight: np.ndarray | None = None,
-                max_terms: int = DEFAULTS.max_terms, max_constants: int = 2,
-                tolerance: float = DEFAULTS.tolerance, parsimony: float = DEFAULTS.parsimony,
+                max_terms: int = 3, max_constants: int = 2,
+                tolerance: float = DEFAULTS.tolerance, parsimony: float = 1.5,
                 library: list[Term] | None = None,
                 scale: np.ndarray | None = None, n_boot: int = 100, seed: int = 0) -> Formula:
     """The sparse formula of ``y(r)`` (see the module doc). ``r`` > 0; ``weight``: how much

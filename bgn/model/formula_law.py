@@ -257,10 +257,39 @@ def pair_text(pair: dict[str, Any], scale: float = 1.0, digits: int = 4) -> str:
     the terms joined by ``+`` (``term_text``), or an expression pair's expression with its
     constants' values."""
     if "expr" in pair:
-        expr = parse_expression(pair["expr"], pair.get("constants", {}))
-        values = {sympy.Symbol(n, real=True): v for n, v in pair.get("constants", {}).items()}
-        return sympy.sstr(sympy.N(scale * expr.subs(values), digits))
+        return sympy.sstr(sympy.N(pair_expression(pair, scale), digits))
     return " + ".join(term_text({**t, "a": t["a"] * scale}) for t in pair["terms"])
+
+
+def pair_expression(pair: dict[str, Any], scale: float = 1.0) -> sympy.Expr:
+    """One pair of a spec as a sympy expression in r (``positive``), its law times ``scale``:
+    every constant (amplitudes, c's, an expression's constants) a float, a term's power a
+    rational (the form's): ``bgn.laws.search.same_form`` reads the floats as the family's."""
+    if "expr" in pair:
+        expr = parse_expression(pair["expr"], pair.get("constants", {}))
+        values = {sympy.Symbol(n, real=True): sympy.Float(v, 17)
+                  for n, v in pair.get("constants", {}).items()}
+        expr = expr.xreplace(values)
+        return expr if scale == 1.0 else sympy.Float(scale, 17) * expr
+    return sum((sympy.Float(t["a"] * scale, 17) * _term_expression(t) for t in pair["terms"]),
+               sympy.Integer(0))
+
+
+def _term_expression(term: dict[str, Any]) -> sympy.Expr:
+    """One term of a spec without its amplitude (``FormulaLaw._term_values``' kinds)."""
+    kind, p = term["kind"], sympy.nsimplify(float(term.get("power", 0.0)))
+    c = None if term.get("c") is None else sympy.Float(term["c"], 17)
+    if kind == "const":
+        return sympy.Integer(1)
+    if kind == "power":
+        return _R**p
+    if kind == "log":
+        return sympy.log(_R)
+    if kind == "exp":
+        return sympy.exp(-_R / c)
+    if kind == "shifted":
+        return (_R + c) ** p
+    return (_R**2 + c**2) ** (p / 2)
 
 
 # auto: the network law is trained, then read back as a formula and fine-tuned after the fit,

@@ -8,12 +8,13 @@ Per cell of ``laws.model`` (``laws.seeds`` of its seeds), from its network check
 ``bgn.laws.stage.formula_stage`` with ``finetune=true`` (``python -m bgn.laws <ckpt>
 finetune=true``), its fitting at most ``laws.max_seconds``, on the training and validation
 splits only; its report, law.png and formula checkpoint in ``<report_dir>/laws/<cell>/``.
-The table (``against_truth``): the law read back from the network and the formula fitted to
-the frames, the largest relative error of each against the truth over the training pairs'
-distances, whether the fitted form is the truth's and its constants' distance from the
-truth's, and the network law against the formula on the validation rollouts (the choice a
-``model.law=auto`` run makes). Cells without a pair-force head (the impulse head, the
-decoder, the baselines) are listed as left out. Cells run in ``workers`` processes.
+The table (``against_truth``): the law read back from the network (the law search) and the
+formula fitted to the frames (or "no formula fits", the network law kept), the largest
+relative error of each against the truth over the training pairs' distances, whether the
+fitted form is the truth's and its constants' distance from the truth's, and the network law
+against the formula on the validation rollouts (the choice a ``model.law=auto`` run makes).
+Cells without a pair-force head (the impulse head, the decoder, the baselines) are listed as
+left out. Cells run in ``workers`` processes.
 """
 
 from __future__ import annotations
@@ -110,12 +111,15 @@ def law_row(record: dict[str, Any]) -> dict[str, Any]:
     from bgn.laws.report import spec_text
 
     truth = record.get("against_truth") or {}
-    v = record["validation"]
-    n = v["network"]["horizon"]
+    v = record.get("validation") or {}  # empty: no formula fits, or the rollouts were cut
+    n = v["network"]["horizon"] if "network" in v else None
 
     def mean(law: str) -> float:  # JSON keys are strings in a record read back
-        errors = v[law].get("errors", {})
+        errors = v.get(law, {}).get("errors", {})
         return float(errors.get(n, errors.get(str(n), math.nan)))
+
+    def failed(law: str) -> float:
+        return float(failed_rollouts(v[law])) if law in v else math.nan
 
     def got(key: str) -> float:
         return float(truth.get(key, math.nan))
@@ -123,7 +127,9 @@ def law_row(record: dict[str, Any]) -> dict[str, Any]:
     read_back = json.loads(Path(record["report"]).with_name("law.json").read_text())
     return {"truth": record.get("truth") or "unknown",
             "read back from the network": "; ".join(p["formula"] for p in read_back["pairs"]),
-            "fitted to the frames": spec_text(record["tuned"]),
+            "fitted to the frames": (spec_text(record["tuned"])
+                                     if record.get("outcome") != "no formula fits"
+                                     else "no formula fits"),
             "form is the truth's": got("tuned_form_is_truth"),
             "constants vs truth": got("tuned_constants_vs_truth"),
             "network vs truth": got("network_max"),
@@ -131,8 +137,8 @@ def law_row(record: dict[str, Any]) -> dict[str, Any]:
             "fitted vs truth": got("tuned_max"), "fitted vs truth 1-99%": got("tuned_max_1_99"),
             "formula chosen": float(record["choice"] == "formula"),
             "network val error": mean("network"), "formula val error": mean("formula"),
-            "network failed": float(failed_rollouts(v["network"])),
-            "formula failed": float(failed_rollouts(v["formula"])), "horizon": n}
+            "network failed": failed("network"), "formula failed": failed("formula"),
+            "horizon": n}
 
 
 def _g(value: float) -> str:
@@ -160,7 +166,10 @@ def findings(rows: list[dict[str, Any]], horizon: str) -> list[str]:
     chosen = sum(int(r["formula chosen"] == 1.0) for r in rows)
     mean = {law: {scene: sum(float(r[f"{law} val error"]) for r in of[scene]) / len(of[scene])
                   for scene in scenes} for law in ("network", "formula")}
-    failed = {law: sum(int(r[f"{law} failed"]) for r in rows) for law in ("network", "formula")}
+    failed = {law: sum(int(r[f"{law} failed"]) for r in rows
+                       if math.isfinite(float(r[f"{law} failed"])))
+              for law in ("network", "formula")}
+    none_fits = sum(int(r.get("fitted to the frames") == "no formula fits") for r in rows)
     per_scene = ", ".join(f"{scene} {sum(int(r[TRUTH_FORM] == 1.0) for r in of[scene])} of "
                           f"{len(of[scene])}" for scene in scenes)
     return [
@@ -181,6 +190,9 @@ def findings(rows: list[dict[str, Any]], horizon: str) -> list[str]:
         + each(lambda s: f"{_g(mean['formula'][s])} against {_g(mean['network'][s])}")
         + f"; failed rollouts, all cells: formula {failed['formula']}, network "
         f"{failed['network']}).",
+        *([f"- No formula fit the learned law (within the search's tolerance) in {none_fits} "
+           f"of {len(rows)} cells: nothing was fine-tuned there and the network law was kept."]
+          if none_fits else []),
         ]
 
 
@@ -213,7 +225,8 @@ def laws_stage(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
             continue
         row = {"seed": cell.seed, "scene": cell.scene, **variant(results, cell),
                **law_row(job["record"]), "stage s": job["seconds"]}
-        horizons.add(row.pop("horizon"))
+        if (horizon := row.pop("horizon")) is not None:  # none where nothing was rolled out
+            horizons.add(horizon)
         print(f"  laws {cell.name}: {row['fitted to the frames']} ({row['truth']})",
               flush=True)
         rows.append(row)
@@ -230,8 +243,9 @@ def laws_stage(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
         "Learned laws read back as formulas (every seed)",
         "Each cell's network law read back as a formula over the training pairs' distances "
         "(`read back from the network`), and the formula fitted to the training frames as "
-        "the model's law (`fitted to the frames`: every form of the fit's front and the "
-        "library's one-term forms tuned on the frames, the lowest loss kept, then polished; "
+        "the model's law (`fitted to the frames`: the law search's front members tuned on the "
+        "frames, the lowest loss kept, then polished; `no formula fits` where the search "
+        "chose no member within its tolerance, the network law kept; "
         "`python -m bgn.laws <cell>/checkpoints/best.ckpt finetune=true`, "
         + ("no time limit" if limit is None else f"its fitting at most {limit:g} s")
         + "). Training and validation splits only." + skipped,
@@ -239,9 +253,10 @@ def laws_stage(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
     table = write_seeded_table(
         out, "laws", [*KEYS, *VALUES], KEYS, rows,
         "Learned laws against the truth",
-        "`form is the truth's`: the truth fitted in the fitted formula's terms leaves a "
-        "relative residual below 1e-3 (the share of seeds); `constants vs truth`: the largest "
-        "relative difference of its constants from the truth's in that form; `... vs truth`: "
+        "`form is the truth's`: the fitted formula is the truth's form up to constants "
+        "(bgn.laws.search.same_form; the share of seeds); `constants vs truth`: the largest "
+        "relative difference of its constants from the truth's in its own family (the family "
+        "fitted to the truth); `... vs truth`: "
         "the largest relative error against the true law over the training pairs' distances "
         "(all of them, and between their 1st and 99th percentiles; near a zero crossing "
         "relative to the law's change over 10 % of r). `formula chosen`: the share of seeds "

@@ -3,6 +3,7 @@ Lennard-Jones' forces), a pair-force head trained on springs, a tiny run and the
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -15,6 +16,7 @@ import torch
 from omegaconf import OmegaConf
 
 from bgn.graph import collate
+from bgn.laws.options import DEFAULTS, SearchOptions
 from bgn.laws.terms import Term
 from bgn.training.run import build, train
 from tests.conftest import SMALL, compose_config
@@ -40,6 +42,16 @@ KNOWN = {
 }
 
 
+
+# a far cheaper law search than the default, so that a test reads a law in seconds: sums and
+# products of at most TWO terms, forces only (no potentials), few starts
+CHEAP_SEARCH = SearchOptions(max_terms=2, potentials=False, beam=1, random_starts=2,
+                             random_forms=1, fixed_starts=2, child_starts=1, refine_per_size=4)
+CHEAP = dataclasses.replace(DEFAULTS, search=CHEAP_SEARCH)
+# ... and one that always chooses a formula (the simplest member: a tolerance of 100 %), so
+# that a tiny run's formula stage fine-tunes one whatever its barely trained law looks like
+ANY_FORMULA = dataclasses.replace(CHEAP, search=dataclasses.replace(CHEAP_SEARCH, max_terms=1),
+                                  tolerance=1.0)
 
 TRAIN_STEPS = 400  # full-batch Adam steps on the small spring data: about 10 s on one core
 

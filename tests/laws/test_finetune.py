@@ -1,5 +1,6 @@
-"""bgn.laws.finetune: the formula fitted to the frames as the law, its pruning, the choice on
-validation rollouts and their batches."""
+"""bgn.laws.finetune: the formula fitted to the frames as the law (the law search's front
+members as expression specs, "no formula fits" tuning nothing), the pruning of a term spec,
+the choice on validation rollouts and their batches."""
 
 from __future__ import annotations
 
@@ -15,8 +16,7 @@ from hypothesis import strategies as st
 from omegaconf import OmegaConf
 
 from bgn.graph import collate
-from bgn.laws.terms import Term
-from tests.laws.conftest import KNOWN, R0, RHO, spring_spec, tiny_run, zero_crossing
+from tests.laws.conftest import CHEAP, spring_spec, tiny_run, zero_crossing
 
 
 def test_fine_tuning_moves_a_perturbed_constant_back_and_writes_a_checkpoint(
@@ -216,27 +216,6 @@ def test_pruning_drops_a_turning_term_whatever_the_loss():
                        floor=0.02)[3] == SOFTENED_AND_A_CORE
 
 
-def test_a_term_twice_starts_at_morses_two_scales_despite_a_cut_off_tail():
-    """ASE's Morse force with its smooth cut-off: half the pairs lie where the force is near
-    zero, which a relative fit lets decide; in absolute terms the two exponentials start near
-    Morse's two decay lengths."""
-    from types import SimpleNamespace
-
-    from bgn.laws.finetune import twice_form
-
-    r = np.geomspace(0.85, 3.0, 240)
-    s = np.clip(1 - (r - 1.9 * R0) / (0.8 * R0), 0, 1)
-    cut = np.where(s >= 1, 1.0, 6 * s**5 - 15 * s**4 + 10 * s**3)
-    law = KNOWN["morse"][0](r) * cut
-    noisy = law + np.random.default_rng(0).normal(0, 0.01, r.size)  # a network's noise
-    density = np.where(r > 2.1, 4.0, 1.0)  # most pairs beyond the cut-off's start
-    found = twice_form(SimpleNamespace(r=r, learned=noisy, density=density), Term("exp"))
-    assert found is not None
-    terms, values = found
-    assert terms == [Term("exp"), Term("exp")]
-    np.testing.assert_allclose(sorted(values[2:]), [R0 / (2 * RHO), R0 / RHO], rtol=0.1)
-
-
 def test_a_non_finite_loss_is_a_worse_point_for_the_tuning_not_a_crash(monkeypatch):
     """tune_constants steps away from constants where the law's loss is not finite (a tiny
     run's formula stage ended on one in the slow tier); a form with no finite point returns an
@@ -353,3 +332,88 @@ def test_a_formula_stage_whose_deadline_is_spent_keeps_the_network_law_and_says_
                              deadline=Deadline.after(600.0))
     assert timed["budget"]["cut"] == [] and timed["budget"]["cut_by"] is None
     assert set(timed["validation"]) == {"network", "formula"}
+
+
+# ------------------------------------------------------- the law search's members as the law
+
+
+def _screened_report(law=None):
+    """A report of one synthetic learned law read back by the (cheap) search: a screened
+    Coulomb force by default (a formula fits), or ``law``."""
+    from bgn.laws.compare import LawReport, read_pair
+
+    def screened(r):
+        return -1.3 * np.exp(-r / 0.7) / r**2
+
+    d = np.exp(np.random.default_rng(0).normal(0, 0.4, 20_000))
+    pair = read_pair((0, 0), d, law or screened, CHEAP)
+    return LawReport("synthetic", "fake", "inertial", "physical", 1.0, 0.0, 1.0, [pair])
+
+
+def test_the_fine_tuning_starts_from_the_front_chosen_first_then_simplest_first():
+    from bgn.laws.finetune import candidate_specs, formula_spec
+    from bgn.model.formula_law import FormulaLaw
+
+    report = _screened_report()
+    pair = report.pairs[0]
+    starts = candidate_specs(report, limit=3)
+    assert starts[0] == (formula_spec(report), pair.formula.complexity)
+    others = [m for m in pair.search.front if m is not pair.formula]
+    assert [c for _, c in starts[1:]] == [m.complexity for m in others][:2]
+    assert len(starts) == min(3, len(pair.search.front))
+    # each an expression pair the model's law evaluates as the member
+    r = np.geomspace(0.3, 3, 20)
+    for (spec, _), member in zip(starts, [pair.formula, *others]):
+        with torch.no_grad():
+            values = FormulaLaw(spec)(torch.as_tensor(r)).numpy()
+        np.testing.assert_allclose(values, member(r), rtol=1e-9)
+
+
+def test_no_formula_fits_keeps_the_network_law_without_fine_tuning():
+    """Where the search chose no member, nothing is tuned, rolled out or written (the
+    checkpoint is not even read) and the record says why, with the tolerance and the best
+    member's error."""
+    from pathlib import Path
+
+    from bgn.laws.finetune import candidate_specs, finetune_formula
+    from bgn.laws.report import finetune_markdown
+
+    report = _screened_report(lambda r: np.exp(-r) * (1 + 0.3 * np.sin(9 * np.log(r))))
+    assert report.outcome == "no formula fits" and candidate_specs(report) == []
+    record = finetune_formula(Path("no such checkpoint"), None, None, report)
+    assert record["outcome"] == "no formula fits" and record["choice"] == "network"
+    assert record["tolerance"] == CHEAP.tolerance
+    assert record["best_error"] == pytest.approx(report.pairs[0].formula.error)
+    assert record["best_error"] > record["tolerance"]
+    assert record["steps"] == 0 and record["validation"] == {} and "path" not in record
+    text = finetune_markdown(record)
+    assert "No formula fits" in text and "network law is kept" in text
+
+
+def test_tune_constants_fits_an_expression_specs_constants(monkeypatch):
+    """The constants of an expression pair (the law search's member) are what the
+    Nelder-Mead tuning moves: from a screened Coulomb law 20 % and 30 % off, the loss falls
+    and the spec's constants move towards the truth's."""
+    from types import SimpleNamespace
+
+    import bgn.laws.finetune as laws
+    from bgn.model.formula_law import FormulaLaw
+
+    spec = json.dumps([{"types": [0, 0], "expr": "a1*exp(k1*r)/r**2",
+                        "constants": {"a1": -1.3 * 1.2, "k1": -1 / 0.7 * 0.7}}])
+    law = FormulaLaw(spec)
+    head = SimpleNamespace(force_law=law)
+    r = torch.linspace(0.4, 3.0, 50, dtype=torch.float64)
+    target = -1.3 * torch.exp(-r / 0.7) / r**2
+
+    def relative_misfit(model, head, batch):  # the frames' loss stand-in
+        return (((head.force_law(r) - target) / target) ** 2).mean()
+
+    monkeypatch.setattr(laws, "law_objective", relative_misfit)
+    with torch.no_grad():
+        before = float(relative_misfit(None, head, None))
+    loss, n = laws.tune_constants(None, head, [(1.0, None)], 300, None)
+    assert 0 < n <= 300 and loss < 1e-3 * before
+    tuned = json.loads(law.spec())[0]["constants"]
+    assert tuned["a1"] == pytest.approx(-1.3, rel=0.02)
+    assert tuned["k1"] == pytest.approx(-1 / 0.7, rel=0.02)

@@ -34,7 +34,7 @@ def test_a_model_without_a_pair_force_head_is_refused_in_one_line(tmp_path, shar
     assert not (tmp_path / "laws").exists()
 
 
-@pytest.mark.parametrize("option", ["colour=blue", "max_terms=x", "max_terms=9",
+@pytest.mark.parametrize("option", ["colour=blue", "max_terms=x", "max_terms=9", "max_terms=4",
                                     "tolerance=-1", "parsimony=0.5"])
 
 
@@ -52,8 +52,9 @@ def test_bad_options_are_refused_in_one_line(option, capsys, tmp_path):
 def test_the_command_fine_tunes_with_finetune_true(tmp_path, shared_data_dir):
     ckpt = tiny_run(tmp_path, shared_data_dir, "newton", "model.hidden=16")
     out = tmp_path / "laws"
+    # (tolerance=1: the simplest member is chosen, so the tiny run's law has a formula to tune)
     main([str(ckpt), f"out_dir={out}", "finetune=true", "finetune_steps=3",
-          "finetune_substeps=2", "finetune_horizon=10"])
+          "finetune_substeps=2", "finetune_horizon=10", "tolerance=1", "max_terms=1"])
     assert {"formula.ckpt", "formula.json", "report.md", "train_config.yaml"} <= {
         p.name for p in out.iterdir()}
     record = json.loads((out / "formula.json").read_text())

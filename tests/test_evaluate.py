@@ -65,8 +65,13 @@ def test_inverse_evaluation_with_references(scene: str, tmp_path: Path,
         # a pair-force head: the masses its (here untrained) law fits, beside the references
         for key in ("mass_rel_err", "sim_mass_rel_err", "relmass_r2_estimate"):
             assert np.isfinite(metrics[f"learned_law/{key}"]), key
+        # and per simulation, all its evaluated frames in one fit (no validation split given:
+        # the free scale placed by the prior; gravity's law is physical)
+        for key in ("sim_mass_rel_err", "coverage50", "info_gain", "relmass_r2_estimate"):
+            assert np.isfinite(metrics[f"law_posterior/{key}"]), key
+        assert metrics["law_posterior/scale"] == ("prior" if scene == "spring" else "physical")
     else:  # the impulse head has no pair law to read masses through
-        assert not any(k.startswith("learned_law/") for k in metrics)
+        assert not any(k.startswith(("learned_law/", "law_posterior/")) for k in metrics)
     assert mass_figure(arrays, tmp_path / "mass.png").stat().st_size > 0
 
 

@@ -20,6 +20,14 @@ from scipy.stats import norm
 
 from bgn.data.dataset import FrameDataset
 from bgn.data.frames import evenly_spaced
+from bgn.eval.law_posterior import (
+    KEY,
+    fit_simulations,
+    laplace_posterior,
+    law_scale_pinned,
+    place_scale,
+    simulation_frames,
+)
 from bgn.eval.mass_baselines import (
     MassPrior,
     impact_log_mass,
@@ -101,14 +109,16 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
                    mass_frames: int = 32, mass_samples: int = 32, batch_size: int = 16,
                    seed: int = 0, inverse: bool = True,
                    calibration: FrameDataset | None = None, relmass_decode: str = "median",
+                   law_frames: int = 0,
                    ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Metrics of one model on a test dataset, and the arrays behind the mass figure
     (``evaluate_inverse``; empty without an inverse head, or with ``inverse=False``: the
     forward error alone, as ``bgn.studies.pareto`` needs it per checkpoint). ``calibration``:
     the split the mass flow's calibration is fitted on first (``calibrate_mass_posterior``, on
     ``mass_frames`` of its frames; ``mass_calibration_scale50/90`` in the metrics); None keeps
-    the model's own (none after training). ``relmass_decode``: the flow's point behind
-    ``relmass_r2`` (``RELMASS_DECODES``)."""
+    the model's own (none after training); it also places the learned law's free scale of the
+    per-simulation posterior (``evaluate_inverse``, which ``law_frames`` goes to).
+    ``relmass_decode``: the flow's point behind ``relmass_r2`` (``RELMASS_DECODES``)."""
     torch.manual_seed(seed)  # the flow's samples and relmass noise are random
     model = module.model
     heads = model.heads
@@ -170,7 +180,7 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
             metrics.update(calibrate_mass_posterior(module, calibration, mass_frames,
                                                     batch_size))
         inverse_values, arrays = evaluate_inverse(module, dataset, mass_frames, mass_samples,
-                                                  batch_size, seed)
+                                                  batch_size, seed, calibration, law_frames)
         metrics.update(inverse_values)
     return metrics, arrays
 
@@ -448,6 +458,59 @@ def _learned_law_reference(prior: MassPrior, draws: _MassDraws, a: _MassArrays,
     return _point_metrics(estimate, a.true_log, a.particles, a.edges, a.edge_rel, variance)
 
 
+def _law_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
+                             validation: FrameDataset | None, prior: MassPrior,
+                             indices: list[int], law_frames: int, mass_samples: int,
+                             rng: np.random.Generator) -> dict[str, Any]:
+    """The per-simulation posterior through the model's own learned pair law
+    (``bgn.eval.law_posterior``): per simulation of ``indices``, one least squares over the
+    windows of its evaluated frames (and ``law_frames`` more of its frames), a Laplace
+    posterior on log-mass with the scene's mass law as prior, the law's free scale placed on
+    ``validation`` (the validation split: never the split scored), scored as the flow's
+    posterior is, one row per particle. ``scale``: physical, validation or prior (where the
+    shift came from); ``shift`` and ``std_scale``: the shift and the factor on the fit's
+    standard deviations; ``windows``: windows per simulation; with ``law_frames``,
+    ``physical_sim_mass_rel_err``: the physical estimator on the same windows. Empty for a
+    model without a pair-force head; under ``mass_law=type`` only ``fit`` saying there is
+    nothing to fit."""
+    head = pair_force_head_of(module.model)
+    if head is None:
+        return {}
+    fits = fit_simulations(head, dataset, indices, law_frames)
+    if fits is None:
+        return {"fit": "none: mass_law=type, one learned mass per type, nothing to fit"}
+    checked = None
+    if validation is not None and getattr(validation.meta, "masses_known", True):
+        checked = fit_simulations(head, validation, evenly_spaced(len(validation),
+                                                                  len(indices)), law_frames)
+    shift, factor, scale = place_scale(fits, prior, law_scale_pinned(module.model), checked)
+    posterior = laplace_posterior(fits.log_mass + shift, fits.log_std * factor, prior)
+    true_log = fits.true_log
+    # every ordered pair of particles of a simulation: the relative masses' R^2
+    same = (fits.keys[:, None] // KEY == fits.keys[None, :] // KEY) & \
+        ~np.eye(len(fits.keys), dtype=bool)
+    snd, rcv = np.nonzero(same)
+    edges = np.stack([snd, rcv])
+    metrics: dict[str, Any] = {
+        **_posterior_metrics(true_log, posterior.sample(mass_samples, rng),
+                             posterior.log_pdf(true_log), prior.log_pdf(true_log), fits.keys),
+        **_point_metrics(posterior.mean, true_log, fits.keys, edges,
+                         true_log[rcv] - true_log[snd]),
+        "identified": float(np.mean(np.isfinite(fits.log_mass))),
+        "scale": scale, "shift": shift, "std_scale": factor, "windows": fits.windows}
+    if law_frames > 0:  # the estimator that knows the law, on the same windows
+        pooled, truth = [], []
+        for sim, frames in simulation_frames(dataset, indices, law_frames).items():
+            views = [window_and_contacts(dataset, i) for i in frames]
+            types = dataset.file.read("types", sim)
+            estimate = _physical(dataset, prior, views, types)
+            pooled.append(np.where(np.isfinite(estimate), estimate, prior.type_mean(types)))
+            truth.append(np.log(dataset.file.read("masses", sim)))
+        metrics["physical_sim_mass_rel_err"] = relative_mass_error(np.concatenate(pooled),
+                                                                   np.concatenate(truth))
+    return metrics
+
+
 def _type_reference(prior: MassPrior, a: _MassArrays, log_prior: np.ndarray,
                     rng: np.random.Generator) -> tuple[dict[str, float], np.ndarray]:
     """The type-only sampler's metrics (draws from each particle's own type's mass law, its
@@ -464,6 +527,7 @@ def _type_reference(prior: MassPrior, a: _MassArrays, log_prior: np.ndarray,
 @torch.no_grad()
 def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: int = 32,
                      mass_samples: int = 32, batch_size: int = 16, seed: int = 0,
+                     validation: FrameDataset | None = None, law_frames: int = 0,
                      ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """The inverse model beside its two references (``bgn.eval.mass_baselines``) on every
     particle of ``mass_frames`` evenly spaced test frames (they cover every simulation).
@@ -477,12 +541,15 @@ def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: 
     all those windows at once (``physical/sim_identified``: the share of particles it could
     estimate). ``learned_law/...`` (a model with a pair-force head): the masses its learned law
     fits to each window, placed by the scene's mass law (``_learned_law_reference``): what the
-    law alone tells, beside what the flow makes of it. Arrays for the figure: true and sampled
+    law alone tells, beside what the flow makes of it. ``law_posterior/...`` (the same
+    models): per simulation, one fit of the learned law to all its evaluated windows (and
+    ``law_frames`` more of its frames), a Laplace posterior, its free scale placed on
+    ``validation`` (``_law_posterior_reference``). Arrays for the figure: true and sampled
     masses and the coverage curves of the model and the prior."""
     prior = MassPrior.of_scene(dataset.scene, module.hparams.stats.get("log_mass"))
     rng = np.random.default_rng(seed)
-    draws = _gather_draws(module.model, dataset, prior,
-                          evenly_spaced(len(dataset), mass_frames), mass_samples, batch_size)
+    indices = evenly_spaced(len(dataset), mass_frames)
+    draws = _gather_draws(module.model, dataset, prior, indices, mass_samples, batch_size)
     a = draws.arrays()
     log_prior = prior.log_pdf(a.true_log)
     metrics = _model_mass_metrics(dataset, prior, draws, a, log_prior)
@@ -492,6 +559,8 @@ def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: 
                   "physical": _physical_reference(dataset, prior, draws, a)}
     if draws.law_fit:
         references["learned_law"] = _learned_law_reference(prior, draws, a)
+        references["law_posterior"] = _law_posterior_reference(
+            module, dataset, validation, prior, indices, law_frames, mass_samples, rng)
     arrays = {"true_mass": np.exp(a.true_log), "sampled_mass": np.exp(a.sampled),
               "coverage_levels": COVERAGE_LEVELS,
               "coverage": coverage_curve(a.true_log, a.sampled),
@@ -513,7 +582,7 @@ def evaluate_split(module: PhysicsModule, dataset: FrameDataset,
                    step: Callable[[str], None] | None = None, lagrangebench: bool = True,
                    sinkhorn_stride: int = 10, sinkhorn_rollouts: int | None = 4,
                    positions: dict[str, np.ndarray] | None = None,
-                   relmass_decode: str = "median",
+                   relmass_decode: str = "median", law_frames: int = 0,
                    ) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
     """Everything ``python -m bgn.evaluate`` and the study (``bgn.studies.grid``) score on one
     split: one-step, type and contact metrics and the inverse metrics with the flow
@@ -526,7 +595,7 @@ def evaluate_split(module: PhysicsModule, dataset: FrameDataset,
     metrics, arrays = evaluate_model(module, dataset, max_frames=max_frames,
                                      mass_frames=mass_frames, mass_samples=mass_samples,
                                      batch_size=batch_size, seed=seed, calibration=calibration,
-                                     relmass_decode=relmass_decode)
+                                     relmass_decode=relmass_decode, law_frames=law_frames)
     metrics.update(evaluate_rollouts(module.model, dataset, n_steps=rollout_steps,
                                      starts_per_sim=rollout_starts, max_sims=rollout_sims,
                                      curves=curves, step=step, lagrangebench=lagrangebench,

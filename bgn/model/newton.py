@@ -343,13 +343,36 @@ class PairForceHead(nn.Module):
         """``fit`` and, ``with_error``, its standard error (N,) from the residuals: small where
         the window pins the mass, large where it does not (bodies far apart under gravity).
         Without it (rollouts, the heads that do not read it) the error is not computed."""
-        seen = observed_targets(g, "acceleration")[:, :terms.shape[1] - 1]  # a[t-1] .. a[t-k+1]
+        return self.fit_observed(g, *self.observed_system(g, terms), with_error)
+
+    def observed_system(self, g: Graph, terms: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """What ``least_squares`` fits: the pair terms ``terms`` (E, F, D) of frames t ..
+        t-k+1 at the frames whose accelerations the window shows, (E, F-1, D), and those
+        accelerations a[t-1] .. a[t-k+1], (N, F-1, D)."""
+        return terms[:, 1:], observed_targets(g, "acceleration")[:, :terms.shape[1] - 1]
+
+    def observed_prediction(self, g: Graph, past: torch.Tensor, fit: torch.Tensor,
+                            ) -> torch.Tensor:
+        """(N, F, D) the accelerations the law gives at the F frames of the pair terms ``past``
+        (E, F, D) with the fit ``fit`` (N,) (``1 / m_i`` inertial or type, ``m_i`` source):
+        what ``fit_observed`` matches to the observed ones."""
+        snd, rcv = g.edge_index
         if self.mass_law == "source":
-            return self.source_masses(g, terms[:, 1:], seen, with_error)
+            return scatter_sum(fit[snd, None, None] * past, rcv, g.pos.shape[0])
+        return fit[:, None, None] * scatter_sum(past, rcv, g.pos.shape[0])
+
+    def fit_observed(self, g: Graph, past: torch.Tensor, seen: torch.Tensor,
+                     with_error: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """``least_squares`` of pair terms ``past`` (E, F, D) to accelerations ``seen``
+        (N, F, D) at the same F frames, whichever frames they are: one window's
+        (``observed_system``), or the windows of a whole simulation stacked along F on one
+        graph (``bgn.eval.law_posterior``)."""
+        if self.mass_law == "source":
+            return self.source_masses(g, past, seen, with_error)
         if self.mass_law == "type":  # 1 / m of each particle's type, known exactly
-            fit = torch.exp(-self.log_type_mass.to(terms.dtype))[g.types]
+            fit = torch.exp(-self.log_type_mass.to(past.dtype))[g.types]
             return fit, torch.zeros_like(fit) if with_error else None
-        past = scatter_sum(terms[:, 1:], g.edge_index[1], g.pos.shape[0])
+        past = scatter_sum(past, g.edge_index[1], g.pos.shape[0])
         norm = (past * past).sum((1, 2)) + FIT_EPS
         fit = (past * seen).sum((1, 2)) / norm
         if not with_error:

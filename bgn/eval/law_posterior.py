@@ -1,0 +1,254 @@
+"""The masses of each simulation inferred through the model's own learned pair law: one least
+squares over all its frames, and a Laplace posterior on log-mass
+(docs/design.md#inverse-metrics).
+
+A pair law the model learned is a likelihood: it says which masses make the observed
+accelerations. ``learned_law/...`` (``bgn.eval.evaluate``) fits each window of a few frames on
+its own; a simulation's masses do not change, and under gravity a few frames do not pin them
+where a whole trajectory does. Here, per simulation:
+
+- ``pooled_system``: the windows of its frames stacked along the frame axis on one graph (the
+  union of their edges; a pair without an edge in a frame contributes nothing there), fitted
+  by the head's own least squares (``PairForceHead.fit_observed``: under the source law the
+  masses jointly, with its robust weights; under the inertial law ``1 / m`` per particle),
+  after ``screened`` leaves out the accelerations the law cannot explain at a robust start
+  (the median of the windows' own fits): the physical estimator likewise drops the
+  accelerations the frame rate does not resolve. The simulator's true law is never used.
+- ``fit_simulation``: the fit's standard errors (residual variance through the inverse normal
+  matrix) turned into a standard deviation of log-mass by the delta method,
+  ``sd(log m) = se(m) / m`` (``se(w) / w`` for ``w = 1 / m``). A particle whose fitted mass is
+  not positive is not identified and keeps the prior (under the inertial law the sign of a
+  free law is free as well: the fit is turned by the sign of its median over particles).
+- ``place_scale``: the law's scale. Trained with the law loss (the head's prediction with the
+  recorded masses, ``bgn.model.newton.law_loss``) it is physical and the masses absolute;
+  otherwise the masses are known up to one common factor, a log-shift set on the validation
+  split (the median of true minus fitted log-mass over its particles) or, with no validation
+  masses, by the scene's mass law (``place_by_prior``). Never on the split scored. With
+  validation masses the fit's standard deviations are also rescaled by one factor, so that
+  half the validation particles lie within the central 50 % interval (the likelihood's
+  errors ignore the learned law's own error).
+- ``laplace_posterior``: that Gaussian likelihood times the scene's mass law (the prior), in
+  closed form per mixture component: the posterior's mean, density and draws, for the same
+  metrics as the flow's. Each particle's marginal: the fit's correlations between particles
+  are not carried into the draws.
+
+A head with one learned mass per type (``mass_law=type``) fits nothing to the frames: it has
+no per-simulation posterior (``fit_simulation`` returns None).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+from scipy.special import logsumexp
+from scipy.stats import norm
+
+from bgn.data.dataset import FrameDataset
+from bgn.data.frames import evenly_spaced
+from bgn.eval.mass_baselines import MassPrior, place_by_prior
+from bgn.graph import Graph, collate
+from bgn.model.newton import FIT_EPS, ROBUST_SCALE, PairForceHead
+
+SCALES = ("physical", "validation", "prior")  # where the law's scale comes from
+# |z| at the central 50 % interval of a standard normal: the median of |z| when calibrated
+HALF_WIDTH = float(norm.ppf(0.75))
+KEY = 1_000_000  # a particle's key: simulation * KEY + its index (as evaluate_inverse's)
+# an acceleration the law misses by more than this (relative) at the robust start is left out:
+# three of the head's Cauchy scales, where its weights would already cut it to a tenth
+SCREEN = 3 * ROBUST_SCALE
+
+
+def law_scale_pinned(model: torch.nn.Module) -> bool:
+    """Whether the head's law is in physical units: its training read the recorded masses
+    through the law loss (``PhysicsModel.supervision``)."""
+    return "law" in getattr(model, "supervision", {}).get("masses", [])
+
+
+def simulation_frames(dataset: FrameDataset, indices: list[int], law_frames: int = 0,
+                      ) -> dict[int, list[int]]:
+    """Per simulation, the dataset indices of its frames among ``indices`` and, with
+    ``law_frames``, that many more of its frames evenly spaced over it: at most one per
+    ``history`` frames, so that the added windows share no acceleration (a shared one would
+    count twice and shrink the errors)."""
+    out: dict[int, set[int]] = {}
+    for i in indices:
+        out.setdefault(dataset.locate(i)[0], set()).add(int(i))
+    if law_frames > 0:
+        per = dataset.frames_per_sim
+        extra = evenly_spaced(per, min(law_frames, max(per // max(dataset.history, 1), 1)))
+        for sim in out:
+            first = dataset.sims.index(sim) * per
+            out[sim].update(first + e for e in extra)
+    return {sim: sorted(frames) for sim, frames in out.items()}
+
+
+def pooled_system(head: PairForceHead, graphs: list[Graph],
+                  ) -> tuple[Graph, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One simulation's windows (single-frame graphs of the same particles) as one
+    least-squares system: a graph of its particles with the union of the windows' edges, the
+    pair terms (E, W F, D) and the accelerations (N, W F, D) of every window's F fitted frames
+    (``PairForceHead.observed_system``), window after window; and a robust start (N,), each
+    particle's median over the windows of their own fits (``PairForceHead.fit_observed``)."""
+    n = int(graphs[0].num_nodes[0])
+    g = collate(graphs)
+    past, seen = head.observed_system(g, head.window(g)[1])
+    start = head.fit_observed(g, past, seen)[0].reshape(len(graphs), n).median(0).values
+    n_windows, n_frames, dim = len(graphs), past.shape[1], past.shape[2]
+    snd, rcv = g.edge_index
+    window = g.batch[rcv]                                   # each edge's window
+    first = torch.cumsum(g.num_nodes, 0) - g.num_nodes
+    local = torch.arange(g.pos.shape[0]) - first[g.batch]   # index within its window
+    pair = local[snd] * n + local[rcv]
+    union, slot = torch.unique(pair, return_inverse=True)
+    pooled_past = past.new_zeros(len(union), n_windows, n_frames, dim)
+    pooled_past[slot, window] = past
+    pooled_seen = seen.new_zeros(n, n_windows, n_frames, dim)
+    pooled_seen[local, g.batch] = seen
+    edges = torch.stack([union // n, union % n])
+    return (replace(graphs[0], edge_index=edges), pooled_past.reshape(len(union), -1, dim),
+            pooled_seen.reshape(n, -1, dim), start)
+
+
+def screened(head: PairForceHead, g: Graph, past: torch.Tensor, seen: torch.Tensor,
+             start: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The system ``past``, ``seen`` (``pooled_system``) without the accelerations (a
+    particle at a frame) the law with the robust ``start`` misses by more than ``SCREEN``
+    relative to their size (floored as the head's weights are): set to zero with every pair
+    term that reaches them, so they weigh nothing. A close encounter the frame rate does not
+    resolve gives a few such rows; the head's reweighting starts from the plain fit, which
+    over a whole trajectory they can drag far off (measured: docs/results.md)."""
+    size = seen.norm(dim=-1)
+    miss = (head.observed_prediction(g, past, start) - seen).norm(dim=-1) \
+        / (size + 1e-3 * size.mean() + FIT_EPS)
+    drop = miss > SCREEN                                                   # (N, F)
+    return (past.masked_fill(drop[g.edge_index[1]][..., None], 0.0),
+            seen.masked_fill(drop[..., None], 0.0))
+
+
+@torch.no_grad()
+def fit_simulation(head: PairForceHead, graphs: list[Graph],
+                   ) -> tuple[np.ndarray, np.ndarray] | None:
+    """Log-mass (N,) of each particle of one simulation from its windows ``graphs``, up to the
+    law's free scale, and its standard deviation (N,) (the delta method); NaN where the fitted
+    mass is not positive. None under ``mass_law=type`` (nothing to fit)."""
+    if head.mass_law == "type":
+        return None
+    g, past, seen, start = pooled_system(head, graphs)
+    fit, error = head.fit_observed(g, *screened(head, g, past, seen, start), with_error=True)
+    fit, error = fit.double().numpy(), error.double().numpy()
+    if head.mass_law == "inertial":  # a free law's sign is free too: 1 / m absorbs it
+        fit = fit * (np.sign(np.median(fit)) or 1.0)
+    positive = fit > 0
+    safe = np.where(positive, fit, 1.0)
+    log_mass = np.log(safe) if head.mass_law == "source" else -np.log(safe)
+    return np.where(positive, log_mass, np.nan), np.where(positive, error / safe, np.nan)
+
+
+@dataclass
+class SimulationFits:
+    """The per-simulation fits of a split, one row per particle of each simulation."""
+
+    keys: np.ndarray        # (P,) simulation * KEY + index
+    true_log: np.ndarray    # (P,) recorded log-masses (NaN where none are recorded)
+    log_mass: np.ndarray    # (P,) fitted, up to the law's free scale; NaN: not identified
+    log_std: np.ndarray     # (P,)
+    windows: float          # mean windows per simulation
+
+
+def fit_simulations(head: PairForceHead, dataset: FrameDataset, indices: list[int],
+                    law_frames: int = 0) -> SimulationFits | None:
+    """``fit_simulation`` on every simulation of ``indices`` (``simulation_frames``); None
+    under ``mass_law=type``."""
+    keys, true_log, log_mass, log_std, windows = [], [], [], [], []
+    for sim, frames in simulation_frames(dataset, indices, law_frames).items():
+        fit = fit_simulation(head, [dataset[i] for i in frames])
+        if fit is None:
+            return None
+        n = len(fit[0])
+        keys.append(sim * KEY + np.arange(n))
+        masses = (dataset.file.read("masses", sim)
+                  if getattr(dataset.meta, "masses_known", True) else np.full(n, np.nan))
+        true_log.append(np.log(np.asarray(masses, dtype=np.float64)))
+        log_mass.append(fit[0])
+        log_std.append(fit[1])
+        windows.append(len(frames))
+    return SimulationFits(np.concatenate(keys), np.concatenate(true_log),
+                          np.concatenate(log_mass), np.concatenate(log_std),
+                          float(np.mean(windows)))
+
+
+def place_scale(fits: SimulationFits, prior: MassPrior, pinned: bool,
+                validation: SimulationFits | None) -> tuple[float, float, str]:
+    """The log-shift for the law's scale, the factor on the fit's standard deviations, and
+    where the shift came from (``SCALES``): 0 where the law is physical (``pinned``); else the
+    validation split's median of true minus fitted log-mass, or, with no validation masses,
+    the shift that puts ``fits``' log-masses where the prior makes them most probable. The
+    factor: the median of the validation particles' ``|true - fitted| / sd`` over its
+    calibrated value (1 without validation masses)."""
+    known = (None if validation is None else
+             np.isfinite(validation.true_log) & np.isfinite(validation.log_mass))
+    has_validation = known is not None and bool(known.any())
+    if pinned:
+        shift, scale = 0.0, "physical"
+    elif has_validation:
+        shift = float(np.median(validation.true_log[known] - validation.log_mass[known]))
+        scale = "validation"
+    else:
+        seen = np.isfinite(fits.log_mass)
+        placed = place_by_prior(fits.log_mass, prior)
+        shift = float(np.mean(placed[seen] - fits.log_mass[seen])) if seen.any() else 0.0
+        scale = "prior"
+    factor = 1.0
+    if has_validation:
+        z = (validation.true_log[known] - validation.log_mass[known] - shift) \
+            / np.maximum(validation.log_std[known], 1e-12)
+        factor = max(float(np.median(np.abs(z))) / HALF_WIDTH, 1e-6)
+    return shift, factor, scale
+
+
+@dataclass
+class LawPosterior:
+    """Per particle a mixture of Gaussians over log-mass (one component per component of the
+    prior): (P, K) means, standard deviations and log-weights (each row's sum to 1)."""
+
+    means: np.ndarray
+    stds: np.ndarray
+    log_weights: np.ndarray
+
+    @property
+    def mean(self) -> np.ndarray:
+        """(P,) the posterior mean of log-mass."""
+        return np.sum(np.exp(self.log_weights) * self.means, axis=1)
+
+    def log_pdf(self, log_mass: np.ndarray) -> np.ndarray:
+        """(P,) the density of each particle's posterior at ``log_mass`` (P,)."""
+        z = (np.asarray(log_mass)[:, None] - self.means) / self.stds
+        return logsumexp(self.log_weights - 0.5 * z ** 2
+                         - np.log(self.stds * np.sqrt(2 * np.pi)), axis=1)
+
+    def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
+        """(n, P) independent draws of each particle's log-mass."""
+        cdf = np.cumsum(np.exp(self.log_weights), axis=1)
+        k = np.minimum((rng.random((n, len(cdf), 1)) > cdf[None]).sum(-1), cdf.shape[1] - 1)
+        rows = np.arange(len(cdf))[None]
+        return self.means[rows, k] + self.stds[rows, k] * rng.standard_normal(k.shape)
+
+
+def laplace_posterior(log_mass: np.ndarray, log_std: np.ndarray, prior: MassPrior,
+                      ) -> LawPosterior:
+    """The Gaussian likelihood ``N(log_mass, log_std^2)`` (P,) times the prior, component by
+    component (a product of Gaussians, weighted by how well each component predicts the
+    fit); the prior itself where ``log_mass`` is NaN (the fit said nothing)."""
+    seen = np.isfinite(log_mass) & np.isfinite(log_std)
+    mu = np.where(seen, log_mass, 0.0)[:, None]
+    var = np.where(seen, np.maximum(log_std, 1e-12) ** 2, np.inf)[:, None]
+    m0, v0 = prior.means[None], prior.stds[None] ** 2
+    precision = 1 / var + 1 / v0
+    means = (mu / var + m0 / v0) / precision
+    evidence = np.where(seen[:, None], norm.logpdf(mu, m0, np.sqrt(np.where(
+        seen[:, None], var, 1.0) + v0)), 0.0)
+    log_w = np.log(prior.weights / prior.weights.sum())[None] + evidence
+    log_w = log_w - logsumexp(log_w, axis=1, keepdims=True)
+    return LawPosterior(means, np.sqrt(1 / precision), log_w)

@@ -131,6 +131,13 @@ def test_table1(tmp_path: Path) -> None:
     assert rows[1]["NMSE"] == "0.2" and rows[1][PHYSICS] == "none"
     # every cell's budget: its steps and its whole run's wall time
     assert {(r["train steps"], r["train s"]) for r in rows} == {("300", "60.0")}
+    # the steps are the training record's where it has them: the last checkpoint (the
+    # evaluation's train_steps) lags the budget's end by up to a validation interval
+    results[cells[0].name] = {**results[cells[0].name],
+                              "train": {**results[cells[0].name]["train"],
+                                        "budget": {"steps": 310, "max_steps": 310}}}
+    table1(tmp_path, cells, results)
+    assert csv_rows(tmp_path / "table1.csv")[0]["train steps"] == "310"
     assert rows[1]["frames"] == "256"  # NMSE is heavy-tailed: the frames it averages
     assert rows[0]["repeat-last NMSE"] == "1.5"
     # the paper's BGN is its decoder, its GNS reads no radii or types

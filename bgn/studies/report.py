@@ -257,7 +257,8 @@ PAPER_SOURCE = {"bgn": "BGN", "cranmer_gn": "Cranmer et al.", "gns": "Sanchez-Go
 
 # what each cell trained: its optimiser steps and its whole run's wall time
 BUDGET_COLUMNS = ["train steps", "train s"]
-BUDGET_NOTE = ("train steps: the optimiser steps the cell trained (its last checkpoint); "
+BUDGET_NOTE = ("train steps: the optimiser steps the cell trained (its training record; "
+               "an older record without one: its last checkpoint's); "
                "train s: the wall time of its whole training run (the fit, BGN's formula "
                "stage where it has one, the test; a cell the wall-clock cap cut and a rerun "
                "continued: every attempt's together), on the machine and load of the "
@@ -275,9 +276,14 @@ def cut_cells(cells: list[Cell], results: Results) -> list[str]:
 
 
 def budget_columns(results: Results, cell: Cell) -> dict[str, Any]:
-    """``BUDGET_COLUMNS`` of a cell: its steps (``bgn.studies.grid`` records them beside the
-    evaluation) and its training run's wall time (metrics.json)."""
-    return {"train steps": results[cell.name]["eval"].get("train_steps"),
+    """``BUDGET_COLUMNS`` of a cell: its steps and its training run's wall time (metrics.json).
+    The steps are the training record's (``budget.steps``): the last checkpoint is written at
+    a validation and lags the budget's end by up to a validation interval, so its step
+    (``bgn.studies.grid`` records it beside the evaluation) is only the fallback of a record
+    without one."""
+    steps = (results[cell.name]["train"].get("budget") or {}).get("steps")
+    return {"train steps": steps if steps is not None
+            else results[cell.name]["eval"].get("train_steps"),
             "train s": training(results, cell).get("wall_time_s")}
 
 

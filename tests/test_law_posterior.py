@@ -115,7 +115,8 @@ def test_the_free_scale_is_placed_on_the_validation_split(shared_data_dir: Path)
     assert placed["shift"] == pytest.approx(-np.log(3.0), abs=0.01)
     assert placed["sim_mass_rel_err"] < 0.02
     by_prior = _law_posterior_reference(module, test, None, prior, indices, 4, 32, rng)
-    assert by_prior["scale"] == "prior" and by_prior["std_scale"] == 1.0
+    assert by_prior["scale"] == "prior"
+    assert (by_prior["std_scale"], by_prior["std_floor"]) == (1.0, 0.0)
     # the same relative masses whatever the shift
     assert by_prior["relmass_r2_estimate"] == pytest.approx(placed["relmass_r2_estimate"],
                                                             abs=1e-3)
@@ -145,16 +146,23 @@ def test_the_scale_physical_validation_or_prior() -> None:
     true = np.array([0.5, -0.5, 1.0, 0.0])
     shifted = fits(true, true - 0.7, np.full(4, 0.1))
     # physical: nothing moved
-    assert place_scale(shifted, prior, True, None)[::2] == (0.0, "physical")
-    # validation: the median of the truth minus the fit; the errors rescaled to calibrate
-    noisy = fits(true, true - 0.7 + np.array([0.1, -0.1, 0.2, -0.2]), np.full(4, 0.01))
-    shift, factor, scale = place_scale(shifted, prior, False, noisy)
-    assert (shift, scale) == (pytest.approx(0.7), "validation")
-    assert factor == pytest.approx(15 / 0.6744897501960817, rel=1e-6)
+    assert place_scale(shifted, prior, True, None) == (0.0, 1.0, 0.0, "physical")
+    # validation: the median of the truth minus the fit; errors too narrow get a floor that
+    # makes the validation median |z| its calibrated value
+    miss = np.array([0.1, -0.1, 0.2, -0.2])
+    narrow = fits(true, true - 0.7 + miss, np.full(4, 0.01))
+    shift, factor, floor, scale = place_scale(shifted, prior, False, narrow)
+    assert (shift, factor, scale) == (pytest.approx(0.7), 1.0, "validation")
+    z = np.abs(miss) / np.hypot(0.01, floor)
+    assert np.median(z) == pytest.approx(0.6744897501960817, rel=1e-6)
+    # ... and errors too wide shrink by one factor
+    wide = fits(true, true - 0.7 + miss, np.full(4, 1.0))
+    shift, factor, floor, scale = place_scale(shifted, prior, False, wide)
+    assert (factor, floor) == (pytest.approx(0.15 / 0.6744897501960817), 0.0)
     # no validation masses: the prior's most probable place for the fitted masses
     unknown = fits(np.full(4, np.nan), true, np.full(4, 0.1))
-    shift, factor, scale = place_scale(shifted, prior, False, unknown)
-    assert scale == "prior" and factor == 1.0
+    shift, factor, floor, scale = place_scale(shifted, prior, False, unknown)
+    assert (scale, factor, floor) == ("prior", 1.0, 0.0)
     assert shift == pytest.approx(0.7 - true.mean(), abs=0.01)
 
 

@@ -468,8 +468,9 @@ def _law_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
     posterior on log-mass with the scene's mass law as prior, the law's free scale placed on
     ``validation`` (the validation split: never the split scored), scored as the flow's
     posterior is, one row per particle. ``scale``: physical, validation or prior (where the
-    shift came from); ``shift`` and ``std_scale``: the shift and the factor on the fit's
-    standard deviations; ``windows``: windows per simulation; with ``law_frames``,
+    shift came from); ``shift``, ``std_scale`` and ``std_floor``: the shift, the factor on the
+    fit's standard deviations and the floor added to them (``place_scale``); ``windows``:
+    windows per simulation; with ``law_frames``,
     ``physical_sim_mass_rel_err``: the physical estimator on the same windows. Empty for a
     model without a pair-force head; under ``mass_law=type`` only ``fit`` saying there is
     nothing to fit."""
@@ -483,8 +484,10 @@ def _law_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
     if validation is not None and getattr(validation.meta, "masses_known", True):
         checked = fit_simulations(head, validation, evenly_spaced(len(validation),
                                                                   len(indices)), law_frames)
-    shift, factor, scale = place_scale(fits, prior, law_scale_pinned(module.model), checked)
-    posterior = laplace_posterior(fits.log_mass + shift, fits.log_std * factor, prior)
+    shift, factor, floor, scale = place_scale(fits, prior, law_scale_pinned(module.model),
+                                              checked)
+    posterior = laplace_posterior(fits.log_mass + shift,
+                                  np.hypot(fits.log_std * factor, floor), prior)
     true_log = fits.true_log
     # every ordered pair of particles of a simulation: the relative masses' R^2
     same = (fits.keys[:, None] // KEY == fits.keys[None, :] // KEY) & \
@@ -497,7 +500,8 @@ def _law_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
         **_point_metrics(posterior.mean, true_log, fits.keys, edges,
                          true_log[rcv] - true_log[snd]),
         "identified": float(np.mean(np.isfinite(fits.log_mass))),
-        "scale": scale, "shift": shift, "std_scale": factor, "windows": fits.windows}
+        "scale": scale, "shift": shift, "std_scale": factor, "std_floor": floor,
+        "windows": fits.windows}
     if law_frames > 0:  # the estimator that knows the law, on the same windows
         pooled, truth = [], []
         for sim, frames in simulation_frames(dataset, indices, law_frames).items():

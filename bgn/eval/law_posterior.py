@@ -42,6 +42,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
+from scipy.optimize import brentq
 from scipy.special import logsumexp
 from scipy.stats import norm
 
@@ -180,13 +181,16 @@ def fit_simulations(head: PairForceHead, dataset: FrameDataset, indices: list[in
 
 
 def place_scale(fits: SimulationFits, prior: MassPrior, pinned: bool,
-                validation: SimulationFits | None) -> tuple[float, float, str]:
-    """The log-shift for the law's scale, the factor on the fit's standard deviations, and
-    where the shift came from (``SCALES``): 0 where the law is physical (``pinned``); else the
+                validation: SimulationFits | None) -> tuple[float, float, float, str]:
+    """The log-shift for the law's scale, the factor on the fit's standard deviations, a
+    floor added to them in quadrature (``sd^2 factor^2 + floor^2``), and where the shift came
+    from (``SCALES``). The shift: 0 where the law is physical (``pinned``); else the
     validation split's median of true minus fitted log-mass, or, with no validation masses,
     the shift that puts ``fits``' log-masses where the prior makes them most probable. The
-    factor: the median of the validation particles' ``|true - fitted| / sd`` over its
-    calibrated value (1 without validation masses)."""
+    factor and floor make the median of the validation particles' ``|true - fitted| / sd``
+    its calibrated value: a factor below 1 where the fit's errors are too wide; a floor where
+    they are too narrow, the learned law's own error, which the least squares does not see and
+    which does not shrink with more frames (1 and 0 without validation masses)."""
     known = (None if validation is None else
              np.isfinite(validation.true_log) & np.isfinite(validation.log_mass))
     has_validation = known is not None and bool(known.any())
@@ -200,12 +204,17 @@ def place_scale(fits: SimulationFits, prior: MassPrior, pinned: bool,
         placed = place_by_prior(fits.log_mass, prior)
         shift = float(np.mean(placed[seen] - fits.log_mass[seen])) if seen.any() else 0.0
         scale = "prior"
-    factor = 1.0
-    if has_validation:
-        z = (validation.true_log[known] - validation.log_mass[known] - shift) \
-            / np.maximum(validation.log_std[known], 1e-12)
-        factor = max(float(np.median(np.abs(z))) / HALF_WIDTH, 1e-6)
-    return shift, factor, scale
+    if not has_validation:
+        return shift, 1.0, 0.0, scale
+    miss = np.abs(validation.true_log[known] - validation.log_mass[known] - shift)
+    sd = np.maximum(validation.log_std[known], 1e-12)
+
+    def excess(floor: float) -> float:  # the median |z| over its calibrated value, less 1
+        return float(np.median(miss / np.sqrt(sd ** 2 + floor ** 2))) / HALF_WIDTH - 1
+
+    if excess(0.0) <= 0:
+        return shift, max(excess(0.0) + 1, 1e-6), 0.0, scale
+    return shift, 1.0, float(brentq(excess, 0.0, 2 * miss.max() / HALF_WIDTH + 1e-12)), scale
 
 
 @dataclass

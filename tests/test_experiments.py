@@ -210,10 +210,11 @@ def test_tiny_preset_end_to_end_and_resumes(tmp_path: Path, capsys) -> None:
     assert all(r["model"].startswith("BGN") and r["given at inference"]
                and "recorded masses" in r["trained with"] for r in models)  # labelled
     # the prior-only sampler and the physical estimator under every model, the type-only
-    # sampler where each type has its own mass law (collisions), the law estimator where the
-    # model has a pair-force head
+    # sampler where each type has its own mass law (collisions), the law estimator per window
+    # and the per-simulation posterior through the learned law where the model has a
+    # pair-force head
     assert len(inverse) == 3 * len(models) + sum(r["scene"] == "collisions" for r in models) \
-        + sum("pair-force head" in r["model"] for r in models)
+        + 2 * sum("pair-force head" in r["model"] for r in models)
     for row in models:
         assert 0 <= float(row["coverage90"]) <= 1
         assert float(row["info_gain"]) == float(row["info_gain"])  # a number, not blank

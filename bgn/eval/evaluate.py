@@ -651,7 +651,7 @@ def validate_evaluate(cfg: Any) -> tuple[Path, Path, Path]:
              why=" (null: the run's own count, dataset.<split>_samples)")
     for key in ("mass_frames", "mass_samples", "batch_size"):
         need_int(cfg[key], key, 1)
-    need_int(cfg.get("law_frames") or 0, "law_frames", 0)
+    need_int(cfg.law_frames, "law_frames", 0)
     need_int(cfg.seed, "seed", 0, MAX_SEED)
     if cfg.relmass_decode not in RELMASS_DECODES:
         raise ConfigError("relmass_decode", cfg.relmass_decode,
@@ -970,8 +970,7 @@ def evaluate_run(cfg: Any, paths: tuple[Path, Path, Path]) -> Path:
             curves=curves, step=stages, sinkhorn_stride=int(cfg.rollout.sinkhorn_stride),
             sinkhorn_rollouts=cfg.rollout.sinkhorn_rollouts, positions=positions,
             relmass_decode=str(cfg.relmass_decode),
-            # law_posterior's extra frames per simulation (a key of EvaluateKeys where defined)
-            law_frames=int(cfg.get("law_frames") or 0))
+            law_frames=int(cfg.law_frames))  # law_posterior's extra frames per simulation
         figures: dict[str, Any] = {}
         stages("the learned pair law")
         law, figures["law"] = law_text(module, datamodule.datasets["train"],

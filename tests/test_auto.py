@@ -830,3 +830,20 @@ def test_the_closing_summary_of_an_auto_run_states_the_whole_job():
         status[name] = "-" if name == "impulse" else "not trained (0 steps ...)"
     assert "(the whole job: no candidate trained, the winner's continuation and its test)" \
         in summary(record, Path("r"))
+
+
+def test_no_formula_fits_gives_no_formula_candidate(tmp_path, monkeypatch) -> None:
+    """Where the law search finds no formula within its tolerance, the formula stage tunes
+    nothing and auto has no formula candidate (None), not a failed one."""
+    import bgn.laws.finetune as finetune
+    import bgn.studies.auto as auto
+    import bgn.training.checkpoints as checkpoints
+    from bgn.studies.auto import formula_candidate
+
+    best = Result(Candidate("newton_inertial", [], pair_force=True), errors={10: 1.0}, steps=2)
+    monkeypatch.setattr(auto, "best_pair_force", lambda results, n: best)
+    monkeypatch.setattr(checkpoints, "best_checkpoint", lambda folder: folder / "best.ckpt")
+    monkeypatch.setattr(finetune, "finetune_formula", lambda *a, **k: {
+        "outcome": "no formula fits", "choice": "network", "tolerance": 0.02})
+    assert formula_candidate([best], tmp_path, None, None, [0], [0], 10, [10], {}) is None
+    assert not (tmp_path / "formula_newton_inertial" / "checkpoints").exists()

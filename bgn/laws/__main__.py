@@ -29,10 +29,6 @@ def checked_options(cfg: Any) -> tuple[Path, Path, LawOptions]:
         raise ConfigError("finetune", cfg.finetune, "true or false")
     need_int(cfg.max_terms, "max_terms", 1, 3)  # the search's sums: pairs and triples
     need_float(cfg.tolerance, "tolerance", 0.0, strict_low=False)
-    # the old term list's rule; the law search chooses by the tolerance alone
-    if cfg.get("parsimony") not in (None, 1.5):
-        raise ConfigError("parsimony", cfg.parsimony, "no longer used: the law search takes "
-                          "the simplest front member within tolerance= (leave parsimony unset)")
     for key, high in (("finetune_steps", None), ("finetune_substeps", 64),
                       ("finetune_batch_size", None), ("finetune_horizon", None),
                       ("finetune_val_sims", None)):

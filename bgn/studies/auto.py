@@ -766,7 +766,7 @@ def formula_candidate(results: Sequence[Result], auto_dir: Path, val: Any, train
     candidate's callback state, ``own_checkpoint``) the one the winner resumes from.
     ``deadline``: the job's; the fit stops at an even part of it (``candidate_deadline``),
     the validation rollouts at it (``OutOfTime``). None without a trained and scored
-    pair-force candidate."""
+    pair-force candidate, or where no formula fits its law (the law search's outcome)."""
     from bgn.laws.finetune import finetune_formula
     from bgn.laws.options import DEFAULTS
     from bgn.training.checkpoints import best_checkpoint
@@ -783,6 +783,10 @@ def formula_candidate(results: Sequence[Result], auto_dir: Path, val: Any, train
     record = finetune_formula(best_checkpoint(auto_dir / best.candidate.name), train_split,
                               val, steps=steps, substeps=DEFAULTS.finetune_substeps,
                               out_dir=out_dir, max_seconds=part, deadline=deadline)
+    if record.get("outcome") == "no formula fits":  # the law search's honest outcome
+        log.info(f"auto: no formula fits {best.candidate.name}'s law within "
+                 f"{record.get('tolerance')}: no formula candidate")
+        return None
     spec = json.dumps(record["model_tuned"])  # the model's scale (finetune_formula)
     cand = Candidate(out_dir.name, [*best.candidate.overrides, "model.law=formula",
                       f"model.law_formula='{spec}'",

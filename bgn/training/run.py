@@ -413,7 +413,11 @@ def law_verdict(law: dict[str, Any]) -> str:
     """What model.law=auto's formula stage decided (its record, ``finetune_formula``'s), as
     its log line and the closing summary say it: the law that validates better, or, where
     the job's wall-clock cap stopped the validation rollouts (``validation`` empty), the
-    network law kept with nothing compared."""
+    network law kept with nothing compared; where no formula fits the learned law (the law
+    search's outcome), the network law kept for that reason."""
+    if law.get("outcome") == "no formula fits":
+        return (f"no formula fits the learned law within {law.get('tolerance')}: the network "
+                "law kept")
     cut = "the validation rollouts" in ((law.get("budget") or {}).get("cut") or [])
     if cut or not law.get("validation"):
         return "the network law kept: the formula was not compared (trainer.max_time)"

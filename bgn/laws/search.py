@@ -707,6 +707,14 @@ def search_law(r: np.ndarray, y: np.ndarray, weight: np.ndarray | None = None,
     point counts (``fit_formula``'s weights: the density of the data's distances); the
     chosen member is the simplest on the front whose error (RMS weighted relative residual)
     is within ``tolerance``, else None."""
+    # trial constants overflow on the way (a steep power of the data's distances): every fit
+    # is checked for finite residuals, so numpy's warnings would only be noise in a command
+    with np.errstate(all="ignore"):
+        return _search_law(r, y, weight, tolerance, options)
+
+
+def _search_law(r: np.ndarray, y: np.ndarray, weight: np.ndarray | None, tolerance: float,
+                options: SearchOptions) -> SearchResult:
     t0 = time.perf_counter()
     order = np.argsort(r)
     r, y = np.asarray(r, np.float64)[order], np.asarray(y, np.float64)[order]

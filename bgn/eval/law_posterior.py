@@ -63,8 +63,8 @@ SCREEN = 3 * ROBUST_SCALE
 
 def law_scale_pinned(model: torch.nn.Module) -> bool:
     """Whether the head's law is in physical units: its training read the recorded masses
-    through the law loss (``PhysicsModel.supervision``)."""
-    return "law" in getattr(model, "supervision", {}).get("masses", [])
+    through the law loss (the model's ``law`` head, as ``bgn.laws.compare.read_law`` asks)."""
+    return "law" in getattr(model, "heads", ())
 
 
 def simulation_frames(dataset: FrameDataset, indices: list[int], law_frames: int = 0,

@@ -27,11 +27,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import sympy
 import torch
 from scipy.optimize import minimize
 
 from bgn.laws.compare import LawReport, against_truth, read_law
-from bgn.laws.options import DEFAULTS
+from bgn.laws.options import DEFAULTS, SEARCH_DEFAULTS, SearchOptions
 from bgn.laws.sample import calibrate_scale, pair_distances, pair_force_head
 from bgn.laws.search import expression_spec
 from bgn.training.budget import NO_DEADLINE, Deadline, OutOfTime, check, clock_text
@@ -288,6 +289,78 @@ def prune_terms(tune: Callable[[str], tuple[float, Any, Any, str]], loss: float,
             return loss, module, hp, spec
 
 
+def exponent_constants(pair: dict[str, Any]) -> list[str]:
+    """The constants of an expression pair that are exponents: the only symbol of some power's
+    exponent, entering it linearly (``r**k1``, ``(r + k2)**(-k1 - 1)``: a potential's
+    derivative), as the search's exponent slots are (``bgn.laws.search.Form.exponent_slots``)."""
+    from bgn.model.formula_law import parse_expression
+
+    expr = parse_expression(pair["expr"], pair["constants"])
+    names: set[str] = set()
+    for node in sympy.preorder_traversal(expr):
+        if isinstance(node, sympy.Pow) and len(node.exp.free_symbols) == 1:
+            (sym,) = node.exp.free_symbols
+            if str(sym) in pair["constants"] and sympy.degree(node.exp, sym) == 1:
+                names.add(str(sym))
+    return sorted(names)
+
+
+def snapped_exponent(spec: str, tried: set[tuple[int, str]],
+                     options: SearchOptions = SEARCH_DEFAULTS
+                     ) -> tuple[str, tuple[int, str], str] | None:
+    """The spec with its free exponent closest to a non-zero multiple of ``snap_step`` (within
+    ``snap_distance``, not in ``tried``) rounded to it and written into the expression (no
+    longer a constant): (spec, (pair, name), what changed); None where no exponent is that
+    close. The search's clean-up rule (``bgn.laws.search.clean_up``), on the tuned values."""
+    from bgn.model.formula_law import parse_expression
+
+    pairs = json.loads(spec)
+    near = []
+    for i, pair in enumerate(pairs):
+        if "expr" not in pair:
+            continue
+        for name in exponent_constants(pair):
+            v = float(pair["constants"][name])
+            h = options.snap_step * round(v / options.snap_step)
+            if (i, name) not in tried and h != 0 and abs(v - h) <= options.snap_distance:
+                near.append((abs(v - h), i, name, v, h))
+    if not near:
+        return None
+    _, i, name, v, h = min(near)
+    pair = pairs[i]
+    expr = parse_expression(pair["expr"], pair["constants"])
+    fixed = expr.subs(sympy.Symbol(name, real=True), sympy.nsimplify(h))
+    pairs[i] = {**pair, "expr": sympy.sstr(fixed),
+                "constants": {k: c for k, c in pair["constants"].items() if k != name}}
+    return json.dumps(pairs), (i, name), f"exponent {name} {v:.4g} -> {h:g}"
+
+
+def snap_exponents(tune: Callable[[str], tuple[float, Any, Any, str]], form: dict[str, Any]
+                   ) -> dict[str, Any]:
+    """The chosen form's free exponents rounded on the frames, as the search's clean-up rounds
+    them on the learned law (``snapped_exponent``: closest first), each rounding kept while
+    the tuned loss stays within ``DEFAULTS.form_tolerance`` of the loss before it: the search
+    reads the network's law, whose error can hold an exponent off a round value that the
+    frames, fitted directly, put on it (spring's ``r^0.93`` tuned to ``r^1.001``). The
+    form's ``snapped`` lists the roundings kept."""
+    if not math.isfinite(form["loss"]):
+        return form
+    tried: set[tuple[int, str]] = set()
+    form = {**form, "snapped": []}
+    while (trial := snapped_exponent(json.dumps(form["tuned"]), tried)) is not None:
+        spec, at, change = trial
+        tried.add(at)
+        try:
+            loss, module, hp, tuned = tune(spec)
+        except _Budget:
+            break
+        if not loss > form["loss"] * (1 + DEFAULTS.form_tolerance):
+            form = {**form, "tuned": json.loads(tuned), "loss": loss, "module": module,
+                    "hp": hp, "constants": n_constants(tuned),
+                    "snapped": form["snapped"] + [change]}
+    return form
+
+
 def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], steps: int,
                    deadline: Deadline | None) -> tuple[float, int]:
     """The constants of ``head``'s formula law (the terms' amplitudes and c's, the expression
@@ -454,7 +527,7 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     starts = ([(start, n_constants(start))] if start is not None
               else candidate_specs(report, members))
     forms = _tuned_forms(tune, starts, checkpoint, substeps, reach, floor)
-    form = _chosen_form(forms)
+    form = snap_exponents(tune, _chosen_form(forms))
     module, hp = form["module"], form["hp"]
     model, head = pair_force_head(module)
     polish = polish_constants(model, head, batches, steps, deadline) \
@@ -478,11 +551,9 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
         # scale (its rollouts are the same at any scale), the record in physical units
         scale = calibrate_scale(head, train_split)[0]
         model_scale = 1 / calibrate_scale(pair_force_head(network)[1], train_split)[0]
-    with torch.no_grad():
-        head.force_law.amplitude.mul_(scale)
+    head.force_law.scale_(scale)
     spec = head.force_law.spec()
-    with torch.no_grad():
-        head.force_law.amplitude.mul_(model_scale)
+    head.force_law.scale_(model_scale)
     hp["model_config"] = {**hp["model_config"], "law_formula": head.force_law.spec(),
                           "law_scale": 1 / model_scale}  # its labels in physical units
     history = int(hp["history"])
@@ -509,6 +580,7 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
               "rollout_substeps": head.substeps,
               "formula_by_substeps": {str(k): v for k, v in by_substeps.items()},
               "start": form["start"], "tuned": json.loads(spec),
+              "snapped": form.get("snapped", []),
               "scale": scale, "model_scale": model_scale,
               "model_tuned": json.loads(hp["model_config"]["law_formula"]),
               "loss": form["loss"], "polish": polish, "floor": floor,

@@ -43,6 +43,10 @@ class SearchOptions:
     snap_distance: float = 0.15      # ... when within this distance of one
     clean_factor: float = 1.05       # a clean-up step kept while the error stays within this x
     front_margin: float = 0.999      # a more complex member joins the front below this x error
+    # a member is chosen only if its error is within the tolerance also on distances held out:
+    # this many contiguous ranges of r of equal weight, each predicted by the form refitted
+    # on the others
+    holdout_blocks: int = 8
     same_form_tolerance: float = 1e-6  # RMS relative residual of one family fitted to the other
     same_form_starts: int = 4        # starts of that fit (the expression's own, then perturbed)
     # ranges the random starts are drawn from (scales: the data's median distance s)

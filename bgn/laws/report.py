@@ -60,16 +60,18 @@ def outcome_sentence(pair: PairLaw) -> str:
                 f"(RMS relative error against the learned law): complexity "
                 f"{pair.formula.complexity}, error {_g(pair.formula.error)}.")
     return (f"**No formula fits**: no member of the front is within the tolerance "
-            f"{_g(found.tolerance)} of the learned law (the most accurate, above, has error "
-            f"{_g(pair.formula.error)} and is NOT chosen); the network law is kept.")
+            f"{_g(found.tolerance)} of the learned law both as fitted and on held-out "
+            f"distances (the most accurate, above, has error {_g(pair.formula.error)}, held "
+            f"out {_g(pair.formula.holdout)}, and is NOT chosen); the network law is kept.")
 
 
 def front_table(found: SearchResult) -> list[str]:
-    """The search's front as a markdown table: complexity, error, formula, its tree (a force
-    or a potential), the member chosen marked."""
-    lines = ["| complexity | error | formula | tree | chosen |", "|---|---|---|---|---|"]
+    """The search's front as a markdown table: complexity, error as fitted and held out,
+    formula, its tree (a force or a potential), the member chosen marked."""
+    lines = ["| complexity | error | held out | formula | tree | chosen |",
+             "|---|---|---|---|---|---|"]
     for m in found.front:
-        lines.append(f"| {m.complexity} | {_g(m.error)} | `{m.text}` | "
+        lines.append(f"| {m.complexity} | {_g(m.error)} | {_g(m.holdout)} | `{m.text}` | "
                      f"{'potential' if m.potential is not None else 'force'} | "
                      f"{'yes' if m is found.chosen else ''} |")
     return lines
@@ -228,7 +230,8 @@ def _jsonable(report: LawReport) -> dict[str, Any]:
             "complexity": f.complexity, "relative_rms": f.error,
             "expression": sympy.sstr(f.template), "constants": f.constants,
             "spec": expression_spec(f, pair.types),
-            "front": [{"complexity": m.complexity, "error": m.error, "formula": m.text,
+            "front": [{"complexity": m.complexity, "error": m.error,
+                       "holdout_error": m.holdout, "formula": m.text,
                        "tree": "potential" if m.potential is not None else "force",
                        "chosen": m is found.chosen} for m in found.front],
             "search_seconds": found.timings.get("total_s"),

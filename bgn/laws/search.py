@@ -34,7 +34,9 @@ cleaned up (``clean_up``: drop terms, round exponents within ``snap_distance`` o
 of ``snap_step``, each step kept only while the refitted error stays within ``clean_factor``
 times the member's), and the front formed of the cleaned fits. The law chosen is the
 simplest front member whose error is within the caller's ``tolerance`` (the learned law's own
-uncertainty), else none: "no formula fits", and the front is returned anyway.
+uncertainty) both as fitted and held out (``holdout_error``: each of ``holdout_blocks``
+contiguous ranges of r predicted by the form refitted on the rest), else none: "no formula
+fits", and the front is returned anyway.
 ``same_form`` says whether two expressions are the same form up to constants (sympy), and
 ``constant_difference`` how far one's constants are from the other's in its family;
 ``expression_spec`` writes a member as a ``model.law_formula`` pair (``bgn.model.formula_law``).
@@ -585,7 +587,8 @@ class Member:
     """A front member: ``complexity`` (nodes), ``error`` (RMS weighted relative residual),
     ``expr`` (sympy, constants as numbers), ``template`` (constants as symbols) and
     ``constants`` (their values), ``cleaned``: what the clean-up changed; ``potential``: of a
-    member read as a potential, U(r) (its ``expr`` is the force ``-dU/dr``), else None."""
+    member read as a potential, U(r) (its ``expr`` is the force ``-dU/dr``), else None;
+    ``holdout``: its held-out error (``holdout_error``)."""
 
     complexity: int
     error: float
@@ -595,6 +598,7 @@ class Member:
     fit: Fit
     cleaned: list[str] = field(default_factory=list)
     potential: sympy.Expr | None = None
+    holdout: float = math.nan
 
     def __call__(self, r: np.ndarray) -> np.ndarray:
         """The member's force at distances ``r`` (its fit's columns and amplitudes)."""
@@ -675,6 +679,34 @@ def clean_up(fit: Fit, pb: Problem, options: SearchOptions = SEARCH_DEFAULTS
     return fit, done
 
 
+def holdout_blocks(share: np.ndarray, blocks: int) -> list[np.ndarray]:
+    """The points (sorted by r) cut into ``blocks`` contiguous ranges of r, each holding an equal
+    share of the points' weight: a mask per range."""
+    cut = np.cumsum(share) / share.sum()
+    index = np.minimum((cut * blocks).astype(int), blocks - 1)
+    return [index == j for j in range(blocks)]
+
+
+def holdout_error(fit: Fit, pb: Problem, masks: list[np.ndarray],
+                  options: SearchOptions = SEARCH_DEFAULTS) -> float:
+    """The form's error on distances it was not fitted to: each range of ``masks`` predicted by
+    the form refitted (from its own constants) on the others, the RMS weighted relative
+    residual over every point; inf where a refit fails. A form that interpolates the
+    learned law's wiggles fits each range from the rest badly; the law's own form does not."""
+    res = np.zeros_like(pb.b)
+    for m in masks:
+        if not m.any() or m.all():
+            continue
+        one = fit_form(fit.form, Problem(pb.r[~m], pb.b[~m], pb.w[~m], pb.s), [fit.inner],
+                       options)
+        if one is None:
+            return math.inf
+        with np.errstate(all="ignore"):
+            out = (_columns(fit.form, one.inner, pb.r[m]) @ one.amplitudes) * pb.w[m] - pb.b[m]
+        res[m] = np.where(np.isfinite(out), out, 1e6)
+    return float(np.sqrt(np.mean(res * res)))
+
+
 def _term_blocks(fit: Fit) -> tuple[list[np.ndarray], list[list[np.ndarray]]]:
     """The inner constants of the common factor (empty list: none) and of each term."""
     blocks = [b for _, b in _blocks(fit)]
@@ -706,7 +738,7 @@ def search_law(r: np.ndarray, y: np.ndarray, weight: np.ndarray | None = None,
     """The law ``y(r)`` by the search of the module doc. ``r`` > 0; ``weight``: how much each
     point counts (``fit_formula``'s weights: the density of the data's distances); the
     chosen member is the simplest on the front whose error (RMS weighted relative residual)
-    is within ``tolerance``, else None."""
+    is within ``tolerance``, as fitted and held out (``holdout_error``), else None."""
     # trial constants overflow on the way (a steep power of the data's distances): every fit
     # is checked for finite residuals, so numpy's warnings would only be noise in a command
     with np.errstate(all="ignore"):
@@ -799,11 +831,16 @@ def _search_law(r: np.ndarray, y: np.ndarray, weight: np.ndarray | None, toleran
         pool.append(g)
     front = _pareto(pool, options.front_margin)
     members = [_member(f, cleaned.get(id(f), (f, []))[1], options) for f in front]
-    chosen = next((m for m in members if m.error <= tolerance), None)
+    t = time.perf_counter()
+    masks = holdout_blocks(np.ones_like(r) if share is None else share, options.holdout_blocks)
+    for m in members:
+        m.holdout = holdout_error(m.fit, pb, masks, options)
+    chosen = next((m for m in members if m.error <= tolerance and m.holdout <= tolerance), None)
     total = time.perf_counter() - t0
     return SearchResult(members, chosen, tolerance,
                         {"screen_s": t_screen, "search_s": t_search, "restarts_s": t_restart,
-                         "clean_up_s": total - t_search - t_restart, "total_s": total},
+                         "clean_up_s": t - t0 - t_search - t_restart,
+                         "holdout_s": total - (t - t0), "total_s": total},
                         len(fitted))
 
 

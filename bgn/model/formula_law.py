@@ -202,6 +202,30 @@ class FormulaLaw(nn.Module):
         """(K,) the amplitudes a_k, float64."""
         return self.amplitude.double() * self.amplitude_scale.double()
 
+    @torch.no_grad()
+    def scale_(self, factor: float) -> None:
+        """The whole law times ``factor``, in place: the terms' amplitudes and each expression
+        pair's amplitudes (its constants named ``a1, a2, ...``, as the law search names them:
+        ``bgn.laws.search.form_expression``), in which its expression is linear. An
+        expression that this does not scale (checked at distances 0.1 to 10) is refused,
+        unchanged (``ValueError``)."""
+        r = torch.logspace(-1, 1, 17, dtype=torch.float64)
+        before = self.values(r)
+        self.amplitude.mul_(factor)
+        if self.expressions:
+            names = [n for ns in self.expression_names for n in ns]
+            linear = torch.tensor([re.fullmatch(r"a\d+", n) is not None for n in names])
+            saved = self.constant.detach().clone()
+            self.constant[linear] *= factor
+            after = self.values(r)[..., len(self.kinds):]
+            want = factor * before[..., len(self.kinds):]
+            ok = torch.isfinite(want)
+            if not torch.allclose(after[ok], want[ok], rtol=1e-9, atol=0.0):
+                self.constant.copy_(saved)
+                self.amplitude.div_(factor)
+                raise ValueError("model.law_formula: an expression is not linear in its "
+                                 f"amplitudes a1, a2, ...: cannot scale {self.expressions}")
+
     def forward(self, r: torch.Tensor, pair: torch.Tensor | None = None) -> torch.Tensor:
         """``f(r)`` at distances r (E, ...) in r's dtype; ``pair`` (E,): each edge's pair of
         types as ``min * n_types + max`` (None: one type)."""

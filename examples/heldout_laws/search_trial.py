@@ -13,8 +13,9 @@ the noise's RMS with a quarter's margin (``--margin``; 1.25 % for 1 % noise; the
 passes the learned law's, ``LawOptions.tolerance``). Printed per law and seed: the form
 chosen, whether it is the manifest's form (``bgn.laws.search.same_form``: same form up to
 constants), the median relative error against the exact law over the 1-99 % distance
-quantiles, the front's size and the wall time; a law the search read as a potential's force
-is printed ``-d/dr[U]``.
+quantiles, the front's size and the wall time, the chosen member's held-out error against
+the tolerance (``bgn.laws.search.holdout_error``); a law the search read as a potential's
+force is printed ``-d/dr[U]``.
 
 The report half (laws.yaml ``half: report``) is refused unless ``--report-half`` is given: it is
 run once, after the search is frozen (examples/heldout_laws/README.md, "The rule").
@@ -128,6 +129,7 @@ def run_law(law: dict[str, Any], p: dict[str, Any], seed: int, noise: float,
                    "chosen": found.chosen.text if found.chosen else None,
                    "chosen_is_potential": bool(found.chosen is not None
                                                and found.chosen.potential is not None),
+                   "chosen_holdout": None if found.chosen is None else found.chosen.holdout,
                    "best_on_front": best.text,
                    "right_form": bool(found.chosen is not None and same_form(
                        found.chosen.expr, family, judge_r, constants)),
@@ -135,7 +137,8 @@ def run_law(law: dict[str, Any], p: dict[str, Any], seed: int, noise: float,
                                               for m in found.front),
                    "median_error": median_error(pick.expr, exact, lo, hi),
                    "front": len(found.front), "wall_s": t_search, "forms": found.n_forms,
-                   "front_members": [[m.complexity, m.error, m.text] for m in found.front]},
+                   "front_members": [[m.complexity, m.error, m.holdout, m.text]
+                                     for m in found.front]},
         "list": {"chosen": sp.sstr(listed.expr()),
                  "right_form": bool(same_form(listed_expr, family, judge_r, constants)),
                  "median_error": median_error(listed_expr, exact, lo, hi),
@@ -148,7 +151,8 @@ def run_law(law: dict[str, Any], p: dict[str, Any], seed: int, noise: float,
           f"err={s['median_error']:.2%} front={s['front']} {s['wall_s']:.0f}s "
           f"| list: right={'yes' if li['right_form'] else 'no ':3s} "
           f"err={li['median_error']:.2%} front={li['front']} {li['wall_s']:.0f}s", flush=True)
-    chosen = s["chosen"] or f"(none; most accurate on the front: {s['best_on_front']})"
+    chosen = (f"{s['chosen']}  (held out {s['chosen_holdout'] / tolerance:.2f} x tolerance)"
+              if s["chosen"] else f"(none; most accurate on the front: {s['best_on_front']})")
     print(f"    search chose: {chosen}")
     print(f"    list chose:   {li['chosen']}", flush=True)
     return row

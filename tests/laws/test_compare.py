@@ -90,7 +90,8 @@ def test_a_product_law_the_old_list_could_not_hold_is_read_back_in_its_form(trut
     middle = pair.bands[2]  # data quantiles 0.1 - 0.5
     assert middle["formula_vs_truth"]["max"] < 1e-6
     text = markdown(_report(pair))
-    assert pair.formula.text in text and "| complexity | error | formula | tree | chosen |" in text
+    assert pair.formula.text in text
+    assert "| complexity | error | held out | formula | tree | chosen |" in text
     assert "No formula fits" not in text
 
 
@@ -109,7 +110,7 @@ def test_a_law_no_tree_fits_is_no_formula_fits_and_the_front_is_reported():
     assert report.outcome == "no formula fits"
     text = markdown(report)
     assert "**No formula fits**" in text and "NOT chosen" in text
-    assert "| complexity | error | formula | tree | chosen |" in text
+    assert "| complexity | error | held out | formula | tree | chosen |" in text
     assert all(f"`{m.text}`" in text for m in pair.search.front)
 
 

@@ -417,3 +417,57 @@ def test_tune_constants_fits_an_expression_specs_constants(monkeypatch):
     tuned = json.loads(law.spec())[0]["constants"]
     assert tuned["a1"] == pytest.approx(-1.3, rel=0.02)
     assert tuned["k1"] == pytest.approx(-1 / 0.7, rel=0.02)
+
+
+def _expression(expr: str, **constants: float) -> str:
+    return json.dumps([{"types": [0, 0], "expr": expr, "constants": constants}])
+
+
+def test_the_exponents_of_an_expression_are_the_constants_its_powers_raise_to():
+    from bgn.laws.finetune import exponent_constants
+
+    spring = json.loads(_expression("a1 + a2*r**k1", a1=2.0, a2=-2.0, k1=1.001))[0]
+    assert exponent_constants(spring) == ["k1"]
+    # a potential's derivative raises to -k1 - 1; a shift (k2) and a rate (k3) are no exponents
+    pair = json.loads(_expression("a1*k1*(k2 + r)**(-k1 - 1)*exp(-k3*r)", a1=1.0, k1=2.0,
+                                  k2=0.1, k3=1.0))[0]
+    assert exponent_constants(pair) == ["k1"]
+
+
+def test_an_exponent_near_a_round_value_is_rounded_into_the_expression_closest_first():
+    from bgn.laws.finetune import snapped_exponent
+
+    spec = _expression("a1*r**k1 + a2/(r**2 + k3)**k2", a1=2.0, a2=1.0, k1=1.08, k2=0.52,
+                       k3=0.25)
+    fixed, at, change = snapped_exponent(spec, set())
+    assert at == (0, "k2") and change == "exponent k2 0.52 -> 0.5"
+    pair = json.loads(fixed)[0]
+    assert set(pair["constants"]) == {"a1", "a2", "k1", "k3"}
+    r = np.linspace(0.3, 3.0, 7)
+    assert np.allclose(eval(pair["expr"].replace("sqrt", "np.sqrt"),
+                            {"np": np, "r": r, **pair["constants"]}),
+                       2.0 * r ** 1.08 + 1.0 / np.sqrt(r ** 2 + 0.25))
+    assert snapped_exponent(spec, {(0, "k2")})[1] == (0, "k1")
+    # beyond snap_distance of a multiple of snap_step, or rounding to 0: left free
+    assert snapped_exponent(_expression("a1*r**k1", a1=1.0, k1=1.25), set()) is None
+    assert snapped_exponent(_expression("a1*r**k1", a1=1.0, k1=0.1), set()) is None
+
+
+def test_a_rounding_is_kept_only_while_the_frames_loss_stays_within_the_form_tolerance():
+    from bgn.laws.finetune import snap_exponents
+    from bgn.laws.options import DEFAULTS
+
+    costs = {"k1": 1 + DEFAULTS.form_tolerance / 2, "k2": 1 + 2 * DEFAULTS.form_tolerance}
+
+    def tune(spec: str) -> tuple[float, None, None, str]:  # each rounding costs its factor
+        names = json.loads(spec)[0]["constants"]
+        return math.prod(v for k, v in costs.items() if k not in names), None, None, spec
+
+    spec = _expression("a1*r**k1 + a2*r**k2", a1=1.0, a2=1.0, k1=1.01, k2=-2.03)
+    form = {"tuned": json.loads(spec), "loss": 1.0, "module": None, "hp": None,
+            "constants": 4}
+    out = snap_exponents(tune, form)
+    assert out["snapped"] == ["exponent k1 1.01 -> 1"]       # k2's rounding cost too much
+    assert set(out["tuned"][0]["constants"]) == {"a1", "a2", "k2"}
+    assert out["loss"] == pytest.approx(costs["k1"]) and out["constants"] == 3
+    assert snap_exponents(tune, {**form, "loss": math.nan}) is not None

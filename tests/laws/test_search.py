@@ -24,6 +24,7 @@ from bgn.laws.search import (
     complexity,
     expression_spec,
     fit_form,
+    holdout_blocks,
     relative_weights,
     same_form,
     search_law,
@@ -99,6 +100,35 @@ def test_a_law_outside_the_grammar_fits_no_formula_at_a_tight_tolerance(truth):
     # the front is ordered: more complex, less error
     assert all(a.complexity < b.complexity and a.error > b.error
                for a, b in zip(found.front, found.front[1:]))
+
+
+def test_the_held_out_ranges_split_the_points_into_contiguous_equal_shares():
+    share = np.random.default_rng(0).uniform(0.1, 2.0, 1000)
+    masks = holdout_blocks(share, 8)
+    assert len(masks) == 8 and sum(m.astype(int) for m in masks).tolist() == [1] * 1000
+    for m in masks:  # one contiguous range each, an eighth of the weight
+        idx = np.flatnonzero(m)
+        assert idx[-1] - idx[0] + 1 == len(idx)
+        assert share[m].sum() / share.sum() == pytest.approx(1 / 8, abs=0.01)
+
+
+def test_a_member_is_chosen_only_within_the_tolerance_both_fitted_and_held_out():
+    """A law outside the grammar: its members interpolate it, and predict distances held out
+    worse than they fit them. With the tolerance between a member's error and its held-out
+    error, that member is passed over; whatever is chosen is within the tolerance both ways."""
+    truth = -sympy.log(1 - sympy.exp(-R**2))
+    r = np.geomspace(0.1, 10.0, 240)
+    y = noisy(truth, r, 0.0)
+    found = search_law(r, y, tolerance=1.0, options=FASTER)
+    assert all(np.isfinite(m.holdout) and m.holdout >= 0 for m in found.front)
+    gap = next(m for m in found.front if m.holdout > 1.5 * m.error)
+    tolerance = math.sqrt(gap.error * gap.holdout)
+    again = search_law(r, y, tolerance=tolerance, options=FASTER)
+    assert [m.complexity for m in again.front] == [m.complexity for m in found.front]
+    assert again.chosen is None or (again.chosen.complexity != gap.complexity
+                                    and again.chosen.error <= tolerance
+                                    and again.chosen.holdout <= tolerance)
+    assert found.timings["holdout_s"] >= 0
 
 
 def test_same_form_tells_a_family_from_a_larger_or_another_one():

@@ -91,7 +91,7 @@ def test_a_stage_where_no_formula_fits_keeps_the_network_law_and_reports_the_fro
     text = (tmp_path / "laws" / "report.md").read_text()
     assert text.count("**No formula fits**") == 1  # the read-back's sentence
     assert "No formula fits the learned law within the tolerance 0.02" in text  # the tuning's
-    assert "| complexity | error | formula | tree | chosen |" in text
+    assert "| complexity | error | held out | formula | tree | chosen |" in text
     law = json.loads((tmp_path / "laws" / "law.json").read_text())
     assert law["outcome"] == "no formula fits" and not law["pairs"][0]["chosen"]
     assert len(law["pairs"][0]["front"]) == len(pair.search.front)

@@ -240,3 +240,26 @@ def test_a_bad_expression_pair_is_refused_in_one_line(bad):
     with pytest.raises(ValueError, match="law_formula") as err:
         check_law("formula", json.dumps([bad]))
     assert "\n" not in str(err.value)
+
+
+def test_scaling_a_law_scales_its_terms_and_its_expressions_amplitudes():
+    """``scale_`` puts a law read in a free scale into physical units: terms and expression
+    pairs alike (a search member is linear in its a's); an expression that is not is refused,
+    unchanged."""
+    spec = json.dumps([
+        {"types": [0, 0], "terms": [{"kind": "power", "power": -2.0, "a": 1.5, "c": None}]},
+        {"types": [0, 1], "expr": "-(a1*k1*r**(-k1 - 1) + a2*exp(-k2*r))",
+         "constants": {"a1": 0.7, "k1": 2.0, "a2": -0.2, "k2": 1.3}}])
+    law = FormulaLaw(spec, n_types=2)
+    r = torch.linspace(0.2, 4.0, 9, dtype=torch.float64)
+    pairs = torch.tensor([0, 1] * 4 + [1])
+    before = law(r, pairs).detach()
+    law.scale_(-3.5)
+    assert torch.allclose(law(r, pairs).detach(), -3.5 * before)
+    again = FormulaLaw(law.spec(), n_types=2)  # the spec written back carries the scale
+    assert torch.allclose(again(r, pairs).detach(), -3.5 * before)
+    bad = FormulaLaw(json.dumps([{"types": [0, 0], "expr": "b*exp(-k*r)",
+                                  "constants": {"b": 2.0, "k": 1.0}}]))
+    with pytest.raises(ValueError, match="not linear in its amplitudes"):
+        bad.scale_(2.0)
+    assert json.loads(bad.spec())[0]["constants"] == {"b": 2.0, "k": 1.0}

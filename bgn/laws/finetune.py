@@ -184,10 +184,16 @@ def candidate_specs(report: LawReport, limit: int = DEFAULTS.finetune_members,
     count): the formula read back (the member each pair of types' search chose), then (one
     pair of types only) the other members of its front, simplest first, at most ``limit`` in
     all. The network's law can be off where the frames pin the form (gravity's close
-    encounters), so a member the search passed over may fit the frames best. Empty where no
-    formula fits (a pair's search chose none): there is no formula to tune."""
-    if report.outcome != "formula":
-        return []
+    encounters), so a member the search passed over may fit the frames best. Where no
+    formula fits the learned law (the search chose none) and there is one pair of types: the
+    front's members simplest first, which ``finetune_formula`` tunes only to check whether the
+    frames prefer one to the network law; with several pairs, empty."""
+    if report.outcome != "formula":  # the frames may still prefer a member (frames_check)
+        if len(report.pairs) != 1:
+            return []
+        pair = report.pairs[0]
+        return [(json.dumps([expression_spec(m, pair.types)]), m.complexity)
+                for m in pair.search.front][:max(1, limit)]
     starts = [(formula_spec(report), sum(p.formula.complexity for p in report.pairs))]
     if len(report.pairs) == 1:
         pair = report.pairs[0]
@@ -485,8 +491,13 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     after the horizon, a failed rollout at the cap).
     ``out_dir``: writes ``formula.ckpt`` (loadable as any checkpoint) and ``formula.json``.
     The forms tuned: the law search's front members (``candidate_specs``, at most
-    ``members``); where no formula fits (the search chose no member for a pair of types)
-    nothing is tuned or rolled out and the network law is kept (``no_formula_record``).
+    ``members``). Where no formula fits the learned law (the search chose no member) the
+    network law's own error can be what no member matched (a law trained briefly, off in the
+    tails it barely saw): with one pair of types the front's members are tuned on the frames
+    all the same, and the best goes on to the validation rollouts only if its loss is at most
+    the network law's on the same frames through the same substeps (``network_loss``; the
+    record's ``basis`` is then ``frames``, ``frames`` holds both losses); else, and with
+    several pairs of types, the network law is kept (``no_formula_record``).
     ``start``: a spec to start from in place of the law read back (tests). The fit is
     bounded by its evaluation count (``steps`` per form); ``deadline`` (the job's wall-clock
     cap, ``bgn.training.budget``) and ``max_seconds`` (from now) stop it earlier, and the
@@ -497,13 +508,16 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     choice)."""
     from bgn.training.module import load_model
 
-    if start is None and report is not None and report.outcome != "formula":
+    if start is None and report is not None and not _tunable(report):
         return no_formula_record(checkpoint, report)
     network = load_model(checkpoint)
     if start is None and report is None:
         report = read_law(network, train_split)
-        if report.outcome != "formula":
+        if not _tunable(report):
             return no_formula_record(checkpoint, report)
+    # no member fits the learned law: the members are tuned on the frames anyway, and one
+    # goes on only if it explains them as well as the network law (the frames check)
+    on_frames = start is None and report.outcome != "formula"
     batches = tuning_batches(train_split, batch_size, seed)
     reach, floor = _data_reach(report, train_split)
     job = deadline or NO_DEADLINE  # the validation rollouts' (max_seconds bounds the fit)
@@ -527,6 +541,22 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     starts = ([(start, n_constants(start))] if start is not None
               else candidate_specs(report, members))
     forms = _tuned_forms(tune, starts, checkpoint, substeps, reach, floor)
+    frames = None
+    if on_frames:
+        frames = {"network_loss": network_loss(network, batches, substeps),
+                  "formula_loss": _chosen_form(forms)["loss"]}
+        if not frames["formula_loss"] <= frames["network_loss"]:  # NaN: nothing tuned
+            log.info("formula stage: no formula fits the learned law, and none fitted to the "
+                     "frames explains them as well as the network law (loss %.4g against "
+                     "%.4g): the network law is kept", frames["formula_loss"],
+                     frames["network_loss"])
+            return {**no_formula_record(checkpoint, report), "frames": frames,
+                    "steps": evaluations[0], "tunings": evaluations[1],
+                    "forms": [{k: f[k] for k in ("start", "tuned", "loss", "constants",
+                                                 "complexity")} for f in forms]}
+        log.info("formula stage: no formula fits the learned law, but one fitted to the frames "
+                 "explains them better than the network law (loss %.4g against %.4g): it is "
+                 "rolled out against it", frames["formula_loss"], frames["network_loss"])
     form = snap_exponents(tune, _chosen_form(forms))
     module, hp = form["module"], form["hp"]
     model, head = pair_force_head(module)
@@ -570,6 +600,7 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
                     "compare the formula")
     hp["model_config"] = {**hp["model_config"], "substeps": head.substeps}
     record = {"checkpoint": str(checkpoint), "outcome": "formula",
+              "basis": "frames" if on_frames else "learned law", "frames": frames,
               "tolerance": None if report is None else report.pairs[0].search.tolerance,
               "substeps": substeps,
               "steps": evaluations[0], "tunings": evaluations[1], "batch_size": batch_size,
@@ -591,6 +622,13 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     if out_dir is not None:
         record["path"] = str(_write_formula(Path(out_dir), checkpoint, module, hp, record))
     return record
+
+
+def _tunable(report: LawReport) -> bool:
+    """Whether the fine-tuning has forms to tune: a formula read back, or (the frames check)
+    one pair of types whose search's front offers members."""
+    return report.outcome == "formula" or (len(report.pairs) == 1
+                                           and bool(report.pairs[0].search.front))
 
 
 def _data_reach(report: LawReport | None, train_split: Any) -> tuple[Any, float | None]:
@@ -644,6 +682,21 @@ def _chosen_form(forms: list[dict[str, Any]]) -> dict[str, Any]:
     lowest = min(f["loss"] for f in forms)
     near = [f for f in forms if not f["loss"] > lowest * (1 + DEFAULTS.form_tolerance)] or forms
     return min(near, key=lambda f: (f["complexity"], f["constants"], f["loss"]))
+
+
+def network_loss(network: Any, batches: list[tuple[float, Any]], substeps: int) -> float:
+    """The network law's ``law_objective`` on the tuning ``batches`` through ``substeps`` (the
+    forms' own), the yardstick of the frames check: its model is left as it was."""
+    model, head = pair_force_head(network)
+    coarse, mode = head.substeps, model.training
+    head.substeps = substeps
+    model.eval()
+    try:
+        with torch.no_grad():
+            return float(sum(w * law_objective(model, head, g) for w, g in batches))
+    finally:
+        head.substeps = coarse
+        model.train(mode)
 
 
 def no_formula_record(checkpoint: Path, report: LawReport) -> dict[str, Any]:

@@ -278,11 +278,16 @@ def finetune_markdown(record: dict[str, Any], level: int = 2) -> str:
     """The comparison table of ``finetune_formula``'s record."""
     h = "#" * level
     v = record["validation"]
-    if record.get("outcome") == "no formula fits":  # nothing tuned (no_formula_record)
+    frames = record.get("frames")
+    if record.get("outcome") == "no formula fits":  # nothing chosen (no_formula_record)
+        checked = ("" if not frames else
+                   f" The front's members were fitted to the frames all the same: the best "
+                   f"explains them less well than the network law (law loss "
+                   f"{_g(frames['formula_loss'])} against {_g(frames['network_loss'])}).")
         return (f"{h} The formula as the law, fine-tuned\n\nNo formula fits the learned law "
                 f"within the tolerance {_g(record['tolerance'])} (the most accurate member of "
-                f"the front has error {_g(record['best_error'])}): no formula was fine-tuned, "
-                "and the network law is kept.\n\n"
+                f"the front has error {_g(record['best_error'])}).{checked} The network law "
+                "is kept.\n\n"
                 + "".join(line + "\n" for line in truth_markdown(
                     record.get("against_truth") or {}, record.get("truth"))))
     if not v:  # the validation rollouts were cut (finetune_formula)
@@ -301,7 +306,14 @@ def finetune_markdown(record: dict[str, Any], level: int = 2) -> str:
              f"{record['substeps']}, the rest of the model the checkpoint's; both scored on "
              f"the validation split's rollouts ({v['network']['rollouts']} rollouts, a failed "
              "one at the cap): the mean error and the typical one (the geometric mean over "
-             "the rollouts).",
+             "the rollouts)." + ("" if not frames else
+                                 " No formula fits the learned law within the tolerance "
+                                 f"{_g(record.get('tolerance'))}; the front's members were "
+                                 "fitted to the frames, and the formula below explains them "
+                                 "better than the network law does (law loss "
+                                 f"{_g(frames['formula_loss'])} against "
+                                 f"{_g(frames['network_loss'])}): the frames, not the "
+                                 "learned law, put it forward."),
              "",
              "| law | formula | " + " | ".join(f"mean @{k} | typical @{k}" for k in horizons)
              + " | failed |",

@@ -84,8 +84,9 @@ def law_stage(cfg: Any, best: Path, datamodule: Any, output_dir: Path,
     (``choice``: network or formula; ``path``: formula.ckpt). Bounded by its evaluation
     count (``LawOptions.finetune_steps`` per form), so the same run fits the same formula on
     any machine; ``deadline`` (the job's wall-clock cap) stops it earlier, and its record's
-    ``budget`` says so (docs/design.md#budgets). Where no formula fits the learned law,
-    nothing is tuned and the network law is kept (the record's ``outcome``)."""
+    ``budget`` says so (docs/design.md#budgets). Where no formula fits the learned law and no
+    member fitted to the frames explains them as well as the network law (``finetune_formula``'s
+    frames check), the network law is kept (the record's ``outcome``)."""
     from bgn.training.run import law_verdict  # what the closing summary says of it too
 
     if world_size > 1:  # one process would tune while the others wait at the test's barrier

@@ -416,8 +416,10 @@ def law_verdict(law: dict[str, Any]) -> str:
     network law kept with nothing compared; where no formula fits the learned law (the law
     search's outcome), the network law kept for that reason."""
     if law.get("outcome") == "no formula fits":
-        return (f"no formula fits the learned law within {law.get('tolerance')}: the network "
-                "law kept")
+        frames = (" nor fitted to the frames explains them as well as it"
+                  if law.get("frames") else "")
+        return (f"no formula fits the learned law within {law.get('tolerance')}{frames}: the "
+                "network law kept")
     cut = "the validation rollouts" in ((law.get("budget") or {}).get("cut") or [])
     if cut or not law.get("validation"):
         return "the network law kept: the formula was not compared (trainer.max_time)"

@@ -369,18 +369,30 @@ def test_the_fine_tuning_starts_from_the_front_chosen_first_then_simplest_first(
         np.testing.assert_allclose(values, member(r), rtol=1e-9)
 
 
-def test_no_formula_fits_keeps_the_network_law_without_fine_tuning():
-    """Where the search chose no member, nothing is tuned, rolled out or written (the
-    checkpoint is not even read) and the record says why, with the tolerance and the best
-    member's error."""
+def _wiggly(r):
+    return np.exp(-r) * (1 + 0.3 * np.sin(9 * np.log(r)))
+
+
+def test_no_formula_fits_offers_the_front_to_the_frames_with_one_pair_of_types_only():
+    """Where the search chose no member, the front's members (simplest first) are the forms
+    the frames check tunes; with several pairs of types there is nothing to tune: nothing is
+    tuned, rolled out or written (the checkpoint is not even read) and the record says why,
+    with the tolerance and the best member's error."""
+    from dataclasses import replace
     from pathlib import Path
 
     from bgn.laws.finetune import candidate_specs, finetune_formula
     from bgn.laws.report import finetune_markdown
 
-    report = _screened_report(lambda r: np.exp(-r) * (1 + 0.3 * np.sin(9 * np.log(r))))
-    assert report.outcome == "no formula fits" and candidate_specs(report) == []
-    record = finetune_formula(Path("no such checkpoint"), None, None, report)
+    report = _screened_report(_wiggly)
+    assert report.outcome == "no formula fits"
+    front = report.pairs[0].search.front
+    specs = candidate_specs(report, limit=3)
+    assert [size for _, size in specs] == [m.complexity for m in front][:3]
+    assert sorted(size for _, size in specs) == [size for _, size in specs]
+    two = replace(report, pairs=[report.pairs[0], replace(report.pairs[0], types=(0, 1))])
+    assert candidate_specs(two) == []
+    record = finetune_formula(Path("no such checkpoint"), None, None, two)
     assert record["outcome"] == "no formula fits" and record["choice"] == "network"
     assert record["tolerance"] == CHEAP.tolerance
     assert record["best_error"] == pytest.approx(report.pairs[0].formula.error)
@@ -388,6 +400,46 @@ def test_no_formula_fits_keeps_the_network_law_without_fine_tuning():
     assert record["steps"] == 0 and record["validation"] == {} and "path" not in record
     text = finetune_markdown(record)
     assert "No formula fits" in text and "network law is kept" in text
+
+
+def test_the_frames_check_rolls_out_a_member_only_where_it_beats_the_network_law(
+        tmp_path, shared_data_dir, monkeypatch):
+    """No member fits the learned law: the front's members are tuned on the frames, and the
+    best is rolled out against the network law only if its loss on the same frames is at most
+    the network law's (``network_loss``); else the network law is kept, both losses said."""
+    import bgn.laws.finetune as finetune
+    from bgn.data.datamodule import ParticleDataModule
+    from bgn.laws.report import finetune_markdown
+    from bgn.training.module import load_model
+
+    ckpt = tiny_run(tmp_path, shared_data_dir, "newton", "model.hidden=16")
+    cfg = OmegaConf.load(tmp_path / "newton" / "train_config.yaml")
+    dm = ParticleDataModule(cfg.dataset, cfg.fps, shared_data_dir, show_progress=False)
+    dm.prepare_data()
+    dm.setup()
+    train_split, val = dm.datasets["train"], dm.datasets["val"]
+    network = load_model(ckpt)
+    batches = finetune.tuning_batches(train_split, 32)
+    loss = finetune.network_loss(network, batches, 2)
+    assert math.isfinite(loss) and loss > 0
+    assert finetune.pair_force_head(network)[1].substeps == 1   # left as it was
+    report = _screened_report(_wiggly)
+    kwargs = {"steps": 6, "substeps": 2, "horizon": 10, "members": 2, "batch_size": 32}
+
+    monkeypatch.setattr(finetune, "network_loss", lambda *a: 0.0)   # nothing beats it
+    kept = finetune.finetune_formula(ckpt, train_split, val, report, **kwargs)
+    assert kept["outcome"] == "no formula fits" and kept["choice"] == "network"
+    assert kept["frames"]["network_loss"] == 0.0 and kept["frames"]["formula_loss"] > 0
+    assert len(kept["forms"]) == 2 and kept["steps"] > 0 and kept["validation"] == {}
+    assert "explains them less well than the network law" in finetune_markdown(kept)
+
+    monkeypatch.setattr(finetune, "network_loss", lambda *a: math.inf)  # anything beats it
+    tried = finetune.finetune_formula(ckpt, train_split, val, report, **kwargs)
+    assert tried["outcome"] == "formula" and tried["basis"] == "frames"
+    assert tried["frames"]["formula_loss"] <= tried["frames"]["network_loss"]
+    assert set(tried["validation"]) == {"network", "formula"}
+    assert tried["choice"] in ("network", "formula")
+    assert "the frames, not the learned law, put it forward" in finetune_markdown(tried)
 
 
 def test_tune_constants_fits_an_expression_specs_constants(monkeypatch):

@@ -71,16 +71,21 @@ def test_law_auto_chooses_the_law_without_a_test(tmp_path, shared_data_dir, monk
 
 def test_a_stage_where_no_formula_fits_keeps_the_network_law_and_reports_the_front(
         tmp_path, monkeypatch):
-    """The formula stage on a learned law no tree fits: report.md says so in one sentence
-    and shows the front; nothing is fine-tuned, no formula checkpoint or config is written,
-    and the record keeps the network law."""
+    """The formula stage on learned laws no tree fits, two pairs of types (one pair's
+    members would be tuned on the frames: ``finetune_formula``'s frames check, tested in
+    test_finetune.py): report.md says so in one sentence per pair and shows the fronts;
+    nothing is fine-tuned, no formula checkpoint or config is written, and the record keeps
+    the network law."""
+    from dataclasses import replace
+
     import bgn.laws.stage as stage
     import bgn.training.module as module
     from bgn.laws.compare import LawReport, read_pair
 
     d = np.exp(np.random.default_rng(0).normal(0, 0.4, 20_000))
     pair = read_pair((0, 0), d, lambda r: np.exp(-r) * (1 + 0.3 * np.sin(9 * np.log(r))), CHEAP)
-    report = LawReport("synthetic", "fake", "inertial", "physical", 1.0, 0.0, 1.0, [pair])
+    report = LawReport("synthetic", "fake", "inertial", "physical", 1.0, 0.0, 1.0,
+                       [pair, replace(pair, types=(0, 1))])
     monkeypatch.setattr(module, "load_model", lambda checkpoint: None)
     monkeypatch.setattr(stage, "read_law", lambda model, split, options: report)
     record = stage.formula_stage(tmp_path / "best.ckpt", None, None, None, tmp_path / "laws",
@@ -89,7 +94,7 @@ def test_a_stage_where_no_formula_fits_keeps_the_network_law_and_reports_the_fro
     assert sorted(p.name for p in (tmp_path / "laws").iterdir()) == [
         "law.csv", "law.json", "law.png", "report.md"]
     text = (tmp_path / "laws" / "report.md").read_text()
-    assert text.count("**No formula fits**") == 1  # the read-back's sentence
+    assert text.count("**No formula fits**") == 2  # the read-back's sentence, per pair
     assert "No formula fits the learned law within the tolerance 0.02" in text  # the tuning's
     assert "| complexity | error | held out | formula | tree | chosen |" in text
     law = json.loads((tmp_path / "laws" / "law.json").read_text())

@@ -182,3 +182,31 @@ def test_the_laplace_posterior_is_the_fit_times_the_prior() -> None:
     mixture = MassPrior(np.array([0.5, 0.5]), np.array([-3.0, 3.0]), np.array([0.5, 0.5]))
     sharp = laplace_posterior(np.array([3.0]), np.array([0.1]), mixture)
     assert np.exp(sharp.log_weights[0]) == pytest.approx([0.0, 1.0], abs=1e-9)
+
+
+def test_a_share_of_the_prior_is_mixed_in_where_validation_holds_a_fit_gone_wrong() -> None:
+    """``mixed`` is the mixture of the posterior and the prior; ``contamination`` picks the
+    share under which the validation masses are most probable: none where the fits are as
+    good as their errors say, some where one fit is many standard deviations off (its
+    density bounded at the prior's), none without validation masses."""
+    from bgn.eval.law_posterior import CONTAMINATION, contamination
+
+    prior = MassPrior(np.ones(1), np.zeros(1), np.ones(1))
+    rng = np.random.default_rng(0)
+    true = rng.standard_normal(200)
+    good = fits(true, true + 0.01 * rng.standard_normal(200), np.full(200, 0.01))
+    assert contamination(good, prior, 0.0, 1.0, 0.0) == 0.0
+    wrong = fits(true, good.log_mass.copy(), good.log_std)
+    wrong.log_mass[:6] += 1.0  # six fits a hundred standard deviations off
+    share = contamination(wrong, prior, 0.0, 1.0, 0.0)
+    assert share in CONTAMINATION and share > 0
+    post = laplace_posterior(wrong.log_mass, wrong.log_std, prior)
+    both = post.mixed(prior, share)
+    assert np.exp(both.log_weights).sum(1) == pytest.approx(np.ones(200))
+    assert both.log_pdf(true) == pytest.approx(np.logaddexp(
+        np.log1p(-share) + post.log_pdf(true), np.log(share) + prior.log_pdf(true)))
+    assert both.log_pdf(true)[:6].min() > np.log(share) + prior.log_pdf(true)[:6].min() - 1e-9
+    assert post.mixed(prior, 0.0) is post
+    assert contamination(fits(np.full(4, np.nan), true[:4], np.full(4, 0.1)), prior, 0.0, 1.0,
+                         0.0) == 0.0
+    assert contamination(None, prior, 0.0, 1.0, 0.0) == 0.0

@@ -22,6 +22,7 @@ from bgn.data.dataset import FrameDataset
 from bgn.data.frames import evenly_spaced
 from bgn.eval.law_posterior import (
     KEY,
+    contamination,
     fit_simulations,
     laplace_posterior,
     law_scale_pinned,
@@ -469,7 +470,9 @@ def _law_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
     ``validation`` (the validation split: never the split scored), scored as the flow's
     posterior is, one row per particle. ``scale``: physical, validation or prior (where the
     shift came from); ``shift``, ``std_scale`` and ``std_floor``: the shift, the factor on the
-    fit's standard deviations and the floor added to them (``place_scale``); ``windows``:
+    fit's standard deviations and the floor added to them (``place_scale``);
+    ``contamination``: the share of the prior mixed in, chosen on ``validation`` too;
+    ``windows``:
     windows per simulation; with ``law_frames``,
     ``physical_sim_mass_rel_err``: the physical estimator on the same windows. Empty for a
     model without a pair-force head; under ``mass_law=type`` only ``fit`` saying there is
@@ -486,8 +489,9 @@ def _law_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
                                                                   len(indices)), law_frames)
     shift, factor, floor, scale = place_scale(fits, prior, law_scale_pinned(module.model),
                                               checked)
-    posterior = laplace_posterior(fits.log_mass + shift,
-                                  np.hypot(fits.log_std * factor, floor), prior)
+    share = contamination(checked, prior, shift, factor, floor)
+    posterior = laplace_posterior(fits.log_mass + shift, np.hypot(fits.log_std * factor, floor),
+                                  prior).mixed(prior, share)
     true_log = fits.true_log
     # every ordered pair of particles of a simulation: the relative masses' R^2
     same = (fits.keys[:, None] // KEY == fits.keys[None, :] // KEY) & \
@@ -501,6 +505,7 @@ def _law_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
                          true_log[rcv] - true_log[snd]),
         "identified": float(np.mean(np.isfinite(fits.log_mass))),
         "scale": scale, "shift": shift, "std_scale": factor, "std_floor": floor,
+        "contamination": share,
         "windows": fits.windows}
     if law_frames > 0:  # the estimator that knows the law, on the same windows
         pooled, truth = [], []

@@ -62,7 +62,9 @@ def outcome_sentence(pair: PairLaw) -> str:
     return (f"**No formula fits**: no member of the front is within the tolerance "
             f"{_g(found.tolerance)} of the learned law both as fitted and on held-out "
             f"distances (the most accurate, above, has error {_g(pair.formula.error)}, held "
-            f"out {_g(pair.formula.holdout)}, and is NOT chosen); the network law is kept.")
+            f"out {_g(pair.formula.holdout)}, and is NOT chosen); the network law is kept "
+            f"unless a member fitted to the frames explains them better (the fine-tuning's "
+            f"frames check).")
 
 
 def front_table(found: SearchResult) -> list[str]:

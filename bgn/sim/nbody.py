@@ -4,6 +4,11 @@ The physics and its choices: docs/design.md#n-body-scenes. Every pair potential 
 of the
 additively softened distance ``s = r + softening``; forces point along the unsoftened difference
 ``x_i - x_j``. numpy and scipy only.
+
+Charges: where a state carries per-particle ``charges`` (``State.charges``), the r1 and r2
+potentials couple them in place of the masses, ``q_i q_j`` with the opposite sign (like
+charges repel: ``phi = q_i q_j / s`` for r2), and the masses stay inertial, ``a_i = F_i / m_i``
+(docs/design.md#n-body-scenes, "Charges"). The spring ignores both.
 """
 
 from __future__ import annotations
@@ -105,36 +110,56 @@ class NBodyScene:
 
     # ----------------------------------------------------------------- force law
 
-    def _dphi_ds(self, s: np.ndarray, mi: np.ndarray, mj: np.ndarray) -> np.ndarray:
-        """dphi/ds of the pair potential at softened distance ``s``."""
+    def _dphi_ds(self, s: np.ndarray, mm: np.ndarray) -> np.ndarray:
+        """dphi/ds of the pair potential at softened distance ``s``, ``mm`` the pair's
+        coupling (``pair_coupling``)."""
         if self.potential == "spring":
             return 2.0 * (s - 1.0)
         if self.potential == "r1":
-            return mi * mj / s
-        return mi * mj / (s * s)
+            return mm / s
+        return mm / (s * s)
 
-    def _phi(self, s: np.ndarray, mi: np.ndarray, mj: np.ndarray) -> np.ndarray:
+    def _phi(self, s: np.ndarray, mm: np.ndarray) -> np.ndarray:
         if self.potential == "spring":
             return (s - 1.0) ** 2
         if self.potential == "r1":
-            return mi * mj * np.log(s)
-        return -mi * mj / s
+            return mm * np.log(s)
+        return -mm / s
 
-    def _check(self, positions: np.ndarray, masses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    @staticmethod
+    def pair_coupling(masses: np.ndarray, charges: np.ndarray | None, i: np.ndarray,
+                      j: np.ndarray) -> np.ndarray:
+        """The coupling of each pair (i, j) in the gravity potentials: ``m_i m_j``, or with
+        charges ``-q_i q_j`` (like charges repel)."""
+        if charges is None:
+            return masses[i] * masses[j]
+        return -charges[i] * charges[j]
+
+    def _check(self, positions: np.ndarray, masses: np.ndarray,
+               charges: np.ndarray | None = None,
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
         x = np.asarray(positions, dtype=np.float64)
         m = np.asarray(masses, dtype=np.float64)
         if x.ndim < 2 or m.ndim != 1 or x.shape[-2] != m.shape[0]:
             raise ValueError(f"positions must be (..., N, D) and masses (N,); got "
                              f"{x.shape} and {m.shape}")
-        return x, m
+        if charges is None:
+            return x, m, None
+        q = np.asarray(charges, dtype=np.float64)
+        if q.shape != m.shape:
+            raise ValueError(f"charges must be (N,) = {m.shape}; got {q.shape}")
+        return x, m, q
 
-    def accelerations(self, positions: np.ndarray, masses: np.ndarray) -> np.ndarray:
-        """Accelerations (..., N, D) from positions (..., N, D) and masses (N,), float64."""
-        x, m = self._check(positions, masses)
+    def accelerations(self, positions: np.ndarray, masses: np.ndarray,
+                      charges: np.ndarray | None = None) -> np.ndarray:
+        """Accelerations (..., N, D) from positions (..., N, D), masses (N,) and, where the
+        particles carry them, charges (N,); float64."""
+        x, m, q = self._check(positions, masses, charges)
         n = x.shape[-2]
         i, j = _pair_indices(n)
         r, u = _unit(x[..., i, :] - x[..., j, :])
-        g = self._dphi_ds(r + self.softening, m[i], m[j])[..., None] * u  # = -force on i
+        mm = self.pair_coupling(m, q, i, j)
+        g = self._dphi_ds(r + self.softening, mm)[..., None] * u  # = -force on i
         # antisymmetric pair table, then a fixed-order sum over partners: a BLAS contraction
         # could round differently for different numbers of frames, and recorded accelerations
         # must be bit-identical whatever frames are asked for
@@ -147,40 +172,43 @@ class NBodyScene:
         return force / m[:, None]
 
     def pair_force_magnitude(self, positions: np.ndarray, masses: np.ndarray,
-                             senders: np.ndarray, receivers: np.ndarray) -> np.ndarray:
+                             senders: np.ndarray, receivers: np.ndarray,
+                             charges: np.ndarray | None = None) -> np.ndarray:
         """|force on receiver from sender| = |dphi/ds| per directed edge, shape (..., E).
 
         Zero where the two particles coincide (or the edge is a self-loop), matching the zero
         force that ``accelerations`` applies there.
         """
-        x, m = self._check(positions, masses)
+        x, m, q = self._check(positions, masses, charges)
         snd = np.asarray(senders, dtype=np.intp)
         rcv = np.asarray(receivers, dtype=np.intp)
         diff = x[..., rcv, :] - x[..., snd, :]
         r = np.sqrt(np.einsum("...d,...d->...", diff, diff))
-        mag = np.abs(self._dphi_ds(r + self.softening, m[rcv], m[snd]))
+        mag = np.abs(self._dphi_ds(r + self.softening, self.pair_coupling(m, q, rcv, snd)))
         return np.where(r > 0.0, mag, 0.0)
 
-    def potential_energy(self, positions: np.ndarray, masses: np.ndarray) -> np.ndarray:
+    def potential_energy(self, positions: np.ndarray, masses: np.ndarray,
+                         charges: np.ndarray | None = None) -> np.ndarray:
         """Sum over pairs i < j of phi, shape (...)."""
-        x, m = self._check(positions, masses)
+        x, m, q = self._check(positions, masses, charges)
         i, j = _pair_indices(x.shape[-2])
         diff = x[..., i, :] - x[..., j, :]
         r = np.sqrt(np.einsum("...d,...d->...", diff, diff))
-        return self._phi(r + self.softening, m[i], m[j]).sum(axis=-1)
+        return self._phi(r + self.softening, self.pair_coupling(m, q, i, j)).sum(axis=-1)
 
     def energy(self, positions: np.ndarray, velocities: np.ndarray,
-               masses: np.ndarray) -> np.ndarray:
+               masses: np.ndarray, charges: np.ndarray | None = None) -> np.ndarray:
         """Total (kinetic + potential) energy per frame for (T, N, D) arrays, shape (T,)."""
-        x, m = self._check(positions, masses)
+        x, m, q = self._check(positions, masses, charges)
         v = np.asarray(velocities, dtype=np.float64)
         kinetic = 0.5 * np.einsum("n,...nd,...nd->...", m, v, v)
-        return kinetic + self.potential_energy(x, m)
+        return kinetic + self.potential_energy(x, m, q)
 
     # ----------------------------------------------------------------- integration
 
-    def _rhs(self, masses: np.ndarray) -> Callable[[float, np.ndarray], np.ndarray]:
-        """State derivative for solve_ivp, specialised to one mass vector.
+    def _rhs(self, masses: np.ndarray, charges: np.ndarray | None = None,
+             ) -> Callable[[float, np.ndarray], np.ndarray]:
+        """State derivative for solve_ivp, specialised to one mass (and charge) vector.
 
         solve_ivp calls this ~12 times per DOP853 step, so everything that depends only on the
         masses is precomputed and the body is a handful of small array operations.
@@ -194,7 +222,7 @@ class NBodyScene:
         inc_x[np.arange(npair), i] = 1.0
         inc_x[np.arange(npair), j] = -1.0
         inc_a = -inc_x.T / masses[:, None]
-        mm = masses[i] * masses[j]
+        mm = self.pair_coupling(masses, charges, i, j)
         eps = self.softening
         ones = np.ones(d)
         # Added to r^2: exact no-op unless r^2 < ~1e-284, and it keeps coincident particles
@@ -239,7 +267,8 @@ class NBodyScene:
         """Sample at ``times`` (non-decreasing, >= 0) the motion from ``state`` at time 0.
 
         The state must have ``n_particles`` bodies in ``dim`` dimensions (radii and types are
-        ignored). The integration restarts at every multiple of ``segment`` so that the state
+        ignored; charges, where it carries them, couple in place of the masses: the module
+        doc). The integration restarts at every multiple of ``segment`` so that the state
         at a time depends only on that physical time, never on which other times were asked for.
         """
         t = np.asarray(times, dtype=np.float64)
@@ -255,9 +284,11 @@ class NBodyScene:
                 and np.all(state.masses > 0)):
             raise ValueError("the state needs finite positions and velocities and positive "
                              "masses")
+        if state.charges is not None and not np.isfinite(state.charges).all():
+            raise ValueError("the state's charges must be finite")
         masses, x0, v0 = state.masses, state.positions, state.velocities
 
-        rhs = self._rhs(masses)
+        rhs = self._rhs(masses, state.charges)
         states = np.empty((t.size, 2 * n * d))
         y = np.concatenate([x0.ravel(), v0.ravel()])
         # piece k covers [k*segment, (k+1)*segment); the boundary itself takes the state there
@@ -289,4 +320,5 @@ class NBodyScene:
         velocities = states[:, nd:].reshape(t.size, n, d)
         return Trajectory(times=t, positions=positions, velocities=velocities, masses=masses,
                           types=np.zeros(n, dtype=np.int64), radii=np.zeros(n),
-                          accelerations=self.accelerations(positions, masses), contacts=None)
+                          accelerations=self.accelerations(positions, masses, state.charges),
+                          contacts=None, charges=state.charges)

@@ -69,7 +69,8 @@ class Trajectory:
     accelerations: (T, N, D) from the force law at the recorded positions, or None (contact
     scenes). masses, radii: (N,); types: (N,) int. contacts: (M, 3) int rows
     ``(frame, i, j)`` with ``i < j`` for every pair that touches in ``(times[frame],
-    times[frame + 1]]``; None for scenes without contacts.
+    times[frame + 1]]``; None for scenes without contacts. charges: (N,) where the state
+    carried them (``State.charges``), else None.
     """
 
     times: np.ndarray
@@ -80,6 +81,7 @@ class Trajectory:
     radii: np.ndarray
     accelerations: np.ndarray | None = None
     contacts: np.ndarray | None = None
+    charges: np.ndarray | None = None
 
 
 @dataclass
@@ -87,7 +89,8 @@ class State:
     """An initial state to simulate from (``Scene.simulate_from``), float64.
 
     positions, velocities: (N, D); masses: (N,). radii (N,) and types (N,) int matter for
-    contact scenes only (None: zeros).
+    contact scenes only (None: zeros). charges (N,), of either sign: couplings in place of the
+    masses where a scene's potential takes them (``bgn.sim.nbody``); None: none.
     """
 
     positions: np.ndarray
@@ -95,6 +98,7 @@ class State:
     masses: np.ndarray
     radii: np.ndarray | None = None
     types: np.ndarray | None = None
+    charges: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.positions = np.array(self.positions, dtype=np.float64, ndmin=2)
@@ -108,7 +112,10 @@ class State:
         if self.positions.ndim != 2 or self.velocities.shape != self.positions.shape:
             raise ValueError(f"positions and velocities must both be (N, D); got "
                              f"{self.positions.shape} and {self.velocities.shape}")
-        for name in ("masses", "radii", "types"):
+        if self.charges is not None:
+            self.charges = np.array(self.charges, dtype=np.float64, ndmin=1)
+        for name in ("masses", "radii", "types") + (("charges",) if self.charges is not None
+                                                     else ()):
             if getattr(self, name).shape != (n,):
                 raise ValueError(f"{name} must be (N,) = ({n},); got "
                                  f"{getattr(self, name).shape}")

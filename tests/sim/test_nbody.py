@@ -324,3 +324,65 @@ def test_pair_turns_of_a_head_on_approach_is_zero_and_a_single_body_has_none():
     vel = np.array([[[1.0, 0.0], [-1.0, 0.0]]] * 2)
     assert np.all(pair_turns(pos, vel, 0.1) == 0)
     assert np.all(pair_turns(pos[:, :1], vel[:, :1], 0.1) == 0)
+
+
+# ----------------------------------------------------------------------------- charges
+def _charged_state(scene: NBodyScene, seed: int = 0):
+    from bgn.sim.scene import State
+    rng = np.random.default_rng(seed)
+    state = scene.draw_state(rng)
+    charges = rng.choice([-1.0, 1.0], scene.n_particles) * np.exp(0.5 * rng.standard_normal(
+        scene.n_particles))
+    return State(state.positions, state.velocities, state.masses, charges=charges)
+
+
+@pytest.mark.parametrize("potential", ["r1", "r2"])
+def test_like_charges_repel_and_opposite_attract_whatever_the_masses(potential: str) -> None:
+    scene = NBodyScene(potential)
+    x = np.array([[0.0, 0.0], [1.0, 0.0]])
+    m = np.array([1.0, 3.0])
+    like = scene.accelerations(x, m, np.array([1.0, 2.0]))
+    opposite = scene.accelerations(x, m, np.array([1.0, -2.0]))
+    assert like[0, 0] < 0 < like[1, 0]          # pushed apart
+    assert opposite[0, 0] > 0 > opposite[1, 0]  # pulled together
+    np.testing.assert_allclose(like, -opposite)
+    # momentum balance: m_i a_i equal and opposite
+    np.testing.assert_allclose(m[0] * like[0], -m[1] * like[1])
+    # the same force as gravity's with |q_i q_j| in place of m_i m_j (gravity attracts)
+    gravity = scene.accelerations(x, np.array([1.0, 3.0]))
+    np.testing.assert_allclose(opposite * m[:, None],
+                               gravity * m[:, None] * 2.0 / (1.0 * 3.0))
+
+
+@pytest.mark.parametrize("potential", ["r1", "r2"])
+def test_charged_motion_conserves_energy_and_momentum(potential: str) -> None:
+    scene = NBodyScene(potential)
+    state = _charged_state(scene)
+    traj = scene.simulate_from(state, np.arange(0.0, 3.0, 0.02))
+    np.testing.assert_array_equal(traj.charges, state.charges)
+    energy = scene.energy(traj.positions, traj.velocities, traj.masses, traj.charges)
+    kinetic = _kinetic(traj)
+    assert np.abs(energy - energy[0]).max() < 1e-6 * kinetic.max()
+    momentum = np.einsum("n,tnd->td", traj.masses, traj.velocities)
+    assert np.abs(momentum - momentum[0]).max() < 1e-9 * np.abs(momentum).max() + 1e-12
+    # the recorded accelerations are the charged law's
+    np.testing.assert_allclose(
+        traj.accelerations, scene.accelerations(traj.positions, traj.masses, traj.charges))
+
+
+def test_a_state_without_charges_moves_as_before_and_bad_charges_are_refused() -> None:
+    from bgn.sim.scene import State
+    scene = NBodyScene("r2")
+    state = scene.draw_state(np.random.default_rng(3))
+    times = np.arange(0.0, 1.0, 0.02)
+    plain = scene.simulate_from(state, times)
+    assert plain.charges is None
+    # equal charges of one sign repel where gravity attracts: another motion
+    charged = scene.simulate_from(State(state.positions, state.velocities, state.masses,
+                                        charges=np.ones(4)), times)
+    assert not np.allclose(charged.positions, plain.positions)
+    with pytest.raises(ValueError, match="charges must be"):
+        State(state.positions, state.velocities, state.masses, charges=np.ones(3))
+    with pytest.raises(ValueError, match="charges must be finite"):
+        scene.simulate_from(State(state.positions, state.velocities, state.masses,
+                                  charges=np.array([1.0, np.nan, 1.0, 1.0])), times)

@@ -1,0 +1,138 @@
+"""What the frames of the charge data identify, with the TRUE law: the best any estimator
+that learns the law can reach (issue "The inverse half", item 3 and its references).
+
+    python examples/charges/identify.py data/external/charges4 --out outputs/charges/identify
+
+For every trajectory of the data made by ``make.py``: the finite-difference accelerations
+``(x[t+1] - 2 x[t] + x[t-1]) / dt^2`` (what a model sees), the true law's pair terms ``X_ij =
+u_ij / s_ij^2`` at the same frames, and ``bgn.model.coupling.fit_couplings`` of ``a_i = k_i
+sum_j c_j X_ij`` fitted two ways: per window (``--window`` accelerations in a row, as a model's
+input window holds, at windows spread along the trajectory), and per simulation (every frame
+pooled). Scored against the hidden truth (``_hidden/truth.npz``), per particle: the log-mass
+``log(c_i / k_i)`` centred per simulation (the scale is free) against the true one, R^2 over
+all particles; the charges' signs up to each simulation's global sign, over the particles whose
+|q| is at least ``--charge-floor`` of the simulation's root-mean-square charge; the charges' R^2
+(``c`` against ``q`` scaled to unit rms, the global sign aligned). Writes ``identify.md`` and
+``identify.csv`` under ``--out``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+from rich.progress import track
+
+from bgn.model.coupling import fit_couplings
+
+
+def pair_terms(x: np.ndarray, softening: float) -> np.ndarray:
+    """(F, N, N, D) ``u_ij / s_ij^2`` (the force on i from j per unit coupling, like charges
+    repel) at frames ``x`` (F, N, D); zero on the diagonal."""
+    diff = x[:, :, None] - x[:, None]
+    r = np.linalg.norm(diff, axis=-1)
+    n = x.shape[1]
+    r[:, np.arange(n), np.arange(n)] = 1.0
+    terms = diff / ((r + softening) ** 2 * r)[..., None]
+    terms[:, np.arange(n), np.arange(n)] = 0.0
+    return terms
+
+
+def system(x: np.ndarray, dt: float, frames: np.ndarray, softening: float,
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """The design (N, F * D, N) and target (N, F * D) of the frames ``frames`` (each with a
+    frame before and after it) of one trajectory ``x`` (T, N, D)."""
+    accel = (x[frames + 1] - 2 * x[frames] + x[frames - 1]) / dt**2          # (F, N, D)
+    terms = pair_terms(x[frames], softening)                                 # (F, N, N, D)
+    f, n, _, d = terms.shape
+    return (terms.transpose(1, 0, 3, 2).reshape(n, f * d, n),
+            accel.transpose(1, 0, 2).reshape(n, f * d))
+
+
+def fit(systems: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """``fit_couplings`` of equal-sized systems, batched: k and c, (B, N)."""
+    design = torch.tensor(np.stack([s[0] for s in systems]))
+    target = torch.tensor(np.stack([s[1] for s in systems]))
+    real = torch.ones(design.shape[0], design.shape[1], dtype=torch.bool)
+    with torch.no_grad():
+        k, c = fit_couplings(design, target, real)
+    return k.numpy(), c.numpy()
+
+
+def scores(k: np.ndarray, c: np.ndarray, masses: np.ndarray, charges: np.ndarray,
+           floor: float) -> dict[str, float]:
+    """The fits' scores against the truth, (B, N) arrays each (one row per fitted system)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        log_m = np.log(c / k)
+    identified = np.isfinite(log_m).all(1)          # a negative mass: not identified
+    fitted = log_m[identified] - log_m[identified].mean(1, keepdims=True)
+    true = np.log(masses[identified])
+    true = true - true.mean(1, keepdims=True)
+    r2_mass = 1 - ((fitted - true) ** 2).sum() / (true**2).sum()
+    q = charges / np.sqrt((charges**2).mean(1, keepdims=True))
+    sign = np.where((c * q).sum(1, keepdims=True) < 0, -1.0, 1.0)           # the global sign
+    aligned = c * sign
+    big = np.abs(q) >= floor
+    signs_right = float((np.sign(aligned) == np.sign(q))[big].mean())
+    r2_charge = 1 - ((aligned - q) ** 2).sum() / ((q - q.mean()) ** 2).sum()
+    return {"fits": len(k), "identified": float(identified.mean()),
+            "log-mass R^2": float(r2_mass),
+            "median |log-mass error|": float(np.median(np.abs(fitted - true))),
+            "charge signs right": signs_right, "charge R^2": float(r2_charge)}
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("data", type=Path, help="the folder make.py wrote")
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--window", type=int, default=4, help="accelerations per window")
+    ap.add_argument("--windows", type=int, default=8, help="windows per trajectory")
+    ap.add_argument("--stride", type=int, default=2, help="every n-th frame pooled")
+    ap.add_argument("--charge-floor", type=float, default=0.2)
+    args = ap.parse_args(argv)
+
+    data = np.load(args.data / "charges.npz")
+    truth = np.load(args.data / "_hidden" / "truth.npz")
+    softening = json.loads((args.data / "make.json").read_text())["params"]["softening"]
+    positions, dt = data["positions"], float(data["dt"])
+    n_traj, n_frames = positions.shape[:2]
+    per_window, per_sim, owners = [], [], []
+    for s in track(range(n_traj), description="fitting"):
+        starts = np.linspace(1, n_frames - 1 - args.window, args.windows).astype(int)
+        for start in starts:
+            per_window.append(system(positions[s], dt, np.arange(start, start + args.window),
+                                     softening))
+            owners.append(s)
+        per_sim.append(system(positions[s], dt, np.arange(1, n_frames - 1, args.stride),
+                              softening))
+    owners = np.array(owners)
+    rows = []
+    for name, systems, index in (("per window", per_window, owners),
+                                 ("per simulation", per_sim, np.arange(n_traj))):
+        k, c = fit(systems)
+        rows.append({"fit": name, "frames": (args.window if name == "per window"
+                                              else len(range(1, n_frames - 1, args.stride))),
+                     **scores(k, c, truth["masses"][index], truth["charges"][index],
+                              args.charge_floor)})
+    args.out.mkdir(parents=True, exist_ok=True)
+    with open(args.out / "identify.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    header = "| " + " | ".join(rows[0]) + " |"
+    lines = [header, "|" + "---|" * len(rows[0])]
+    lines += ["| " + " | ".join(f"{v:.4g}" if isinstance(v, float) else str(v)
+                                for v in row.values()) + " |" for row in rows]
+    text = (f"# What the frames identify, with the true law\n\n`{args.data}`: {n_traj} "
+            f"trajectories of {n_frames} frames; charge signs scored where |q| >= "
+            f"{args.charge_floor} x the simulation's rms charge.\n\n" + "\n".join(lines) + "\n")
+    (args.out / "identify.md").write_text(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()

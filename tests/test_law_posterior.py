@@ -122,6 +122,29 @@ def test_the_free_scale_is_placed_on_the_validation_split(shared_data_dir: Path)
                                                             abs=1e-3)
 
 
+def test_the_priors_share_widens_the_tails_and_leaves_the_point_estimates(
+        shared_data_dir: Path, monkeypatch) -> None:
+    """The share of the prior mixed into each posterior (``contamination``) changes the
+    samples and densities, never the point estimates: mixed into the mean, a share of 0.3
+    pulled every mass towards the prior's mean."""
+    import bgn.eval.evaluate as evaluate
+
+    datamodule, module = formula_model("spring", spring_law(3.0), shared_data_dir)
+    test, val = datamodule.datasets["test"], datamodule.datasets["val"]
+    prior = MassPrior.of_scene(test.scene)
+    indices = [0, len(test) - 1]
+    runs = {}
+    for share in (0.0, 0.3):
+        monkeypatch.setattr(evaluate, "contamination", lambda *_a, s=share: s)
+        runs[share] = _law_posterior_reference(module, test, val, prior, indices, 4, 64,
+                                               np.random.default_rng(0))
+    assert runs[0.3]["contamination"] == 0.3
+    for key in ("mass_rel_err", "sim_mass_rel_err", "relmass_r2_estimate"):
+        assert runs[0.3][key] == runs[0.0][key], key
+    assert runs[0.3]["sim_mass_rel_err"] < 0.02
+    assert runs[0.3]["info_gain"] != runs[0.0]["info_gain"]
+
+
 def test_without_a_pair_law_or_with_one_mass_per_type_there_is_no_posterior() -> None:
     module = SimpleNamespace(model=torch.nn.Linear(1, 1))  # a decoder: no pair-force head
     assert _law_posterior_reference(module, None, None, None, [], 0, 4,

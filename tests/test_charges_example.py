@@ -61,3 +61,5 @@ def test_a_simulations_frames_identify_its_masses_and_charge_signs_with_the_true
     assert float(pooled["charge signs right"]) == 1.0
     assert float(pooled["charge R^2"]) > 0.99
     assert "per window" in rows and (out / "identify.md").exists()
+    resolved = rows["per simulation, frames turning < 0.02"]  # frames a pair turns fast in: out
+    assert float(resolved["charge signs right"]) == 1.0

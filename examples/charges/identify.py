@@ -14,7 +14,9 @@ all particles; the charges' signs up to each simulation's global sign, over the 
 |q| is at least ``--charge-floor`` of the simulation's root-mean-square charge; the charges' R^2
 (``c`` against ``q`` scaled to unit rms, the global sign aligned). Writes ``identify.md`` and
 ``identify.csv`` under ``--out``, and ``per_simulation.csv``: each trajectory's worst
-log-mass error of the pooled fit beside its closest and farthest pair distances.
+log-mass error of the pooled fit beside its closest and farthest pair distances. A third row
+pools only the frames at which no pair turns faster than ``--max-turns`` revolutions per frame
+(``resolved_frames``), the same number of them where enough pass.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ import torch
 from rich.progress import track
 
 from bgn.model.coupling import fit_couplings
+from bgn.sim.nbody import pair_turns
 
 
 def pair_terms(x: np.ndarray, softening: float) -> np.ndarray:
@@ -52,6 +55,20 @@ def system(x: np.ndarray, dt: float, frames: np.ndarray, softening: float,
     f, n, _, d = terms.shape
     return (terms.transpose(1, 0, 3, 2).reshape(n, f * d, n),
             accel.transpose(1, 0, 2).reshape(n, f * d))
+
+
+def resolved_frames(x: np.ndarray, dt: float, max_turns: float, count: int) -> np.ndarray:
+    """Up to ``count`` frames (evenly thinned) of trajectory ``x`` (T, N, D) at which no pair
+    turns faster than ``max_turns`` revolutions per frame (``bgn.sim.nbody.pair_turns``, the
+    velocities by central differences of the positions): where a pair turns fast, a frame's
+    finite-difference acceleration is far from the instantaneous one. At least ``count // 10``
+    frames: the slowest-turning ones where fewer pass."""
+    turns = pair_turns(x[1:-1], (x[2:] - x[:-2]) / (2 * dt), dt)            # frames 1..T-2
+    frames = np.arange(1, x.shape[0] - 1)
+    keep = frames[turns < max_turns]
+    if len(keep) < count // 10:
+        keep = np.sort(frames[np.argsort(turns)[:count // 10]])
+    return keep[np.linspace(0, len(keep) - 1, min(count, len(keep))).astype(int)]
 
 
 def fit(systems: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
@@ -94,6 +111,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--windows", type=int, default=8, help="windows per trajectory")
     ap.add_argument("--stride", type=int, default=2, help="every n-th frame pooled")
     ap.add_argument("--charge-floor", type=float, default=0.2)
+    ap.add_argument("--max-turns", type=float, default=0.02,
+                    help="the third row pools only frames where no pair turns faster (rev/frame)")
     args = ap.parse_args(argv)
 
     data = np.load(args.data / "charges.npz")
@@ -101,7 +120,8 @@ def main(argv: list[str] | None = None) -> None:
     softening = json.loads((args.data / "make.json").read_text())["params"]["softening"]
     positions, dt = data["positions"], float(data["dt"])
     n_traj, n_frames = positions.shape[:2]
-    per_window, per_sim, owners = [], [], []
+    per_window, per_sim, resolved, owners = [], [], [], []
+    pooled = len(range(1, n_frames - 1, args.stride))
     for s in track(range(n_traj), description="fitting"):
         starts = np.linspace(1, n_frames - 1 - args.window, args.windows).astype(int)
         for start in starts:
@@ -110,6 +130,9 @@ def main(argv: list[str] | None = None) -> None:
             owners.append(s)
         per_sim.append(system(positions[s], dt, np.arange(1, n_frames - 1, args.stride),
                               softening))
+        resolved.append(system(positions[s], dt, resolved_frames(positions[s], dt,
+                                                                 args.max_turns, pooled),
+                               softening))
     owners = np.array(owners)
     k, c = fit(per_sim)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -124,11 +147,11 @@ def main(argv: list[str] | None = None) -> None:
                      "closest pair": float(pairs[s].min()),
                      "farthest pair": float(pairs[s].max())} for s in range(n_traj)]
     rows = []
-    for name, systems, index in (("per window", per_window, owners),
-                                 ("per simulation", per_sim, np.arange(n_traj))):
+    for name, systems, index in (
+            ("per window", per_window, owners), ("per simulation", per_sim, np.arange(n_traj)),
+            (f"per simulation, frames turning < {args.max_turns}", resolved, np.arange(n_traj))):
         k, c = fit(systems)
-        rows.append({"fit": name, "frames": (args.window if name == "per window"
-                                              else len(range(1, n_frames - 1, args.stride))),
+        rows.append({"fit": name, "frames": (args.window if name == "per window" else pooled),
                      **scores(k, c, truth["masses"][index], truth["charges"][index],
                               args.charge_floor)})
     args.out.mkdir(parents=True, exist_ok=True)

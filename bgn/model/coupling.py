@@ -44,7 +44,7 @@ def sign_patterns(n: int, count: int = STARTS) -> torch.Tensor:
     2^(n-1) <= ``count`` (the global sign is free), else ``count`` patterns drawn with a fixed
     seed (the all-positive one first), so that a fit does not depend on the run."""
     if n <= 1:
-        return torch.ones(1, max(n, 1))
+        return torch.ones(1, max(n, 1), dtype=torch.float64)
     if 2 ** (n - 1) <= count:
         rows = [(1.0, *signs) for signs in itertools.product((1.0, -1.0), repeat=n - 1)]
         return torch.tensor(rows, dtype=torch.float64)

@@ -134,7 +134,9 @@ def main(argv: list[str] | None = None) -> None:
                                                                  args.max_turns, pooled),
                                softening))
     owners = np.array(owners)
-    k, c = fit(per_sim)
+    fits = {"per window": fit(per_window), "per simulation": fit(per_sim),
+            "resolved": fit(resolved)}
+    k, c = fits["per simulation"]
     with np.errstate(invalid="ignore", divide="ignore"):
         log_m = np.log(c / k)
     true = np.log(truth["masses"])
@@ -147,10 +149,11 @@ def main(argv: list[str] | None = None) -> None:
                      "closest pair": float(pairs[s].min()),
                      "farthest pair": float(pairs[s].max())} for s in range(n_traj)]
     rows = []
-    for name, systems, index in (
-            ("per window", per_window, owners), ("per simulation", per_sim, np.arange(n_traj)),
-            (f"per simulation, frames turning < {args.max_turns}", resolved, np.arange(n_traj))):
-        k, c = fit(systems)
+    for key, name, index in (
+            ("per window", "per window", owners),
+            ("per simulation", "per simulation", np.arange(n_traj)),
+            ("resolved", f"per simulation, frames turning < {args.max_turns}", np.arange(n_traj))):
+        k, c = fits[key]
         rows.append({"fit": name, "frames": (args.window if name == "per window" else pooled),
                      **scores(k, c, truth["masses"][index], truth["charges"][index],
                               args.charge_floor)})

@@ -25,7 +25,7 @@ from torch import nn
 
 from bgn.data.edges import batch_edges, full_graph, scene_edges
 from bgn.data.targets import step
-from bgn.graph import Graph, window_graph
+from bgn.graph import Graph, collate, window_graph
 from bgn.sim.scene import SceneMeta
 
 
@@ -33,7 +33,8 @@ class Predictor(Protocol):
     """What the simulator needs of a model: every ``bgn.model.PhysicsModel`` has it, and so
     do the no-learning references (``bgn.model.references``). A model may also have
     ``held_mass_fit(g)``: what a rollout fits once, to its first window, and holds
-    (``PhysicsModel.held_mass_fit``)."""
+    (``PhysicsModel.held_mass_fit``), and ``held_fit_windows``: how many windows of the frames
+    before the start that fit reads where a rollout is given them (its ``context``)."""
 
     meta: SceneMeta
     history: int
@@ -155,15 +156,49 @@ class LearnedSimulator(nn.Module):
         position, _ = step(window[:, -1], velocity, target, self.dt, self.meta.target)
         return position
 
+    def context_graph(self, context: torch.Tensor, particles: Particles, frame: int,
+                      windows: int) -> Graph:
+        """The graphs of up to ``windows`` windows of ``context`` (B, C, N, D), the recorded
+        frames up to the start ``frame`` (its last), evenly spaced and the start's window last,
+        in one batch: window w's graph of simulation b is graph ``w * B + b``."""
+        k2 = self.window_length
+        ends = torch.linspace(k2 - 1, context.shape[1] - 1, min(windows, context.shape[1] - k2 + 1))
+        ends = sorted({int(round(float(e))) for e in ends} | {context.shape[1] - 1})
+        return collate([self.graph(context[:, e - k2 + 1:e + 1], particles,
+                                   frame - (context.shape[1] - 1 - e)) for e in ends])
+
+    def held(self, window: torch.Tensor, particles: Particles, frame: int,
+             context: torch.Tensor | None) -> torch.Tensor | None:
+        """(B, N, ...) what the model holds along a rollout from ``window``: its
+        ``held_mass_fit`` of the first window, or of ``held_fit_windows`` windows of
+        ``context`` (the frames before the start, the window's last) where given; None where
+        the model holds nothing."""
+        hold = getattr(self.model, "held_mass_fit", None)
+        if hold is None:
+            return None
+        b, n = window.shape[0], window.shape[2]
+        windows = int(getattr(self.model, "held_fit_windows", 1))
+        if context is None or windows <= 1 or context.shape[1] <= self.window_length:
+            fit = hold(self.graph(window, particles, frame))
+            return None if fit is None else fit.reshape(b, n, *fit.shape[1:])
+        context = context.to(window.device, torch.float64)
+        if not torch.equal(context[:, -self.window_length:], window):
+            raise ValueError("a rollout's context must end with its first window")
+        fit = hold(self.context_graph(context, particles, frame, windows))
+        return None if fit is None else fit.reshape(-1, b, n, *fit.shape[1:])[-1]
+
     @torch.no_grad()
     def rollout(self, window: torch.Tensor, particles: Particles, n_steps: int,
-                frame: int = 0, driven: torch.Tensor | None = None) -> Rollout:
+                frame: int = 0, driven: torch.Tensor | None = None,
+                context: torch.Tensor | None = None) -> Rollout:
         """Feed the model its own frames for ``n_steps`` from windows ending at ``frame``.
 
         A simulation whose frame becomes non-finite stops there (NaN from then on); the others
         go on in the same batch. ``driven`` (B, n_steps, N, D): the recorded positions of the
         steps, which ``particles.kinematic`` particles take (the source moves them). A model
-        with ``held_mass_fit`` fits its masses once, to these first windows, and keeps them.
+        with ``held_mass_fit`` fits its masses once, to these first windows (or to windows of
+        ``context`` (B, C, N, D), the recorded frames up to the start, the window's last, where
+        the model reads several: ``held``), and keeps them.
         """
         if n_steps < 1:
             raise ValueError(f"n_steps={n_steps} must be at least 1")
@@ -179,13 +214,11 @@ class LearnedSimulator(nn.Module):
         out[:, 0] = window[:, -1]
         first_bad = torch.full((b,), -1, dtype=torch.long)
         alive = torch.arange(b, device=device)
-        hold = getattr(self.model, "held_mass_fit", None)
-        held = None if hold is None else hold(self.graph(window, particles, frame))
-        held = None if held is None else held.reshape(b, -1)  # (B, N): a row per simulation
+        held = self.held(window, particles, frame, context)  # (B, N, ...): a row per simulation
         start = time.perf_counter()
         for i in range(n_steps):
             nxt = self.next_frame(window, particles.select(alive), frame + i,
-                                  None if held is None else held[alive].reshape(-1))
+                                  None if held is None else held[alive].flatten(0, 1))
             if kinematic is not None:
                 nxt = torch.where(kinematic[alive, :, None], driven[alive, i], nxt)
             finite = torch.isfinite(nxt).flatten(1).all(1)

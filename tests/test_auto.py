@@ -35,7 +35,8 @@ from tests.conftest import NETWORK_LAW, SMALL, compose_config
 from tests.test_train import CLI_ENV, command_line
 
 REFS = ("gns", "cranmer_gn")
-PAIR_FORCE = ("newton_inertial", "newton_source", "newton_type")  # mass_law: each way
+# mass_law: each way (coupling: few bodies only)
+PAIR_FORCE = ("newton_inertial", "newton_source", "newton_type", "newton_coupling")
 
 
 def admitted(meta: SceneMeta, history: int = 5, radii: bool = True) -> list[str]:
@@ -73,7 +74,9 @@ def test_an_imported_short_range_gas_on_a_radius_graph_admits_the_pair_force_hea
     edges, the law learns to vanish at the cut-off (the ASE Morse gas)."""
     gas = SceneMeta("imported", 2, 64, 1, "unknown", "acceleration", "radius",
                     masses_known=False, period=(10.0, 10.0))
-    assert admitted(gas, radii=False) == ["decoder", *PAIR_FORCE, *REFS]
+    assert admitted(gas, radii=False) == ["decoder", *PAIR_FORCE[:3], *REFS]
+    assert "64 particles" in next(c.reason for c in candidates(gas, 5, False, ())
+                                  if c.name == "newton_coupling")
     refused = {c.name: c.reason for c in candidates(replace(gas, target="velocity"), 5, False,
                                                     REFS) if not c.admitted}
     assert "velocity target" in refused["newton_inertial"]
@@ -432,7 +435,7 @@ def test_auto_picks_the_structure_spring_was_made_with(tmp_path, shared_data_dir
     rows = {c["candidate"]: c for c in record["candidates"]}
     assert set(rows) == {"decoder", *PAIR_FORCE, "impulse", "formula_newton_inertial"}
     assert not rows["impulse"]["admitted"]
-    assert all(rows[n]["steps"] == 150 for n in ("decoder", *PAIR_FORCE))  # 600 steps / 4
+    assert all(rows[n]["steps"] == 120 for n in ("decoder", *PAIR_FORCE))  # 600 steps / 5
     inertial = rows["newton_inertial"]["val_err@50"]
     # spring's masses differ: neither masses at the source nor one mass for all make it
     assert inertial < min(rows[n]["val_err@50"] for n in ("decoder", "newton_source",

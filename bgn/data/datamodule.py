@@ -4,12 +4,14 @@ by simulation, batches graphs."""
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import lightning as L
 import numpy as np
-from torch.utils.data import DataLoader, Subset
+import torch
+from torch.utils.data import DataLoader, Sampler, Subset
 
 from bgn.data.dataset import FrameDataset
 from bgn.data.files import DatasetFile
@@ -30,11 +32,15 @@ class ParticleDataModule(L.LightningDataModule):
     simulations (every epoch the same ones): a prefix of the split, which ``limit_val_batches``
     would take, is one or two simulations, and with heavy-tailed targets its error says little
     about the others. ``test_samples`` does the same for the test split (null: whole).
+    ``sims_per_batch``: each training batch holds windows of that many simulations only, an
+    equal share each (``SimulationBatches``; a model that fits per-simulation quantities over
+    a batch's windows, ``mass_law=coupling``, needs many windows of each); None: windows drawn
+    at random.
     """
 
     def __init__(self, dataset: Any, fps: float, data_dir: str | Path = "data",
                  generate_workers: int | None = None, show_progress: bool = True,
-                 spec: DatasetSpec | None = None) -> None:
+                 spec: DatasetSpec | None = None, sims_per_batch: int | None = None) -> None:
         super().__init__()
         # ``spec``: the train split's, where the caller built it already (bgn.training.validate);
         # imported data (dataset=imported): the spec comes from the files under data_dir
@@ -51,6 +57,9 @@ class ParticleDataModule(L.LightningDataModule):
         self.samples: dict[str, int | None] = {"val": loader.val_samples,
                                                "test": loader.test_samples}
         self.data_dir = Path(data_dir)
+        if sims_per_batch is not None and sims_per_batch < 1:
+            raise ValueError(f"sims_per_batch={sims_per_batch} must be at least 1")
+        self.sims_per_batch = sims_per_batch
         self.generate_workers = generate_workers
         self.show_progress = show_progress
         self.paths: dict[str, Path] = {}
@@ -96,10 +105,49 @@ class ParticleDataModule(L.LightningDataModule):
                           persistent_workers=self.num_workers > 0)
 
     def train_dataloader(self) -> DataLoader:
-        return self._loader("train", shuffle=True)
+        if self.sims_per_batch is None:
+            return self._loader("train", shuffle=True)
+        self.setup()
+        data = self.datasets["train"]
+        sampler = SimulationBatches(len(data.sims), data.frames_per_sim, self.batch_size,
+                                    self.sims_per_batch)
+        return DataLoader(data, batch_sampler=sampler, num_workers=self.num_workers,
+                          collate_fn=collate, persistent_workers=self.num_workers > 0)
 
     def val_dataloader(self) -> DataLoader:
         return self._loader("val", shuffle=False)
 
     def test_dataloader(self) -> DataLoader:
         return self._loader("test", shuffle=False)
+
+
+class SimulationBatches(Sampler[list[int]]):
+    """Batches of ``batch_size`` windows from ``per_batch`` simulations each (an equal share,
+    the first ones one more where it does not divide): every epoch each simulation's windows
+    shuffled, the simulations taken ``per_batch`` at a time in a shuffled order, round after
+    round, until every window was drawn once (about). A dataset index is ``sim *
+    frames_per_sim + frame`` (``FrameDataset.locate``). Seeded by torch's global generator,
+    as the default shuffle is."""
+
+    def __init__(self, n_sims: int, frames_per_sim: int, batch_size: int, per_batch: int
+                 ) -> None:
+        self.n_sims, self.frames, self.batch_size = n_sims, frames_per_sim, batch_size
+        self.per_batch = min(per_batch, n_sims)
+
+    def __len__(self) -> int:
+        return max(1, (self.n_sims * self.frames) // self.batch_size)
+
+    def __iter__(self) -> Iterator[list[int]]:
+        shares = [len(s) for s in np.array_split(np.arange(self.batch_size), self.per_batch)]
+        queues = [torch.randperm(self.frames).tolist() for _ in range(self.n_sims)]
+        order: list[int] = []
+        for _ in range(len(self)):
+            batch: list[int] = []
+            for share in shares:
+                if not order:
+                    order = torch.randperm(self.n_sims).tolist()
+                sim = order.pop()
+                if len(queues[sim]) < share:
+                    queues[sim] += torch.randperm(self.frames).tolist()
+                batch += [sim * self.frames + queues[sim].pop() for _ in range(share)]
+            yield batch

@@ -97,11 +97,14 @@ def pooled_system(head: PairForceHead, graphs: list[Graph],
     least-squares system: a graph of its particles with the union of the windows' edges, the
     pair terms (E, W F, D) and the accelerations (N, W F, D) of every window's F fitted frames
     (``PairForceHead.observed_system``), window after window; and a robust start (N,), each
-    particle's median over the windows of their own fits (``PairForceHead.fit_observed``)."""
+    particle's median over the windows of their own fits (``PairForceHead.fit_observed``);
+    under the coupling law, whose fit pools a simulation's windows anyway, that fit (N, 2)."""
     n = int(graphs[0].num_nodes[0])
     g = collate(graphs)
     past, seen = head.observed_system(g, head.window(g)[1])
-    start = head.fit_observed(g, past, seen)[0].reshape(len(graphs), n).median(0).values
+    fits = head.fit_observed(g, past, seen)[0]
+    start = fits[-n:] if head.mass_law == "coupling" else \
+        fits.reshape(len(graphs), n).median(0).values
     n_windows, n_frames, dim = len(graphs), past.shape[1], past.shape[2]
     snd, rcv = g.edge_index
     window = g.batch[rcv]                                   # each edge's window
@@ -139,12 +142,25 @@ def fit_simulation(head: PairForceHead, graphs: list[Graph],
                    ) -> tuple[np.ndarray, np.ndarray] | None:
     """Log-mass (N,) of each particle of one simulation from its windows ``graphs``, up to the
     law's free scale, and its standard deviation (N,) (the delta method); NaN where the fitted
-    mass is not positive. None under ``mass_law=type`` (nothing to fit)."""
+    mass is not positive. None under ``mass_law=type`` (nothing to fit). Under the coupling law
+    the mass is ``c_i / k_i`` (``q_i / (q_i / m_i)``), turned by its median's sign (the law's
+    sign is free), its relative error the two couplings' added in quadrature."""
     if head.mass_law == "type":
         return None
     g, past, seen, start = pooled_system(head, graphs)
     fit, error = head.fit_observed(g, *screened(head, g, past, seen, start), with_error=True)
     fit, error = fit.double().numpy(), error.double().numpy()
+    if head.mass_law == "coupling":
+        k, c = fit[:, 0], fit[:, 1]
+        rel = np.sqrt((error[:, 0] / (np.abs(k) + FIT_EPS)) ** 2
+                      + (error[:, 1] / (np.abs(c) + FIT_EPS)) ** 2)
+        mass = c / np.where(k == 0, FIT_EPS, k)
+        # the law's sign is free as well (f -> -f, c -> -c makes the same accelerations): the
+        # masses are turned by the sign of their median, as the inertial fit is
+        mass = mass * (np.sign(np.median(mass)) or 1.0)
+        positive = mass > 0
+        return (np.where(positive, np.log(np.where(positive, mass, 1.0)), np.nan),
+                np.where(positive, rel, np.nan))
     if head.mass_law == "inertial":  # a free law's sign is free too: 1 / m absorbs it
         fit = fit * (np.sign(np.median(fit)) or 1.0)
     positive = fit > 0

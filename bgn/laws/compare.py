@@ -79,6 +79,9 @@ MASS_TEXT = {"inertial": "none: the force does not depend on the masses, a_i = s
                        "(the receiver's own mass cancels)",
              "type": "none: the force does not depend on the masses, a_i = sum_j f(r_ij) "
                      "u_ij / m_i, one mass per particle type (learned)",
+             "coupling": "couplings of either sign: the force is q_i q_j f(r_ij), so a_i = "
+                         "(q_i / m_i) sum_j q_j f(r_ij) u_ij, the couplings fitted per "
+                         "simulation",
              "other": "neither law of bgn.model.newton"}
 
 

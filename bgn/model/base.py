@@ -42,7 +42,9 @@ LOSS_KEYS = ("dynamics", "contact", "type", "mass_nll", "relmass", "unroll", "im
              "law")
 # What a model may be given beyond the position window (``PhysicsModel.given``): the
 # particles' radii, types or true masses, all hidden from a model that is not given them.
-GIVEN_FIELDS = ("radii", "types", "masses")
+# "earlier frames": the recorded frames before a rollout's start, beyond its window (the
+# couplings a pair-force head fits per simulation, mass_law=coupling)
+GIVEN_FIELDS = ("radii", "types", "masses", "earlier frames")
 # What each loss term reads beyond the frames every model trains on (``trained_with``): the
 # recorded quantity its target is. "contact" is the recorded contacts on contact scenes and
 # the recorded pair forces elsewhere (``PhysicsModel.supervision``).
@@ -192,7 +194,8 @@ class PhysicsModel(nn.Module, ABC):
     @property
     def given(self) -> tuple[str, ...]:
         """What the model reads beyond the position window every model reads, among
-        ``GIVEN_FIELDS`` ("radii", "types", "masses"), from its config and scene."""
+        ``GIVEN_FIELDS`` ("radii", "types", "masses", "earlier frames"), from its config and
+        scene."""
         return ()
 
     @property
@@ -295,6 +298,12 @@ class PhysicsModel(nn.Module, ABC):
         learned simulator sets it as each later graph's ``mass_fit``): the pair-force head's
         mass fit with ``rollout_masses=held``; None, the default: nothing held."""
         return None
+
+    @property
+    def held_fit_windows(self) -> int:
+        """How many windows of the frames before a rollout's start ``held_mass_fit`` reads
+        where the rollout is given them (1, the default: its first window alone)."""
+        return 1
 
     def sample_mass(self, g: Graph, n_samples: int) -> torch.Tensor:
         """Samples of every particle's mass in physical units, (n_samples, N)."""

@@ -45,6 +45,7 @@ from bgn.model.newton import (
     head_label,
     head_physics,
     held_fit,
+    held_windows,
     impulse_mass_loss,
     law_loss,
 )
@@ -277,6 +278,10 @@ class BGN(PhysicsModel):
 
     def held_mass_fit(self, g: Graph) -> torch.Tensor | None:
         return held_fit(self.force_head, g)
+
+    @property
+    def held_fit_windows(self) -> int:
+        return held_windows(self.force_head)
 
     def forward_target(self, g: Graph) -> torch.Tensor:
         """The dynamics head alone (no flow): what ``predict`` and rollouts run."""

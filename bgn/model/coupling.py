@@ -6,8 +6,10 @@ With ``X_ij = f(s_ij) u_ij`` (the pair terms, one per edge j -> i and frame), ``
 m_i`` and ``c_j = q_j`` the model is bilinear. What frames identify
 (docs/design.md#identifiability, "Couplings"): ``k`` and ``c`` up to one scale (``k / lam, lam
 c``: the learned law's free scale) and one sign (``-k, -c``); the mass ``m_i = c_i / k_i`` up to
-the scale alone, and the charges' ratios with their relative signs. The pair-force head is to
-fit them per simulation (its ``mass_law``; not wired in yet).
+the scale alone, and the charges' ratios with their relative signs. The pair-force head fits
+them per simulation (``mass_law=coupling``, ``bgn.model.newton``): over every window of a batch
+that comes from one simulation, pooled (``simulation_system``), since a single window's few
+frames do not pin ``2 n - 1`` unknowns (docs/design.md#identifiability, "Couplings").
 
 A least-squares fit in ``k`` for fixed ``c`` is one unknown per particle, in ``c`` for fixed
 ``k`` one joint system per simulation; alternating the two is slow and, from charges all of one
@@ -26,6 +28,8 @@ from __future__ import annotations
 import itertools
 
 import torch
+
+from bgn.graph import Graph
 
 STARTS = 16          # sign patterns of c tried per simulation (all 2^(n-1) where fewer)
 ITERATIONS = 40      # Levenberg-Marquardt steps per start
@@ -217,3 +221,38 @@ def coupling_errors(design: torch.Tensor, target: torch.Tensor, real: torch.Tens
     ridge = torch.diag_embed(1e-9 * gram.diagonal(dim1=1, dim2=2) + FLOOR)
     c_err = (variance[:, None] * torch.linalg.inv(gram + ridge).diagonal(dim1=1, dim2=2)).sqrt()
     return k_err.to(k.dtype), c_err.to(c.dtype)
+
+
+def simulation_system(g: Graph, past: torch.Tensor, seen: torch.Tensor) -> tuple[
+        torch.Tensor, torch.Tensor, torch.Tensor, tuple[torch.Tensor, torch.Tensor]]:
+    """The windows of ``g`` grouped by simulation (``g.sim``) and stacked along the rows:
+    ``design`` (S, n, M, n), ``target`` (S, n, M) and ``real`` (S, n) as ``fit_couplings``
+    reads them, one system per simulation of the batch, and ``where``: each node's (system,
+    particle) index, to read the fit back per node. ``past``: (E, F, D) pair terms at the F
+    frames of ``seen`` (N, F, D). Every graph of one simulation holds the same particles in
+    the same order (a window of it); a simulation with fewer windows than the batch's most is
+    padded with rows that are zero on both sides, which fit nothing."""
+    n_graphs = g.num_graphs
+    device = g.batch.device
+    groups, group = torch.unique(g.sim.to(device), return_inverse=True)       # (G,)
+    order = torch.argsort(group, stable=True)
+    per_group = torch.bincount(group, minlength=len(groups))
+    first = torch.cumsum(per_group, 0) - per_group
+    slot = torch.empty(n_graphs, dtype=torch.long, device=device)
+    slot[order] = torch.arange(n_graphs, device=device) - first[group[order]]
+    counts = g.num_nodes.to(device)
+    local = torch.arange(g.pos.shape[0], device=device) \
+        - (torch.cumsum(counts, 0) - counts)[g.batch]                   # index within its graph
+    n, windows = int(counts.max()), int(per_group.max())
+    frames, dim = seen.shape[1], seen.shape[2]
+    snd, rcv = g.edge_index
+    node_group, node_slot = group[g.batch], slot[g.batch]
+    design = past.new_zeros(len(groups), n, windows, frames, dim, n)
+    design[node_group[rcv], local[rcv], node_slot[rcv], :, :, local[snd]] = past
+    target = seen.new_zeros(len(groups), n, windows, frames, dim)
+    target[node_group, local, node_slot] = seen
+    real = torch.zeros(len(groups), n, dtype=torch.bool, device=device)
+    real[node_group, local] = True
+    rows = windows * frames * dim
+    return (design.reshape(len(groups), n, rows, n), target.reshape(len(groups), n, rows), real,
+            (node_group, local))

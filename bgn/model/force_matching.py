@@ -92,8 +92,10 @@ class MatchResult:
 
 def matchable(head: object) -> bool:
     """Whether force matching applies: a pair-force head whose law is an MLP (a formula law is
-    fitted by the law stage instead)."""
-    return isinstance(head, PairForceHead) and isinstance(head.force_law, torch.nn.Sequential)
+    fitted by the law stage instead) and whose masses the table can weigh: not couplings of
+    either sign (``mass_law=coupling``), which a table of equal particles gets wrong in sign."""
+    return isinstance(head, PairForceHead) and isinstance(head.force_law, torch.nn.Sequential) \
+        and head.mass_law != "coupling"
 
 
 def distance_range(head: PairForceHead, graphs: Iterable[Graph]) -> tuple[float, float] | None:

@@ -17,7 +17,12 @@ learns only the force law:
   sum_tau |F_i|^2``; ``mass_law="source"`` (gravity-like, a particle's own mass cancels):
   ``a_i = sum_j m_j F_ij`` with the masses fitted jointly per simulation; ``mass_law="type"``
   (the force does not depend on the masses, one mass per particle type, learned like the law:
-  all equal where there is one type): ``a_i = F_i / m_type(i)``, nothing fitted to the window.
+  all equal where there is one type): ``a_i = F_i / m_type(i)``, nothing fitted to the window;
+  ``mass_law="coupling"`` (charges of either sign and hidden masses, ``F_ij = q_i q_j f u``):
+  ``a_i = k_i sum_j c_j f(s_ij) u_ij`` with ``k_i = q_i / m_i`` and ``c_j = q_j`` fitted per
+  simulation, over every window of the batch from that simulation pooled
+  (``bgn.model.coupling``); in a rollout fitted once, to windows of the frames before its start
+  (``COUPLING_WINDOWS`` of them), and held.
   A window fit reads masses off a few frames at every rollout step; where the masses are in
   fact shared, its errors at stiff encounters feed energy into the rollout, which a fixed mass
   cannot (docs/notes/2026-11-26-force-matching.md).
@@ -58,6 +63,7 @@ from bgn.model.base import (
     check_positive_ints,
     contact_pos_weight,
 )
+from bgn.model.coupling import coupling_errors, fit_couplings, simulation_system
 from bgn.model.encoder import DIRECTION_EPS
 from bgn.model.formula_law import FormulaLaw, check_law, pair_text
 from bgn.model.impulse import ContactImpulseHead
@@ -67,7 +73,7 @@ from bgn.model.ops import activation, mlp, scatter_sum
 from bgn.model.target_coder import observed_targets
 from bgn.sim.scene import SceneMeta
 
-MASS_LAWS = ("inertial", "source", "type")
+MASS_LAWS = ("inertial", "source", "type", "coupling")
 LAW_INITS = ("random", "match")  # the MLP law's start (ForceLawOptions.law_init)
 ROLLOUT_MASSES = ("window", "held")  # a rollout's mass fit (ForceLawOptions.rollout_masses)
 DYNAMICS = ("decoder", "newton")  # BGN's dynamics head: Eq. 5's decoder or the structured head
@@ -79,6 +85,9 @@ IMPLICIT_STEPS = 1  # fixed-point steps of the implicit Numerov prediction (more
 # converge: docs/notes/2026-11-26-results-history.md, "Measurements behind the defaults",
 # "Shooting iterations"
 SHOOTING_ITERATIONS = 4
+# windows of the frames before a rollout's start that its held coupling fit pools
+# (mass_law=coupling): a window's few frames do not pin 2 n - 1 couplings, a simulation's do
+COUPLING_WINDOWS = 32
 
 
 @dataclass
@@ -87,8 +96,9 @@ class ForceLawOptions(OptionGroup):
     and of BGN with ``model.dynamics=newton`` (``NewtonOptions``)."""
 
     # how masses enter the forces: inertial, a = F / m (spring) | source, a = sum m_j F_ij
-    # (gravity) | type, a = F / m with one learned mass per type; each scene sets its own
-    # (conf/dataset_model/)
+    # (gravity) | type, a = F / m with one learned mass per type | coupling, a_i = k_i sum_j
+    # c_j F_ij, couplings of either sign (charges) fitted per simulation; each scene sets its
+    # own (conf/dataset_model/)
     mass_law: str = "inertial"
     substeps: int = 1                  # 1: Numerov's weights; > 1: integrate the frame (shoot)
     law: str = "mlp"                   # mlp: f(s) a network | formula: law_formula | auto
@@ -98,7 +108,8 @@ class ForceLawOptions(OptionGroup):
     # formula stage sets it): read by the model's labels only, never by its predictions
     law_scale: float = 1.0
     # random: the MLP law as initialised | match: first fitted to a least-squares table of
-    # the law on the training frames (bgn.model.force_matching); imported data set match
+    # the law on the training frames (bgn.model.force_matching); imported data set match;
+    # mass_law=coupling starts as initialised (the table cannot weigh couplings of either sign)
     law_init: str = "random"
     # the mass fit along a rollout: window, refitted at every step to the window, which after
     # the first step holds the rollout's own predicted frames | held, fitted once to the
@@ -288,6 +299,8 @@ class PairForceHead(nn.Module):
         ``mass_fit``, where a rollout holds one (``held_fit``), in place of the window's."""
         raw, terms = self.window(g)
         if known_masses:
+            if self.mass_law == "coupling":
+                raise ValueError("mass_law=coupling has no recorded couplings to train with")
             mass = g.mass.to(terms.dtype)
             fit = mass if self.mass_law == "source" else 1 / mass
         elif g.mass_fit is not None:
@@ -299,10 +312,18 @@ class PairForceHead(nn.Module):
     def held_fit(self, g: Graph) -> torch.Tensor | None:
         """(N,) the fit a rollout holds from its first window ``g`` (``rollout_masses=held``;
         the learned simulator passes it back as the graph's ``mass_fit``), else None. One
-        learned mass per type (``mass_law=type``) is held by construction: None."""
-        if self.rollout_masses != "held" or self.mass_law == "type":
+        learned mass per type (``mass_law=type``) is held by construction: None. Couplings
+        (``mass_law=coupling``) are always held: ``g`` is then the windows of the frames before
+        the start (``context_windows``), pooled per simulation."""
+        if self.mass_law == "type" or (self.rollout_masses != "held"
+                                       and self.mass_law != "coupling"):
             return None
         return self.fit(g, self.window(g)[1])
+
+    @property
+    def context_windows(self) -> int:
+        """How many windows before a rollout's start its held fit reads (``held_fit``)."""
+        return COUPLING_WINDOWS if self.mass_law == "coupling" else 1
 
     def window(self, g: Graph) -> tuple[torch.Tensor, torch.Tensor]:
         """The pair terms of the window's frames t, t-1, .., t-k (E, k+1, D) and what a
@@ -312,9 +333,12 @@ class PairForceHead(nn.Module):
 
     def accelerate(self, g: Graph, raw: torch.Tensor, fit: torch.Tensor) -> torch.Tensor:
         """(N, D) the acceleration at frame t from the window's pair terms ``raw`` and the
-        mass fit ``fit`` (``1 / m_i`` inertial, ``m_i`` source)."""
+        mass fit ``fit`` (``1 / m_i`` inertial, ``m_i`` source, ``(k_i, c_i)`` coupling)."""
         snd, rcv = g.edge_index
-        if self.mass_law != "source":
+        if self.mass_law == "coupling":
+            def combine(t: torch.Tensor) -> torch.Tensor:          # a_i = k_i sum_j c_j F_ij
+                return fit[:, :1] * scatter_sum(fit[snd, 1:] * t, rcv, g.pos.shape[0])
+        elif self.mass_law != "source":
             def combine(t: torch.Tensor) -> torch.Tensor:          # a_i = sum_j F_ij / m_i
                 return fit[:, None] * scatter_sum(t, rcv, g.pos.shape[0])
         else:
@@ -335,7 +359,8 @@ class PairForceHead(nn.Module):
 
     def fit(self, g: Graph, terms: torch.Tensor) -> torch.Tensor:
         """(N,) the window's least-squares fit: ``1 / m_i`` under the inertial law, ``m_i``
-        under the source law, to the pair terms ``terms`` (E, F, D) of frames t .. t-k+1."""
+        under the source law, to the pair terms ``terms`` (E, F, D) of frames t .. t-k+1;
+        (N, 2) ``(k_i, c_i)`` under the coupling law, pooled over each simulation's windows."""
         return self.least_squares(g, terms)[0]
 
     def least_squares(self, g: Graph, terms: torch.Tensor, with_error: bool = False,
@@ -354,9 +379,11 @@ class PairForceHead(nn.Module):
     def observed_prediction(self, g: Graph, past: torch.Tensor, fit: torch.Tensor,
                             ) -> torch.Tensor:
         """(N, F, D) the accelerations the law gives at the F frames of the pair terms ``past``
-        (E, F, D) with the fit ``fit`` (N,) (``1 / m_i`` inertial or type, ``m_i`` source):
-        what ``fit_observed`` matches to the observed ones."""
+        (E, F, D) with the fit ``fit`` (N,) (``1 / m_i`` inertial or type, ``m_i`` source;
+        (N, 2) ``(k_i, c_i)`` coupling): what ``fit_observed`` matches to the observed ones."""
         snd, rcv = g.edge_index
+        if self.mass_law == "coupling":
+            return fit[:, :1, None] * scatter_sum(fit[snd, 1:, None] * past, rcv, g.pos.shape[0])
         if self.mass_law == "source":
             return scatter_sum(fit[snd, None, None] * past, rcv, g.pos.shape[0])
         return fit[:, None, None] * scatter_sum(past, rcv, g.pos.shape[0])
@@ -366,7 +393,10 @@ class PairForceHead(nn.Module):
         """``least_squares`` of pair terms ``past`` (E, F, D) to accelerations ``seen``
         (N, F, D) at the same F frames, whichever frames they are: one window's
         (``observed_system``), or the windows of a whole simulation stacked along F on one
-        graph (``bgn.eval.law_posterior``)."""
+        graph (``bgn.eval.law_posterior``). Under the coupling law, over every graph of one
+        simulation (``g.sim``) pooled; its error (N, 2), those of ``k`` and ``c``."""
+        if self.mass_law == "coupling":
+            return self.couplings(g, past, seen, with_error)
         if self.mass_law == "source":
             return self.source_masses(g, past, seen, with_error)
         if self.mass_law == "type":  # 1 / m of each particle's type, known exactly
@@ -391,12 +421,31 @@ class PairForceHead(nn.Module):
         how far the log-mass can be trusted."""
         if fit is None:
             fit = self.fit(g, self.window(g)[1])
+        if self.mass_law == "coupling":  # m_i = c_i / k_i, up to the law's free scale
+            log_fit = torch.log(fit[:, 1].abs() + FIT_EPS) - torch.log(fit[:, 0].abs() + FIT_EPS)
+            if error is None:
+                return log_fit
+            rel = torch.sqrt(((error / (fit.abs() + FIT_EPS)) ** 2).sum(-1))
+            return torch.stack([log_fit, torch.log(rel + REL_ERROR_FLOOR)], -1)
         log_fit = torch.log(fit.abs() + FIT_EPS)
         log_fit = log_fit if self.mass_law == "source" else -log_fit
         if error is None:
             return log_fit
         return torch.stack([log_fit, torch.log(error / (fit.abs() + FIT_EPS) + REL_ERROR_FLOOR)],
                            -1)
+
+    def couplings(self, g: Graph, past: torch.Tensor, seen: torch.Tensor,
+                  with_error: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """(N, 2) every particle's ``(k_i, c_i)`` of ``a_i = k_i sum_j c_j f(s_ij) u_ij``
+        fitted over all windows of its simulation in ``g`` at once (``bgn.model.coupling``),
+        in the gauge ``normalise`` fixes; ``with_error``: their standard errors (N, 2)."""
+        design, target, real, where = simulation_system(g, past, seen)
+        k, c = fit_couplings(design, target, real)
+        fit = torch.stack([k[where], c[where]], -1)
+        if not with_error:
+            return fit, None
+        k_err, c_err = coupling_errors(design.detach(), target, real, k.detach(), c.detach())
+        return fit, torch.stack([k_err[where], c_err[where]], -1)
 
     def source_masses(self, g: Graph, past: torch.Tensor, seen: torch.Tensor,
                       with_error: bool = False) -> tuple[torch.Tensor, torch.Tensor | None]:
@@ -471,10 +520,14 @@ def build_head(meta: SceneMeta, normalizer: Normalizer, history: int, hidden: in
 def head_given(head: nn.Module) -> tuple[str, ...]:
     """What a structured head reads beyond the position window (``PhysicsModel.given``): the
     impulse head the radii (contact distances, masses per radius), the pair-force head the
-    types where the scene has several (its law per pair of types)."""
+    types where the scene has several (its law per pair of types) and, fitting couplings
+    (``mass_law=coupling``), the recorded frames before a rollout's start."""
     if isinstance(head, ContactImpulseHead):
         return ("radii",)
-    return ("types",) if isinstance(head, PairForceHead) and head.types > 1 else ()
+    if not isinstance(head, PairForceHead):
+        return ()
+    return (("types",) if head.types > 1 else ()) + (
+        ("earlier frames",) if head.mass_law == "coupling" else ())
 
 
 def head_physics(head: nn.Module) -> str:
@@ -485,7 +538,10 @@ def head_physics(head: nn.Module) -> str:
     assert isinstance(head, PairForceHead)
     masses = {"inertial": "inertial masses fitted to the window, a = F / m",
               "source": "masses at the source fitted per simulation, a_i = sum_j m_j F_ij",
-              "type": "one mass per particle type, learned (equal where one type), a = F / m"}
+              "type": "one mass per particle type, learned (equal where one type), a = F / m",
+              "coupling": "couplings of either sign fitted per simulation, a_i = k_i sum_j c_j "
+                          "F_ij (k = q / m, c = q), in a rollout fitted to the frames before "
+                          "its start"}
     law = ""
     if isinstance(head.force_law, FormulaLaw):  # the law itself written in, as a formula
         terms = json.loads(head.force_law.spec())
@@ -493,7 +549,8 @@ def head_physics(head: nn.Module) -> str:
             pair_text(p, head.law_scale) + (f" (types {p['types']})" if head.types > 1 else "")
             for p in terms)
     held = ("; in a rollout fitted once, to its first window, and held"
-            if head.rollout_masses == "held" and head.mass_law != "type" else "")
+            if head.rollout_masses == "held" and head.mass_law not in ("type", "coupling")
+            else "")
     return (f"central pair forces, equal and opposite; {masses[head.mass_law]} "
             f"(mass_law={head.mass_law}){held}{law}")
 
@@ -505,7 +562,8 @@ def head_label(head: nn.Module) -> str:
         return "impulse head (radii)"
     assert isinstance(head, PairForceHead)
     law = ", law a formula" if isinstance(head.force_law, FormulaLaw) else ""
-    held = " held" if head.rollout_masses == "held" and head.mass_law != "type" else ""
+    held = " held" if head.mass_law == "coupling" or (
+        head.rollout_masses == "held" and head.mass_law != "type") else ""
     return (f"pair-force head ({'types, ' if head.types > 1 else ''}masses {head.mass_law}"
             f"{held}{law})")
 
@@ -521,6 +579,11 @@ def held_fit(head: nn.Module | None, g: Graph) -> torch.Tensor | None:
     return head.held_fit(g) if isinstance(head, PairForceHead) else None
 
 
+def held_windows(head: nn.Module | None) -> int:
+    """``PairForceHead.context_windows`` of a model's structured head (1 for other heads)."""
+    return head.context_windows if isinstance(head, PairForceHead) else 1
+
+
 def law_loss(head: nn.Module, g: Graph, reduce: bool = True) -> torch.Tensor | None:
     """The force head's prediction with the recorded masses in place of the window's fit,
     scored by its squared error relative to the target's own size (None for other heads). The
@@ -531,8 +594,8 @@ def law_loss(head: nn.Module, g: Graph, reduce: bool = True) -> torch.Tensor | N
     where a squared error is set by the few close encounters
     (docs/notes/2026-11-26-results-history.md, "Moved here from code comments and configs").
     ``reduce=False``: the relative error of each particle, (N,)."""
-    if not isinstance(head, PairForceHead):
-        return None
+    if not isinstance(head, PairForceHead) or head.mass_law == "coupling":
+        return None  # no recorded couplings to train the law with
     predicted, target = head(g, known_masses=True)[0], g.target.to(g.pos.dtype)
     size = (target * target).sum(-1)
     rel = ((predicted - target) ** 2).sum(-1) / (size + 1e-4 * size.mean() + FIT_EPS)
@@ -582,6 +645,10 @@ class Newton(PhysicsModel):
 
     def held_mass_fit(self, g: Graph) -> torch.Tensor | None:
         return held_fit(self.head, g)
+
+    @property
+    def held_fit_windows(self) -> int:
+        return held_windows(self.head)
 
     def forward(self, g: Graph) -> ModelOutput:
         self.check(g)

@@ -9,11 +9,12 @@ is one deadline over the whole job, ``candidate_deadline``), each in
 
 - the paper's decoder (Eq. 5): always; it writes no physics in, so it can express any;
 - the pair-force head (``bgn.model.newton``) with each way masses can enter (``mass_law``
-  inertial, source and type), where the scene has pairwise (or unknown) forces on a complete or
-  radius graph (short-range data: a pair beyond the radius has no edge and no force), an
-  acceleration target and a window of at least 3 velocities (``newton.check_scene``), and
-  whose training data conserve momentum and angular momentum (``bgn.data.balance``: what
-  central pair forces cannot break, so a field, walls, drag or friction rule them out) and
+  inertial, source, type and coupling, the last for at most ``COUPLING_MAX_PARTICLES``
+  particles), where the scene has pairwise (or unknown) forces on a complete or radius graph
+  (short-range data: a pair beyond the radius has no edge and no force), an acceleration
+  target and a window of at least 3 velocities (``newton.check_scene``), and whose training
+  data conserve momentum and angular momentum (``bgn.data.balance``: what central pair forces
+  cannot break, so a field, walls, drag or friction rule them out) and
   whose forces do not depend on velocity (``velocity_dependence``: a law of the distance and
   the relative speed along the pair explains the frames no better than one of the distance);
 - the contact-impulse head (``bgn.model.impulse``) on contact scenes whose discs have radii;
@@ -65,6 +66,9 @@ from bgn.training.checkpoints import write_atomic
 log = logging.getLogger("bgn.studies.auto")
 
 MASS_FRAMES = 64         # validation frames the fitted masses are read from
+# the most particles the coupling candidate (mass_law=coupling) is admitted for: its fit is
+# dense per simulation, a (n M, 2 n) Jacobian per sign pattern (docs/design.md#identifiability)
+COUPLING_MAX_PARTICLES = 16
 LAW_POINTS = 200         # distances the learned pair law is sampled at
 # the share of the job's time left that the candidates leave to the winner's continuation
 # and the test, where trainer.max_time caps the job (candidate_deadline)
@@ -102,7 +106,7 @@ def candidates(meta: SceneMeta, history: int, radii_given: bool,
     from bgn.model.newton import check_scene
 
     out = [Candidate("decoder", ["model.dynamics=decoder"])]
-    for law in ("inertial", "source", "type"):
+    for law in ("inertial", "source", "type", "coupling"):
         cand = Candidate(f"newton_{law}", ["model.dynamics=newton", f"model.mass_law={law}"],
                          pair_force=True)
         if meta.interaction == "contact":
@@ -115,6 +119,10 @@ def candidates(meta: SceneMeta, history: int, radii_given: bool,
             for evidence in (balance, velocity):
                 if cand.admitted and evidence is not None and evidence.breaks():
                     cand.admitted, cand.reason = False, evidence.breaks()
+            if cand.admitted and law == "coupling" and meta.n_particles > COUPLING_MAX_PARTICLES:
+                cand.admitted, cand.reason = False, (
+                    f"{meta.n_particles} particles: couplings are fitted densely per "
+                    f"simulation, for at most {COUPLING_MAX_PARTICLES}")
         out.append(cand)
     impulse = Candidate("impulse", ["model.dynamics=newton"])
     if meta.interaction != "contact":
@@ -318,7 +326,8 @@ def fitted_masses(head: Any, dataset: Any, frames: int = MASS_FRAMES, batch_size
             true.append(log_true.numpy())
             rel_fit.append((log_fit[rcv] - log_fit[snd]).numpy())
             rel_true.append((log_true[rcv] - log_true[snd]).numpy())
-            fits.append(fit.double().numpy())
+            # coupling: k_i c_i = q_i^2 / m_i > 0 where the law has the truth's sign
+            fits.append((fit.prod(-1) if fit.ndim > 1 else fit).double().numpy())
     fitted_a, true_a = np.concatenate(fitted), np.concatenate(true)
     return {"fitted_log": fitted_a, "true_log": true_a,
             "relative_r2": r2_score(np.concatenate(rel_fit), np.concatenate(rel_true)),

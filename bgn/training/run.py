@@ -77,6 +77,11 @@ def plain_stats(stats: dict[str, dict[str, np.ndarray]]) -> dict[str, dict[str, 
             for g, entries in stats.items()}
 
 
+# simulations per training batch under mass_law=coupling: the batch's windows of one
+# simulation are what its couplings are fitted to
+COUPLING_SIMS_PER_BATCH = 2
+
+
 def data_module(cfg: DictConfig, spec: DatasetSpec | None = None) -> ParticleDataModule:
     """The DataModule of a composed config (nothing generated or read yet). ``spec``: the
     one ``validate_train(cfg)`` returned, where the caller validated ``cfg`` already;
@@ -87,8 +92,13 @@ def data_module(cfg: DictConfig, spec: DatasetSpec | None = None) -> ParticleDat
         spec = validate_train(cfg)
     # dataset.generate_workers: simulation processes when the data are generated here
     # (default one per core; 1 generates in this process)
+    # a head that fits couplings per simulation over a batch's windows needs many windows of
+    # each simulation in a batch (bgn.model.newton, mass_law=coupling)
+    coupling = cfg.model.get("mass_law") == "coupling" and (
+        cfg.model.get("dynamics", "newton") == "newton")
     return ParticleDataModule(cfg.dataset, cfg.fps, cfg.paths.data_dir,
-                              generate_workers=cfg.dataset.get("generate_workers"), spec=spec)
+                              generate_workers=cfg.dataset.get("generate_workers"), spec=spec,
+                              sims_per_batch=COUPLING_SIMS_PER_BATCH if coupling else None)
 
 
 def run_provenance(cfg: DictConfig, datamodule: ParticleDataModule) -> dict[str, Any]:

@@ -208,7 +208,8 @@ def test_pair_forces_are_equal_and_opposite(small_cfg):
 def test_a_held_mass_fit_stands_in_for_the_windows(small_cfg, mass_law):
     """A graph's ``mass_fit`` replaces the window's fit: the fit itself gives the same
     prediction bit for bit, the recorded masses the known-mass prediction; held
-    masses are offered only under rollout_masses=held, never for one learned mass per type."""
+    masses are offered only under rollout_masses=held, never for one learned mass per type;
+    couplings (no recorded ones to stand in) always."""
     ds, g = frames(small_cfg, "gravity_r1")
     model = build_model({"name": "newton", "mass_law": mass_law, "rollout_masses": "held"},
                         ds.meta, ds.file.stats(), ds.history).double()
@@ -219,6 +220,13 @@ def test_a_held_mass_fit_stands_in_for_the_windows(small_cfg, mass_law):
         return
     assert torch.equal(fit, head.fit(g, head.window(g)[1]))
     assert torch.equal(head(replace(g, mass_fit=fit))[0], head(g)[0])
+    if mass_law == "coupling":
+        with pytest.raises(ValueError, match="no recorded couplings"):
+            head(g, known_masses=True)
+        assert law_loss(head, g) is None
+        head.rollout_masses = "window"
+        assert torch.equal(model.held_mass_fit(g), fit) and "masses coupling held" in model.label
+        return
     recorded = g.mass if mass_law == "source" else 1 / g.mass
     assert torch.equal(head(replace(g, mass_fit=recorded))[0], head(g, known_masses=True)[0])
     assert not torch.equal(head(replace(g, mass_fit=recorded))[0], head(g)[0])

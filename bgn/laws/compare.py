@@ -93,6 +93,9 @@ SCALE_TEXT = {
     "unit masses": "free in the model, and the data record no masses: put in the units of "
                    "unit masses (physical where every mass is 1) by least squares against "
                    "the training frames, factor {}",
+    "unit couplings": "free in the model, shared with the couplings it fits per simulation "
+                      "(mass_law=coupling, no recorded ones): in the units of couplings of unit "
+                      "root-mean-square per simulation, factor {}",
 }
 
 
@@ -137,7 +140,7 @@ class LawReport:
     scene: str
     model: str
     mass_law: str
-    scale: str                 # "physical" | "calibrated" | "unit masses" (SCALE_TEXT)
+    scale: str                 # "physical" | "calibrated" | "unit masses" | "unit couplings"
     scale_factor: float        # applied to the raw law ("calibrated"), else the check's value
     calibration_error: float   # mean relative squared error with the recorded masses
     length_scale: float
@@ -250,8 +253,8 @@ def read_law(module_or_model: Any, dataset: Any, options: LawOptions = DEFAULTS)
     head = copy.deepcopy(head).double().eval()  # the law in float64: smooth to the last digit
     dim = dataset.meta.dim
     pinned = "law" in getattr(model, "heads", ())
-    scale = ("physical" if pinned else "calibrated" if dataset.meta.masses_known
-             else "unit masses")
+    scale = ("physical" if pinned else "unit couplings" if head.mass_law == "coupling"
+             else "calibrated" if dataset.meta.masses_known else "unit masses")
     k, error = calibrate_scale(head, _as_double(dataset))
     factor = 1.0 if pinned else k  # the scale the head does not pin, from the data
     truth = true_law(dataset.scene)

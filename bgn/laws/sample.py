@@ -84,7 +84,10 @@ def calibrate_scale(head: Any, dataset: Any, frames: int = DEFAULTS.calibration_
     """(k, relative error): the factor that puts the law in physical units, by least squares
     of the head's prediction with the recorded masses against the training targets (relative,
     as ``newton.law_loss``), and the mean relative squared error of ``k`` times the prediction
-    (how well the recorded masses and the law explain the targets)."""
+    (how well the recorded masses and the law explain the targets). A head that fits couplings
+    (``mass_law=coupling``) has no recorded ones: its own fit (couplings of unit rms per
+    simulation, ``bgn.model.coupling.normalise``) stands in for them, so ``k`` is that gauge's
+    (near 1)."""
     from bgn.data.frames import evenly_spaced
     from bgn.graph import collate
 
@@ -92,7 +95,7 @@ def calibrate_scale(head: Any, dataset: Any, frames: int = DEFAULTS.calibration_
     pred, target = [], []
     for start in range(0, len(idx), 64):
         g = collate([dataset[k] for k in idx[start:start + 64]])
-        pred.append(head(g, known_masses=True)[0].double())
+        pred.append(head(g, known_masses=head.mass_law != "coupling")[0].double())
         target.append(g.target.double())
     p, t = torch.cat(pred), torch.cat(target)
     size = (t * t).sum(-1)

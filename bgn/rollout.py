@@ -74,12 +74,11 @@ def rollout(model: Predictor, dataset: FrameDataset, sim: int, start: int | None
     n_steps = min(n_steps, dataset.file.n_frames - 1 - start)
     if n_steps < 1:
         raise ValueError(f"rollout from frame {start} needs at least one later frame")
-    first = context_start(model, start - k - 1)
     truth = true_positions(dataset, [sim], start - k - 1, start + n_steps)
     result = simulator(model, dataset).rollout(
         torch.as_tensor(truth[:, :k + 2]), particles(dataset, [sim]), n_steps, start,
         driven=torch.as_tensor(truth[:, k + 2:]),
-        context=recorded_context(dataset, [sim], first, start))
+        context=recorded_context(model, dataset, [sim], start))
     first_bad = int(result.first_non_finite[0])
     predicted = result.positions[0].cpu().numpy()
     if first_bad >= 0:
@@ -97,20 +96,15 @@ def rollout(model: Predictor, dataset: FrameDataset, sim: int, start: int | None
             "box": np.array(np.nan if dataset.meta.box is None else dataset.meta.box)}
 
 
-def context_start(model: Predictor, first: int) -> int:
-    """The first recorded frame a rollout whose window starts at frame ``first`` reads: frame 0
-    for a model whose held fit reads the frames before the start (``held_fit_windows`` > 1),
-    else ``first``."""
-    return 0 if int(getattr(model, "held_fit_windows", 1)) > 1 else first
-
-
-def recorded_context(dataset: FrameDataset, sims: list[int], first: int, start: int,
+def recorded_context(model: Predictor, dataset: FrameDataset, sims: list[int], start: int,
                      ) -> torch.Tensor | None:
-    """(B, C, N, D) the recorded frames ``first .. start`` of ``sims``, the context a held fit
-    reads (``LearnedSimulator.rollout``), or None where they are only the window."""
-    if start - first + 1 <= dataset.history + 2:
+    """(B, C, N, D) the recorded frames 0 .. ``start`` of ``sims``: the context a held fit
+    reads (``LearnedSimulator.rollout``) for a model whose fit reads the frames before the
+    start (``held_fit_windows`` > 1); None for the others, and where those frames are only the
+    window."""
+    if int(getattr(model, "held_fit_windows", 1)) <= 1 or start + 1 <= dataset.history + 2:
         return None
-    return torch.as_tensor(true_positions(dataset, sims, first, start))
+    return torch.as_tensor(true_positions(dataset, sims, 0, start))
 
 
 def rollout_starts(dataset: FrameDataset, n_steps: int, per_sim: int = 1) -> list[int]:
@@ -163,11 +157,10 @@ def rollout_many(model: Predictor, dataset: FrameDataset, sims: list[int], start
         for batch, part in zip(batches, group_parts):
             if between is not None:
                 between()
-            first = context_start(model, start - k - 1)
             truth = true_positions(dataset, batch, start - k - 1, start + n_steps)
             result = sim_.rollout(torch.as_tensor(truth[:, :k + 2]), part, n_steps, start,
                                   driven=torch.as_tensor(truth[:, k + 2:]),
-                                  context=recorded_context(dataset, batch, first, start))
+                                  context=recorded_context(model, dataset, batch, start))
             predicted.append(np.concatenate([truth[:, k:k + 1],
                                              result.positions.cpu().numpy()], 1))
             true.append(truth[:, k:])

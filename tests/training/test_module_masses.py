@@ -76,9 +76,9 @@ def close_gravity(sims: int, frames: int, softening: float = 0.03) -> np.ndarray
 @pytest.mark.slow
 def test_every_auto_candidate_trains_without_nan_on_data_without_masses(tmp_path):
     """Gravity frames with close encounters imported WITHOUT masses: every candidate of
-    model.dynamics=auto (the decoder, the pair-force head with each mass law, force matching
-    on) trains its steps with finite losses and is scored; none fails, and the report says
-    each was trained."""
+    model.dynamics=auto (the decoder, the pair-force head with each mass law, the coupling
+    law among them for so few particles, force matching on) trains its steps with finite
+    losses and is scored; none fails, and the report says each was trained."""
     from bgn.data import from_arrays
     from bgn.studies.auto import run_auto
 
@@ -93,13 +93,13 @@ def test_every_auto_candidate_trains_without_nan_on_data_without_masses(tmp_path
                  f"paths.output_dir={run}", "model.hidden=16", "model.decoder_hidden=16",
                  "figures=false", "val_rollout_steps=0", "callbacks.progress_bar=null",
                  "dataset.batch_size=16", "dataset.val_samples=64", "trainer.max_steps=480",
-                 "auto.min_steps=60", "auto.references=[]", "auto.horizon=20", "test=false"]
+                 "auto.min_steps=40", "auto.references=[]", "auto.horizon=20", "test=false"]
     run_auto(compose_config("train", overrides), overrides)
     record = json.loads((run / "auto" / "auto.json").read_text())
     rows = {c["candidate"]: c for c in record["candidates"]}
-    trained = [n for n in ("decoder", "newton_inertial", "newton_source", "newton_type")
-               if rows[n]["admitted"]]
-    assert trained == ["decoder", "newton_inertial", "newton_source", "newton_type"], \
+    every = ["decoder", "newton_inertial", "newton_source", "newton_type", "newton_coupling"]
+    trained = [n for n in every if rows[n]["admitted"]]
+    assert trained == every, \
         {n: r["reason"] for n, r in rows.items()}
     for name in trained:
         row = rows[name]

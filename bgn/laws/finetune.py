@@ -377,7 +377,13 @@ def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], step
     stalls. A trial point where the loss is not finite counts as infinitely worse (a form
     with no finite point returns inf and loses). Returns (the lowest loss, evaluations);
     ``_Budget`` past ``deadline`` (the job's, ``bgn.training.budget``) before any; a
-    SIGTERM ends it between evaluations (``check``)."""
+    SIGTERM ends it between evaluations (``check``).
+
+    Couplings (``mass_law=coupling``): their fit per simulation (``bgn.model.coupling``, a
+    multi-start Levenberg-Marquardt) costs far more than the law's evaluation, so they are
+    fitted once, through the form's starting constants, and held while the constants are
+    tuned (``held_couplings``); the loss returned is the tuned constants' with the couplings
+    fitted again through them, as every other form's, so forms compare on the same loss."""
     from bgn.model.formula_law import NONLINEAR
 
     law = head.force_law
@@ -405,7 +411,7 @@ def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], step
             raise _Budget from None
         place(x)
         with torch.no_grad():
-            loss = float(sum(w * law_objective(model, head, g) for w, g in batches))
+            loss = float(sum(w * law_objective(model, head, g) for w, g in tuned_on))
         count[0] += 1
         if not math.isfinite(loss):  # constants the law cannot take: a worse point, not a stop
             return math.inf
@@ -413,6 +419,8 @@ def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], step
             best[:] = [loss, x.copy()]
         return loss
 
+    coupling = getattr(head, "mass_law", None) == "coupling"
+    tuned_on = held_couplings(head, batches) if coupling else batches
     x0 = np.concatenate([law.amplitude.detach().numpy(), law.log_c.detach()[nonlinear].numpy(),
                          np.zeros(0) if expressions is None
                          else expressions.detach().numpy()]).astype(np.float64)
@@ -427,7 +435,21 @@ def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], step
         if best[1] is None and count[0] == 0:
             raise
     place(x0 if best[1] is None else best[1])  # no finite point: the form loses (loss inf)
+    if coupling and best[1] is not None:  # the couplings fitted again through the tuned law
+        with torch.no_grad():
+            loss = float(sum(w * law_objective(model, head, g) for w, g in batches))
+        return (loss if math.isfinite(loss) else math.inf), count[0] + 1
     return best[0], count[0]
+
+
+def held_couplings(head: Any, batches: list[tuple[float, Any]]) -> list[tuple[float, Any]]:
+    """``batches`` with each graph's couplings fitted per simulation through ``head``'s law as
+    it stands (``PairForceHead.fit``) and held as its ``mass_fit``: the law's loss then needs
+    no fit of its own (``tune_constants``)."""
+    from dataclasses import replace
+
+    with torch.no_grad():
+        return [(w, replace(g, mass_fit=head.fit(g, head.window(g)[1]))) for w, g in batches]
 
 
 def polish_constants(model: Any, head: Any, batches: list[tuple[float, Any]], steps: int,

@@ -46,6 +46,13 @@ class Graph:
     def num_graphs(self) -> int:
         return int(self.num_nodes.shape[0])
 
+    @property
+    def local_index(self) -> torch.Tensor:
+        """(N,) each node's index within its own graph (0 .. num_nodes - 1)."""
+        counts = self.num_nodes.to(self.batch.device)
+        first = torch.cumsum(counts, 0) - counts
+        return torch.arange(self.batch.shape[0], device=self.batch.device) - first[self.batch]
+
     def to(self, device: torch.device | str, non_blocking: bool = False) -> Graph:
         moved = {f.name: (v.to(device, non_blocking=non_blocking)
                           if isinstance(v := getattr(self, f.name), torch.Tensor) else v)

@@ -341,8 +341,7 @@ class _MassDraws:
         self.true_log.append(torch.log(g.mass.double()).numpy())
         # one key per particle of a simulation, the same in every frame: sim * 1e6 + index
         first_node = torch.cumsum(g.num_nodes, 0) - g.num_nodes
-        node_index = torch.arange(len(g.mass)) - first_node[g.batch]
-        self.particles.append((g.sim[g.batch] * 1_000_000 + node_index).numpy())
+        self.particles.append((g.sim[g.batch] * 1_000_000 + g.local_index).numpy())
         self.types.append(g.types.numpy())
         self.edges.append(g.edge_index.numpy() + self.offset)
         self.edge_rel.append(g.edge_rel_log_mass.double().numpy())

@@ -108,8 +108,7 @@ def pooled_system(head: PairForceHead, graphs: list[Graph],
     n_windows, n_frames, dim = len(graphs), past.shape[1], past.shape[2]
     snd, rcv = g.edge_index
     window = g.batch[rcv]                                   # each edge's window
-    first = torch.cumsum(g.num_nodes, 0) - g.num_nodes
-    local = torch.arange(g.pos.shape[0]) - first[g.batch]   # index within its window
+    local = g.local_index                                   # index within its window
     pair = local[snd] * n + local[rcv]
     union, slot = torch.unique(pair, return_inverse=True)
     pooled_past = past.new_zeros(len(union), n_windows, n_frames, dim)

@@ -241,8 +241,7 @@ def simulation_system(g: Graph, past: torch.Tensor, seen: torch.Tensor) -> tuple
     slot = torch.empty(n_graphs, dtype=torch.long, device=device)
     slot[order] = torch.arange(n_graphs, device=device) - first[group[order]]
     counts = g.num_nodes.to(device)
-    local = torch.arange(g.pos.shape[0], device=device) \
-        - (torch.cumsum(counts, 0) - counts)[g.batch]                   # index within its graph
+    local = g.local_index
     n, windows = int(counts.max()), int(per_group.max())
     frames, dim = seen.shape[1], seen.shape[2]
     snd, rcv = g.edge_index

@@ -460,8 +460,7 @@ class PairForceHead(nn.Module):
         n_graphs, n_frames, dim = g.num_graphs, past.shape[1], past.shape[2]
         counts = g.num_nodes.to(g.batch.device)
         n = int(counts.max())
-        local = torch.arange(g.pos.shape[0], device=counts.device) \
-            - (torch.cumsum(counts, 0) - counts)[g.batch]             # index within its graph
+        local = g.local_index
         snd, rcv = g.edge_index
         # design[b, i, frame, d, j]: the term of particle j in particle i's acceleration
         design = past.new_zeros(n_graphs, n, n_frames, dim, n)

@@ -220,8 +220,7 @@ class ContactHead(nn.Module):
         """
         check_full_graph(g, n)
         snd, rcv = g.edge_index[0], g.edge_index[1]
-        offsets = torch.cumsum(g.num_nodes, 0) - g.num_nodes   # first node of each graph
-        local = torch.arange(h_e.shape[0], device=h_e.device) - offsets[g.batch]
+        local = g.local_index
         rows = h_e.new_zeros(h_e.shape[0], n)
         rows[rcv, local[snd]] = self.weights(c)
         diag = (h_e * h_e).sum(-1) * self.inv_sqrt_f

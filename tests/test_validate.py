@@ -201,3 +201,18 @@ def test_the_default_rollout_sims_are_capped_at_a_small_validation_split(monkeyp
     cfg = compose_config("train", ["dataset.n_sims=3"])  # enough: the default stands
     validate_train(cfg)
     assert cfg.val_rollout_sims == 2
+
+
+def test_the_coupling_law_beyond_its_particle_limit_is_refused_before_anything_runs():
+    """Couplings are fitted densely per simulation: with more particles than
+    ``coupling.MAX_PARTICLES`` the job would crawl for minutes per step, so the config is
+    refused in one line naming the limit and the other mass laws; at the limit it passes."""
+    from bgn.model.coupling import MAX_PARTICLES
+
+    head = ["dataset=spring", "model.dynamics=newton", "model.mass_law=coupling"]
+    message = refused("train", *head, f"dataset.n_particles={MAX_PARTICLES + 1}")
+    assert f"at most {MAX_PARTICLES} particles" in message and "mass_law=inertial" in message
+    assert "model.mass_law" in message
+    validate_train(compose_config("train", [*head, f"dataset.n_particles={MAX_PARTICLES}"]))
+    validate_train(compose_config("train", ["dataset=spring", "model.dynamics=newton",
+                                            f"dataset.n_particles={MAX_PARTICLES + 1}"]))

@@ -31,6 +31,9 @@ import torch
 
 from bgn.graph import Graph
 
+# the most particles a simulation may hold: the fit is dense per simulation, a (n M, 2 n)
+# Jacobian per sign pattern, whose cost grows as n^3 (bgn.model.newton.build_head refuses more)
+MAX_PARTICLES = 16
 STARTS = 16          # sign patterns of c tried per simulation (all 2^(n-1) where fewer)
 ITERATIONS = 40      # Levenberg-Marquardt steps per start
 DAMPING = 1e-3       # its initial damping, relative to the normal matrix's diagonal

@@ -63,6 +63,7 @@ from bgn.model.base import (
     check_positive_ints,
     contact_pos_weight,
 )
+from bgn.model.coupling import MAX_PARTICLES as COUPLING_MAX_PARTICLES
 from bgn.model.coupling import coupling_errors, fit_couplings, simulation_system
 from bgn.model.encoder import DIRECTION_EPS
 from bgn.model.formula_law import FormulaLaw, check_law, pair_text
@@ -499,6 +500,16 @@ class PairForceHead(nn.Module):
         return fitted, error[real].to(past.dtype)
 
 
+def check_mass_law(meta: SceneMeta, mass_law: str, option: str) -> None:
+    """One clear error where ``mass_law`` cannot serve the scene: couplings are fitted densely
+    per simulation, a cost that grows as n^3, so at most ``coupling.MAX_PARTICLES``."""
+    if mass_law == "coupling" and meta.n_particles > COUPLING_MAX_PARTICLES:
+        raise ValueError(f"{option} with mass_law=coupling fits the couplings densely per "
+                         f"simulation, for at most {COUPLING_MAX_PARTICLES} particles; "
+                         f"{meta.name} has {meta.n_particles}: use mass_law=inertial, source "
+                         "or type")
+
+
 def build_head(meta: SceneMeta, normalizer: Normalizer, history: int, hidden: int, layers: int,
                act: str, mass_law: str, option: str, substeps: int = 1,
                law_formula: str = "", law_scale: float = 1.0, rollout_masses: str = "window"
@@ -512,6 +523,7 @@ def build_head(meta: SceneMeta, normalizer: Normalizer, history: int, hidden: in
             raise ValueError(f"{option} on a contact scene needs a next-velocity target")
         return ContactImpulseHead(meta, hidden, act)
     check_scene(meta, history, option)
+    check_mass_law(meta, mass_law, option)
     return PairForceHead(meta, normalizer, hidden, layers, act, mass_law, substeps, law_formula,
                          law_scale, rollout_masses)
 

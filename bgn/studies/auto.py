@@ -9,7 +9,7 @@ is one deadline over the whole job, ``candidate_deadline``), each in
 
 - the paper's decoder (Eq. 5): always; it writes no physics in, so it can express any;
 - the pair-force head (``bgn.model.newton``) with each way masses can enter (``mass_law``
-  inertial, source, type and coupling, the last for at most ``COUPLING_MAX_PARTICLES``
+  inertial, source, type and coupling, the last for at most ``coupling.MAX_PARTICLES``
   particles), where the scene has pairwise (or unknown) forces on a complete or radius graph
   (short-range data: a pair beyond the radius has no edge and no force), an acceleration
   target and a window of at least 3 velocities (``newton.check_scene``), and whose training
@@ -66,9 +66,6 @@ from bgn.training.checkpoints import write_atomic
 log = logging.getLogger("bgn.studies.auto")
 
 MASS_FRAMES = 64         # validation frames the fitted masses are read from
-# the most particles the coupling candidate (mass_law=coupling) is admitted for: its fit is
-# dense per simulation, a (n M, 2 n) Jacobian per sign pattern (docs/design.md#identifiability)
-COUPLING_MAX_PARTICLES = 16
 LAW_POINTS = 200         # distances the learned pair law is sampled at
 # the share of the job's time left that the candidates leave to the winner's continuation
 # and the test, where trainer.max_time caps the job (candidate_deadline)
@@ -103,6 +100,7 @@ def candidates(meta: SceneMeta, history: int, radii_given: bool,
     and what the data conserve (``balance``: a pair-force head cannot make data whose
     momentum or angular momentum changes) and whether their forces depend on velocity
     (``velocity``: a law of the distance cannot express them); then the references."""
+    from bgn.model.coupling import MAX_PARTICLES as COUPLING_MAX_PARTICLES
     from bgn.model.newton import check_scene
 
     out = [Candidate("decoder", ["model.dynamics=decoder"])]

@@ -201,6 +201,13 @@ def validate_model(model: Any, scene: Scene, history: int) -> None:
             f"model.loss_weights.dynamics=0 with model.dynamics={cfg.dynamics}: nothing trains "
             "the dynamics head (the law loss is the pair-force head's); use model=bgn_decoder, "
             "or model.loss_weights.dynamics=1"))
+    if getattr(cfg, "dynamics", "newton") == "newton" and hasattr(cfg, "mass_law"):
+        from bgn.model.newton import check_mass_law
+
+        try:
+            check_mass_law(scene.meta, cfg.mass_law, "the pair-force head (model.mass_law)")
+        except ValueError as err:
+            raise ConfigError("model.mass_law", message=str(err)) from None
     prior, needed, available = resolve_prior(cfg.target_prior, scene.meta.target, history)
     if available < needed:
         raise ConfigError("model.target_prior", message=prior_hint(

@@ -473,3 +473,23 @@ def test_bgn_with_the_pair_force_head_trains_on_an_imported_radius_graph_gas(tmp
         "+trainer.fast_dev_run=true", "test=false"])
     metrics = train(cfg)
     assert np.isfinite(metrics["train/loss"])
+
+
+def test_the_coupling_law_is_refused_beyond_its_particle_limit():
+    """Couplings are fitted densely per simulation (its cost grows as n^3): a head with more
+    particles than ``coupling.MAX_PARTICLES`` is refused in one line that names the fix, where
+    it would otherwise crawl for minutes per step."""
+    from bgn.model.coupling import MAX_PARTICLES
+    from bgn.model.newton import build_head
+
+    def meta(n: int) -> SceneMeta:
+        return SceneMeta("many", 2, n, 1, "unknown", "acceleration", "full")
+
+    normalizer = SimpleNamespace(rel_position_scale=torch.ones(1))
+    head = build_head(meta(MAX_PARTICLES), normalizer, 5, 8, 2, "relu", "coupling", "x")
+    assert head.mass_law == "coupling"
+    with pytest.raises(ValueError, match=f"at most {MAX_PARTICLES} particles; many has "
+                                         f"{MAX_PARTICLES + 1}: use mass_law=inertial"):
+        build_head(meta(MAX_PARTICLES + 1), normalizer, 5, 8, 2, "relu", "coupling", "x")
+    assert build_head(meta(60), normalizer, 5, 8, 2, "relu", "inertial", "x").mass_law == \
+        "inertial"

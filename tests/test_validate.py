@@ -216,3 +216,6 @@ def test_the_coupling_law_beyond_its_particle_limit_is_refused_before_anything_r
     validate_train(compose_config("train", [*head, f"dataset.n_particles={MAX_PARTICLES}"]))
     validate_train(compose_config("train", ["dataset=spring", "model.dynamics=newton",
                                             f"dataset.n_particles={MAX_PARTICLES + 1}"]))
+    # a contact scene's structured head is the impulse head, which reads no mass law
+    validate_train(compose_config("train", ["dataset=collisions", "model.dynamics=newton",
+                                            "model.mass_law=coupling"]))

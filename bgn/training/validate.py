@@ -201,7 +201,8 @@ def validate_model(model: Any, scene: Scene, history: int) -> None:
             f"model.loss_weights.dynamics=0 with model.dynamics={cfg.dynamics}: nothing trains "
             "the dynamics head (the law loss is the pair-force head's); use model=bgn_decoder, "
             "or model.loss_weights.dynamics=1"))
-    if getattr(cfg, "dynamics", "newton") == "newton" and hasattr(cfg, "mass_law"):
+    if (getattr(cfg, "dynamics", "newton") == "newton" and hasattr(cfg, "mass_law")
+            and scene.meta.interaction != "contact"):  # contacts: the impulse head, no mass law
         from bgn.model.newton import check_mass_law
 
         try:

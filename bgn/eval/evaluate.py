@@ -340,13 +340,12 @@ class _MassDraws:
         self.log_post.append(density.double().numpy())
         self.true_log.append(torch.log(g.mass.double()).numpy())
         # one key per particle of a simulation, the same in every frame: sim * 1e6 + index
-        first_node = torch.cumsum(g.num_nodes, 0) - g.num_nodes
         self.particles.append((g.sim[g.batch] * 1_000_000 + g.local_index).numpy())
         self.types.append(g.types.numpy())
         self.edges.append(g.edge_index.numpy() + self.offset)
         self.edge_rel.append(g.edge_rel_log_mass.double().numpy())
         self.offset += len(g.mass)
-        return first_node
+        return torch.cumsum(g.num_nodes, 0) - g.num_nodes
 
     def add_law_fit(self, head: Any, g: Graph) -> None:
         """The masses the pair-force head's learned law fits to each window of batch ``g``

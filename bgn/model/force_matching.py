@@ -144,7 +144,8 @@ def normal_equations(head: PairForceHead, g: Graph, knots: torch.Tensor, known_m
     step = max(1, EDGE_ELEMENTS // (rel.shape[1] * rel.shape[2] * width))   # edges per chunk
     for lo in range(0, rel.shape[0], step):
         part = slice(lo, lo + step)
-        basis = hat_basis(torch.log(dist[part, :, 0]).double(), knots).to(rel.dtype)
+        basis = hat_basis(torch.log(dist[part, :, 0]).double(),
+                          knots.to(rel.device)).to(rel.dtype)
         if pair is not None:  # each pair of types has its own table: its block of columns
             cols = (pair[part] * k)[:, None, None] + torch.arange(k, device=rel.device)
             basis = basis.new_zeros(*basis.shape[:2], width).scatter(
@@ -158,7 +159,8 @@ def normal_equations(head: PairForceHead, g: Graph, knots: torch.Tensor, known_m
     design, seen = without_kinematic(g, design, seen)
     x = design.reshape(-1, design.shape[-1]).double()
     y = seen.reshape(-1).double()
-    return NormalEquations(x.T @ x, x.T @ y, y @ y, int(y.numel()))
+    # the products on the frames' device; the small system is solved on the CPU (fit_table)
+    return NormalEquations((x.T @ x).cpu(), (x.T @ y).cpu(), (y @ y).cpu(), int(y.numel()))
 
 
 class Progress:

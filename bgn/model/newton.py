@@ -89,6 +89,10 @@ SHOOTING_ITERATIONS = 4
 # windows of the frames before a rollout's start that its held coupling fit pools
 # (mass_law=coupling): a window's few frames do not pin 2 n - 1 couplings, a simulation's do
 COUPLING_WINDOWS = 32
+# the substeps a frame is integrated in where ``substeps`` is left unset (None): 1 (Numerov)
+# for masses, COUPLING_SUBSTEPS under mass_law=coupling, each chosen on validation rollouts
+# (docs/design.md, "Couplings"; the figures: docs/results.md)
+COUPLING_SUBSTEPS = 4
 
 
 @dataclass
@@ -101,7 +105,9 @@ class ForceLawOptions(OptionGroup):
     # c_j F_ij, couplings of either sign (charges) fitted per simulation; each scene sets its
     # own (conf/dataset_model/)
     mass_law: str = "inertial"
-    substeps: int = 1                  # 1: Numerov's weights; > 1: integrate the frame (shoot)
+    # 1: Numerov's weights; > 1: integrate the frame (shoot); None: 1, or COUPLING_SUBSTEPS
+    # under mass_law=coupling
+    substeps: int | None = None
     law: str = "mlp"                   # mlp: f(s) a network | formula: law_formula | auto
     law_formula: str = ""              # the formula's JSON spec (bgn.laws.finetune.formula_spec)
     # what puts law_formula's amplitudes in physical units where the model keeps the formula in
@@ -121,6 +127,8 @@ class ForceLawOptions(OptionGroup):
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        if self.substeps is None:
+            self.substeps = COUPLING_SUBSTEPS if self.mass_law == "coupling" else 1
         check_positive_ints(self, ("substeps",))
         if self.rollout_masses not in ROLLOUT_MASSES:
             raise ValueError(f"rollout_masses={self.rollout_masses!r}; choose one of "

@@ -224,6 +224,43 @@ def negligible_term(spec: str, reach: np.ndarray | None) -> int | None:
     return k if peak[k] < DEFAULTS.negligible else None
 
 
+def negligible_addend(spec: str, reach: np.ndarray | None) -> str | None:
+    """A one-pair expression ``spec`` without its smallest top-level addend where that addend
+    stays below ``DEFAULTS.negligible`` times the law's RMS size at every distance of ``reach``
+    (as ``negligible_term`` for a spec of terms), its constants that no longer appear dropped;
+    else None. A front member one term larger than the law can be tuned on the frames to
+    such an addend (the frames cannot tell it from none: docs/results.md, "Learned laws as
+    formulas"); whatever the grammar made it of, it changes no prediction the data reach."""
+    from bgn.model.formula_law import parse_expression
+
+    pairs = json.loads(spec)
+    if reach is None or len(reach) == 0 or len(pairs) != 1 or "expr" not in pairs[0]:
+        return None
+    pair = pairs[0]
+    constants = pair.get("constants", {})
+    addends = sympy.Add.make_args(parse_expression(pair["expr"], constants))
+    if len(addends) < 2:
+        return None
+    r = sympy.Symbol("r", positive=True)
+    numbers = {sympy.Symbol(k, real=True): v for k, v in constants.items()}
+    x = np.asarray(reach, dtype=np.float64)
+    with np.errstate(all="ignore"):
+        values = np.stack([np.broadcast_to(np.asarray(
+            sympy.lambdify(r, a.subs(numbers), "numpy")(x), dtype=np.float64), x.shape)
+            for a in addends], axis=-1)                                   # (R, addends)
+    if not np.isfinite(values).all():
+        return None
+    size = np.sqrt(np.mean(values.sum(-1) ** 2))
+    peak = np.abs(values).max(0) / max(size, 1e-300)
+    k = int(np.argmin(peak))
+    if not peak[k] < DEFAULTS.negligible:
+        return None
+    rest = sympy.Add(*(a for j, a in enumerate(addends) if j != k))
+    kept = {str(sym) for sym in rest.free_symbols}
+    return json.dumps([{**pair, "expr": sympy.sstr(rest),
+                        "constants": {n: v for n, v in constants.items() if n in kept}}])
+
+
 def turning_term(spec: str, floor: float | None) -> int | None:
     """The term of a one-pair ``spec`` that turns the law's sign below ``floor`` (the closest
     ``DEFAULTS.turn_quantile`` of the training distances), or None: the term pulling
@@ -271,15 +308,20 @@ def prune_terms(tune: Callable[[str], tuple[float, Any, Any, str]], loss: float,
     else a term is dropped while the loss rises by at most ``DEFAULTS.form_tolerance``: a term the
     network's law needed in its tails (where the frames barely pin it) goes.
 
-    Only a spec of terms (a ``start`` given so) is pruned; an expression pair (a member of the
-    law search's front) is not: the search's clean-up already dropped each term whose removal
-    kept the error within its ``clean_factor``, and a tree's top-level sum is not its terms (a
-    common factor, or a potential's derivative by the product rule, mixes them), so dropping
-    sympy's addends would make forms the grammar does not hold."""
+    An expression pair (a member of the law search's front) loses only negligible top-level
+    addends (``negligible_addend``), each followed by a tuning: the search's clean-up already
+    dropped each of its terms whose removal kept the error within its ``clean_factor``, and a
+    tree's top-level sum is not its terms (a common factor, or a potential's derivative by the
+    product rule, mixes them), so dropping an addend the data see would make forms the grammar
+    does not hold."""
     while True:
         pairs = json.loads(spec)
         if not _term_pair(pairs):
-            return loss, module, hp, spec
+            smaller = negligible_addend(spec, reach)
+            if smaller is None:
+                return loss, module, hp, spec
+            loss, module, hp, spec = tune(smaller)
+            continue
         drop = negligible_term(spec, reach)
         if drop is None:
             drop = turning_term(spec, floor)
@@ -680,10 +722,16 @@ def _tuned_forms(tune: Callable[[str], tuple[float, Any, Any, str]],
             loss, module, hp, tuned = prune_terms(tune, loss, module, hp, tuned, reach, floor)
         except _Budget:
             break
-        pruned = n_constants(tuned) < n_constants(spec)  # a term spec's complexity: constants
+        removed = n_constants(spec) - n_constants(tuned)
+        # a pruned spec of terms counts its constants; a pruned expression its member's nodes
+        # less the constants gone with its addends (each constant is a node of the search's
+        # count, so the true count is no larger)
+        expression = "expr" in json.loads(tuned)[0]
+        complexity = (size if removed <= 0 else size - removed if expression
+                      else n_constants(tuned))
         forms.append({"start": json.loads(spec), "tuned": json.loads(tuned), "loss": loss,
                       "constants": n_constants(tuned),
-                      "complexity": n_constants(tuned) if pruned else size,
+                      "complexity": complexity,
                       "module": module, "hp": hp})
     if not forms:
         spec = starts[0][0]

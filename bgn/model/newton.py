@@ -127,9 +127,8 @@ class ForceLawOptions(OptionGroup):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.substeps is None:
-            self.substeps = COUPLING_SUBSTEPS if self.mass_law == "coupling" else 1
-        check_positive_ints(self, ("substeps",))
+        if self.substeps is not None:  # None: the head's default for its mass law
+            check_positive_ints(self, ("substeps",))
         if self.rollout_masses not in ROLLOUT_MASSES:
             raise ValueError(f"rollout_masses={self.rollout_masses!r}; choose one of "
                              f"{ROLLOUT_MASSES}")
@@ -249,9 +248,11 @@ class PairForceHead(nn.Module):
     of a graph -> its acceleration at frame t in physical units, (N, D)."""
 
     def __init__(self, meta: SceneMeta, normalizer: Normalizer, hidden: int, layers: int,
-                 act: str, mass_law: str, substeps: int = 1, law_formula: str = "",
+                 act: str, mass_law: str, substeps: int | None = None, law_formula: str = "",
                  law_scale: float = 1.0, rollout_masses: str = "window") -> None:
         super().__init__()  # mass_law: checked by the model configs (NewtonConfig, BGN's)
+        if substeps is None:  # ForceLawOptions.substeps unset
+            substeps = COUPLING_SUBSTEPS if mass_law == "coupling" else 1
         self.mass_law, self.types, self.substeps = mass_law, meta.n_types, substeps
         self.rollout_masses = rollout_masses  # ForceLawOptions.rollout_masses
         self.law_scale = law_scale  # labels only (ForceLawOptions.law_scale)
@@ -519,7 +520,7 @@ def check_mass_law(meta: SceneMeta, mass_law: str, option: str) -> None:
 
 
 def build_head(meta: SceneMeta, normalizer: Normalizer, history: int, hidden: int, layers: int,
-               act: str, mass_law: str, option: str, substeps: int = 1,
+               act: str, mass_law: str, option: str, substeps: int | None = None,
                law_formula: str = "", law_scale: float = 1.0, rollout_masses: str = "window"
                ) -> PairForceHead | ContactImpulseHead:
     """The structured dynamics head of a scene: pair forces (``PairForceHead``) or pair

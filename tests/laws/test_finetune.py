@@ -169,6 +169,43 @@ def test_pruning_drops_a_negligible_term_whatever_the_loss():
     assert prune_terms(tune, 1.0, None, None, SPRING_AND_A_TAIL)[3] == SPRING_AND_A_TAIL
 
 
+# gravity_r2's law as the formula stage read it back on one seed (docs/results.md, "Learned
+# laws as formulas"): the truth's softened inverse square beside a term tuned to nearly zero
+SOFTENED_AND_A_SQUARE = json.dumps([{"types": [0, 0],
+                                     "expr": "a1*r**2 + a2*(-r - c1)/(r + c1)**3",
+                                     "constants": {"a1": -3.131e-8, "a2": 0.9998,
+                                                   "c1": 0.009961}}])
+
+
+def test_an_expressions_negligible_addend_goes_with_its_constants_and_the_rest_is_tuned():
+    import sympy
+
+    from bgn.laws.finetune import negligible_addend, prune_terms
+    from bgn.model.formula_law import parse_expression
+
+    r = np.random.default_rng(0).uniform(0.02, 8.0, 1_000)
+    smaller = negligible_addend(SOFTENED_AND_A_SQUARE, r)
+    assert smaller is not None
+    pair = json.loads(smaller)[0]
+    assert set(pair["constants"]) == {"a2", "c1"}
+    law = parse_expression(pair["expr"], pair["constants"])
+    a2, c1 = sorted(law.free_symbols - {sympy.Symbol("r", positive=True)}, key=str)
+    assert sympy.simplify(law + a2 / (sympy.Symbol("r", positive=True) + c1) ** 2) == 0
+    # a visible addend stays: where the square reaches a percent of the law's RMS, nothing goes
+    visible = json.dumps([{**json.loads(SOFTENED_AND_A_SQUARE)[0],
+                           "constants": {"a1": -0.1, "a2": 0.9998, "c1": 0.009961}}])
+    assert negligible_addend(visible, r) is None
+    assert negligible_addend(SOFTENED_AND_A_SQUARE, None) is None
+    tuned = []
+
+    def tune(spec: str) -> tuple[float, None, None, str]:  # the frames' loss, unchanged
+        tuned.append(spec)
+        return 1.0, None, None, spec
+
+    loss, _, _, spec = prune_terms(tune, 1.0, None, None, SOFTENED_AND_A_SQUARE, r)
+    assert tuned == [smaller] and spec == smaller and loss == 1.0
+
+
 # REBOUND's softened gravity as the formula stage once read it back on one seed: a small 1/r^2
 # repulsion beside the softened attraction, which takes over below r = 0.03
 

@@ -89,10 +89,6 @@ SHOOTING_ITERATIONS = 4
 # windows of the frames before a rollout's start that its held coupling fit pools
 # (mass_law=coupling): a window's few frames do not pin 2 n - 1 couplings, a simulation's do
 COUPLING_WINDOWS = 32
-# the substeps a frame is integrated in where ``substeps`` is left unset (None): 1 (Numerov)
-# for masses, COUPLING_SUBSTEPS under mass_law=coupling, each chosen on validation rollouts
-# (docs/design.md, "Couplings"; the figures: docs/results.md)
-COUPLING_SUBSTEPS = 4
 
 
 @dataclass
@@ -105,9 +101,7 @@ class ForceLawOptions(OptionGroup):
     # c_j F_ij, couplings of either sign (charges) fitted per simulation; each scene sets its
     # own (conf/dataset_model/)
     mass_law: str = "inertial"
-    # 1: Numerov's weights; > 1: integrate the frame (shoot); None: 1, or COUPLING_SUBSTEPS
-    # under mass_law=coupling
-    substeps: int | None = None
+    substeps: int = 1                  # 1: Numerov's weights; > 1: integrate the frame (shoot)
     law: str = "mlp"                   # mlp: f(s) a network | formula: law_formula | auto
     law_formula: str = ""              # the formula's JSON spec (bgn.laws.finetune.formula_spec)
     # what puts law_formula's amplitudes in physical units where the model keeps the formula in
@@ -127,8 +121,7 @@ class ForceLawOptions(OptionGroup):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.substeps is not None:  # None: the head's default for its mass law
-            check_positive_ints(self, ("substeps",))
+        check_positive_ints(self, ("substeps",))
         if self.rollout_masses not in ROLLOUT_MASSES:
             raise ValueError(f"rollout_masses={self.rollout_masses!r}; choose one of "
                              f"{ROLLOUT_MASSES}")
@@ -248,11 +241,9 @@ class PairForceHead(nn.Module):
     of a graph -> its acceleration at frame t in physical units, (N, D)."""
 
     def __init__(self, meta: SceneMeta, normalizer: Normalizer, hidden: int, layers: int,
-                 act: str, mass_law: str, substeps: int | None = None, law_formula: str = "",
+                 act: str, mass_law: str, substeps: int = 1, law_formula: str = "",
                  law_scale: float = 1.0, rollout_masses: str = "window") -> None:
         super().__init__()  # mass_law: checked by the model configs (NewtonConfig, BGN's)
-        if substeps is None:  # ForceLawOptions.substeps unset
-            substeps = COUPLING_SUBSTEPS if mass_law == "coupling" else 1
         self.mass_law, self.types, self.substeps = mass_law, meta.n_types, substeps
         self.rollout_masses = rollout_masses  # ForceLawOptions.rollout_masses
         self.law_scale = law_scale  # labels only (ForceLawOptions.law_scale)
@@ -520,7 +511,7 @@ def check_mass_law(meta: SceneMeta, mass_law: str, option: str) -> None:
 
 
 def build_head(meta: SceneMeta, normalizer: Normalizer, history: int, hidden: int, layers: int,
-               act: str, mass_law: str, option: str, substeps: int | None = None,
+               act: str, mass_law: str, option: str, substeps: int = 1,
                law_formula: str = "", law_scale: float = 1.0, rollout_masses: str = "window"
                ) -> PairForceHead | ContactImpulseHead:
     """The structured dynamics head of a scene: pair forces (``PairForceHead``) or pair

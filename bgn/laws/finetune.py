@@ -218,6 +218,13 @@ def negligible_term(spec: str, reach: np.ndarray | None) -> int | None:
     r = torch.as_tensor(reach, dtype=torch.float64)
     with torch.no_grad():
         values = FormulaLaw(spec).values(r).numpy()                      # (R, K)
+    return smallest_negligible(values)
+
+
+def smallest_negligible(values: np.ndarray) -> int | None:
+    """The column of ``values`` (distances x the law's parts, which sum to the law) whose
+    largest size stays below ``DEFAULTS.negligible`` times the law's RMS size, the smallest
+    such; None where there is none."""
     size = np.sqrt(np.mean(values.sum(-1) ** 2))
     peak = np.abs(values).max(0) / max(size, 1e-300)
     k = int(np.argmin(peak))
@@ -248,12 +255,8 @@ def negligible_addend(spec: str, reach: np.ndarray | None) -> str | None:
         values = np.stack([np.broadcast_to(np.asarray(
             sympy.lambdify(r, a.subs(numbers), "numpy")(x), dtype=np.float64), x.shape)
             for a in addends], axis=-1)                                   # (R, addends)
-    if not np.isfinite(values).all():
-        return None
-    size = np.sqrt(np.mean(values.sum(-1) ** 2))
-    peak = np.abs(values).max(0) / max(size, 1e-300)
-    k = int(np.argmin(peak))
-    if not peak[k] < DEFAULTS.negligible:
+    k = smallest_negligible(values) if np.isfinite(values).all() else None
+    if k is None:
         return None
     rest = sympy.Add(*(a for j, a in enumerate(addends) if j != k))
     kept = {str(sym) for sym in rest.free_symbols}

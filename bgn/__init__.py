@@ -12,3 +12,13 @@ import os
 os.environ.setdefault("THP_MEM_ALLOC_ENABLE", "1")
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    """``bgn.load`` and ``bgn.Model`` (the Python API, ``bgn.api``), imported on first use so
+    that ``import bgn`` stays light and no lower layer imports the API."""
+    if name in ("load", "Model", "MassPosterior", "PairLaw"):
+        from bgn import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'bgn' has no attribute {name!r}")

@@ -87,6 +87,37 @@ def mass_calibration(true: np.ndarray, sampled: np.ndarray, levels: np.ndarray,
     return fig
 
 
+def pair_law(r: np.ndarray, laws: dict[str, np.ndarray], distances: np.ndarray) -> Figure:
+    """A learned pair law against r (one curve per pair of types, ``laws``: label -> f on the
+    grid ``r``) above the histogram of the distances it was read at (log r). A law of one sign
+    over more than two decades is drawn as ``|f|`` on a log axis, else linearly."""
+    from matplotlib.ticker import NullFormatter
+
+    fig, (ax, ax_hist) = plt.subplots(2, 1, figsize=(5, 4.5), sharex=True,
+                                      gridspec_kw={"height_ratios": [3, 1]})
+    values = np.concatenate(list(laws.values()))
+    finite = values[np.isfinite(values)]
+    one_sign = finite.size > 0 and (np.all(finite > 0) or np.all(finite < 0))
+    log = one_sign and np.abs(finite).max() > 100 * np.abs(finite).min()
+    for label, f in laws.items():
+        ax.plot(r, np.abs(f) if log else f, lw=1.5, label=label)
+    if log:
+        ax.set_yscale("log")
+    else:
+        ax.axhline(0.0, color="0.6", lw=0.8)
+    ax.set_xscale("log")
+    ax.set_ylabel("|f(r)|" if log else "f(r)")
+    ax.set_title("learned pair law")
+    if len(laws) > 1:
+        ax.legend(fontsize=8)
+    ax_hist.hist(distances, bins=np.geomspace(r[0], r[-1], 40), color="0.5")
+    ax_hist.xaxis.set_minor_formatter(NullFormatter())
+    ax_hist.set_xlabel("r")
+    ax_hist.set_ylabel("pairs")
+    fig.tight_layout()
+    return fig
+
+
 def rollout(result: dict[str, np.ndarray]) -> Figure:
     """Trajectories (truth solid, prediction dashed) and position error over time."""
     true, pred = result["true"], result["predicted"]

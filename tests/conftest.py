@@ -30,6 +30,14 @@ SMALL = {
 NETWORK_LAW = "model.law=mlp"
 
 
+TINY_RUN = ["dataset=spring", *SMALL["spring"], NETWORK_LAW, "dataset.test_samples=17",
+            "model.hidden=8", "model.decoder_hidden=8", "model.flow_hidden=8", "figures=false",
+            "val_rollout_steps=0",
+            "callbacks.progress_bar=null", "trainer.max_epochs=1",
+            "+trainer.limit_train_batches=2", "trainer.limit_val_batches=1",
+            "trainer.enable_model_summary=false"]
+
+
 def compose_config(config_name: str, overrides: list[str]) -> DictConfig:
     register_configs()  # the model schemas (conf/model/<name>.yaml build on them)
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
@@ -68,3 +76,21 @@ def small_datamodules(shared_data_dir: Path) -> dict:
         dm.setup()
         out[scene] = dm
     return out
+
+
+@pytest.fixture(scope="session")
+def trained_run(tmp_path_factory, shared_data_dir: Path) -> tuple[Path, dict[str, float]]:
+    """A tiny spring run trained by ``bgn.training.run.train`` (its test phase included), with the
+    config Hydra would have saved in ``.hydra/config.yaml``; returns (run dir, its metrics).
+    Shared by the session's tests (evaluate, the API): they read it, they never retrain it."""
+    from omegaconf import OmegaConf
+
+    from bgn.training.run import train
+
+    run = tmp_path_factory.mktemp("run")
+    cfg = compose_config("train", [*TINY_RUN, f"paths.data_dir={shared_data_dir}",
+                                   f"paths.output_dir={run}"])
+    metrics = train(cfg)
+    (run / ".hydra").mkdir()
+    (run / ".hydra" / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
+    return run, metrics

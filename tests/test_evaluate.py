@@ -16,14 +16,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from omegaconf import OmegaConf
 
 from bgn.data.datamodule import ParticleDataModule
 from bgn.eval.evaluate import evaluate_model, mass_figure
 from bgn.eval.evaluate import main as evaluate_main
 from bgn.rollout import evaluate_rollouts, rollout_starts, rollout_summary
 from bgn.training.run import build, train
-from tests.conftest import NETWORK_LAW, SMALL, compose_config
+from tests.conftest import SMALL, TINY_RUN, compose_config
 from tests.test_simulator import Oracle
 
 TINY_BGN = ["model.hidden=8", "model.decoder_hidden=8", "model.flow_hidden=8",
@@ -122,27 +121,8 @@ def test_the_relmass_point_is_the_median_unless_a_draw_is_asked(shared_data_dir:
 
 
 # ----------------------------------------------------------------------------- the command
-TINY_RUN = ["dataset=spring", *SMALL["spring"], NETWORK_LAW, "dataset.test_samples=17",
-            "model.hidden=8", "model.decoder_hidden=8", "model.flow_hidden=8", "figures=false",
-            "val_rollout_steps=0",
-            "callbacks.progress_bar=null", "trainer.max_epochs=1",
-            "+trainer.limit_train_batches=2", "trainer.limit_val_batches=1",
-            "trainer.enable_model_summary=false"]
 FAST_EVAL = ["rollout.steps=20", "max_frames=8", "mass_frames=4", "mass_samples=8",
              "batch_size=4", "progress=false"]
-
-
-@pytest.fixture(scope="module")
-def trained_run(tmp_path_factory, shared_data_dir: Path) -> tuple[Path, dict[str, float]]:
-    """A tiny spring run trained by ``bgn.training.run.train`` (its test phase included), with the
-    config Hydra would have saved in ``.hydra/config.yaml``; returns (run dir, its metrics)."""
-    run = tmp_path_factory.mktemp("run")
-    cfg = compose_config("train", [*TINY_RUN, f"paths.data_dir={shared_data_dir}",
-                                   f"paths.output_dir={run}"])
-    metrics = train(cfg)
-    (run / ".hydra").mkdir()
-    (run / ".hydra" / "config.yaml").write_text(OmegaConf.to_yaml(cfg))
-    return run, metrics
 
 
 def evaluate_cfg(*overrides: str):

@@ -18,6 +18,7 @@ from bgn.training.checkpoints import CheckpointError
 from bgn.training.module import add_animation, load_model
 from bgn.training.run import train
 from tests.conftest import NETWORK_LAW, SMALL, compose_config
+from tests.test_paraview import read_vtp
 
 
 def fake_result(steps: int = 12, n: int = 5, box: float | None = None) -> dict:
@@ -67,12 +68,21 @@ def test_render_command_animates_a_trained_checkpoint(tmp_path: Path, shared_dat
                 f"out={tmp_path / 'r.gif'}"])
     with Image.open(out) as gif:
         assert gif.n_frames == 7
+    # format=vtk: the truth and the rollout as VTK series, with the per-particle fields
+    pvd = main([str(run), "steps=6", "sim=1", "format=vtk", f"out={tmp_path / 'vtk'}"])
+    assert pvd == tmp_path / "vtk" / "predicted.pvd" and (tmp_path / "vtk" / "truth.pvd").is_file()
+    _, arrays = read_vtp(sorted((tmp_path / "vtk" / "predicted").glob("*.vtp"))[-1])
+    assert {"velocity", "type", "radius", "error", "mass_posterior_median"} <= set(arrays)
+    assert len(sorted((tmp_path / "vtk" / "truth").glob("*.vtp"))) == 7
     lone = tmp_path / "elsewhere" / "checkpoints" / "x.ckpt"
     lone.parent.mkdir(parents=True)
     shutil.copy(run / "checkpoints" / "last.ckpt", lone)
     for args, expected in (([str(lone)], "no run config"),
                            ([str(tmp_path / "missing.ckpt")], "no such file"),
-                           ([str(run), "sim=2"], "sim=2"), ([str(run), "--sim", "1"], "sim=")):
+                           ([str(run), "sim=2"], "sim=2"), ([str(run), "--sim", "1"], "sim="),
+                           ([str(run), "format=vtk", "out=x.gif"], "folder"),
+                           ([str(run), "format=png"], "format='png'"),
+                           ([str(run), "out=x.vtp"], "out='x.vtp'")):
         with pytest.raises(SystemExit) as done:
             main(args)
         assert done.value.code == 2

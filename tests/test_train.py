@@ -165,6 +165,19 @@ def test_each_task_is_logged_on_its_own(tiny_train_cfg, tmp_path):
     assert events
 
 
+def test_the_dashboard_shows_the_learned_law_and_the_rollout(tiny_train_cfg, tmp_path):
+    """At validation: the pair law of the pair-force head (spring's BGN), the rollout beside
+    the truth and its animation, as images in TensorBoard."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    train(tiny_train_cfg("spring", "trainer.max_epochs=1", "+trainer.limit_train_batches=2",
+                         "trainer.limit_val_batches=1", "test=false", "figures=true",
+                         "animation_every=1", "rollout_steps=5"))
+    events = EventAccumulator(str(tmp_path / "run" / "tensorboard")).Reload()
+    tags = set(events.Tags()["images"])
+    assert {"val/pair_law", "val/rollout", "val/rollout_animation"} <= tags, tags
+
+
 def test_rollout_error_can_pick_checkpoints_and_stop_training(tiny_train_cfg, tmp_path):
     """val/rollout_error is logged every validation, finite even when a rollout fails, and
     usable as the checkpoint and early-stopping monitor."""

@@ -11,7 +11,6 @@ units by least squares against the recorded masses of training frames (said in t
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -36,18 +35,12 @@ def pair_force_head(module_or_model: Any) -> tuple[Any, Any]:
     return model, head
 
 
-@torch.no_grad()
 def sample_law(head: Any, r: np.ndarray, dim: int, types: tuple[int, int] = (0, 0),
                ) -> np.ndarray:
     """The head's law ``f(r)`` at physical distances ``r`` between a particle of type
-    ``types[0]`` (the source) and one of ``types[1]``, through the head's own ``pair_terms``
-    (a two-particle graph, one edge): whatever inputs the law reads, they are read so."""
-    param = next(head.parameters())
-    pos = torch.zeros(2, len(r), dim, dtype=param.dtype, device=param.device)
-    pos[1, :, 0] = torch.as_tensor(np.asarray(r), dtype=param.dtype)
-    g = SimpleNamespace(edge_index=torch.tensor([[0], [1]], device=param.device),
-                        types=torch.tensor(types, device=param.device))
-    return head.pair_terms(g, pos)[0, :, 0].double().cpu().numpy()
+    ``types[0]`` (the source) and one of ``types[1]`` (``PairForceHead.law_at``: through the
+    head's own ``pair_terms``, so whatever inputs the law reads, they are read so)."""
+    return head.law_at(r, dim, types)
 
 
 def pair_distances(dataset: Any) -> dict[tuple[int, int], np.ndarray]:

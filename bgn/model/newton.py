@@ -48,8 +48,10 @@ from __future__ import annotations
 import json
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Any
 
+import numpy as np
 import torch
 from torch import nn
 from torch.nn import functional as F
@@ -266,6 +268,21 @@ class PairForceHead(nn.Module):
         if isinstance(self.force_law, FormulaLaw):  # physical distances, physical law
             return self.force_law(dist * self.length_scale, pair) * rel / dist
         return self.force_law(self.law_input(dist, pair)) * rel / dist
+
+    @torch.no_grad()
+    def law_at(self, r: np.ndarray, dim: int, types: tuple[int, int] = (0, 0)) -> np.ndarray:
+        """The law ``f(r)`` (float64, the shape of ``r``) at physical distances ``r`` between a
+        particle of type ``types[0]`` (the source) and one of ``types[1]``, through
+        ``pair_terms`` on a two-particle graph of one edge per distance: whatever inputs the
+        law reads, they are read so. In the law's own scale (``law_scale`` puts a formula
+        kept in the network's free scale in physical units)."""
+        param = next(self.parameters())
+        r = np.asarray(r, dtype=np.float64)
+        pos = torch.zeros(2, r.size, dim, dtype=param.dtype, device=param.device)
+        pos[1, :, 0] = torch.as_tensor(r.ravel(), dtype=param.dtype)
+        g = SimpleNamespace(edge_index=torch.tensor([[0], [1]], device=param.device),
+                            types=torch.tensor(types, device=param.device))
+        return self.pair_terms(g, pos)[0, :, 0].double().cpu().numpy().reshape(r.shape)
 
     def separations(self, g: Graph, positions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(E, F, D) relative positions of every edge j -> i at each frame of ``positions``

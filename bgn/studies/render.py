@@ -6,7 +6,10 @@ The model is the one ``python -m bgn.evaluate`` scores (``bgn.training.checkpoin
 run folder's chosen checkpoint, or a checkpoint file), with the run's config
 (``<run>/.hydra/config.yaml``, or a study cell's ``train_config.yaml``) for the dataset; it is
 rolled out through the learned simulator from a frame of a simulation of the chosen split,
-and a GIF (or an MP4 with ffmpeg) of the true and predicted particles is written.
+and a GIF (or an MP4 with ffmpeg) of the true and predicted particles is written, or with
+``format=vtk`` both as VTK time series that ParaView opens (``bgn.paraview``), each particle
+with its velocity, type, radius, the model's mass posterior from the recorded frames up to
+the start (``bgn.api.Model.infer``) and, on the predicted frames, its error against the truth.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ from omegaconf import OmegaConf
 from bgn.training.validate import ConfigError, cli, need_int
 
 SPLITS = ("train", "val", "test")
+FORMATS = ("gif", "mp4", "vtk")
 
 
 def validate_render(cfg: Any) -> tuple[Path, Path, Path]:
@@ -35,9 +39,63 @@ def validate_render(cfg: Any) -> tuple[Path, Path, Path]:
     need_int(cfg.start, "start", 1, optional=True, why=" (null: frame 100, or the first possible)")
     need_int(cfg.steps, "steps", 1)
     need_int(cfg.fps, "fps", 1, why=" (frames per second of the file)")
-    if cfg.out is not None and Path(str(cfg.out)).suffix not in (".gif", ".mp4"):
-        raise ConfigError("out", cfg.out, "a .gif or .mp4 file")
+    fmt = output_format(cfg)
+    if fmt == "vtk" and cfg.out is not None and Path(str(cfg.out)).suffix:
+        raise ConfigError("out", cfg.out, "with format=vtk a folder (no suffix): the .pvd "
+                          "series and their .vtp frames are written in it")
+    if fmt != "vtk" and cfg.out is not None and Path(str(cfg.out)).suffix != f".{fmt}":
+        raise ConfigError("out", cfg.out, f"a .{fmt} file (format={fmt})" if cfg.get("format")
+                          else "a .gif or .mp4 file, or a folder with format=vtk")
     return resolve_run(str(cfg.ckpt), cfg.get("run_config"))
+
+
+def output_format(cfg: Any) -> str:
+    """``format``, or null: the suffix of ``out`` (.gif, .mp4), else gif."""
+    fmt = cfg.get("format")
+    if fmt is None:
+        suffix = Path(str(cfg.out)).suffix.lstrip(".") if cfg.out is not None else ""
+        return suffix if suffix in ("gif", "mp4") else "gif"
+    if fmt not in FORMATS:
+        raise ConfigError("format", fmt, f"choose one of {list(FORMATS)} (null: from out)")
+    return str(fmt)
+
+
+def vtk_fields(model: Any, dataset: Any, sim: int, start: int, result: dict[str, Any],
+               ) -> tuple[dict[str, Any], dict[str, Any], str]:
+    """The per-particle fields of the true and the predicted series, and a line on the
+    masses: velocity (backward differences; the window's last for the first frame), type,
+    radius, the mass posterior of the recorded frames 0 .. ``start`` (median and log-spread,
+    ``bgn.api.MassPosterior``) where the model infers masses, and the predicted frames'
+    distance to the truth."""
+    import numpy as np
+
+    from bgn.api import Model
+    from bgn.rollout import true_positions
+
+    radii, types = dataset.file.read("radii", sim), dataset.file.read("types", sim)
+    shared: dict[str, Any] = {"type": np.asarray(types, dtype=np.int32),
+                              "radius": np.asarray(radii, dtype=np.float64)}
+    note = "no masses inferred (the model has neither an inverse model nor a pair law)"
+    recorded = true_positions(dataset, [sim], 0, start)[0]
+    if len(recorded) > model.history + 2:
+        try:
+            posterior = Model(model, dataset.dt, dataset.margin).infer(
+                recorded, radii=radii, types=types)
+        except ValueError:
+            posterior = None
+        if posterior is not None:
+            shared["mass_posterior_median"] = posterior.median()
+            shared["mass_posterior_log_std"] = posterior.log_std()
+            note = f"masses: {posterior.describe()}"
+    before = true_positions(dataset, [sim], start - 1, start)[0, 0]
+
+    def velocity(x: Any) -> Any:
+        return np.diff(np.concatenate([before[None], x]), axis=0) / dataset.dt
+
+    true, predicted = result["true"], result["predicted"]
+    error = np.linalg.norm(predicted - true[:len(predicted)], axis=-1)
+    return ({**shared, "velocity": velocity(true)},
+            {**shared, "velocity": velocity(predicted), "error": error}, note)
 
 
 def _run_name(given: str, ckpt: Path) -> str:
@@ -74,8 +132,23 @@ def main(cfg: Any) -> Path:
         start = min(REFERENCE_START, max(dataset.history + 1,
                                          dataset.file.n_frames - 1 - cfg.steps))
     result = rollout(model, dataset, int(cfg.sim), int(start), int(cfg.steps))
-    out = Path(cfg.out) if cfg.out else \
-        Path("outputs/render") / f"{_run_name(str(cfg.ckpt), ckpt)}_{cfg.split}{cfg.sim}.gif"
+    fmt = output_format(cfg)
+    stem = f"{_run_name(str(cfg.ckpt), ckpt)}_{cfg.split}{cfg.sim}"
+    if fmt == "vtk":
+        from bgn.paraview import write_series
+
+        folder = Path(cfg.out) if cfg.out else Path("outputs/render") / stem
+        true_fields, predicted_fields, note = vtk_fields(model, dataset, int(cfg.sim),
+                                                         int(start), result)
+        t0 = start * dataset.dt
+        write_series(folder, "truth", result["true"], dataset.dt, true_fields, t0)
+        path = write_series(folder, "predicted", result["predicted"], dataset.dt,
+                            predicted_fields, t0)
+        print(f"{len(result['predicted']) - 1} steps from frame {start} of {cfg.split} "
+              f"simulation {cfg.sim} as VTK series (open {path} and {folder / 'truth.pvd'} "
+              f"in ParaView); {note}")
+        return path
+    out = Path(cfg.out) if cfg.out else Path("outputs/render") / f"{stem}.{fmt}"
     path = rollout_animation(result, out, fps=int(cfg.fps))
     print(f"{len(result['predicted']) - 1} steps from frame {start} of {cfg.split} "
           f"simulation {cfg.sim}: {path}")

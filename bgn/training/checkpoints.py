@@ -42,10 +42,12 @@ def params_hash(params: dict[str, Any]) -> str:
 
 
 def provenance(scene: str, params: dict[str, Any], fps: float, model: str,
-               history: int) -> dict[str, Any]:
-    """The record a checkpoint keeps of the run that wrote it (plain types only)."""
+               history: int, margin: float = 0.0) -> dict[str, Any]:
+    """The record a checkpoint keeps of the run that wrote it (plain types only). ``margin``
+    (the training file's radius-graph margin) is carried for the Python API (``bgn.api``),
+    which rebuilds the graph rule from the checkpoint alone; it is not checked on resume."""
     return {"scene": str(scene), "scene_params": params_hash(params), "fps": float(fps),
-            "model": str(model), "history": int(history)}
+            "model": str(model), "history": int(history), "margin": float(margin)}
 
 
 def read(path: str | Path) -> dict[str, Any]:

@@ -373,12 +373,40 @@ class PhysicsModule(L.LightningModule):
                 samples = self.model.sample_mass(g, 16).cpu().numpy()
             experiment.add_figure("val/mass_density", figures.mass_density(
                 g.mass.cpu().numpy(), samples.ravel()), step)
+        law = pair_law_figure(self.model, g)
+        if law is not None:
+            experiment.add_figure("val/pair_law", law, step)
         if self.rollout is not None:
             result = self.rollout(self.model)
             experiment.add_figure("val/rollout", figures.rollout(result), step)
             if self.animation_every > 0 and self._validations % self.animation_every == 0:
                 add_animation(experiment, "val/rollout_animation", result, step)
         self._validations += 1
+
+
+def pair_law_figure(model: nn.Module, g: Graph) -> Any:
+    """The learned pair law of a model's pair-force head over the 1-99 % range of the edge
+    lengths of graph ``g`` (per pair of types, at most 3 types), in physical units where
+    ``law_scale`` says so; None for a model without that head."""
+    from bgn import figures
+    from bgn.model.newton import pair_force_head_of
+
+    head = pair_force_head_of(model)
+    if head is None:
+        return None
+    with torch.no_grad():  # the head's own edge lengths (minimum image where periodic)
+        _, dist = head.separations(g, g.pos[:, None])
+        dist = (dist * head.length_scale).reshape(-1).double().cpu().numpy()
+    dist = dist[dist > 0]
+    if dist.size == 0:
+        return None
+    lo, hi = np.quantile(dist, [0.01, 0.99])
+    r = np.geomspace(lo, max(hi, lo * 1.01), 64)
+    n_types = min(int(head.types), 3)
+    pairs = [(a, b) for a in range(n_types) for b in range(a, n_types)] or [(0, 0)]
+    laws = {f"types {a}-{b}" if n_types > 1 else "f(r)":
+            float(head.law_scale) * head.law_at(r, g.pos.shape[1], (a, b)) for a, b in pairs}
+    return figures.pair_law(r, laws, dist)
 
 
 def add_animation(experiment: Any, tag: str, result: dict[str, np.ndarray], step: int) -> None:

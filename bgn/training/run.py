@@ -104,8 +104,10 @@ def data_module(cfg: DictConfig, spec: DatasetSpec | None = None) -> ParticleDat
 def run_provenance(cfg: DictConfig, datamodule: ParticleDataModule) -> dict[str, Any]:
     """What this run's checkpoints record of it (``bgn.training.checkpoints.provenance``)."""
     spec = datamodule.spec
+    train = datamodule.datasets.get("train")
     return provenance(spec.scene, spec.generating_config()["params"], spec.fps,
-                      str(cfg.model.get("name", "bgn")), datamodule.history)
+                      str(cfg.model.get("name", "bgn")), datamodule.history,
+                      0.0 if train is None else train.margin)
 
 
 def build(cfg: DictConfig, datamodule: ParticleDataModule | None = None,

@@ -266,9 +266,9 @@ def test_seeds_of_one_model_config_are_one_row_whatever_their_fitted_law() -> No
         "law (per seed: -1*(r + 0.009994)**-1; -1*(r + 0.009992)**-1)")
 
 
-def test_trained_steps_reads_the_last_checkpoint(tmp_path: Path) -> None:
-    """A cell's budget in the report: the optimiser steps of its last checkpoint (the best
-    one where there is no last), None where it has neither."""
+def test_trained_steps_reads_the_record_then_the_last_checkpoint(tmp_path: Path) -> None:
+    """A cell's budget in the report: the optimiser steps of its training record, else of its
+    last checkpoint (the best one where there is no last), None where it has neither."""
     import torch
 
     from bgn.studies.grid import trained_steps
@@ -279,3 +279,7 @@ def test_trained_steps_reads_the_last_checkpoint(tmp_path: Path) -> None:
     assert trained_steps(tmp_path) == 40
     torch.save({"global_step": 55, "state_dict": {}}, tmp_path / "checkpoints" / "last.ckpt")
     assert trained_steps(tmp_path) == 55
+    # the training record's count wins: a budget reached inside an epoch ends after the
+    # last checkpoint (written at the end of the epoch before)
+    (tmp_path / "metrics.json").write_text('{"budget": {"steps": 60}, "metrics": {}}')
+    assert trained_steps(tmp_path) == 60

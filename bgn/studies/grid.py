@@ -140,10 +140,16 @@ def cached_eval(cell: Cell, cfg: DictConfig) -> dict[str, Any] | None:
 
 
 def trained_steps(run_dir: Path) -> int | None:
-    """The optimiser steps a cell trained: its last checkpoint's (the best one where there is
-    no last; None where neither records it), so the report shows each cell's budget."""
-    from bgn.training.checkpoints import read
+    """The optimiser steps a cell trained, so the report shows each cell's budget: its
+    training record's (``metrics.json``, ``budget.steps``: the trainer's count at the end),
+    else its last checkpoint's (the best one where there is no last; None where neither
+    records it). The record first: a run that reaches its step budget inside an epoch ends
+    after its last checkpoint was written (at the end of the epoch before)."""
+    from bgn.training.checkpoints import read, read_record
 
+    steps = ((read_record(run_dir / "metrics.json") or {}).get("budget") or {}).get("steps")
+    if isinstance(steps, int):
+        return steps
     for name in ("last.ckpt", "best.ckpt"):
         path = run_dir / "checkpoints" / name
         if path.is_file():

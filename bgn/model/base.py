@@ -94,7 +94,8 @@ class DynamicsConfig(OptionGroup):
 
     # auto | none (paper) | last | linear: predict the change from the history
     target_prior: str = "auto"
-    # auto (huber for accelerations with a prior, else mse) | huber | mse (paper)
+    # auto (huber for accelerations with a prior, else mse) | huber | mse (paper) | relative
+    # (each particle's squared error over its target's size: a law's far tail weighs too)
     dynamics_loss: str = "auto"
     huber_delta: float = 1.0
     # Training for rollouts (bgn.model.noise): std of the random-walk noise on the input

@@ -10,7 +10,7 @@ import torch
 from bgn.data.dataset import frame_graph
 from bgn.model import build_model
 from bgn.model.normalizer import Normalizer
-from bgn.model.target_coder import TargetCoder, observed_targets
+from bgn.model.target_coder import RELATIVE_FLOOR, TargetCoder, observed_targets
 from bgn.sim import make_scene
 
 DT = 0.05
@@ -115,3 +115,29 @@ def test_no_prior_means_the_papers_mse_under_auto(stats):
     c = TargetCoder(Normalizer(stats(), 2), stats(), meta, 3, "none", "auto").double()
     assert (c.prior_name, c.loss_name, c.residual_scale) == ("none", "mse", None)
     torch.testing.assert_close(c.encode(g), c.normalizer.target(g.target))
+
+
+def test_the_relative_loss_weighs_a_small_target_as_a_large_one(stats):
+    """dynamics_loss=relative: each particle's squared error over its own target's size (a
+    floor of RELATIVE_FLOOR of the median size), so the same relative miss costs the
+    same on a small acceleration (a far pair's) as on a large one (an encounter's), where the
+    MSE is the large one's alone; and it is scale-free in the target."""
+    g, meta = polynomial_graph(2, "acceleration")
+    c = TargetCoder(Normalizer(stats(), 2), stats(), meta, 3, "none", "relative").double()
+    y = torch.tensor([[1.0, 0.5], [0.1, -0.05], [-30.0, 12.0], [0.7, -1.0]],
+                     dtype=torch.float64)
+    g.target = c.normalizer.denormalize_target(y)
+    torch.testing.assert_close(c.encode(g), y)
+    size = (y * y).sum(-1)
+    floor = RELATIVE_FLOOR * size.median()
+    expected = (0.01 * size / (size + floor)).mean()   # every particle 10 % off
+    missed = c.loss(y * 1.1, g)
+    torch.testing.assert_close(missed, expected, rtol=1e-6, atol=0)
+    assert abs(float(missed) - 0.01) < 5e-4
+    only_small = y.clone()
+    only_small[1] *= 1.1                                  # the small target alone missed
+    assert float(c.loss(only_small, g)) > 0.2 * float(missed)   # a quarter of the particles
+    assert float(torch.nn.functional.mse_loss(only_small, y)) < 1e-4 * float(
+        torch.nn.functional.mse_loss(y * 1.1, y))
+    g.target = c.normalizer.denormalize_target(7.0 * y)     # every target 7 times larger
+    torch.testing.assert_close(c.loss(7.0 * y * 1.1, g), missed, rtol=1e-6, atol=0)

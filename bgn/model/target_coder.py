@@ -147,19 +147,22 @@ class TargetCoder(nn.Module):
     def loss(self, output: torch.Tensor, g: Graph) -> torch.Tensor:
         """The dynamics loss ``L_Dec`` of the head's output against the graph's target, over
         the particles the model predicts (kinematic ones, moved by the source, are skipped)."""
-        y = self.encode(g)
-        if g.kinematic is not None:
-            output, y = output[~g.kinematic], y[~g.kinematic]
-        if self.loss_name == "huber":
-            return F.huber_loss(output, y, delta=self.huber_delta)
+        moved = slice(None) if g.kinematic is None else ~g.kinematic
         if self.loss_name == "relative":
-            # each particle's squared error over its own target's size: every distance weighs
+            # each particle's squared error over its own target's size, both physical (so
+            # neither the normaliser nor a prior's residual units enter): every distance weighs
             # alike, where a squared error is set by the few close encounters and leaves a
             # law's far tail unlearned. The floor is the median size's (not the mean's, which
             # the encounters set: it would floor every far pair)
-            size = (y * y).sum(-1)
-            floor = RELATIVE_FLOOR * size.median().detach() + 1e-12
-            return (((output - y) ** 2).sum(-1) / (size + floor)).mean()
+            target = g.target.to(output.dtype)[moved]
+            error = self.decode(g, output)[moved] - target
+            size = (target * target).sum(-1)
+            floor = RELATIVE_FLOOR * size.median().detach() + 1e-30
+            return ((error * error).sum(-1) / (size + floor)).mean()
+        y = self.encode(g)[moved]
+        output = output[moved]
+        if self.loss_name == "huber":
+            return F.huber_loss(output, y, delta=self.huber_delta)
         return F.mse_loss(output, y)
 
     def decode(self, g: Graph, output: torch.Tensor) -> torch.Tensor:

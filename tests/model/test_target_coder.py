@@ -117,27 +117,26 @@ def test_no_prior_means_the_papers_mse_under_auto(stats):
     torch.testing.assert_close(c.encode(g), c.normalizer.target(g.target))
 
 
-def test_the_relative_loss_weighs_a_small_target_as_a_large_one(stats):
-    """dynamics_loss=relative: each particle's squared error over its own target's size (a
-    floor of RELATIVE_FLOOR of the median size), so the same relative miss costs the
-    same on a small acceleration (a far pair's) as on a large one (an encounter's), where the
-    MSE is the large one's alone; and it is scale-free in the target."""
+@pytest.mark.parametrize("prior", ["none", "linear"])
+def test_the_relative_loss_weighs_a_small_target_as_a_large_one(stats, prior):
+    """dynamics_loss=relative: each particle's squared error over its own physical target's
+    size (a floor of RELATIVE_FLOOR of the median size), whatever the head's units (with a
+    prior: residuals), so the same relative miss costs the same on a small acceleration (a far
+    pair's) as on a large one (an encounter's), where the MSE is the large one's alone; and
+    it is scale-free in the target."""
     g, meta = polynomial_graph(2, "acceleration")
-    c = TargetCoder(Normalizer(stats(), 2), stats(), meta, 3, "none", "relative").double()
-    y = torch.tensor([[1.0, 0.5], [0.1, -0.05], [-30.0, 12.0], [0.7, -1.0]],
-                     dtype=torch.float64)
-    g.target = c.normalizer.denormalize_target(y)
-    torch.testing.assert_close(c.encode(g), y)
-    size = (y * y).sum(-1)
-    floor = RELATIVE_FLOOR * size.median()
-    expected = (0.01 * size / (size + floor)).mean()   # every particle 10 % off
-    missed = c.loss(y * 1.1, g)
+    c = TargetCoder(Normalizer(stats(), 2), stats(), meta, 3, prior, "relative").double()
+    a = torch.tensor([[1.0, 0.5], [0.1, -0.05], [-30.0, 12.0], [0.7, -1.0]],
+                     dtype=torch.float64)             # physical targets, sizes far apart
+    g.target = a
+    size = (a * a).sum(-1)
+    expected = (0.01 * size / (size + RELATIVE_FLOOR * size.median())).mean()
+    missed = c.loss(c.code(g, a * 1.1), g)            # every particle 10 % off
     torch.testing.assert_close(missed, expected, rtol=1e-6, atol=0)
     assert abs(float(missed) - 0.01) < 5e-4
-    only_small = y.clone()
-    only_small[1] *= 1.1                                  # the small target alone missed
-    assert float(c.loss(only_small, g)) > 0.2 * float(missed)   # a quarter of the particles
-    assert float(torch.nn.functional.mse_loss(only_small, y)) < 1e-4 * float(
-        torch.nn.functional.mse_loss(y * 1.1, y))
-    g.target = c.normalizer.denormalize_target(7.0 * y)     # every target 7 times larger
-    torch.testing.assert_close(c.loss(7.0 * y * 1.1, g), missed, rtol=1e-6, atol=0)
+    small = a.clone()
+    small[1] *= 1.1                                   # the small target alone missed
+    assert float(c.loss(c.code(g, small), g)) > 0.2 * float(missed)  # a quarter of them
+    assert float(((small - a) ** 2).mean()) < 1e-4 * float(((0.1 * a) ** 2).mean())
+    g.target = 7.0 * a                                # every target 7 times larger
+    torch.testing.assert_close(c.loss(c.code(g, 7.0 * a * 1.1), g), missed, rtol=1e-6, atol=0)

@@ -144,15 +144,10 @@ class PairLaw:
     formula: str | None
 
     def __call__(self, r: Any, types: tuple[int, int] = (0, 0)) -> np.ndarray:
-        from bgn.laws.sample import sample_law
-
         r = np.asarray(r, dtype=np.float64)
         if r.ndim > 1 or not np.all(np.isfinite(r)) or np.any(r <= 0):
             raise ValueError("r: give distances > 0 as a number or a 1-D array")
-        # law_scale: the factor the formula stage found to put a law kept in the network's
-        # free scale in physical units (1 elsewhere), as the formula's text is
-        values = sample_law(self.head, np.atleast_1d(r), self.dim, types)
-        return (float(self.head.law_scale) * values).reshape(r.shape)
+        return self.head.labelled_law_at(np.atleast_1d(r), self.dim, types).reshape(r.shape)
 
 
 class Model:
@@ -330,19 +325,11 @@ class Model:
         >>> law([0.5, 1.0, 2.0]).shape, law.scale in ("physical", "shape")
         ((3,), True)
         """
-        import json
-
         from bgn.eval.law_posterior import law_scale_pinned
         from bgn.laws.sample import pair_force_head
-        from bgn.model.formula_law import FormulaLaw, pair_text
+        from bgn.model.newton import formula_text
 
         _, head = pair_force_head(self.model)  # refused in one line without one
-        formula = None
-        if isinstance(head.force_law, FormulaLaw):
-            pairs = json.loads(head.force_law.spec())
-            formula = "; ".join(pair_text(p, head.law_scale)
-                                + (f" (types {p['types']})" if len(pairs) > 1 else "")
-                                for p in pairs)
         physical = law_scale_pinned(self.model) or float(head.law_scale) != 1.0
         return PairLaw(head, self.dim, "physical" if physical else "shape", head.mass_law,
-                       formula)
+                       formula_text(head))

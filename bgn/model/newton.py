@@ -284,6 +284,12 @@ class PairForceHead(nn.Module):
                             types=torch.tensor(types, device=param.device))
         return self.pair_terms(g, pos)[0, :, 0].double().cpu().numpy().reshape(r.shape)
 
+    def labelled_law_at(self, r: np.ndarray, dim: int, types: tuple[int, int] = (0, 0),
+                        ) -> np.ndarray:
+        """``law_at`` times ``law_scale``: the law in the units its labels and formula text
+        are written in (physical where the formula stage put it so)."""
+        return float(self.law_scale) * self.law_at(r, dim, types)
+
     def separations(self, g: Graph, positions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(E, F, D) relative positions of every edge j -> i at each frame of ``positions``
         (N, F, D), in normalised units, and their lengths (E, F, 1)."""
@@ -570,17 +576,23 @@ def head_physics(head: nn.Module) -> str:
               "coupling": "couplings of either sign fitted per simulation, a_i = k_i sum_j c_j "
                           "F_ij (k = q / m, c = q), in a rollout fitted to the frames before "
                           "its start"}
-    law = ""
-    if isinstance(head.force_law, FormulaLaw):  # the law itself written in, as a formula
-        terms = json.loads(head.force_law.spec())
-        law = "; the pair law a fitted formula " + "; ".join(
-            pair_text(p, head.law_scale) + (f" (types {p['types']})" if head.types > 1 else "")
-            for p in terms)
+    formula = formula_text(head)
+    law = "" if formula is None else f"; the pair law a fitted formula {formula}"
     held = ("; in a rollout fitted once, to its first window, and held"
             if head.rollout_masses == "held" and head.mass_law not in ("type", "coupling")
             else "")
     return (f"central pair forces, equal and opposite; {masses[head.mass_law]} "
             f"(mass_law={head.mass_law}){held}{law}")
+
+
+def formula_text(head: PairForceHead) -> str | None:
+    """The head's formula law as text, in the units of its labels (``law_scale``), each pair
+    of types named where the law reads types; None for a network law."""
+    if not isinstance(head.force_law, FormulaLaw):
+        return None
+    return "; ".join(
+        pair_text(p, head.law_scale) + (f" (types {p['types']})" if head.types > 1 else "")
+        for p in json.loads(head.force_law.spec()))
 
 
 def head_label(head: nn.Module) -> str:

@@ -70,23 +70,24 @@ def vtk_fields(model: Any, dataset: Any, sim: int, start: int, result: dict[str,
     import numpy as np
 
     from bgn.api import Model
+    from bgn.model.newton import pair_force_head_of
     from bgn.rollout import true_positions
 
     radii, types = dataset.file.read("radii", sim), dataset.file.read("types", sim)
     shared: dict[str, Any] = {"type": np.asarray(types, dtype=np.int32),
                               "radius": np.asarray(radii, dtype=np.float64)}
     note = "no masses inferred (the model has neither an inverse model nor a pair law)"
+    head = pair_force_head_of(model)  # per-type masses fit nothing to the frames
+    infers = model.has_inverse or (head is not None and head.mass_law != "type")
     recorded = true_positions(dataset, [sim], 0, start)[0]
-    if len(recorded) > model.history + 2:
-        try:
-            posterior = Model(model, dataset.dt, dataset.margin).infer(
-                recorded, radii=radii, types=types)
-        except ValueError:
-            posterior = None
-        if posterior is not None:
-            shared["mass_posterior_median"] = posterior.median()
-            shared["mass_posterior_log_std"] = posterior.log_std()
-            note = f"masses: {posterior.describe()}"
+    if infers and len(recorded) <= model.history + 2:
+        note = f"no masses inferred (frame {start} leaves no window before the start)"
+    elif infers:
+        posterior = Model(model, dataset.dt, dataset.margin).infer(recorded, radii=radii,
+                                                                     types=types)
+        shared["mass_posterior_median"] = posterior.median()
+        shared["mass_posterior_log_std"] = posterior.log_std()
+        note = f"masses: {posterior.describe()}"
     before = true_positions(dataset, [sim], start - 1, start)[0, 0]
 
     def velocity(x: Any) -> Any:

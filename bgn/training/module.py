@@ -405,7 +405,7 @@ def pair_law_figure(model: nn.Module, g: Graph) -> Any:
     n_types = min(int(head.types), 3)
     pairs = [(a, b) for a in range(n_types) for b in range(a, n_types)] or [(0, 0)]
     laws = {f"types {a}-{b}" if n_types > 1 else "f(r)":
-            float(head.law_scale) * head.law_at(r, g.pos.shape[1], (a, b)) for a, b in pairs}
+            head.labelled_law_at(r, g.pos.shape[1], (a, b)) for a, b in pairs}
     return figures.pair_law(r, laws, dist)
 
 

@@ -194,10 +194,11 @@ class Model:
         return arr
 
     def _particles(self, n: int, masses: Any, radii: Any, types: Any) -> Particles:
-        def field(name: str, value: Any, default: float, needed: bool) -> torch.Tensor:
+        def field(name: str, value: Any, default: float, needed: bool | str) -> torch.Tensor:
             if value is None:
                 if needed:
-                    raise ValueError(f"{self.model.label} reads {name}: pass {name}= (N,)")
+                    why = needed if isinstance(needed, str) else f"reads {name}"
+                    raise ValueError(f"{self.model.label} {why}: pass {name}= (N,)")
                 return torch.full((1, n), default, dtype=torch.float64)
             arr = np.asarray(value, dtype=np.float64)
             if arr.shape != (n,) or not np.all(np.isfinite(arr)):
@@ -208,7 +209,9 @@ class Model:
         m = field("masses", masses, 1.0, "masses" in self.given)
         if not bool((m > 0).all()):
             raise ValueError("masses: every mass must be > 0")
-        r = field("radii", radii, 0.0, "radii" in self.given or self.meta.graph != "full")
+        r = field("radii", radii, 0.0, "radii" in self.given or (
+            self.meta.graph != "full" and "joins pairs closer than r_i + r_j + margin (zeros "
+            "where the training data recorded no radii)"))
         t = field("types", types, 0.0, "types" in self.given)
         if not bool(((t >= 0) & (t < self.meta.n_types) & (t == t.round())).all()):
             raise ValueError(f"types: give integers 0 .. {self.meta.n_types - 1} (the types "

@@ -130,10 +130,22 @@ def train(data: Path, model: str, steps: int, seed: int, out: Path) -> dict:
     record = {"model": model, "peer": "lagrangebench 0.2.0", "data": str(data), "seed": seed,
               "steps": steps, "train_s": train_s, "rollout_s": rollout_s,
               "rollout_frames": int(predicted.shape[1] - INPUT_FRAMES),
-              "given": "positions of the last 6 frames, particle types, distance to walls"
-                       + (", gravity (force.py)" if (data / "force.py").is_file() else "")}
+              "given": given(data)}
     (out / "peer.json").write_text(json.dumps(record, indent=1))
     return record
+
+
+def given(data: Path) -> str:
+    """What LagrangeBench's models read beyond the positions (its feature builder): the
+    distance to the box's faces where the box is closed, the external force where force.py
+    gives one."""
+    meta = json.loads((data / "metadata.json").read_text())
+    parts = ["positions of the last 6 frames", "particle types"]
+    if not any(meta["periodic_boundary_conditions"]):
+        parts.append("distance to the box's faces")
+    if (data / "force.py").is_file():
+        parts.append("gravity (force.py)")
+    return ", ".join(parts)
 
 
 def collect(rollout_dir: Path, n: int) -> tuple[np.ndarray, np.ndarray]:

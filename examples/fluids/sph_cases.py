@@ -12,7 +12,8 @@ peer environment (setup_peer.sh), never inside bgn.
 - ``dam``: a water column released in a closed tank (5.366 x 2, three layers of wall particles),
   gravity 1, free surface (no background pressure), density evolution and artificial viscosity
   (alpha 0.1) for a stable free surface, Adami's generalised wall condition. Trajectories differ
-  by the column's width and height (drawn per trajectory) and jittered initial positions.
+  by the column's shape (drawn per trajectory, its area and particle count fixed) and jittered
+  initial positions.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from jax_sph.utils import Tag, pos_box_2d, pos_init_cartesian_2d
 from omegaconf import DictConfig
 
 TANK = np.array([5.366, 2.0])     # the dam break's tank, inner size (SPHERIC benchmark 2)
+DAM_FLUID_AREA = 1.92             # the water column's area (1 200 particles at dx 0.04)
 
 
 class TGV(SimulationSetup):
@@ -129,8 +131,13 @@ def config(case: str, seed: int, dx: float, rng: np.random.Generator) -> DictCon
         cfg.solver.t_end = 5.0
         cfg.solver.n_walls = 0
     elif case == "dam":
-        height = float(rng.uniform(0.8, 1.2))
-        cfg.case.special.column = [float(rng.uniform(1.6, 2.4)), height]
+        # the column's shape varies, its particle count does not (one count for every
+        # trajectory, as both loaders require): DAM_FLUID particles in nx x ny, nx one of the
+        # divisors that keep the width within 1.6-2.4 (heights 1.25-0.8 at dx 0.04)
+        n = round(DAM_FLUID_AREA / dx**2)
+        widths = [k for k in range(1, n + 1) if n % k == 0 and 1.6 <= k * dx <= 2.4]
+        nx = int(rng.choice(widths))
+        cfg.case.special.column = [nx * dx, n // nx * dx]
         cfg.case.viscosity = 0.0
         cfg.case.u_ref = float(np.sqrt(2.0 * 1.0 * TANK[1] / 2))   # sqrt(2 g H), H = 1
         cfg.case.g_ext_magnitude = 1.0

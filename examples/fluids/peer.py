@@ -166,6 +166,7 @@ def main(argv: list[str] | None = None) -> int:
     t = sub.add_parser("time", help="seconds per optimiser step")
     t.add_argument("data", type=Path)
     t.add_argument("model", choices=sorted(RECIPES))
+    t.add_argument("--steps", type=int, default=30, help="the shorter of the two timed runs")
     t.add_argument("--json", type=Path)
     r = sub.add_parser("train", help="train for --steps, then roll out the test split")
     r.add_argument("data", type=Path)
@@ -177,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
     if not (a.data / "metadata.json").is_file():
         p.error(f"{a.data}: no metadata.json; make the dataset first (make_sph.py)")
     if a.command == "time":
-        rec = time_steps(a.data, a.model)
+        rec = time_steps(a.data, a.model, a.steps)
         if a.json:
             a.json.write_text(json.dumps(rec, indent=1))
     else:

@@ -10,8 +10,10 @@ writes ``{train,valid,test}.h5`` (one group per trajectory: ``position`` (T, N, 
 LagrangeBench's loader reads (``dt`` the engine's step, ``write_every`` steps per frame,
 ``bounds``, ``periodic_boundary_conditions``, ``default_connectivity_radius``,
 ``num_particles_max``, ``dx``, statistics of per-frame velocity and acceleration over the
-training split) plus the engine's own cost, ``engine_seconds_per_step`` (compiled, on this
-machine, one trajectory timed alone) for the speed-against-error table. Nothing is written
+training split) plus the engine's own cost, ``engine_seconds_per_step`` (after compilation,
+on this machine, one value per split: its last trajectory's; a figure for the speed table
+wants the machine otherwise idle) and the fluid's kinetic energy per frame (``ekin``, the same
+trajectory). Nothing is written
 until every trajectory of a split is made; a split already there is kept unless --overwrite.
 """
 

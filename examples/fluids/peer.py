@@ -102,7 +102,11 @@ def time_steps(data: Path, model: str, steps: int = 30) -> dict:
         t0 = time.perf_counter()
         trainer.train(step_max=n, store_ckp=None)
         took.append(time.perf_counter() - t0)
-    return {"model": model, "data": str(data), "seconds_per_step": (took[1] - took[0]) / steps,
+    per_step = (took[1] - took[0]) / steps
+    if per_step <= 0:
+        raise SystemExit(f"{model} on {data}: {steps} more steps took {took[1] - took[0]:.1f} s, "
+                         f"within the start-up's noise; time more steps (--steps {4 * steps})")
+    return {"model": model, "data": str(data), "seconds_per_step": per_step,
             "timed_steps": [steps, 2 * steps], "seconds": took}
 
 

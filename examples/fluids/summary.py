@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 METRICS = ("mse5", "mse10", "mse20", "mse", "sinkhorn", "e_kin_mse", "failed")
-GIVEN_BGN = "positions of the last 6 frames, particle types (gravity learned)"
+GIVEN_BGN = "positions of the last 6 frames, particle types (no wall distance, no external force)"
 
 
 def cell(values: list[float]) -> str:
@@ -38,7 +38,7 @@ def rows(out: Path, name: str) -> list[dict]:
         found.append({"model": "constant velocity (no learning)", "given": "the last two of "
                       "the six frames", "seeds": 1, "steps": "-", "wall s": "-",
                       **{m: cell([s[m]]) for m in METRICS}})
-    for model, label in (("bgn", "bgn (model.dynamics=auto)"),
+    for model, label in (("bgn", "bgn (the job run.sh ran)"),
                          ("gns", "LagrangeBench GNS"), ("segnn", "LagrangeBench SEGNN")):
         runs = sorted(out.glob(f"{name}_{model}_s*"))
         scores, steps, wall, given = [], [], [], GIVEN_BGN

@@ -50,6 +50,7 @@ from bgn.model.newton import (
     law_loss,
 )
 from bgn.model.processor import ContactOptions, Processor, ProcessorOutput
+from bgn.model.soft_contact import SoftContactHead
 
 
 @dataclass
@@ -146,7 +147,10 @@ class BGN(PhysicsModel):
                                    message=cfg.contact_message, act=cfg.activation, dim=d,
                                    contact_gap=cfg.contact_gap and self.contact_scene,
                                    decode=cfg.dynamics == "decoder")
-        if cfg.dynamics == "newton":  # the structured head replaces Eq. 5's decoder
+        if cfg.dynamics == "soft_contact":  # granular media: replaces Eq. 5's decoder
+            self.force_head = SoftContactHead(meta, cfg.contact_substeps)
+            self.decoder = None
+        elif cfg.dynamics == "newton":  # the structured head replaces Eq. 5's decoder
             self.force_head: nn.Module | None = build_head(
                 meta, self.normalizer, history, cfg.decoder_hidden, 2, cfg.activation,
                 cfg.mass_law, "model.dynamics=newton", cfg.substeps,

@@ -73,13 +73,16 @@ from bgn.model.impulse import ContactImpulseHead
 from bgn.model.message_passing import edge_vector
 from bgn.model.normalizer import Normalizer
 from bgn.model.ops import activation, mlp, scatter_sum
+from bgn.model.soft_contact import SoftContactHead
 from bgn.model.target_coder import observed_targets
 from bgn.sim.scene import SceneMeta
 
 MASS_LAWS = ("inertial", "source", "type", "coupling")
 LAW_INITS = ("random", "match")  # the MLP law's start (ForceLawOptions.law_init)
 ROLLOUT_MASSES = ("window", "held")  # a rollout's mass fit (ForceLawOptions.rollout_masses)
-DYNAMICS = ("decoder", "newton")  # BGN's dynamics head: Eq. 5's decoder or the structured head
+# BGN's dynamics head: Eq. 5's decoder, the scene's structured head, or soft contacts with
+# friction, a field and drag (granular media, ``bgn.model.soft_contact``)
+DYNAMICS = ("decoder", "newton", "soft_contact")
 FIT_EPS = 1e-12  # keeps a mass fit finite when a particle feels no force over the window
 ROBUST_STEPS, ROBUST_SCALE = 2, 0.01  # reweighting of the gravity mass fit (source law)
 REL_ERROR_FLOOR = 1e-6  # the log of a fit's relative error stays finite for an exact fit
@@ -144,9 +147,13 @@ class NewtonOptions(ForceLawOptions):
     # window, on pairwise-force scenes; pair impulses on contact scenes); "decoder" is the
     # paper's. "auto" is resolved before a model is built (bgn.studies.auto).
     dynamics: str = "decoder"
+    # substeps of a frame that dynamics=soft_contact integrates (its contacts' stiffness is
+    # bounded by what they integrate stably)
+    contact_substeps: int = 10
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        check_positive_ints(self, ("contact_substeps",))
         if self.dynamics not in DYNAMICS:
             raise ValueError(f"dynamics={self.dynamics!r}; choose one of {DYNAMICS}")
 
@@ -558,6 +565,8 @@ def head_given(head: nn.Module) -> tuple[str, ...]:
     (``mass_law=coupling``), the recorded frames before a rollout's start."""
     if isinstance(head, ContactImpulseHead):
         return ("radii",)
+    if isinstance(head, SoftContactHead):
+        return ("radii", "types")
     if not isinstance(head, PairForceHead):
         return ()
     return (("types",) if head.types > 1 else ()) + (
@@ -569,6 +578,10 @@ def head_physics(head: nn.Module) -> str:
     if isinstance(head, ContactImpulseHead):
         return ("impulses along the normal at the time of impact, equal and opposite, in "
                 "event order (restitution learned, at most elastic); masses learned per radius")
+    if isinstance(head, SoftContactHead):
+        return ("soft pair and wall contacts at the radii, equal and opposite: spring, dashpot "
+                "(damping of either sign), Coulomb-capped tangential damping; one mass per "
+                "type, a uniform field and a linear drag, all learned")
     assert isinstance(head, PairForceHead)
     masses = {"inertial": "inertial masses fitted to the window, a = F / m",
               "source": "masses at the source fitted per simulation, a_i = sum_j m_j F_ij",
@@ -600,6 +613,8 @@ def head_label(head: nn.Module) -> str:
     inertial)" ("(types, masses source)" where its law reads the types)."""
     if isinstance(head, ContactImpulseHead):
         return "impulse head (radii)"
+    if isinstance(head, SoftContactHead):
+        return "soft-contact head (radii, types)"
     assert isinstance(head, PairForceHead)
     law = ", law a formula" if isinstance(head.force_law, FormulaLaw) else ""
     held = " held" if head.mass_law == "coupling" or (

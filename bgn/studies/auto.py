@@ -58,6 +58,7 @@ from bgn.data.balance import (
     momentum_balance,
     velocity_dependence,
 )
+from bgn.data.contacts import FREE_RESIDUAL_MAX, FreeFlight, closest_approach, free_flight
 from bgn.metrics import SHORT_HORIZON, rollout_scores
 from bgn.sim.scene import SceneMeta
 from bgn.training.budget import Deadline, clock_text, received
@@ -94,7 +95,8 @@ class Candidate:
 def candidates(meta: SceneMeta, history: int, radii_given: bool,
                references: Sequence[str] = ("gns", "cranmer_gn"),
                balance: Balance | None = None,
-               velocity: VelocityDependence | None = None) -> list[Candidate]:
+               velocity: VelocityDependence | None = None,
+               contacts: FreeFlight | None = None) -> list[Candidate]:
     """Every structure BGN has, each admitted or not (with the reason) by the scene's
     metadata, the window (``history`` past velocities), whether the discs' radii are given
     and what the data conserve (``balance``: a pair-force head cannot make data whose
@@ -133,6 +135,14 @@ def candidates(meta: SceneMeta, history: int, radii_given: bool,
     elif meta.box is None:
         impulse.admitted, impulse.reason = False, "needs the walls of a box"
     out.append(impulse)
+    soft = Candidate("soft_contact", ["model.dynamics=soft_contact"])
+    if meta.target != "acceleration":
+        soft.admitted, soft.reason = False, "needs an acceleration target"
+    elif contacts is None:
+        soft.admitted, soft.reason = False, "the contact evidence was not read"
+    elif contacts.breaks():
+        soft.admitted, soft.reason = False, contacts.breaks()
+    out.append(soft)
     for name in references:
         out.append(Candidate(name, [f"model={name}"], eligible=False))
     return out
@@ -464,6 +474,32 @@ def velocity_lines(velocity: Mapping[str, Any] | None) -> list[str]:
             f"{v.velocity:.2g}. Verdict: {verdict}."]
 
 
+def contact_evidence(file: Any, meta: SceneMeta) -> FreeFlight:
+    """``bgn.data.contacts.free_flight`` of a training file at its closest approaches, within
+    the graph's connectivity radius (every pair on a complete graph)."""
+    cutoff = getattr(meta, "connectivity_radius", None) or math.inf
+    return free_flight(file, meta, closest_approach(file, meta, cutoff), cutoff)
+
+
+def contact_lines(contacts: Mapping[str, Any] | None) -> list[str]:
+    """The report's paragraph on whether velocities change only at contact
+    (``bgn.data.contacts.free_flight``)."""
+    if not contacts:
+        return []
+    if contacts.get("residual") is None:
+        return [f"Whether velocities change only at contact: not tested "
+                f"({contacts.get('reason')})."]
+    c = FreeFlight(**{**contacts, "field": tuple(contacts.get("field") or ())})
+    verdict = c.breaks() or ("yes: particles that touch nothing fly freely under a uniform "
+                             "field and drag; soft contacts can make these data")
+    field = ", ".join(f"{g:.3g}" for g in c.field)
+    return [f"Whether velocities change only at contact ({c.samples} samples of particles "
+            f"touching nothing, at the closest approaches of the training split): a uniform "
+            f"field ({field} per frame^2) and a drag ({c.drag:.3g} per frame) leave "
+            f"{c.residual:.2g} of the second differences unexplained (limit "
+            f"{FREE_RESIDUAL_MAX:g}). Verdict: {verdict}."]
+
+
 def match_lines(results: Sequence[Result]) -> list[str]:
     """The report's lines on force matching (``bgn.model.force_matching``), one per candidate
     whose law started from it."""
@@ -573,6 +609,7 @@ def write_report(auto_dir: Path, results: Sequence[Result], winner: Result, marg
         lines.append("")
     lines += balance_lines(protocol.get("balance")) + [""]
     lines += velocity_lines(protocol.get("velocity")) + [""]
+    lines += contact_lines(protocol.get("contacts")) + [""]
     lines += match_lines(results)
     for r in results:
         if r.error:
@@ -928,10 +965,12 @@ def _run_auto(cfg: DictConfig, base: list[str], run_dir: Path, deadline: Deadlin
     # the velocity test only where it could refuse a candidate still admitted
     velocity = (None if balance.breaks() or datamodule.meta.interaction == "contact"
                 else velocity_dependence(train_split.file, val.file, datamodule.meta))
+    contacts = (None if datamodule.meta.target != "acceleration"
+                else contact_evidence(train_split.file, datamodule.meta))
     known = masses_known(val)
     pool = candidates(datamodule.meta, datamodule.history, radii_given(train_split),
                       list(auto.get("references", ["gns", "cranmer_gn"]) or []), balance,
-                      velocity)
+                      velocity, contacts)
     admitted = [c for c in pool if c.admitted]
     each, winner_limits = split_budget(cfg.trainer, share, len(admitted))
     check_shares(each, min_steps, len(admitted), cfg.trainer.get("max_steps"))
@@ -1058,6 +1097,7 @@ def _run_auto(cfg: DictConfig, base: list[str], run_dir: Path, deadline: Deadlin
                 "budget_each": each, "budget_winner": winner_limits,
                 "masses_known": known, "balance": asdict(balance),
                 "velocity": asdict(velocity) if velocity is not None else None,
+                "contacts": asdict(contacts) if contacts is not None else None,
                 "cut": cut, "fallback": why_fallback}
     report = write_report(auto_dir, results, winner, margin, protocol)
     short = not_compared(results)

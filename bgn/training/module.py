@@ -16,6 +16,7 @@ them the module uses ``DEFAULT_OPTIMIZER`` and ``reduce_on_plateau`` on val/nmse
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Callable, Iterable, Mapping
 from functools import partial
 from itertools import islice
@@ -38,6 +39,7 @@ from torchmetrics.classification import (
 from bgn.graph import Graph
 from bgn.model import build_model
 from bgn.model.force_matching import MATCHED_LAW_LR, matched_law_parameters, prepare
+from bgn.model.soft_contact import SoftContactHead
 from bgn.sim import SceneMeta
 from bgn.training.budget import Deadline, OutOfTime
 from bgn.training.budget import check as budget_check
@@ -251,6 +253,29 @@ class PhysicsModule(L.LightningModule):
         return self._step("train", self.model.corrupt(g))  # rollout noise: training only
 
     def on_train_start(self) -> None:
+        self._measure_reach()
+        self._match_law()
+
+    def _measure_reach(self) -> None:
+        """The soft-contact head's contact distances, the closest approaches in the training
+        split (``bgn.data.contacts.closest_approach``), before a fresh run's first step: used
+        where the data give no radii."""
+        from bgn.data.contacts import closest_approach
+
+        head = getattr(self.model, "force_head", None)
+        datamodule = getattr(self.trainer, "datamodule", None)
+        if (not isinstance(head, SoftContactHead) or self.global_step > 0
+                or datamodule is None):
+            return
+        meta = datamodule.meta
+        approach = closest_approach(datamodule.datasets["train"].file, meta,
+                                    getattr(meta, "connectivity_radius", None) or math.inf)
+        head.set_reach(approach.pair, approach.wall)
+        log.info("soft contacts: closest approaches in the training split, per pair of types "
+                 "%s, per type to a wall %s (the contact distances where the data give no "
+                 "radii)", *approach.as_dict().values())
+
+    def _match_law(self) -> None:
         """Force matching (``law_init=match``, ``bgn.model.force_matching``) before the first
         step of a fresh run (a resumed one has its law already): the pair law fitted on
         ``MATCH_BATCHES`` training batches, its smoothness chosen on validation ones. Where

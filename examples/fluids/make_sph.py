@@ -13,8 +13,10 @@ LagrangeBench's loader reads (``dt`` the engine's step, ``write_every`` steps pe
 training split) plus the engine's own cost, ``engine_seconds_per_step`` (after compilation,
 on this machine, one value per split: its last trajectory's; a figure for the speed table
 wants the machine otherwise idle) and the fluid's kinetic energy per frame (``ekin``, the same
-trajectory). Nothing is written
-until every trajectory of a split is made; a split already there is kept unless --overwrite.
+trajectory). Each trajectory is saved to ``parts/`` as soon as it is made, so a run that is
+stopped continues where it was (each one's parameters are drawn from its own seed, not from
+the order they are made in); a split's file is written when all its trajectories are there. A
+split already there is kept unless --overwrite.
 """
 
 from __future__ import annotations
@@ -38,13 +40,14 @@ from jax_sph.integrator import si_euler  # noqa: E402
 from jax_sph.jax_md.partition import Sparse  # noqa: E402
 from jax_sph.solver import WCSPH  # noqa: E402
 from jax_sph.utils import Tag  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from sph_cases import CASES, config  # noqa: E402
 
 # per case: particle spacing, steps per frame, trajectories per split (train, valid, test)
-DEFAULTS = {"tgv": dict(dx=0.02, write_every=100, trajectories=(20, 5, 5)),
-            "dam": dict(dx=0.04, write_every=50, trajectories=(20, 5, 5))}
+DEFAULTS = {"tgv": dict(dx=0.02, write_every=100, trajectories=(12, 4, 4)),
+            "dam": dict(dx=0.04, write_every=50, trajectories=(12, 4, 4))}
 SPLITS = ("train", "valid", "test")
 GRAVITY_FILE = """# gravity on every particle, per unit mass: LagrangeBench's external force
 import jax.numpy as jnp
@@ -103,7 +106,7 @@ def simulate(case: str, seed: int, dx: float, write_every: int, rng: np.random.G
     seconds = time.perf_counter() - start
     info = dict(dt=float(cfg.solver.dt), box=np.asarray(box).tolist(),
                 seconds_per_step=seconds / steps, steps=steps, ekin=ekin,
-                varied={k: v for k, v in cfg.case.special.items()})
+                varied=OmegaConf.to_container(cfg.case.special))
     return np.stack(frames).astype(np.float32), np.asarray(state["tag"], dtype=np.int64), info
 
 
@@ -121,6 +124,22 @@ def frame_statistics(trajectories: list[np.ndarray], box: np.ndarray,
     vel, acc = np.concatenate(vel), np.concatenate(acc)
     return {"vel_mean": vel.mean(0).tolist(), "vel_std": vel.std(0).tolist(),
             "acc_mean": acc.mean(0).tolist(), "acc_std": acc.std(0).tolist()}
+
+
+def trajectory(case: str, seed: int, base_seed: int, dx: float, write_every: int,
+               t_end: float | None, part: Path) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The trajectory of engine seed ``seed``: read from ``part`` if an earlier run made it,
+    else simulated and saved there (written whole, then renamed, so a stop leaves no half)."""
+    if part.is_file():
+        with np.load(part) as z:
+            return z["position"], z["particle_type"], json.loads(str(z["info"]))
+    rng = np.random.default_rng([base_seed, seed])
+    pos, typ, info = simulate(case, seed, dx, write_every, rng, t_end)
+    part.parent.mkdir(parents=True, exist_ok=True)
+    tmp = part.with_name(part.stem + ".part.npz")
+    np.savez(tmp, position=pos, particle_type=typ, info=json.dumps(info))
+    os.replace(tmp, part)
+    return pos, typ, info
 
 
 def write_split(path: Path, trajectories: list[np.ndarray], types: list[np.ndarray]) -> None:
@@ -149,21 +168,21 @@ def main(argv: list[str] | None = None) -> int:
     write_every = a.write_every or d["write_every"]
     counts = a.trajectories or d["trajectories"]
     a.out.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(a.seed)
     meta_path = a.out / "metadata.json"
     meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
-    seed = a.seed * 100_000
     train = None
-    for split, count in zip(SPLITS, counts):
+    for k, (split, count) in enumerate(zip(SPLITS, counts)):
         f = a.out / f"{split}.h5"
         if f.is_file() and not a.overwrite:
             print(f"{f}: kept (--overwrite to make it again)")
-            seed += count
             continue
         trajs, types = [], []
         for i in range(count):
-            pos, typ, info = simulate(a.case, seed, dx, write_every, rng, a.t_end)
-            seed += 1
+            seed = a.seed * 100_000 + k * 10_000 + i      # a split's seeds do not depend on counts
+            part = a.out / "parts" / f"{split}_{seed}.npz"
+            if a.overwrite:
+                part.unlink(missing_ok=True)
+            pos, typ, info = trajectory(a.case, seed, a.seed, dx, write_every, a.t_end, part)
             trajs.append(pos)
             types.append(typ)
             print(f"{split} {i + 1}/{count}: {pos.shape[1]} particles, {pos.shape[0]} frames, "

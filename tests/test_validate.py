@@ -51,7 +51,13 @@ def refused(config: str, *overrides: str) -> str:
     (["rollout_steps=-1"], ["rollout_steps=-1", ">= 0"]),
     (["scheduler.factor=2"], ["scheduler.factor=2", "< 1"]),
     (["dataset=collisions", "dataset.box=-1"], ["dataset.box", "> 0"]),
-    (["model.dynamics=foo"], ["model.dynamics='foo'", "'decoder', 'newton', 'auto'"]),
+    (["model.dynamics=foo"], ["model.dynamics='foo'",
+                              "'decoder', 'newton', 'soft_contact', 'auto'"]),
+    (["dataset=collisions", "model.dynamics=soft_contact"],
+     ["model.dynamics='soft_contact'", "acceleration target", "velocity target"]),
+    (["model.dynamics=soft_contact", "model.contact_energy=foo"],
+     ["model.contact_energy='foo'", "'lose', 'any'"]),
+    (["model.dynamics=soft_contact", "model.contact_substeps=0"], ["contact_substeps=0"]),
 ])
 def test_train_config_refused_with_one_line(overrides, expected):
     message = refused("train", *overrides)

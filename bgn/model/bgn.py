@@ -148,7 +148,8 @@ class BGN(PhysicsModel):
                                    contact_gap=cfg.contact_gap and self.contact_scene,
                                    decode=cfg.dynamics == "decoder")
         if cfg.dynamics == "soft_contact":  # granular media: replaces Eq. 5's decoder
-            self.force_head = SoftContactHead(meta, cfg.contact_substeps)
+            self.force_head = SoftContactHead(meta, cfg.contact_substeps,
+                                              energy=cfg.contact_energy)
             self.decoder = None
         elif cfg.dynamics == "newton":  # the structured head replaces Eq. 5's decoder
             self.force_head: nn.Module | None = build_head(

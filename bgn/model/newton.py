@@ -73,7 +73,7 @@ from bgn.model.impulse import ContactImpulseHead
 from bgn.model.message_passing import edge_vector
 from bgn.model.normalizer import Normalizer
 from bgn.model.ops import activation, mlp, scatter_sum
-from bgn.model.soft_contact import SoftContactHead
+from bgn.model.soft_contact import CONTACT_ENERGY, SoftContactHead
 from bgn.model.target_coder import observed_targets
 from bgn.sim.scene import SceneMeta
 
@@ -150,10 +150,15 @@ class NewtonOptions(ForceLawOptions):
     # substeps of a frame that dynamics=soft_contact integrates (its contacts' stiffness is
     # bounded by what they integrate stably)
     contact_substeps: int = 10
+    # its contacts' damping: lose (>= 0: a contact never creates energy) | any (either sign)
+    contact_energy: str = "lose"
 
     def __post_init__(self) -> None:
         super().__post_init__()
         check_positive_ints(self, ("contact_substeps",))
+        if self.contact_energy not in CONTACT_ENERGY:
+            raise ValueError(f"contact_energy={self.contact_energy!r}; choose one of "
+                             f"{CONTACT_ENERGY}")
         if self.dynamics not in DYNAMICS:
             raise ValueError(f"dynamics={self.dynamics!r}; choose one of {DYNAMICS}")
 
@@ -579,8 +584,10 @@ def head_physics(head: nn.Module) -> str:
         return ("impulses along the normal at the time of impact, equal and opposite, in "
                 "event order (restitution learned, at most elastic); masses learned per radius")
     if isinstance(head, SoftContactHead):
-        return ("soft pair and wall contacts at the radii, equal and opposite: spring, dashpot "
-                "(damping of either sign), Coulomb-capped tangential damping; one mass per "
+        damping = ("of either sign" if head.pair.energy == "any"
+                   else "dissipative: a contact never creates energy")
+        return ("soft pair and wall contacts at the contact distances, equal and opposite: "
+                f"spring, dashpot ({damping}), Coulomb-capped tangential damping; one mass per "
                 "type, a uniform field and a linear drag, all learned")
     assert isinstance(head, PairForceHead)
     masses = {"inertial": "inertial masses fitted to the window, a = F / m",

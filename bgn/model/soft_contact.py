@@ -15,8 +15,9 @@ dashpot, and slide against a tangential force that opposes the tangential relati
 with ``s_ij = m_j / (m_i + m_j)`` the share of the pair's acceleration that i takes (equal and
 opposite forces: ``m_i a_ij = -m_j a_ji``); a wall is a disc of infinite mass (``s = 1``) at the
 plane. The head learns, from the frames alone: the stiffness and damping of pair and wall
-contacts (their restitution follows; the damping may take either sign, so no energy balance is
-written in), tangential damping and friction, one mass per particle type (ratios only enter),
+contacts (their restitution follows: no elasticity is written in; the damping is at least 0
+by default, ``contact_energy="lose"``, or of either sign, ``"any"``), tangential damping and
+friction, one mass per particle type (ratios only enter),
 a uniform acceleration (gravity) and a linear drag. Contact distances are the discs' radii
 where the file gives them (``r_i + r_j``, ``r_i`` to a wall); where it does not (a GNS-layout
 file has types, no radii), the closest approaches in the training frames, per pair of types
@@ -47,6 +48,9 @@ from bgn.sim.scene import SceneMeta
 
 TINY = 1e-20
 OMEGA_H_MAX = 1.5         # semi-implicit Euler is stable for omega h < 2 (undamped)
+# the damping's sign: "lose" (>= 0, the default: chosen on validation rollouts, docs/results.md
+# "Granular media") or "any" (a contact may also create energy)
+CONTACT_ENERGY = ("lose", "any")
 # starting values: a contact lasts about one frame (omega = pi / dt), damping ratio 0.1
 # (restitution 0.73), tangential damping a twentieth of the substep's limit, mu 0.5
 START_ZETA, START_TANGENT, START_MU = 0.1, 0.05, 0.5
@@ -64,13 +68,19 @@ def _softplus_inverse(y: float) -> float:
 class ContactLaw(nn.Module):
     """The learned constants of one kind of contact (pairs or walls), all without a unit once
     multiplied by the frame's scales: stiffness as ``omega h`` (a fraction of the stable
-    limit), the damping ratio, tangential damping as ``c_t h`` and the friction coefficient."""
+    limit), the damping ratio (``energy``: "lose", at least 0, so a contact never creates
+    energy; "any", either sign), tangential damping as ``c_t h`` and the friction
+    coefficient."""
 
-    def __init__(self, substeps: int) -> None:
+    def __init__(self, substeps: int, energy: str = "lose") -> None:
         super().__init__()
+        if energy not in CONTACT_ENERGY:
+            raise ValueError(f"contact_energy={energy!r}; choose one of {CONTACT_ENERGY}")
+        self.energy = energy
         start_omega_h = min(math.pi / substeps, 0.9 * OMEGA_H_MAX)
         self.stiffness = nn.Parameter(torch.tensor(_logit(start_omega_h / OMEGA_H_MAX)))
-        self.damping = nn.Parameter(torch.tensor(START_ZETA))
+        self.damping = nn.Parameter(torch.tensor(
+            _softplus_inverse(START_ZETA) if energy == "lose" else START_ZETA))
         self.tangent = nn.Parameter(torch.tensor(_logit(START_TANGENT)))
         self.friction = nn.Parameter(torch.tensor(_softplus_inverse(START_MU)))
 
@@ -78,13 +88,17 @@ class ContactLaw(nn.Module):
         """``(k, c, c_t, mu)`` for substeps of ``h`` (any shape): k in 1/time^2, c and c_t
         in 1/time."""
         omega = OMEGA_H_MAX * torch.sigmoid(self.stiffness) / h
-        return (omega * omega, 2 * self.damping * omega, torch.sigmoid(self.tangent) / h,
+        return (omega * omega, 2 * self.zeta() * omega, torch.sigmoid(self.tangent) / h,
                 F.softplus(self.friction))
+
+    def zeta(self) -> torch.Tensor:
+        """The damping ratio."""
+        return F.softplus(self.damping) if self.energy == "lose" else self.damping
 
     def restitution(self) -> float:
         """The normal restitution of a head-on contact of the learned damping ratio (no
         friction): ``exp(-pi zeta / sqrt(1 - zeta^2))``, 0 where overdamped."""
-        zeta = float(self.damping.detach())
+        zeta = float(self.zeta().detach())
         if abs(zeta) >= 1:
             return 0.0 if zeta > 0 else math.inf
         return math.exp(-math.pi * zeta / math.sqrt(1 - zeta * zeta))
@@ -109,15 +123,16 @@ class SoftContactHead(nn.Module):
     """Positions and velocity window of a granular scene's graph -> the finite-difference
     acceleration (N, D, physical units); no contact logits (``None``)."""
 
-    def __init__(self, meta: SceneMeta, substeps: int, replay: int = REPLAY_FRAMES) -> None:
+    def __init__(self, meta: SceneMeta, substeps: int, replay: int = REPLAY_FRAMES,
+                 energy: str = "lose") -> None:
         super().__init__()
         self.replay = int(replay)
         if meta.target != "acceleration":
             raise ValueError("the soft-contact head predicts an acceleration target; the "
                              f"scene {meta.name!r} has a {meta.target} target")
         self.substeps = int(substeps)
-        self.pair = ContactLaw(self.substeps)
-        self.wall = ContactLaw(self.substeps)
+        self.pair = ContactLaw(self.substeps, energy)
+        self.wall = ContactLaw(self.substeps, energy)
         self.log_mass = nn.Parameter(torch.zeros(max(1, meta.n_types)))
         # gravity in units of box / frame^2 scaled by 1e-3, drag in 1e-3 per frame: the
         # optimiser's steps then move them at a sensible pace

@@ -209,6 +209,11 @@ def validate_model(model: Any, scene: Scene, history: int) -> None:
             check_mass_law(scene.meta, cfg.mass_law, "the pair-force head (model.mass_law)")
         except ValueError as err:
             raise ConfigError("model.mass_law", message=str(err)) from None
+    if getattr(cfg, "dynamics", None) == "soft_contact" and scene.meta.target != "acceleration":
+        raise ConfigError("model.dynamics", "soft_contact", (
+            f"the soft-contact head predicts an acceleration target; {scene.meta.name} has a "
+            f"{scene.meta.target} target: use model.dynamics=newton (its impulse head) or "
+            "decoder"))
     prior, needed, available = resolve_prior(cfg.target_prior, scene.meta.target, history)
     if available < needed:
         raise ConfigError("model.target_prior", message=prior_hint(

@@ -18,9 +18,9 @@ DT = 0.01
 
 
 def head(n: int = 2, n_types: int = 2, box: float | None = 1.0, substeps: int = 10,
-         replay: int = 2) -> SoftContactHead:
+         replay: int = 2, energy: str = "lose") -> SoftContactHead:
     meta = replace(make_meta(n=n, n_types=n_types, graph="radius", box=box))
-    return SoftContactHead(meta, substeps, replay).double()
+    return SoftContactHead(meta, substeps, replay, energy).double()
 
 
 def graph(window: torch.Tensor, radii: list[float], types: list[int],
@@ -67,10 +67,11 @@ def test_a_pair_contact_conserves_momentum_with_the_learned_masses():
     torch.testing.assert_close(momentum, torch.zeros(2, dtype=torch.float64), atol=1e-9, rtol=0)
 
 
-def test_a_head_on_contact_rebounds_with_the_restitution_of_its_damping():
-    h = head(box=None, substeps=40, replay=0)
-    with torch.no_grad():
-        h.pair.damping.fill_(0.1)
+@pytest.mark.parametrize(("energy", "zeta"), [("lose", 0.1), ("any", 0.1), ("any", -0.05)])
+def test_a_head_on_contact_rebounds_with_the_restitution_of_its_damping(energy, zeta):
+    h = head(box=None, substeps=40, replay=0, energy=energy)
+    with torch.no_grad():          # "lose" keeps the damping ratio >= 0 through a softplus
+        h.pair.damping.fill_(math.log(math.expm1(zeta)) if energy == "lose" else zeta)
         h.pair.friction.fill_(-30.0)                           # no friction
     x = torch.tensor([[0.0, 0.0], [0.0501, 0.0]], dtype=torch.float64)
     v = torch.tensor([[1.0, 0.0], [-1.0, 0.0]], dtype=torch.float64)
@@ -81,7 +82,9 @@ def test_a_head_on_contact_rebounds_with_the_restitution_of_its_damping():
         moved, v = h.frame(g, x, v, dt, reach)
         x = x + moved
     assert v[0, 0] < 0 < v[1, 0]                               # apart
+    assert float(h.pair.zeta()) == pytest.approx(zeta)
     assert float(v[1, 0].detach()) == pytest.approx(h.pair.restitution(), rel=0.03)
+    assert (h.pair.restitution() > 1) == (zeta < 0)           # "any": energy may be created
 
 
 def test_a_disc_resting_on_the_floor_stays_there():

@@ -84,6 +84,29 @@ def test_an_imported_short_range_gas_on_a_radius_graph_admits_the_pair_force_hea
                                if c.name == "newton_inertial")
 
 
+def test_soft_contacts_are_admitted_by_the_free_flight_evidence_alone():
+    from bgn.data.contacts import FreeFlight
+
+    grains = SceneMeta("imported", 2, 60, 2, "unknown", "acceleration", "radius", box=1.0)
+    free = FreeFlight(7e-10, (0.0, -1e-4), 1e-3, 4000)
+    assert "soft_contact" in [c.name for c in candidates(grains, 5, False, REFS, None, None,
+                                                         free) if c.admitted]
+    reasons = {}
+    for label, meta, evidence in (
+            ("long range", grains, FreeFlight(0.14, (0.0, 0.0), 0.0, 4000)),
+            ("none free", grains, FreeFlight(None, samples=0, reason="no particle flies free")),
+            ("not read", grains, None),
+            ("velocity", replace(grains, target="velocity"), free)):
+        soft = next(c for c in candidates(meta, 5, True, REFS, None, None, evidence)
+                    if c.name == "soft_contact")
+        assert not soft.admitted
+        reasons[label] = soft.reason
+    assert "reach beyond contact" in reasons["long range"]
+    assert "no particle flies free" in reasons["none free"]
+    assert "not read" in reasons["not read"]
+    assert "acceleration target" in reasons["velocity"]
+
+
 @pytest.mark.parametrize("interaction,target,graph,box,history", itertools.product(
     ("pairwise", "contact", "unknown"), ("acceleration", "velocity"), ("full", "radius"),
     (None, 2.0), (2, 3)))

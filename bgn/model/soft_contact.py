@@ -55,7 +55,6 @@ CONTACT_ENERGY = ("lose", "any")
 # (restitution 0.73), tangential damping a twentieth of the substep's limit, mu 0.5
 START_ZETA, START_TANGENT, START_MU = 0.1, 0.05, 0.5
 REPLAY_FRAMES = 2        # frames of the window replayed to find the velocity at frame t
-SLOP_RANGE = 0.05        # the learned shift of where contacts start, at most 5 % of the distance
 
 
 def _logit(p: float) -> float:
@@ -120,16 +119,6 @@ def contact_acceleration(delta: torch.Tensor, normal: torch.Tensor, dv: torch.Te
     return touch[:, None] * (push[:, None] * normal - (slide / speed_t)[:, None] * v_t)
 
 
-def _perp(n: torch.Tensor) -> torch.Tensor:
-    """(C, 2) ``n`` turned a quarter to the left: ``w x (r n) = r w perp(n)`` in 2-D."""
-    return torch.stack([-n[:, 1], n[:, 0]], -1)
-
-
-def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """(C,) the 2-D cross product ``a x b``."""
-    return a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-
-
 class SoftContactHead(nn.Module):
     """Positions and velocity window of a granular scene's graph -> the finite-difference
     acceleration (N, D, physical units); no contact logits (``None``)."""
@@ -145,12 +134,6 @@ class SoftContactHead(nn.Module):
         self.pair = ContactLaw(self.substeps, energy)
         self.wall = ContactLaw(self.substeps, energy)
         self.log_mass = nn.Parameter(torch.zeros(max(1, meta.n_types)))
-        # where a contact starts pushing, as a share of its distance (SLOP_RANGE * tanh): an
-        # engine may let touching bodies overlap a little without pushing them apart (pymunk's
-        # collision slop), which a spring from the first overlap on turns into a push
-        self.slop = nn.Parameter(torch.zeros(()))
-        # the discs' moment of inertia kappa m r^2, kappa = sigmoid (a solid disc: 1/2)
-        self.inertia = nn.Parameter(torch.zeros(()))
         # gravity in units of box / frame^2 scaled by 1e-3, drag in 1e-3 per frame: the
         # optimiser's steps then move them at a sensible pace
         self.field = nn.Parameter(torch.zeros(meta.dim))
@@ -169,25 +152,21 @@ class SoftContactHead(nn.Module):
         self.pair_reach.copy_(torch.as_tensor(pair, dtype=self.pair_reach.dtype))
         self.wall_reach.copy_(torch.as_tensor(wall, dtype=self.wall_reach.dtype))
 
-    def reach(self, g: Graph) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Per edge and per disc: the contact distance of the pair and to a wall, and the
-        disc's radius; the radii where the graph has them (all positive), else the measured
-        distances."""
+    def reach(self, g: Graph) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per edge and per disc: the contact distance of the pair and to a wall, the radii
+        where the graph has them (all positive), else the measured ones."""
         snd, rcv = g.edge_index
         if g.radius is not None and bool((g.radius > 0).all()):
-            return g.radius[rcv] + g.radius[snd], g.radius, g.radius
+            return g.radius[rcv] + g.radius[snd], g.radius
         if torch.isnan(self.wall_reach).all():
             raise ValueError("the soft-contact head has no contact distances: the data give "
                              "no radii and none were measured (set before training's first "
                              "step)")
         pair = self.pair_reach.to(g.pos.dtype)
         wall = self.wall_reach.to(g.pos.dtype)
-        # a pair of types never seen close never touches: distance 0; a particle's radius (its
-        # lever arm for friction's torque) its distance to a wall, else half its own pair's
-        own = torch.where(torch.isnan(wall), 0.5 * torch.diagonal(pair), wall)
+        # a pair of types never seen close never touches: distance 0
         return (torch.nan_to_num(pair[g.types[rcv], g.types[snd]], nan=0.0),
-                torch.nan_to_num(wall[g.types], nan=0.0),
-                torch.nan_to_num(own[g.types], nan=0.0))
+                torch.nan_to_num(wall[g.types], nan=0.0))
 
     def uniform(self, dt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The learned uniform acceleration (., D) and drag rate (.,) for frame spacings
@@ -195,113 +174,85 @@ class SoftContactHead(nn.Module):
         g = 1e-3 * self.box * self.field / (dt * dt)[..., None]
         return g, 1e-3 * self.drag / dt
 
-    def acceleration(self, g: Graph, x: torch.Tensor, v: torch.Tensor, w: torch.Tensor,
-                     h: torch.Tensor, reach: tuple[torch.Tensor, ...],
-                     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Every disc's acceleration (N, D) and angular acceleration (N,; 2-D, else zeros) at
-        positions ``x``, velocities ``v`` and spins ``w`` for substeps of ``h`` (N,): pair and
-        wall contacts (at the distances ``reach``), the field and the drag. A contact slides
-        at the velocity of its contact point (spin included), and its tangential force turns
-        the disc: ``alpha = -(n x a_t) / (kappa r)`` for a disc of moment ``kappa m r^2``."""
+    def acceleration(self, g: Graph, x: torch.Tensor, v: torch.Tensor, h: torch.Tensor,
+                     reach: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+        """(N, D) every disc's acceleration at positions ``x`` and velocities ``v`` for
+        substeps of ``h`` (N,): pair and wall contacts (at the distances ``reach``), the field
+        and the drag."""
         snd, rcv = g.edge_index
         dt = g.dt.to(x.dtype)[g.batch]
         field, drag = self.uniform(dt)
         acc = field - drag[:, None] * v
-        alpha = torch.zeros_like(w)
-        spin = x.shape[1] == 2
-        radius = reach[2]
-        lever = self.inertia_share() * radius.clamp_min(TINY)
         # pairs, each edge from its receiver's side (graphs are symmetric)
         dx = edge_vector(x, g)
         dist = torch.sqrt((dx * dx).sum(-1) + TINY)
-        shift = 1 - SLOP_RANGE * torch.tanh(self.slop)
-        delta = reach[0] * shift - dist
+        delta = reach[0] - dist
         near = (delta > 0).nonzero()[:, 0]
         if len(near):
             r, s = rcv[near], snd[near]
             normal = dx[near] / dist[near, None]
             share = torch.sigmoid(self.log_mass[g.types[s]] - self.log_mass[g.types[r]])
-            dv = v[r] - v[s]
-            if spin:   # the contact points' velocities: v - r w perp(n) and v + r w perp(n)
-                dv = dv - ((radius[r] * w[r] + radius[s] * w[s])[:, None] * _perp(normal))
-            a = share[:, None] * contact_acceleration(delta[near], normal, dv,
-                                                      self.pair.constants(h[r]))
-            acc = acc.index_add(0, r, a)
-            if spin:
-                alpha = alpha.index_add(0, r, -_cross(normal, a) / lever[r])
+            a = contact_acceleration(delta[near], normal, v[r] - v[s],
+                                     self.pair.constants(h[r]))
+            acc = acc.index_add(0, r, share[:, None] * a)
         if g.wall is None:                     # no walls (an open or periodic scene)
-            return acc, alpha
+            return acc
         # walls: per axis the lower (normal +e) and the upper (normal -e) plane
         low, high = walls(g)
         dim = x.shape[1]
         for side, normal_sign in ((x - low, 1.0), (high - x, -1.0)):
-            delta_w = (reach[1] * shift)[:, None] - side                           # (N, D)
+            delta_w = reach[1][:, None] - side                           # (N, D)
             disc, axis = (delta_w > 0).nonzero().unbind(1)
             if not len(disc):
                 continue
             normal = normal_sign * F.one_hot(axis, dim).to(x.dtype)
-            dv = v[disc]
-            if spin:
-                dv = dv - (radius[disc] * w[disc])[:, None] * _perp(normal)
-            a = contact_acceleration(delta_w[disc, axis], normal, dv,
+            a = contact_acceleration(delta_w[disc, axis], normal, v[disc],
                                      self.wall.constants(h[disc]))
             acc = acc.index_add(0, disc, a)
-            if spin:
-                alpha = alpha.index_add(0, disc, -_cross(normal, a) / lever[disc])
-        return acc, alpha
+        return acc
 
-    def inertia_share(self) -> torch.Tensor:
-        """``kappa`` of the discs' moment of inertia ``kappa m r^2`` (a solid disc 1/2)."""
-        return torch.sigmoid(self.inertia)
-
-    def frame(self, g: Graph, x: torch.Tensor, v: torch.Tensor, w: torch.Tensor,
-              dt: torch.Tensor, reach: tuple[torch.Tensor, ...],
-              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """One frame from positions ``x``, velocities ``v`` and spins ``w`` over ``substeps``
-        semi-implicit Euler steps: the displacement (kept apart from ``x``: float32 keeps a
-        small step exact), the velocity and the spin at the frame's end."""
+    def frame(self, g: Graph, x: torch.Tensor, v: torch.Tensor, dt: torch.Tensor,
+              reach: tuple[torch.Tensor, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        """One frame from positions ``x`` and velocities ``v`` over ``substeps`` semi-implicit
+        Euler steps: the displacement (kept apart from ``x``: float32 keeps a small step exact)
+        and the velocity at the frame's end."""
         h = dt / self.substeps
         moved = torch.zeros_like(x)
         for _ in range(self.substeps):
-            a, alpha = self.acceleration(g, x + moved, v, w, h, reach)
-            v = v + h[:, None] * a
-            w = w + h * alpha
+            v = v + h[:, None] * self.acceleration(g, x + moved, v, h, reach)
             moved = moved + h[:, None] * v
-        return moved, v, w
+        return moved, v
 
-    def velocity(self, g: Graph, dt: torch.Tensor, reach: tuple[torch.Tensor, ...],
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The velocity and spin at frame t. A backward difference is its frame's mean
-        velocity: where a contact changed the velocity within the frame it is neither the
-        velocity before nor after, and a model fed it learns contacts that create energy (they
-        must push apart discs whose input says they barely separate). So the window's last
-        ``replay`` frames are replayed as the impulse head does: each from the recorded
-        position with the velocity so far, and the velocity at its end is the recorded mean
-        velocity plus what the head's own frame changed after its mean (``v_end - moved /
-        dt``). The files hold no spin: it starts at 0 ``replay`` frames back and is what the
-        replayed contacts gave. Without gradients: the replay corrects an input."""
+    def velocity(self, g: Graph, dt: torch.Tensor, reach: tuple[torch.Tensor, torch.Tensor],
+                 ) -> torch.Tensor:
+        """The velocity at frame t. A backward difference is its frame's mean velocity: where
+        a contact changed the velocity within the frame it is neither the velocity before nor
+        after, and a model fed it learns contacts that create energy (they must push apart
+        discs whose input says they barely separate). So the window's last ``replay`` frames
+        are replayed as the impulse head does: each from the recorded position with the
+        velocity so far, and the velocity at its end is the recorded mean velocity plus what
+        the head's own frame changed after its mean (``v_end - moved / dt``). Without
+        gradients: the replay corrects an input."""
         depth = min(self.replay, g.vel.shape[1] - 1)
         x = g.pos - (g.vel[:, :depth] * dt[:, None, None]).sum(1)       # x[t - depth]
         back = g.vel[:, depth]
-        h = dt / self.substeps
-        w = back.new_zeros(back.shape[0])
         with torch.no_grad():
-            v = back + 0.5 * dt[:, None] * self.acceleration(g, x, back, w, h, reach)[0]
+            h = dt / self.substeps
+            v = back + 0.5 * dt[:, None] * self.acceleration(g, x, back, h, reach)
             for j in range(depth, 0, -1):
-                moved, end, w = self.frame(g, x, v, w, dt, reach)
+                moved, end = self.frame(g, x, v, dt, reach)
                 x = x + g.vel[:, j - 1] * dt[:, None]
                 v = g.vel[:, j - 1] + (end - moved / dt[:, None])
         if depth:
-            return v, w
-        return back + 0.5 * dt[:, None] * self.acceleration(g, g.pos, back, w, h, reach)[0], w
+            return v
+        return back + 0.5 * dt[:, None] * self.acceleration(g, g.pos, back, h, reach)
 
     def forward(self, g: Graph) -> tuple[torch.Tensor, None]:
         if g.dt is None:
             raise ValueError("the soft-contact head needs the frame spacing: the graph has no dt")
         dt = g.dt.to(g.pos.dtype)[g.batch]
         reach = self.reach(g)
-        v, w = self.velocity(g, dt, reach)
-        moved, _, _ = self.frame(g, g.pos, v, w, dt, reach)
+        moved, _ = self.frame(g, g.pos, self.velocity(g, dt, reach), dt, reach)
         # (x[t+1] - 2 x[t] + x[t-1]) / dt^2
         return (moved / dt[:, None] - g.vel[:, 0]) / dt[:, None], None
 

@@ -335,13 +335,16 @@ def table(files: list[str | Path], results_md: str | Path | None = None,
     with ``results_md`` also written, with ``command`` (as typed) and the commit, into that
     file's block ``<!-- generated:balance:... -->`` (docs/results.md, "What the data
     conserve")."""
+    import math
     import platform
     import time
 
+    from bgn.data.contacts import closest_approach, free_flight
     from bgn.data.files import DatasetFile
 
     lines = ["| file | simulations x frames | momentum | with angular momentum | law of the "
-             "distance / with velocity | verdict | seconds |", "|---|---|---|---|---|---|---|"]
+             "distance / with velocity | verdict | free flight beside contacts | seconds |",
+             "|---|---|---|---|---|---|---|---|"]
     for path in files:
         start = time.perf_counter()
         f = DatasetFile(path)
@@ -354,10 +357,18 @@ def table(files: list[str | Path], results_md: str | Path | None = None,
             val.close()
             speed = v.reason or f"{_show(v.distance)} / {_show(v.velocity)}"
             verdict = verdict or v.breaks()
+        # soft contacts' evidence (bgn.data.contacts): what particles touching nothing leave
+        # unexplained by a uniform field and drag
+        cutoff = getattr(f.meta, "connectivity_radius", None) or math.inf
+        flight = free_flight(f, f.meta, closest_approach(f, f.meta, cutoff), cutoff)
+        contacts = (flight.reason if flight.residual is None else
+                    f"{_show(flight.residual)}: "
+                    + ("velocities change only at contact" if not flight.breaks()
+                       else "forces reach beyond contact"))
         f.close()
         verdict = verdict or "balanced: central pair forces can make them"
         lines.append(f"| {path} | {b.sims} x {b.frames} | {_show(b.linear)} | "
-                     f"{_show(b.angular)} | {speed} | {verdict} | "
+                     f"{_show(b.angular)} | {speed} | {verdict} | {contacts} | "
                      f"{time.perf_counter() - start:.2g} |")
     text = "\n".join(lines)
     if results_md:

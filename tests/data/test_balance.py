@@ -260,6 +260,7 @@ def test_the_command_tabulates_each_file(tmp_path, capsys):
     paths = from_arrays(x, 0.02, name="pulled", data_dir=tmp_path)
     table = main([str(paths["train"])])
     assert table.count("\n") == 2 and "total momentum changes" in table
+    assert "free flight beside contacts" in table.splitlines()[0]      # soft contacts' evidence
     # the validation split beside it: the velocity test's two errors
     assert " / " in table.splitlines()[-1]
     relative = str(paths["val"].relative_to(tmp_path))

@@ -335,11 +335,10 @@ def table(files: list[str | Path], results_md: str | Path | None = None,
     with ``results_md`` also written, with ``command`` (as typed) and the commit, into that
     file's block ``<!-- generated:balance:... -->`` (docs/results.md, "What the data
     conserve")."""
-    import math
     import platform
     import time
 
-    from bgn.data.contacts import closest_approach, free_flight
+    from bgn.data.contacts import closest_approach, contact_cutoff, free_flight
     from bgn.data.files import DatasetFile
 
     lines = ["| file | simulations x frames | momentum | with angular momentum | law of the "
@@ -359,7 +358,7 @@ def table(files: list[str | Path], results_md: str | Path | None = None,
             verdict = verdict or v.breaks()
         # soft contacts' evidence (bgn.data.contacts): what particles touching nothing leave
         # unexplained by a uniform field and drag
-        cutoff = getattr(f.meta, "connectivity_radius", None) or math.inf
+        cutoff = contact_cutoff(f.meta)
         flight = free_flight(f, f.meta, closest_approach(f, f.meta, cutoff), cutoff)
         contacts = (flight.reason if flight.residual is None else
                     f"{_show(flight.residual)}: "

@@ -69,6 +69,12 @@ class FreeFlight:
         return ""
 
 
+def contact_cutoff(meta: Any) -> float:
+    """How far to look for contacts: the graph's connectivity radius (every pair on a
+    complete graph)."""
+    return float(getattr(meta, "connectivity_radius", None) or np.inf)
+
+
 def _frames(file: Any, sims: int, frames: int) -> list[np.ndarray]:
     """(T, N, D) positions of ``sims`` evenly spaced simulations, ``frames`` consecutive each."""
     from bgn.data.frames import evenly_spaced

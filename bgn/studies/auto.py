@@ -58,7 +58,13 @@ from bgn.data.balance import (
     momentum_balance,
     velocity_dependence,
 )
-from bgn.data.contacts import FREE_RESIDUAL_MAX, FreeFlight, closest_approach, free_flight
+from bgn.data.contacts import (
+    FREE_RESIDUAL_MAX,
+    FreeFlight,
+    closest_approach,
+    contact_cutoff,
+    free_flight,
+)
 from bgn.metrics import SHORT_HORIZON, rollout_scores
 from bgn.sim.scene import SceneMeta
 from bgn.training.budget import Deadline, clock_text, received
@@ -477,7 +483,7 @@ def velocity_lines(velocity: Mapping[str, Any] | None) -> list[str]:
 def contact_evidence(file: Any, meta: SceneMeta) -> FreeFlight:
     """``bgn.data.contacts.free_flight`` of a training file at its closest approaches, within
     the graph's connectivity radius (every pair on a complete graph)."""
-    cutoff = getattr(meta, "connectivity_radius", None) or math.inf
+    cutoff = contact_cutoff(meta)
     return free_flight(file, meta, closest_approach(file, meta, cutoff), cutoff)
 
 

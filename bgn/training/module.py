@@ -16,7 +16,6 @@ them the module uses ``DEFAULT_OPTIMIZER`` and ``reduce_on_plateau`` on val/nmse
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Callable, Iterable, Mapping
 from functools import partial
 from itertools import islice
@@ -260,7 +259,7 @@ class PhysicsModule(L.LightningModule):
         """The soft-contact head's contact distances, the closest approaches in the training
         split (``bgn.data.contacts.closest_approach``), before a fresh run's first step: used
         where the data give no radii."""
-        from bgn.data.contacts import closest_approach
+        from bgn.data.contacts import closest_approach, contact_cutoff
 
         head = getattr(self.model, "force_head", None)
         datamodule = getattr(self.trainer, "datamodule", None)
@@ -269,7 +268,7 @@ class PhysicsModule(L.LightningModule):
             return
         meta = datamodule.meta
         approach = closest_approach(datamodule.datasets["train"].file, meta,
-                                    getattr(meta, "connectivity_radius", None) or math.inf)
+                                    contact_cutoff(meta))
         head.set_reach(approach.pair, approach.wall)
         log.info("soft contacts: closest approaches in the training split, per pair of types "
                  "%s, per type to a wall %s (the contact distances where the data give no "

@@ -456,8 +456,9 @@ def test_auto_picks_the_structure_spring_was_made_with(tmp_path, shared_data_dir
     # the pair-force head, or its law as a formula (fine-tuned from it)
     assert record["choice"] in ("newton_inertial", "formula_newton_inertial")
     rows = {c["candidate"]: c for c in record["candidates"]}
-    assert set(rows) == {"decoder", *PAIR_FORCE, "impulse", "formula_newton_inertial"}
-    assert not rows["impulse"]["admitted"]
+    assert set(rows) == {"decoder", *PAIR_FORCE, "impulse", "soft_contact",
+                         "formula_newton_inertial"}
+    assert not rows["impulse"]["admitted"] and not rows["soft_contact"]["admitted"]
     assert all(rows[n]["steps"] == 120 for n in ("decoder", *PAIR_FORCE))  # 600 steps / 5
     inertial = rows["newton_inertial"]["val_err@50"]
     # spring's masses differ: neither masses at the source nor one mass for all make it
@@ -671,7 +672,7 @@ def test_every_candidate_is_named_by_its_models_description(tiny_auto):
 
     record = json.loads((tiny_auto / "auto" / "auto.json").read_text())
     rows = {c["candidate"]: c for c in record["candidates"]}
-    assert set(rows) - {"decoder", *PAIR_FORCE, "impulse"} == {
+    assert set(rows) - {"decoder", *PAIR_FORCE, "impulse", "soft_contact"} == {
         n for n in rows if n.startswith("formula_")}
     for name, row in rows.items():
         if not row["admitted"]:

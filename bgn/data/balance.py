@@ -263,9 +263,9 @@ def velocity_dependence(train: Any, val: Any, meta: Any, sims: int = SIMS,
     span = min(frames, max(5, PAIR_FRAMES // max(pairs, 1)), train.n_frames, val.n_frames)
     if span < 5:
         return VelocityDependence(None, None, 0, 0, "fewer than 5 frames")
-    cutoff = np.inf
-    if meta.graph == "radius":
-        cutoff = float(train.margin) + 2 * float(np.max(train.read("radii", ...), initial=0.0))
+    from bgn.data.contacts import contact_cutoff
+
+    cutoff = contact_cutoff(train)
     files = {"train": train, "val": val}
     reads = {name: [(s, np.asarray(f.read("positions", (s, slice(
         (f.n_frames - span) // 2, (f.n_frames - span) // 2 + span))), dtype=np.float64))
@@ -358,7 +358,7 @@ def table(files: list[str | Path], results_md: str | Path | None = None,
             verdict = verdict or v.breaks()
         # soft contacts' evidence (bgn.data.contacts): what particles touching nothing leave
         # unexplained by a uniform field and drag
-        cutoff = contact_cutoff(f.meta)
+        cutoff = contact_cutoff(f)
         flight = free_flight(f, f.meta, closest_approach(f, f.meta, cutoff), cutoff)
         contacts = (flight.reason if flight.residual is None else
                     f"{_show(flight.residual)}: "

@@ -32,6 +32,9 @@ MARGIN_QUANTILE = 0.99
 # orders above float32 rounding, below forces that reach beyond contact (docs/results.md,
 # "Granular media")
 FREE_RESIDUAL_MAX = 1e-3
+# distances along pairs read at most per file (memory: a complete graph of thousands of
+# particles has millions of pairs a frame); fewer frames are read where they are many
+PAIRS_READ = 1 << 24
 
 
 @dataclass(frozen=True)
@@ -69,17 +72,29 @@ class FreeFlight:
         return ""
 
 
-def contact_cutoff(meta: Any) -> float:
-    """How far to look for contacts: the graph's connectivity radius (every pair on a
-    complete graph)."""
-    return float(getattr(meta, "connectivity_radius", None) or np.inf)
+def contact_cutoff(file: Any) -> float:
+    """How far to look for contacts in a ``DatasetFile``: the reach of its radius graph (its
+    margin, the connectivity radius, plus the two largest radii: ``bgn.data.edges``), every
+    pair on a complete graph."""
+    if file.meta.graph != "radius":
+        return float(np.inf)
+    radii = np.asarray(file.read("radii", ...), dtype=np.float64) if "radii" in file.handle \
+        else np.zeros(1)
+    return float(file.margin) + 2.0 * float(np.max(radii, initial=0.0))
 
 
-def _frames(file: Any, sims: int, frames: int) -> list[np.ndarray]:
-    """(T, N, D) positions of ``sims`` evenly spaced simulations, ``frames`` consecutive each."""
+def _frames(file: Any, sims: int, frames: int, cutoff: float,
+            period: tuple[float, ...] | None) -> list[np.ndarray]:
+    """(T, N, D) positions of ``sims`` evenly spaced simulations, ``frames`` consecutive each
+    (at least 3): fewer where the pairs within ``cutoff`` of a frame are many (``PAIRS_READ``
+    in all)."""
     from bgn.data.frames import evenly_spaced
 
     span = min(frames, file.n_frames)
+    first = (file.n_frames - span) // 2
+    x = np.asarray(file.read("positions", (0, first)), dtype=np.float64)
+    pairs = max(1, len(_pairs(x, cutoff, period)[1]))
+    span = min(span, max(3, PAIRS_READ // (pairs * max(1, min(sims, file.n_sims)))))
     first = (file.n_frames - span) // 2
     return [np.asarray(file.read("positions", (s, slice(first, first + span))), dtype=np.float64)
             for s in evenly_spaced(file.n_sims, sims)]
@@ -134,7 +149,7 @@ def closest_approach(file: Any, meta: Any, cutoff: float, sims: int = SIMS,
     n_types = max(1, int(meta.n_types))
     pair_d: list[list[np.ndarray]] = [[] for _ in range(n_types * n_types)]
     wall_d: list[list[np.ndarray]] = [[] for _ in range(n_types)]
-    positions = _frames(file, sims, frames)
+    positions = _frames(file, sims, frames, cutoff, meta.period)
     for x, types in zip(positions, _types(file, file.n_sims, sims), strict=True):
         walls = _wall_distance(x, meta.box)
         for t, frame in enumerate(x):
@@ -158,7 +173,7 @@ def free_flight(file: Any, meta: Any, approach: Approach, cutoff: float, sims: i
     of both), one uniform field and drag fitted to all of them by least squares, and the
     share of the mean squared second difference (of every particle) they leave."""
     rows, targets, total, count = [], [], 0.0, 0
-    positions = _frames(file, sims, frames)
+    positions = _frames(file, sims, frames, cutoff, meta.period)
     dim = positions[0].shape[-1]
     for x, types in zip(positions, _types(file, file.n_sims, sims), strict=True):
         if len(x) < 3:

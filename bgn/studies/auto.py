@@ -483,7 +483,7 @@ def velocity_lines(velocity: Mapping[str, Any] | None) -> list[str]:
 def contact_evidence(file: Any, meta: SceneMeta) -> FreeFlight:
     """``bgn.data.contacts.free_flight`` of a training file at its closest approaches, within
     the graph's connectivity radius (every pair on a complete graph)."""
-    cutoff = contact_cutoff(meta)
+    cutoff = contact_cutoff(file)
     return free_flight(file, meta, closest_approach(file, meta, cutoff), cutoff)
 
 

@@ -267,8 +267,8 @@ class PhysicsModule(L.LightningModule):
                 or datamodule is None):
             return
         meta = datamodule.meta
-        approach = closest_approach(datamodule.datasets["train"].file, meta,
-                                    contact_cutoff(meta))
+        train = datamodule.datasets["train"].file
+        approach = closest_approach(train, meta, contact_cutoff(train))
         head.set_reach(approach.pair, approach.wall)
         log.info("soft contacts: closest approaches in the training split, per pair of types "
                  "%s, per type to a wall %s (the contact distances where the data give no "

@@ -100,3 +100,42 @@ def test_without_a_free_particle_there_is_no_evidence():
     flight = free_flight(data, m, closest_approach(data, m, cutoff=0.2), cutoff=0.2)
     assert flight.residual is None
     assert "no evidence" in flight.breaks()
+
+
+def test_many_pairs_read_fewer_frames_not_all_of_memory():
+    """A complete graph of many particles: the frames read shrink so the distances held stay
+    within ``PAIRS_READ`` (a 2 500-particle SPH file was killed for memory before)."""
+    from bgn.data import contacts
+
+    rng = np.random.default_rng(0)
+    many = Frames(rng.uniform(0, 1, (2, 40, 300, 2)), np.zeros((2, 300), dtype=np.int64))
+    pairs = 300 * 299 // 2
+    read = contacts._frames(many, 2, 40, np.inf, None)
+    assert [len(x) for x in read] == [40, 40]
+    old = contacts.PAIRS_READ
+    try:
+        contacts.PAIRS_READ = 10 * pairs * 2          # room for 10 frames of both simulations
+        assert [len(x) for x in contacts._frames(many, 2, 40, np.inf, None)] == [10, 10]
+        contacts.PAIRS_READ = 1                       # never fewer than a second difference's 3
+        assert [len(x) for x in contacts._frames(many, 2, 40, np.inf, None)] == [3, 3]
+    finally:
+        contacts.PAIRS_READ = old
+
+
+def test_the_cutoff_is_the_radius_graphs_reach():
+    """Contacts are looked for as far as the graph's edges reach: the connectivity radius
+    (the file's margin) plus the two largest radii, every pair on a complete graph."""
+    from bgn.data.contacts import contact_cutoff
+
+    class File:
+        def __init__(self, graph: str, radii: np.ndarray | None) -> None:
+            self.meta = SimpleNamespace(graph=graph)
+            self.margin = 0.1
+            self.handle = {} if radii is None else {"radii": radii}
+
+        def read(self, name: str, index=()):
+            return self.handle[name][index]
+
+    assert contact_cutoff(File("full", None)) == np.inf
+    assert contact_cutoff(File("radius", None)) == 0.1
+    assert contact_cutoff(File("radius", np.array([[0.02, 0.03]]))) == 0.1 + 0.06

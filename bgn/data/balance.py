@@ -181,11 +181,16 @@ def momentum_balance(file: Any, meta: Any, sims: int = SIMS, frames: int = FRAME
 
 def pair_separations(x: np.ndarray, period: Any, cutoff: float,
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Every pair (i < j) of (T, N, D) positions: i, j, the separations (T, pairs, D) by the
-    minimum image and the distances (T, pairs), zero where a pair is beyond ``cutoff``."""
+    """The pairs (i < j) of (T, N, D) positions within ``cutoff`` at any of the frames (every
+    pair where it is infinite): i, j, the separations (T, pairs, D) by the minimum image and
+    the distances (T, pairs), zero where a pair is beyond ``cutoff``."""
+    from bgn.data.contacts import pairs_within
     from bgn.data.edges import minimum_image
 
-    i, j = np.triu_indices(x.shape[1], k=1)
+    if np.isfinite(cutoff):
+        i, j = pairs_within(x, cutoff, period).T
+    else:
+        i, j = np.triu_indices(x.shape[1], k=1)
     d = minimum_image(x[:, i] - x[:, j], period)
     r = np.sqrt((d**2).sum(-1))
     return i, j, d, np.where(r <= cutoff, r, 0.0)
@@ -252,20 +257,22 @@ def velocity_dependence(train: Any, val: Any, meta: Any, sims: int = SIMS,
     ``meta``): ``sims`` evenly spaced simulations of each, consecutive frames from their
     middle (``frames``, fewer where the pairs are many), every pair of particles within the
     radius graph's reach (all pairs on a full graph); one table per pair of types."""
+    from bgn.data.contacts import contact_cutoff, pairs_within
     from bgn.data.frames import evenly_spaced
     from bgn.law_table import log_knots
 
     n = meta.n_particles
-    pairs = n * (n - 1) // 2
+    cutoff = contact_cutoff(train)
+    pairs = n * (n - 1) // 2                      # within reach of a radius graph: counted
+    if np.isfinite(cutoff):                       # at the middle frame of the first simulation
+        pairs = len(pairs_within(np.asarray(train.read("positions", (0, train.n_frames // 2)),
+                                            dtype=np.float64)[None], cutoff, meta.period))
     if pairs > PAIRS_MAX:
-        return VelocityDependence(None, None, 0, 0, f"{n} particles: more pairs than the "
-                                  f"all-pairs test reads ({PAIRS_MAX})")
+        return VelocityDependence(None, None, 0, 0, f"{n} particles, {pairs} pairs within "
+                                  f"reach: more than the pair-law test reads ({PAIRS_MAX})")
     span = min(frames, max(5, PAIR_FRAMES // max(pairs, 1)), train.n_frames, val.n_frames)
     if span < 5:
         return VelocityDependence(None, None, 0, 0, "fewer than 5 frames")
-    from bgn.data.contacts import contact_cutoff
-
-    cutoff = contact_cutoff(train)
     files = {"train": train, "val": val}
     reads = {name: [(s, np.asarray(f.read("positions", (s, slice(
         (f.n_frames - span) // 2, (f.n_frames - span) // 2 + span))), dtype=np.float64))

@@ -124,6 +124,15 @@ def _pairs(x: np.ndarray, cutoff: float, period: tuple[float, ...] | None,
     return np.stack([dist["i"][keep], dist["j"][keep]], 1), dist["v"][keep]
 
 
+def pairs_within(x: np.ndarray, cutoff: float, period: tuple[float, ...] | None,
+                 ) -> np.ndarray:
+    """(P, 2) the pairs (i < j) of (T, N, D) positions within ``cutoff`` at any of the T
+    frames, each once, sorted."""
+    found = [_pairs(frame, cutoff, period)[0] for frame in x]
+    pairs = np.unique(np.concatenate(found), axis=0) if found else np.zeros((0, 2), np.int64)
+    return pairs.reshape(-1, 2).astype(np.int64)
+
+
 def _wall_distance(x: np.ndarray, box: Any) -> np.ndarray | None:
     """(..., N) the distance of each particle to its nearest wall of the box [0, box]^D."""
     if box is None:

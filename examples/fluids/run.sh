@@ -20,7 +20,8 @@ export OMP_NUM_THREADS=1 XLA_FLAGS="--xla_cpu_multi_thread_eigen=false intra_op_
 mkdir -p "$out"
 [ -x "$peer" ] || { echo "no peer environment at ${PEER_ENV:-.venv-peer}: bash examples/fluids/setup_peer.sh" >&2; exit 2; }
 
-python -m bgn.data.import "$data" name="$name" ${IMPORT_OVERRIDES:-}
+# imported once: a rerun keeps the import (delete data/imported/<name> to redo it)
+[ -f "data/imported/$name/train.h5" ] || python -m bgn.data.import "$data" name="$name" ${IMPORT_OVERRIDES:-}
 python examples/fluids/reference_rollouts.py "$data" --out "$out/${name}_reference/rollouts.npz"
 "$peer" examples/fluids/score.py "$data" "$out/${name}_reference/rollouts.npz" \
     --json "$out/${name}_reference/score.json" >/dev/null

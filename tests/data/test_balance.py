@@ -10,6 +10,7 @@ import pytest
 
 from bgn.data.balance import (
     IMBALANCE_MAX,
+    PAIRS_MAX,
     UNEXPLAINED_MIN,
     Balance,
     VelocityDependence,
@@ -221,12 +222,41 @@ def test_velocity_dependence_on_a_radius_graph_with_two_types(tmp_path):
 
 
 def test_too_many_pairs_or_frames_leave_the_velocity_test_undone():
-    crowd = SimpleNamespace(n_particles=2000)
-    v = velocity_dependence(None, None, crowd)
-    assert v.distance is None and "more pairs" in v.reason and v.breaks() == ""
-    short = SimpleNamespace(n_frames=4)
-    v = velocity_dependence(short, short, SimpleNamespace(n_particles=5))
+    crowd = SimpleNamespace(n_particles=2000, graph="full")
+    v = velocity_dependence(SimpleNamespace(meta=crowd), None, crowd)
+    assert v.distance is None and "more than the pair-law test reads" in v.reason
+    assert v.breaks() == ""
+    few = SimpleNamespace(n_particles=5, graph="full")
+    short = SimpleNamespace(n_frames=4, meta=few)
+    v = velocity_dependence(short, short, few)
     assert v.distance is None and "fewer than 5 frames" in v.reason
+
+
+def test_a_radius_graph_counts_only_the_pairs_within_reach(tmp_path):
+    """600 particles have more pairs than the test reads, but on a radius graph only those
+    within its reach enter: sparse springs are tested (and explained by the distance)."""
+    n, reach, rng = 600, 0.5, np.random.default_rng(1)
+    assert n * (n - 1) // 2 > PAIRS_MAX
+
+    def accel(x):
+        d = x[:, None] - x[None]
+        r = np.linalg.norm(d, axis=-1) + np.eye(n)
+        f = -(r - 0.4) * (r <= reach) * (1 - np.eye(n))
+        return (f[..., None] * d / r[..., None]).sum(1)
+
+    sims = []
+    for _ in range(3):
+        x, v, out = rng.uniform(0, 30.0, (n, 2)), rng.normal(0, 0.05, (n, 2)), []
+        for _ in range(12):
+            out.append(x.copy())
+            for _ in range(5):  # velocity Verlet, 5 substeps of 0.01
+                v += 0.005 * accel(x)
+                x += 0.01 * v
+                v += 0.005 * accel(x)
+        sims.append(np.stack(out))
+    train, val = split_files(np.stack(sims), tmp_path, "sparse", connectivity_radius=reach)
+    v = velocity_dependence(train, val, train.meta)
+    assert v.reason == "" and v.distance is not None and v.distance < 1e-2
 
 
 def test_auto_refuses_the_pair_force_head_where_the_forces_depend_on_velocity():

@@ -571,7 +571,7 @@ def head_given(head: nn.Module) -> tuple[str, ...]:
     if isinstance(head, ContactImpulseHead):
         return ("radii",)
     if isinstance(head, SoftContactHead):
-        return ("radii", "types")
+        return ("radii", "types") if bool(head.radii_given) else ("types",)
     if not isinstance(head, PairForceHead):
         return ()
     return (("types",) if head.types > 1 else ()) + (
@@ -621,7 +621,8 @@ def head_label(head: nn.Module) -> str:
     if isinstance(head, ContactImpulseHead):
         return "impulse head (radii)"
     if isinstance(head, SoftContactHead):
-        return "soft-contact head (radii, types)"
+        return ("soft-contact head (radii, types)" if bool(head.radii_given) else
+                "soft-contact head (types, contact distances measured)")
     assert isinstance(head, PairForceHead)
     law = ", law a formula" if isinstance(head.force_law, FormulaLaw) else ""
     held = " held" if head.mass_law == "coupling" or (

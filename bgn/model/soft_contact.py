@@ -145,12 +145,21 @@ class SoftContactHead(nn.Module):
         # contact distances measured from the data (NaN: not measured; radii given instead)
         self.register_buffer("pair_reach", torch.full((types, types), math.nan))
         self.register_buffer("wall_reach", torch.full((types,), math.nan))
+        # whether the training data gave radii (what the model was given: its label)
+        self.register_buffer("radii_given", torch.ones((), dtype=torch.bool))
 
-    def set_reach(self, pair: Any, wall: Any) -> None:
+    def set_reach(self, pair: Any, wall: Any, radii_given: bool = True) -> None:
         """The contact distances measured from the data (``bgn.data.contacts``): per pair of
-        types (T, T) and per type to a wall (T,); NaN where never close."""
+        types (T, T) and per type to a wall (T,); NaN where never close. ``radii_given``:
+        whether the data give radii (then those are used)."""
         self.pair_reach.copy_(torch.as_tensor(pair, dtype=self.pair_reach.dtype))
         self.wall_reach.copy_(torch.as_tensor(wall, dtype=self.wall_reach.dtype))
+        self.radii_given.fill_(bool(radii_given))
+
+    def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: Any) -> None:
+        # checkpoints from before the flag: every one was trained on data with radii
+        state_dict.setdefault(prefix + "radii_given", torch.ones((), dtype=torch.bool))
+        super()._load_from_state_dict(state_dict, prefix, *args)
 
     def reach(self, g: Graph) -> tuple[torch.Tensor, torch.Tensor]:
         """Per edge and per disc: the contact distance of the pair and to a wall, the radii

@@ -269,7 +269,9 @@ class PhysicsModule(L.LightningModule):
         meta = datamodule.meta
         train = datamodule.datasets["train"].file
         approach = closest_approach(train, meta, contact_cutoff(train))
-        head.set_reach(approach.pair, approach.wall)
+        radii = (np.asarray(train.read("radii", ...)) if "radii" in train.handle
+                 else np.zeros(1))
+        head.set_reach(approach.pair, approach.wall, radii_given=bool((radii > 0).all()))
         log.info("soft contacts: closest approaches in the training split, per pair of types "
                  "%s, per type to a wall %s (the contact distances where the data give no "
                  "radii)", *approach.as_dict().values())

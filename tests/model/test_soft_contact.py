@@ -129,3 +129,20 @@ def test_without_radii_the_measured_distances_are_used_and_their_absence_named()
     with_radii, _ = h(graph(window, [0.02, 0.03], [0, 1]))
     measured, _ = h(g)
     torch.testing.assert_close(measured, with_radii)
+
+
+def test_the_label_says_whether_radii_were_given_and_old_checkpoints_load():
+    """What the model was given: radii where the data have them, else the contact distances
+    it measured; a state saved before the flag (all trained on data with radii) still loads."""
+    from bgn.model.newton import head_given, head_label
+
+    h = head()
+    assert head_given(h) == ("radii", "types") and "(radii, types)" in head_label(h)
+    h.set_reach([[0.04, 0.05], [0.05, 0.06]], [0.02, 0.03], radii_given=False)
+    assert head_given(h) == ("types",) and "contact distances measured" in head_label(h)
+    state = h.state_dict()
+    del state["radii_given"]
+    old = head()
+    old.load_state_dict(state)
+    assert bool(old.radii_given)
+    torch.testing.assert_close(old.pair_reach, h.pair_reach)

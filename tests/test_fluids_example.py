@@ -116,3 +116,33 @@ def test_the_reference_keeps_each_particles_last_velocity_across_the_periodic_bo
     offset = predicted - truth
     np.testing.assert_allclose(offset - np.round(offset), 0.0, atol=1e-5)   # up to whole boxes
     assert np.abs(offset).max() > 0.5                                      # some did wrap
+
+
+def test_the_speed_table_finds_where_the_measured_scalings_cross(tmp_path):
+    """speed.py's table: seconds per unit simulated time from each side's rows, power fits in
+    logs, the count where they cross; a one-count case takes another's exponents."""
+    import json
+
+    spec = importlib.util.spec_from_file_location("speed", SCRIPT.with_name("speed.py"))
+    speed = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(speed)
+    n = np.array([2500, 10000, 22500])
+    engine = [{"particles": int(k), "dt": 1e-3, "seconds_per_step": 1e-7 * k} for k in n]
+    learned = [{"particles": int(k), "dt_frame": 0.1, "seconds_per_frame": 1e-2 * k ** 0.5}
+               for k in n]
+    (tmp_path / "tgv_speed_engine.json").write_text(json.dumps({"rows": engine}))
+    (tmp_path / "tgv_speed_bgn.json").write_text(json.dumps({"rows": learned}))
+    for seed, mse in enumerate((1e-3, 3e-3)):
+        (tmp_path / f"tgv_bgn_s{seed}").mkdir()
+        (tmp_path / f"tgv_bgn_s{seed}" / "score.json").write_text(json.dumps({"mse20": mse}))
+    # engine 1e-4 N, bgn 0.1 N^0.5 per unit time: equal at N = 1e6, bgn cheaper above
+    text = speed.table(tmp_path, "tgv", None)
+    assert "1,000,000 particles (bgn cheaper above)" in text and "over 2 seeds" in text
+    assert "| 2500 | 0.25 | 5 | 0.05 |" in text
+    for ext in ("md", "csv", "png"):
+        assert (tmp_path / f"tgv_speed.{ext}").is_file()
+    # one count, the tgv exponents: the same costs at 2500 particles give the same crossover
+    (tmp_path / "dam_speed_engine.json").write_text(json.dumps({"rows": engine[:1]}))
+    (tmp_path / "dam_speed_bgn.json").write_text(json.dumps({"rows": learned[:1]}))
+    text = speed.table(tmp_path, "dam", "tgv")
+    assert "1,000,000 particles (bgn cheaper above) (scaling exponents measured on tgv)" in text

@@ -60,10 +60,11 @@ CONNECTIVITY = 1.45          # LagrangeBench's default connectivity radius, in u
 
 
 def simulate(case: str, seed: int, dx: float, write_every: int, rng: np.random.Generator,
-             t_end: float | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
+             t_end: float | None = None, tiles: int = 1) -> tuple[np.ndarray, np.ndarray, dict]:
     """One trajectory: positions every ``write_every`` engine steps, the particle types, and
-    what the engine reports (its step, the box, seconds per step after compilation)."""
-    cfg = config(case, seed, dx, rng)
+    what the engine reports (its step, the box, seconds per step after compilation).
+    ``tiles``: ``sph_cases.config``'s."""
+    cfg = config(case, seed, dx, rng, tiles)
     if t_end is not None:
         cfg.solver.t_end = t_end
     setup = CASES[case](cfg)

@@ -58,3 +58,18 @@ PY
   done
 done
 python examples/fluids/summary.py "$out" "$name"
+
+# speed against error against the engine (speed.py), one thread each: the engine at its step,
+# the first seed's bgn at its frame spacing; the periodic case tiled to 1, 4 and 9 times its
+# particles, a walled case at its own count with the periodic case's exponents where measured
+seeds=(${SEEDS:-0 1 2})
+first="$out/${name}_bgn_s${seeds[0]}"
+case=$(python -c "import json, sys; print(json.load(open(sys.argv[1]))['case'])" "$data/metadata.json")
+tiles="1"; borrow=()
+if [ "$case" = tgv ]; then tiles="1 2 3"
+elif [ -f "$out/sph_tgv_speed_fit.json" ]; then borrow=(--exponents-from sph_tgv); fi
+[ -f "$out/${name}_speed_engine.json" ] || "$peer" examples/fluids/speed.py engine "$case" \
+    --tiles $tiles --json "$out/${name}_speed_engine.json"
+[ -f "$out/${name}_speed_bgn.json" ] || python examples/fluids/speed.py learned "$first" "$data" \
+    --tiles $tiles --json "$out/${name}_speed_bgn.json"
+python examples/fluids/speed.py table "$out" "$name" "${borrow[@]}"

@@ -35,10 +35,13 @@ class TGV(SimulationSetup):
     def __init__(self, cfg: DictConfig):
         super().__init__(cfg)
         self.phase = jnp.asarray(cfg.case.special.phase, dtype=float)
+        # tiles x tiles periods of the vortex in a box as many units wide (the same flow,
+        # tiles^2 times the particles: speed.py's scaling)
+        self.tiles = int(cfg.case.special.get("tiles", 1))
         self.offset_vec = np.zeros(2)
 
     def _box_size2D(self, n_walls):
-        return np.array([1.0, 1.0])
+        return np.array([1.0, 1.0]) * self.tiles
 
     def _box_size3D(self, n_walls):
         raise NotImplementedError("2D only")
@@ -112,9 +115,12 @@ class DAM(SimulationSetup):
 CASES = {"tgv": TGV, "dam": DAM}
 
 
-def config(case: str, seed: int, dx: float, rng: np.random.Generator) -> DictConfig:
+def config(case: str, seed: int, dx: float, rng: np.random.Generator,
+           tiles: int = 1) -> DictConfig:
     """JAX-SPH's configuration for one trajectory of ``case``; what varies per trajectory is
-    drawn from ``rng``."""
+    drawn from ``rng``. ``tiles`` > 1 (tgv only): the periodic box that many units wide."""
+    if tiles != 1 and case != "tgv":
+        raise ValueError(f"tiles={tiles}: only the periodic tgv case tiles")
     cfg = set_defaults()
     cfg.config = f"{case}.yaml"            # JAX-SPH names the case after its config file
     cfg.seed = seed
@@ -127,6 +133,7 @@ def config(case: str, seed: int, dx: float, rng: np.random.Generator) -> DictCon
         cfg.case.viscosity = 0.01          # Re = 100 with U = L = 1
         cfg.case.u_ref = 1.0
         cfg.case.special.phase = rng.uniform(0.0, 1.0, 2).tolist()
+        cfg.case.special.tiles = int(tiles)
         cfg.solver.tvf = 1.0
         cfg.solver.t_end = 5.0
         cfg.solver.n_walls = 0

@@ -58,6 +58,8 @@ def refused(config: str, *overrides: str) -> str:
     (["model.dynamics=soft_contact", "model.contact_energy=foo"],
      ["model.contact_energy='foo'", "'lose', 'any'"]),
     (["model.dynamics=soft_contact", "model.contact_substeps=0"], ["contact_substeps=0"]),
+    (["model.dynamics=soft_contact", "model.contact_calibration=yes"],
+     ["model.contact_calibration='yes'", "'rollout', 'none'"]),
 ])
 def test_train_config_refused_with_one_line(overrides, expected):
     message = refused("train", *overrides)

@@ -73,7 +73,7 @@ from bgn.model.impulse import ContactImpulseHead
 from bgn.model.message_passing import edge_vector
 from bgn.model.normalizer import Normalizer
 from bgn.model.ops import activation, mlp, scatter_sum
-from bgn.model.soft_contact import CONTACT_ENERGY, SoftContactHead
+from bgn.model.soft_contact import CONTACT_CALIBRATION, CONTACT_ENERGY, SoftContactHead
 from bgn.model.target_coder import observed_targets
 from bgn.sim.scene import SceneMeta
 
@@ -152,10 +152,16 @@ class NewtonOptions(ForceLawOptions):
     contact_substeps: int = 10
     # its contacts' damping: lose (>= 0: a contact never creates energy) | any (either sign)
     contact_energy: str = "lose"
+    # after the fit: rollout (its damping set on rollouts of the training split,
+    # bgn.training.calibrate) | none
+    contact_calibration: str = "rollout"
 
     def __post_init__(self) -> None:
         super().__post_init__()
         check_positive_ints(self, ("contact_substeps",))
+        if self.contact_calibration not in CONTACT_CALIBRATION:
+            raise ValueError(f"contact_calibration={self.contact_calibration!r}; choose one "
+                             f"of {CONTACT_CALIBRATION}")
         if self.contact_energy not in CONTACT_ENERGY:
             raise ValueError(f"contact_energy={self.contact_energy!r}; choose one of "
                              f"{CONTACT_ENERGY}")

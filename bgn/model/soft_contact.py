@@ -51,6 +51,9 @@ OMEGA_H_MAX = 1.5         # semi-implicit Euler is stable for omega h < 2 (undam
 # the damping's sign: "lose" (>= 0, the default: chosen on validation rollouts, docs/results.md
 # "Granular media") or "any" (a contact may also create energy)
 CONTACT_ENERGY = ("lose", "any")
+# after the fit: "rollout" sets the damping on rollouts of the training split (the default:
+# chosen on validation, docs/results.md "Granular media"; bgn.training.calibrate) or "none"
+CONTACT_CALIBRATION = ("rollout", "none")
 # starting values: a contact lasts about one frame (omega = pi / dt), damping ratio 0.1
 # (restitution 0.73), tangential damping a twentieth of the substep's limit, mu 0.5
 START_ZETA, START_TANGENT, START_MU = 0.1, 0.05, 0.5
@@ -90,6 +93,17 @@ class ContactLaw(nn.Module):
         omega = OMEGA_H_MAX * torch.sigmoid(self.stiffness) / h
         return (omega * omega, 2 * self.zeta() * omega, torch.sigmoid(self.tangent) / h,
                 F.softplus(self.friction))
+
+    @torch.no_grad()
+    def set_zeta(self, zeta: float) -> None:
+        """Set the damping ratio (> 0 with ``energy="lose"``; the rollout calibration,
+        ``bgn.training.calibrate``)."""
+        if self.energy == "lose":
+            if not zeta > 0:
+                raise ValueError(f"a dissipative contact's damping ratio must be > 0; got {zeta}")
+            self.damping.fill_(_softplus_inverse(float(zeta)))
+        else:
+            self.damping.fill_(float(zeta))
 
     def zeta(self) -> torch.Tensor:
         """The damping ratio."""

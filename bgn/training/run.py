@@ -255,6 +255,7 @@ def train(cfg: DictConfig, spec: DatasetSpec | None = None,
 
     from bgn.coerce import ConfigError
     from bgn.training.budget import OutOfTime, clock_text, deferred, received, watch_signals
+    from bgn.training.calibrate import calibrate_checkpoint, soft_contact_head
     from bgn.training.signals import FitDeadline, SignalCheckpoint, interrupted
 
     if cfg.model.get("dynamics") == "auto":  # candidates are composed from the overrides
@@ -290,6 +291,7 @@ def train(cfg: DictConfig, spec: DatasetSpec | None = None,
     trainer: L.Trainer | None = None
     law_record: dict[str, Any] = {}
     law_match: dict[str, Any] | None = None
+    calibration: dict[str, Any] | None = None
     tested_note = ""
     fit_deadline = FitDeadline(deadline, deadline)
     try:
@@ -321,6 +323,16 @@ def train(cfg: DictConfig, spec: DatasetSpec | None = None,
             # restored with a checkpoint copied from another run (auto's formula candidate):
             # that run's best, not this one's; with no best of its own, the weights it has
             best = ""
+        if best and cfg.model.get("contact_calibration") == "rollout" \
+                and soft_contact_head(module.model) is not None:
+            # the soft-contact head's dissipation, set on training rollouts (written into
+            # the best checkpoint, which the test, the formula stage and bgn.load read)
+            phase = "the contact calibration"
+            if deadline.passed():
+                log.warning("the contact calibration was not run: the job reached its "
+                            "wall-clock cap (trainer.max_time)")
+            else:
+                calibration = calibrate_checkpoint(Path(best), datamodule.datasets["train"])
         tested, tested_ckpt = module, best or None
         # model.law=auto: the formula stage chooses on validation (train and val splits
         # only), so it runs with test=false too; the test below scores what it chose
@@ -379,6 +391,8 @@ def train(cfg: DictConfig, spec: DatasetSpec | None = None,
               "variant": module.model.describe()}  # label, given, physics written in
     if law_match:
         record["law_match"] = law_match
+    if calibration:
+        record["calibration"] = calibration
     if law_record:  # model.law=auto: which law was tested, and the validation behind it
         record["law"] = {k: law_record.get(k) for k in ("choice", "tuned", "validation",
                                                         "rollout_substeps", "path", "report",

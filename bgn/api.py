@@ -191,6 +191,15 @@ class Model:
                              f"{min_frames} frames; got shape {arr.shape}")
         if not np.all(np.isfinite(arr)):
             raise ValueError(f"{name}: positions hold NaN or inf")
+        # a periodic scene's frames may come wrapped into the box (LagrangeBench's layout,
+        # most engines): each frame joins the previous by the minimum image, as the importer
+        # does, so that no velocity spans the box
+        period = np.asarray(self.meta.period or (), dtype=np.float64)
+        if period.size and bool((period > 0).any()):
+            from bgn.data.formats import unwrap_periodic
+
+            bounds = np.column_stack([np.zeros_like(period), period])
+            arr = unwrap_periodic(arr[None], bounds, period > 0)[0]
         return arr
 
     def _particles(self, n: int, masses: Any, radii: Any, types: Any) -> Particles:

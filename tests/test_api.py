@@ -166,3 +166,22 @@ def test_a_formula_law_is_called_as_its_text_reads(run_and_data) -> None:
     text = sympy.lambdify(sympy.Symbol("r"), sympy.sympify(law.formula))
     np.testing.assert_allclose(law(r), text(r), rtol=1e-3)
     assert law.scale == "physical"
+
+
+def test_a_periodic_scenes_frames_may_come_wrapped_into_the_box() -> None:
+    """Frames wrapped into a periodic box (LagrangeBench's layout) are joined by the minimum
+    image before the model reads them: no velocity spans the box; open dimensions and open
+    scenes are left as given."""
+    from bgn.sim.scene import SceneMeta
+
+    model = api.Model.__new__(api.Model)
+    model.meta = SceneMeta(name="box", dim=2, n_particles=1, n_types=1,
+                           interaction="pairwise", target="acceleration", graph="radius",
+                           box=1.0, period=(1.0, 0.0))
+    moving = np.array([[[0.95, 0.5]], [[0.99, 0.7]], [[1.03, 0.9]], [[1.07, 1.1]]])
+    wrapped = moving.copy()
+    wrapped[..., 0] %= 1.0                                    # x wraps, y (open) does not
+    np.testing.assert_allclose(model._positions("window", wrapped, 2), moving, atol=1e-12)
+    model.meta = SceneMeta(name="open", dim=2, n_particles=1, n_types=1,
+                           interaction="pairwise", target="acceleration", graph="full")
+    np.testing.assert_array_equal(model._positions("window", wrapped, 2), wrapped)

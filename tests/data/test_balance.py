@@ -153,6 +153,28 @@ def test_auto_refuses_the_pair_force_head_where_the_data_do_not_balance():
                if c.name.startswith("newton"))
 
 
+def springs_within(x: np.ndarray, v: np.ndarray, stiff, rest: float, reach: float,
+                   frames: int, substeps: int, h: float) -> np.ndarray:
+    """(frames, N, D) positions of springs ``-stiff (r - rest)`` between every pair closer
+    than ``reach`` (unit masses), velocity Verlet with ``substeps`` steps of ``h`` a frame."""
+    n = len(x)
+
+    def accel(y: np.ndarray) -> np.ndarray:
+        d = y[:, None] - y[None]
+        r = np.linalg.norm(d, axis=-1) + np.eye(n)
+        f = -stiff * (r - rest) * (r <= reach) * (1 - np.eye(n))
+        return (f[..., None] * d / r[..., None]).sum(1)
+
+    x, v, out = x.copy(), v.copy(), []
+    for _ in range(frames):
+        out.append(x.copy())
+        for _ in range(substeps):
+            v += 0.5 * h * accel(x)
+            x += h * v
+            v += 0.5 * h * accel(x)
+    return np.stack(out)
+
+
 def split_files(x: np.ndarray, tmp_path, name: str, **arrays) -> tuple:
     from bgn.data import from_arrays
     from bgn.data.files import DatasetFile
@@ -198,22 +220,8 @@ def test_velocity_dependence_on_a_radius_graph_with_two_types(tmp_path):
     stiff = np.array([[1.0, 2.0], [2.0, 3.0]])[types[:, None], types[None]]
     reach = 1.5
 
-    def accel(x):
-        d = x[:, None] - x[None]
-        r = np.linalg.norm(d, axis=-1) + np.eye(n)
-        f = -stiff * (r - 1.0) * (r <= reach) * (1 - np.eye(n))
-        return (f[..., None] * d / r[..., None]).sum(1)
-
-    sims = []
-    for _ in range(5):
-        x, v, out = rng.uniform(0, 2.0, (n, 2)), rng.normal(0, 0.3, (n, 2)), []
-        for _ in range(100):
-            out.append(x.copy())
-            for _ in range(20):  # velocity Verlet, 20 substeps of 0.001
-                v += 0.0005 * accel(x)
-                x += 0.001 * v
-                v += 0.0005 * accel(x)
-        sims.append(np.stack(out))
+    sims = [springs_within(rng.uniform(0, 2.0, (n, 2)), rng.normal(0, 0.3, (n, 2)), stiff,
+                           1.0, reach, 100, 20, 0.001) for _ in range(5)]
     train, val = split_files(np.stack(sims), tmp_path, "typed", types=types,
                              connectivity_radius=reach)
     assert train.meta.graph == "radius" and train.meta.n_types == 2
@@ -238,22 +246,8 @@ def test_a_radius_graph_counts_only_the_pairs_within_reach(tmp_path):
     n, reach, rng = 600, 0.5, np.random.default_rng(1)
     assert n * (n - 1) // 2 > PAIRS_MAX
 
-    def accel(x):
-        d = x[:, None] - x[None]
-        r = np.linalg.norm(d, axis=-1) + np.eye(n)
-        f = -(r - 0.4) * (r <= reach) * (1 - np.eye(n))
-        return (f[..., None] * d / r[..., None]).sum(1)
-
-    sims = []
-    for _ in range(3):
-        x, v, out = rng.uniform(0, 30.0, (n, 2)), rng.normal(0, 0.05, (n, 2)), []
-        for _ in range(12):
-            out.append(x.copy())
-            for _ in range(5):  # velocity Verlet, 5 substeps of 0.01
-                v += 0.005 * accel(x)
-                x += 0.01 * v
-                v += 0.005 * accel(x)
-        sims.append(np.stack(out))
+    sims = [springs_within(rng.uniform(0, 30.0, (n, 2)), rng.normal(0, 0.05, (n, 2)), 1.0,
+                           0.4, reach, 12, 5, 0.01) for _ in range(3)]
     train, val = split_files(np.stack(sims), tmp_path, "sparse", connectivity_radius=reach)
     v = velocity_dependence(train, val, train.meta)
     assert v.reason == "" and v.distance is not None and v.distance < 1e-2

@@ -97,8 +97,7 @@ def learned(run: Path, data: Path, tiles: list[int], steps: int, split: str) -> 
         if k == 1:
             alone = out
         elif alone is not None:
-            tiled = out.reshape(steps, k * k, n, -1) - np.stack(
-                [s for s in shifts])[None, :, None]
+            tiled = out.reshape(steps, k * k, n, -1) - np.stack(shifts)[None, :, None]
             row["tile_difference"] = float(np.abs(tiled - alone[:, None]).max())
         rows.append(row)
         print(f"bgn tiles {k}: {row['particles']} particles, {seconds * 1e3:.1f} ms/frame"

@@ -822,7 +822,7 @@ def _write_formula(out: Path, checkpoint: Path, module: Any, hp: dict[str, Any],
                    record: dict[str, Any]) -> Path:
     """``formula.ckpt`` (the checkpoint with the formula law: loadable as any checkpoint) and
     ``formula.json`` (the record) in ``out``; returns the checkpoint's path."""
-    from bgn.training.checkpoints import read, write_atomic
+    from bgn.training.checkpoints import read, save_atomic, write_atomic
 
     out.mkdir(parents=True, exist_ok=True)
     ckpt = read(checkpoint)
@@ -838,9 +838,7 @@ def _write_formula(out: Path, checkpoint: Path, module: Any, hp: dict[str, Any],
             if isinstance(state.get(key), list):
                 state[key] = state[key][:1]
     ckpt["hyper_parameters"], ckpt["state_dict"] = hp, module.state_dict()
-    tmp = out / ".formula.ckpt.tmp"  # then a rename: never a half-written checkpoint
-    torch.save(ckpt, tmp)
-    tmp.replace(out / "formula.ckpt")
+    save_atomic(ckpt, out / "formula.ckpt")
     write_atomic(out / "formula.json", json.dumps(record, indent=2, default=float))
     return out / "formula.ckpt"
 

@@ -68,7 +68,7 @@ from bgn.data.contacts import (
 from bgn.metrics import SHORT_HORIZON, rollout_scores
 from bgn.sim.scene import SceneMeta
 from bgn.training.budget import Deadline, clock_text, received
-from bgn.training.checkpoints import write_atomic
+from bgn.training.checkpoints import save_atomic, write_atomic
 
 log = logging.getLogger("bgn.studies.auto")
 
@@ -799,9 +799,7 @@ def own_checkpoint(source: Path, target: Path) -> None:
 
     ckpt = torch.load(source, map_location="cpu", weights_only=True)
     ckpt["callbacks"] = {}
-    tmp = target.with_name(f".{target.name}.tmp")  # then a rename: never half written
-    torch.save(ckpt, tmp)
-    tmp.replace(target)
+    save_atomic(ckpt, target)
     source.unlink()
 
 

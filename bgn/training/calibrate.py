@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +26,7 @@ from bgn.data.dataset import FrameDataset
 from bgn.data.frames import evenly_spaced
 from bgn.model.soft_contact import SoftContactHead
 from bgn.rollout import rollout_many, rollout_starts
+from bgn.training.checkpoints import save_atomic
 
 log = logging.getLogger(__name__)
 
@@ -126,7 +126,5 @@ def calibrate_checkpoint(path: Path, dataset: FrameDataset) -> dict[str, Any]:
         if key.endswith(("pair.damping", "wall.damping")) and key in state:
             ckpt["state_dict"][key] = state[key].detach().clone()
     ckpt["calibration"] = record
-    tmp = Path(str(path) + ".part")
-    torch.save(ckpt, tmp)
-    os.replace(tmp, path)
+    save_atomic(ckpt, path)
     return record

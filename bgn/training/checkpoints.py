@@ -141,6 +141,20 @@ def write_atomic(path: str | Path, text: str) -> None:
         tmp.unlink(missing_ok=True)
 
 
+def save_atomic(obj: Any, path: str | Path) -> None:
+    """``torch.save(obj, path)`` through a temporary file and a rename, as ``write_atomic``:
+    a killed writer leaves the old checkpoint (or none), never a half-written one."""
+    import torch
+
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    try:
+        torch.save(obj, tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 def read_record(path: str | Path) -> dict[str, Any] | None:
     """The JSON record at ``path``; ``None`` when it is missing, or damaged (half-written by a
     killed writer of an older bgn, edited by hand): then a warning names the file, and the

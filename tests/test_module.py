@@ -65,3 +65,30 @@ def test_a_checkpoint_written_before_a_default_changed_keeps_its_old_value():
     assert with_changed_defaults({"name": "bgn", "mass_context": "pairs"})["mass_context"] == \
         "pairs"
     assert "mass_context" not in with_changed_defaults({"name": "gns"})
+
+
+def test_soft_contacts_without_radii_measure_their_distances_before_the_sanity_check(tmp_path):
+    """Discs whose file records no radii (a GNS-layout file): the soft-contact head's contact
+    distances are measured when the fit starts, so Lightning's sanity-check validation, which
+    runs before the first training step, already has them; the checkpoint keeps them."""
+    import torch
+
+    from bgn.data import from_arrays
+    from bgn.training.run import train
+    from tests.training.test_calibrate import DT, bouncing_discs
+
+    x = bouncing_discs(0.3, sims=5, frames=150)
+    from_arrays(x, DT, box=1.0, name="bare", data_dir=tmp_path / "data",
+                splits={"train": [0, 1, 2], "val": [3], "test": [4]})
+    cfg = compose_config("train", [
+        "dataset=imported", "dataset.name=bare", f"paths.data_dir={tmp_path / 'data'}",
+        f"paths.output_dir={tmp_path / 'out'}", "model.dynamics=soft_contact",
+        "model.contact_calibration=none", "trainer.max_steps=2", "+trainer.num_sanity_val_steps=1",
+        "rollout_steps=3", "val_rollout_steps=4", "val_rollout_sims=1", "dataset.batch_size=4",
+        "test=false"])
+    metrics = train(cfg)
+    assert np.isfinite(metrics["train/loss"])
+    state = torch.load(tmp_path / "out" / "checkpoints" / "last.ckpt", weights_only=True)
+    wall = state["state_dict"]["model.force_head.wall_reach"]  # they bounce on the floor
+    assert abs(float(wall.min()) - 0.03) < 0.003                # the discs' radius, 0.03
+    assert not bool(state["state_dict"]["model.force_head.radii_given"])

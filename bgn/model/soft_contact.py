@@ -170,6 +170,12 @@ class SoftContactHead(nn.Module):
         self.wall_reach.copy_(torch.as_tensor(wall, dtype=self.wall_reach.dtype))
         self.radii_given.fill_(bool(radii_given))
 
+    @property
+    def measured(self) -> bool:
+        """Whether contact distances were measured (``set_reach``; NaN throughout before)."""
+        return not (bool(torch.isnan(self.pair_reach).all())
+                    and bool(torch.isnan(self.wall_reach).all()))
+
     def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: Any) -> None:
         # checkpoints from before the flag: every one was trained on data with radii
         state_dict.setdefault(prefix + "radii_given", torch.ones((), dtype=torch.bool))
@@ -181,10 +187,10 @@ class SoftContactHead(nn.Module):
         snd, rcv = g.edge_index
         if g.radius is not None and bool((g.radius > 0).all()):
             return g.radius[rcv] + g.radius[snd], g.radius
-        if torch.isnan(self.wall_reach).all():
+        if not self.measured:
             raise ValueError("the soft-contact head has no contact distances: the data give "
-                             "no radii and none were measured (set before training's first "
-                             "step)")
+                             "no radii and none were measured (set when a fit starts, before "
+                             "its first validation)")
         pair = self.pair_reach.to(g.pos.dtype)
         wall = self.wall_reach.to(g.pos.dtype)
         # a pair of types never seen close never touches: distance 0

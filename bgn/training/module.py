@@ -251,20 +251,23 @@ class PhysicsModule(L.LightningModule):
     def training_step(self, g: Graph, batch_idx: int) -> torch.Tensor:
         return self._step("train", self.model.corrupt(g))  # rollout noise: training only
 
-    def on_train_start(self) -> None:
+    def on_fit_start(self) -> None:
+        # before the sanity check's validation steps, which already need the distances
         self._measure_reach()
+
+    def on_train_start(self) -> None:
         self._match_law()
 
     def _measure_reach(self) -> None:
         """The soft-contact head's contact distances, the closest approaches in the training
-        split (``bgn.data.contacts.closest_approach``), before a fresh run's first step: used
-        where the data give no radii."""
+        split (``bgn.data.contacts.closest_approach``), when a fit starts and the model has
+        none (a resumed or fine-tuned one keeps those its checkpoint holds): used where the
+        data give no radii."""
         from bgn.data.contacts import closest_approach, contact_cutoff
 
         head = getattr(self.model, "force_head", None)
         datamodule = getattr(self.trainer, "datamodule", None)
-        if (not isinstance(head, SoftContactHead) or self.global_step > 0
-                or datamodule is None):
+        if not isinstance(head, SoftContactHead) or head.measured or datamodule is None:
             return
         meta = datamodule.meta
         train = datamodule.datasets["train"].file

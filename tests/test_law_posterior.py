@@ -44,11 +44,11 @@ def spring_law(scale: float) -> str:
         {"kind": "power", "power": 1.0, "a": -2.0 * scale, "c": None}]}])
 
 
-def formula_model(scene: str, law: str, data_dir: Path):
+def formula_model(scene: str, law: str, data_dir: Path, *overrides: str):
     cfg = compose_config("train", [f"dataset={scene}", *SMALL[scene], *TINY_BGN,
                                    f"paths.data_dir={data_dir}", "figures=false",
                                    "val_rollout_steps=0", "model.law=formula",
-                                   f"model.law_formula='{law}'"])
+                                   f"model.law_formula='{law}'", *overrides])
     datamodule, module = build(cfg)
     return datamodule, module.eval()
 
@@ -100,6 +100,25 @@ def test_through_the_true_law_a_simulation_pins_its_masses_far_better_than_a_win
         assert np.isfinite(metrics[key]), key
     for key in ("coverage50", "coverage90"):
         assert 0 <= metrics[f"law_posterior/{key}"] <= 1
+
+
+def test_a_model_trained_without_masses_reads_them_through_its_law_alone(
+        shared_data_dir: Path) -> None:
+    """``ablation=unsupervised``: no flow and no loss term that reads a recorded mass; at test
+    the masses come through the learned law per simulation, scored against the recorded ones,
+    and the validation split's masses are not read even when the split is given (the scale is
+    the prior's): spring's true law at twice its scale still orders every mass."""
+    datamodule, module = formula_model("spring", spring_law(2.0), shared_data_dir,
+                                       "ablation=unsupervised")
+    assert not module.model.has_inverse and "masses" not in module.model.trained_with
+    metrics, arrays = evaluate_model(module, datamodule.datasets["test"], max_frames=4,
+                                     mass_frames=6, mass_samples=32, batch_size=3,
+                                     calibration=datamodule.datasets["val"], law_frames=10)
+    assert metrics["law_posterior/scale"] == "prior"
+    assert metrics["law_posterior/contamination"] == 0.0      # chosen on validation masses
+    assert metrics["law_posterior/relmass_r2_estimate"] > 0.999
+    assert np.isfinite(metrics["law_posterior/info_gain"])
+    assert "coverage50" not in metrics and arrays == {}        # no flow to score
 
 
 def test_the_free_scale_is_placed_on_the_validation_split(shared_data_dir: Path) -> None:

@@ -26,7 +26,7 @@ from bgn.training.run import build, train
 from tests.conftest import NETWORK_LAW, SMALL, compose_config
 
 ROOT = Path(__file__).resolve().parents[1]
-ABLATIONS = ["full", "no_classifier", "no_contact", "no_inverse"]
+ABLATIONS = ["full", "no_classifier", "no_contact", "no_inverse", "unsupervised"]
 SMALL_MODELS = {  # test-sized versions of every model
     "bgn": ["model.hidden=16", "model.decoder_hidden=16", "model.flow_hidden=16"],
     "cranmer_gn": ["model.hidden=16", "model.message_dim=8", "model.hidden_layers=1"],

@@ -183,7 +183,31 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
         inverse_values, arrays = evaluate_inverse(module, dataset, mass_frames, mass_samples,
                                                   batch_size, seed, calibration, law_frames)
         metrics.update(inverse_values)
+    elif inverse and masses_known and pair_force_head_of(model) is not None:
+        metrics.update(evaluate_law_inverse(module, dataset, mass_frames, mass_samples, seed,
+                                            calibration, law_frames))
     return metrics, arrays
+
+
+def evaluate_law_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: int = 32,
+                         mass_samples: int = 32, seed: int = 0,
+                         validation: FrameDataset | None = None, law_frames: int = 0,
+                         ) -> dict[str, Any]:
+    """A model with a pair-force head and no inverse flow (``ablation=unsupervised`` or
+    ``no_inverse``), on data that record masses: the masses read through its learned law
+    alone, per simulation (``law_posterior/...``, as ``evaluate_inverse`` computes it beside
+    the flow), scored against the recorded masses. A model trained without recorded masses
+    (none in ``trained_with``) never reads any: ``validation`` is then ignored and the law's
+    free scale is placed by the scene's mass law, as for a user whose data record none
+    (docs/design.md#inverse-metrics, "Without recorded masses")."""
+    if "masses" not in module.model.trained_with:
+        validation = None
+    prior = MassPrior.of_scene(dataset.scene, module.hparams.stats.get("log_mass"))
+    rng = np.random.default_rng(seed)
+    indices = evenly_spaced(len(dataset), mass_frames)
+    values = _law_posterior_reference(module, dataset, validation, prior, indices, law_frames,
+                                      mass_samples, rng)
+    return {f"law_posterior/{k}": v for k, v in values.items()}
 
 
 def posterior_summary(module: PhysicsModule, dataset: FrameDataset, mass_frames: int = 32,

@@ -27,6 +27,9 @@ TRAINED = {
     ("spring", "model=bgn"): {"pair forces": ["contact"], "masses": ["mass_nll", "relmass"]},
     ("collisions", "model=newton"): {"contacts": ["contact"], "masses": ["impulse_mass"]},
     ("spring", "model=newton"): {},
+    ("gravity_r2", "model=bgn", "ablation=unsupervised"): {"pair forces": ["contact"]},
+    ("collisions", "model=bgn", "ablation=unsupervised"): {"contacts": ["contact"],
+                                                            "types": ["type"]},
     ("spring", "model=bgn", "model.loss_weights.mass_nll=0", "model.loss_weights.relmass=0"):
         {"pair forces": ["contact"]},  # weighted 0: no masses
     ("collisions", "model=bgn", "ablation=no_contact"):

@@ -1,0 +1,62 @@
+"""The table of examples/unsupervised/run.sh: per run trained without recorded masses
+(``ablation=unsupervised``), the masses read through its learned law per simulation (the law
+posterior, its scale placed by the scene's mass law) against the recorded ones, beside the
+physical estimator that knows the true law on the same windows, and the forward figures.
+
+    python examples/unsupervised/summary.py outputs/unsupervised/spring_s0 ...
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+COLUMNS = [  # (header, key in <run>/eval400/metrics.json)
+    ("trained with", None),
+    ("relative-mass R^2", "law_posterior/relmass_r2_estimate"),
+    ("per-simulation mass error", "law_posterior/sim_mass_rel_err"),
+    ("physical estimator, per simulation", "law_posterior/physical_sim_mass_rel_err"),
+    ("scale", "law_posterior/scale"),
+    ("information over the prior (nats)", "law_posterior/info_gain"),
+    ("coverage 50 / 90", None),
+    ("NMSE", "nmse"),
+    ("mean error @100", "rollout/pos_err_mean@100"),
+]
+
+
+def cell(value: object) -> str:
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return "-" if value is None else str(value)
+
+
+def row(run: Path) -> list[str]:
+    record = json.loads((run / "eval400" / "metrics.json").read_text())
+    m, model = record["metrics"], record["provenance"].get("model", {})
+    out = [run.name]
+    for header, key in COLUMNS:
+        if header == "trained with":
+            sup = model.get("supervision", {})
+            out.append("; ".join(f"{q} ({', '.join(t)})" for q, t in sup.items()) or "-")
+        elif header.startswith("coverage"):
+            out.append(f"{cell(m.get('law_posterior/coverage50'))} / "
+                       f"{cell(m.get('law_posterior/coverage90'))}")
+        else:
+            out.append(cell(m.get(key)))
+    return out
+
+
+def main(argv: list[str]) -> int:
+    if not argv:
+        print(__doc__)
+        return 2
+    print("| run | " + " | ".join(h for h, _ in COLUMNS) + " |")
+    print("|---" * (len(COLUMNS) + 1) + "|")
+    for run in argv:
+        print("| " + " | ".join(row(Path(run))) + " |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

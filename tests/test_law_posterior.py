@@ -119,6 +119,13 @@ def test_a_model_trained_without_masses_reads_them_through_its_law_alone(
     assert metrics["law_posterior/relmass_r2_estimate"] > 0.999
     assert np.isfinite(metrics["law_posterior/info_gain"])
     assert "coverage50" not in metrics and arrays == {}        # no flow to score
+    from bgn.eval.evaluate import report_text
+
+    record = {"split": "test", "command": "c", "checkpoint": "k", "run_config": "r",
+              "run_config_hash": "h", "git_commit": "g", "machine": "m", "cpu_count": 1,
+              "torch_threads": 1, "seeds": {}, "calibration_split": "val", "wall_time_s": 0.0}
+    report = report_text(record, metrics, [])
+    assert "## Inverse model (through the learned law)" in report and "scale prior" in report
 
 
 def test_the_free_scale_is_placed_on_the_validation_split(shared_data_dir: Path) -> None:
@@ -136,6 +143,10 @@ def test_the_free_scale_is_placed_on_the_validation_split(shared_data_dir: Path)
     by_prior = _law_posterior_reference(module, test, None, prior, indices, 4, 32, rng)
     assert by_prior["scale"] == "prior"
     assert (by_prior["std_scale"], by_prior["std_floor"]) == (1.0, 0.0)
+    # the shift is known as well as 8 particles (2 simulations of 4) under one log-normal
+    # law pin it: every spread widened by that, none by the validation-placed shift
+    assert by_prior["shift_std"] == pytest.approx(prior.stds[0] / np.sqrt(8), rel=1e-3)
+    assert placed["shift_std"] == 0.0
     # the same relative masses whatever the shift
     assert by_prior["relmass_r2_estimate"] == pytest.approx(placed["relmass_r2_estimate"],
                                                             abs=1e-3)
@@ -206,6 +217,28 @@ def test_the_scale_physical_validation_or_prior() -> None:
     shift, factor, floor, scale = place_scale(shifted, prior, False, unknown)
     assert (scale, factor, floor) == ("prior", 1.0, 0.0)
     assert shift == pytest.approx(0.7 - true.mean(), abs=0.01)
+
+
+def test_the_prior_shifts_error_is_its_fisher_information() -> None:
+    from bgn.eval.mass_baselines import prior_shift_error
+
+    rng = np.random.default_rng(0)
+    one = MassPrior(np.ones(1), np.array([0.3]), np.array([0.5]))
+    assert prior_shift_error(rng.normal(0.3, 0.5, 100), one) == pytest.approx(0.05, rel=1e-4)
+    assert prior_shift_error(np.array([np.nan]), one) == 0.5        # nothing known: the law
+    # two types far apart: each particle's own component sets the curvature
+    two = MassPrior(np.array([0.5, 0.5]), np.array([0.0, 6.0]), np.array([0.2, 0.4]))
+    placed = np.array([0.0, 0.1, -0.1, 6.0, 6.2])
+    expected = 1.0 / np.sqrt(3 / 0.2 ** 2 + 2 / 0.4 ** 2)
+    assert prior_shift_error(placed, two) == pytest.approx(expected, rel=1e-3)
+
+
+def test_a_common_error_widens_every_spread_and_moves_no_mean() -> None:
+    prior = MassPrior(np.ones(1), np.array([1.0]), np.array([2.0]))
+    post = laplace_posterior(np.array([0.0, 3.0]), np.array([0.3, 0.4]), prior)
+    wide = post.widened(0.4)
+    assert wide.mean == pytest.approx(post.mean)
+    assert wide.stds[:, 0] == pytest.approx(np.hypot(post.stds[:, 0], 0.4))
 
 
 def test_the_laplace_posterior_is_the_fit_times_the_prior() -> None:

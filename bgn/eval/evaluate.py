@@ -34,6 +34,7 @@ from bgn.eval.mass_baselines import (
     impact_log_mass,
     physical_log_mass,
     place_by_prior,
+    prior_shift_error,
 )
 from bgn.graph import Graph, collate
 from bgn.metrics import (
@@ -514,6 +515,10 @@ def _law_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
     share = contamination(checked, prior, shift, factor, floor)
     laplace = laplace_posterior(fits.log_mass + shift, np.hypot(fits.log_std * factor, floor),
                                 prior)
+    # a scale placed by the prior is known only as well as the particles' scatter under the
+    # prior pins it: an error of every particle at once, added outside the product
+    shift_std = prior_shift_error(fits.log_mass + shift, prior) if scale == "prior" else 0.0
+    laplace = laplace.widened(shift_std)
     posterior = laplace.mixed(prior, share)
     true_log = fits.true_log
     # every ordered pair of particles of a simulation: the relative masses' R^2
@@ -530,7 +535,8 @@ def _law_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
         **_point_metrics(laplace.mean, true_log, fits.keys, edges,
                          true_log[rcv] - true_log[snd]),
         "identified": float(np.mean(np.isfinite(fits.log_mass))),
-        "scale": scale, "shift": shift, "std_scale": factor, "std_floor": floor,
+        "scale": scale, "shift": shift, "shift_std": shift_std, "std_scale": factor,
+        "std_floor": floor,
         "contamination": share,
         "windows": fits.windows}
     if law_frames > 0:  # the estimator that knows the law, on the same windows
@@ -902,6 +908,15 @@ def report_text(record: dict[str, Any], metrics: dict[str, Any], figures: list[s
                   f"{metrics.get('mass_calibration_scale50', float('nan')):.3g} / "
                   f"{metrics.get('mass_calibration_scale90', float('nan')):.3g}).", "",
                   markdown_table(["source", *columns], rows)]
+    elif "law_posterior/scale" in metrics:  # no flow: the masses through the law alone
+        row = {"source": INVERSE_REFERENCES["law_posterior"],
+               **{c: metrics.get(f"law_posterior/{c}") for c in INVERSE_COLUMNS}}
+        columns = [c for c in INVERSE_COLUMNS if row[c] is not None]
+        lines += ["## Inverse model (through the learned law)", "",
+                  "No inverse flow: each simulation's masses read through the learned pair law "
+                  "(bgn.eval.evaluate.evaluate_law_inverse), its free scale "
+                  f"{metrics['law_posterior/scale']}, scored against the recorded masses.", "",
+                  markdown_table(["source", *columns], [row])]
     if "posterior/particles" in metrics:
         lines += ["## Inverse model (no recorded masses)", "",
                   "The data carry no masses, so the posterior is reported, not scored "

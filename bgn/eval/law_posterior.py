@@ -258,6 +258,12 @@ class LawPosterior:
         return logsumexp(self.log_weights - 0.5 * z ** 2
                          - np.log(self.stds * np.sqrt(2 * np.pi)), axis=1)
 
+    def widened(self, std: float) -> LawPosterior:
+        """Every component's spread widened by ``std`` in quadrature: an error common to all
+        particles (the shift the prior placed), not a per-particle one to weigh against the
+        prior, which would shrink every mass towards the prior's mean alike."""
+        return LawPosterior(self.means, np.hypot(self.stds, std), self.log_weights)
+
     def mixed(self, prior: MassPrior, share: float) -> LawPosterior:
         """``(1 - share)`` of this posterior and ``share`` of the prior, as one mixture per
         particle (the prior's components appended)."""

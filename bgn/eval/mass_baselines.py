@@ -251,6 +251,25 @@ def place_by_prior(log_mass: np.ndarray, prior: MassPrior) -> np.ndarray:
     return centred + shifts[np.argmax(score)]
 
 
+def prior_shift_error(placed: np.ndarray, prior: MassPrior) -> float:
+    """The standard error of the common log-shift ``place_by_prior`` chose for ``placed`` (its
+    output; NaN entries ignored): one over the square root of the curvature of their summed
+    prior log-density along the shift (the shift's Fisher information: ``std / sqrt(n)`` for
+    one Gaussian law and n particles); the prior's widest std where nothing is known or the
+    density is flat."""
+    known = np.asarray(placed, dtype=np.float64)
+    known = known[np.isfinite(known)]
+    if known.size == 0:
+        return float(prior.stds.max())
+    h = 1e-3 * float(prior.stds.min())
+
+    def total(d: float) -> float:
+        return float(prior.log_pdf(known + d).sum())
+
+    curvature = -(total(h) - 2.0 * total(0.0) + total(-h)) / (h * h)
+    return float(1.0 / np.sqrt(curvature)) if curvature > 0 else float(prior.stds.max())
+
+
 def physical_log_mass(scene: Scene, prior: MassPrior, windows: np.ndarray, dt: float,
                       contacts: list[np.ndarray] | None = None,
                       types: np.ndarray | None = None) -> np.ndarray:

@@ -3,11 +3,14 @@
 posterior, its scale placed by the scene's mass law) against the recorded ones, beside the
 physical estimator that knows the true law on the same windows, and the forward figures.
 
-    python examples/unsupervised/summary.py outputs/unsupervised/spring_s0 ...
+    python examples/unsupervised/summary.py outputs/unsupervised/spring_s0 ... [--eval DIR]
+
+``--eval``: the evaluation folder inside each run (default ``eval400``, run.sh's).
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
@@ -19,6 +22,7 @@ COLUMNS = [  # (header, key in <run>/eval400/metrics.json)
     ("physical estimator, per simulation", "law_posterior/physical_sim_mass_rel_err"),
     ("scale", "law_posterior/scale"),
     ("information over the prior (nats)", "law_posterior/info_gain"),
+    ("shift std", "law_posterior/shift_std"),
     ("coverage 50 / 90", None),
     ("NMSE", "nmse"),
     ("mean error @100", "rollout/pos_err_mean@100"),
@@ -31,8 +35,8 @@ def cell(value: object) -> str:
     return "-" if value is None else str(value)
 
 
-def row(run: Path) -> list[str]:
-    record = json.loads((run / "eval400" / "metrics.json").read_text())
+def row(run: Path, folder: str) -> list[str]:
+    record = json.loads((run / folder / "metrics.json").read_text())
     m, model = record["metrics"], record["provenance"].get("model", {})
     out = [run.name]
     for header, key in COLUMNS:
@@ -48,13 +52,14 @@ def row(run: Path) -> list[str]:
 
 
 def main(argv: list[str]) -> int:
-    if not argv:
-        print(__doc__)
-        return 2
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("runs", nargs="+", type=Path)
+    ap.add_argument("--eval", default="eval400", help="the evaluation folder in each run")
+    args = ap.parse_args(argv)
     print("| run | " + " | ".join(h for h, _ in COLUMNS) + " |")
     print("|---" * (len(COLUMNS) + 1) + "|")
-    for run in argv:
-        print("| " + " | ".join(row(Path(run))) + " |")
+    for run in args.runs:
+        print("| " + " | ".join(row(run, args.eval)) + " |")
     return 0
 
 

@@ -128,6 +128,24 @@ def test_a_model_trained_without_masses_reads_them_through_its_law_alone(
     assert "## Inverse model (through the learned law)" in report and "scale prior" in report
 
 
+def test_a_law_of_the_wrong_sign_gives_the_same_masses(shared_data_dir: Path) -> None:
+    """Under the source law ``a_i = sum_j m_j f(r_ij) u_ij`` the law's sign is free (a law
+    learned without recorded masses may come out repulsive, its fitted masses negative): the
+    fit is turned by its median's sign, and the masses come out as through the true law."""
+    flipped = GRAVITY_LAW.replace('"a": -1.0', '"a": 1.0')
+    assert flipped != GRAVITY_LAW
+    masses = {}
+    for name, law in (("true", GRAVITY_LAW), ("flipped", flipped)):
+        datamodule, module = formula_model("gravity_r2", law, shared_data_dir)
+        test = datamodule.datasets["test"]
+        frames = simulation_frames(test, [0], law_frames=10)[0]
+        with torch.no_grad():
+            masses[name] = fit_simulation(pair_force_head_of(module.model),
+                                          [test[i] for i in frames])[0]
+    assert np.isfinite(masses["flipped"]).all()
+    np.testing.assert_allclose(masses["flipped"], masses["true"], atol=1e-6)
+
+
 def test_the_free_scale_is_placed_on_the_validation_split(shared_data_dir: Path) -> None:
     """A spring law 3x too strong: every fitted mass 3x too heavy. The validation split's
     masses shift them back; without validation the prior places them (looser)."""

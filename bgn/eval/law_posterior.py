@@ -141,7 +141,9 @@ def fit_simulation(head: PairForceHead, graphs: list[Graph],
                    ) -> tuple[np.ndarray, np.ndarray] | None:
     """Log-mass (N,) of each particle of one simulation from its windows ``graphs``, up to the
     law's free scale, and its standard deviation (N,) (the delta method); NaN where the fitted
-    mass is not positive. None under ``mass_law=type`` (nothing to fit). Under the coupling law
+    mass is not positive, the fit turned by its median's sign first (a law learned without
+    recorded masses may have either). None under ``mass_law=type`` (nothing to fit). Under the
+    coupling law
     the mass is ``c_i / k_i`` (``q_i / (q_i / m_i)``), turned by its median's sign (the law's
     sign is free), its relative error the two couplings' added in quadrature."""
     if head.mass_law == "type":
@@ -160,8 +162,9 @@ def fit_simulation(head: PairForceHead, graphs: list[Graph],
         positive = mass > 0
         return (np.where(positive, np.log(np.where(positive, mass, 1.0)), np.nan),
                 np.where(positive, rel, np.nan))
-    if head.mass_law == "inertial":  # a free law's sign is free too: 1 / m absorbs it
-        fit = fit * (np.sign(np.median(fit)) or 1.0)
+    # a free law's sign is free too (f -> -f with 1 / m -> -1 / m, or m -> -m at the source,
+    # makes the same accelerations): the fit is turned by the sign of its median
+    fit = fit * (np.sign(np.median(fit)) or 1.0)
     positive = fit > 0
     safe = np.where(positive, fit, 1.0)
     log_mass = np.log(safe) if head.mass_law == "source" else -np.log(safe)

@@ -31,7 +31,7 @@ COLUMNS = [  # (header, key in <run>/eval400/metrics.json)
 
 def cell(value: object) -> str:
     if isinstance(value, float):
-        return f"{value:.4g}"
+        return f"{value:.6g}"
     return "-" if value is None else str(value)
 
 

@@ -56,6 +56,10 @@ def main(argv: list[str]) -> int:
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--eval", default="eval400", help="the evaluation folder in each run")
     args = ap.parse_args(argv)
+    missing = [str(r) for r in args.runs if not (r / args.eval / "metrics.json").is_file()]
+    if missing:
+        ap.error(f"no {args.eval}/metrics.json in {', '.join(missing)}: run "
+                 "examples/unsupervised/run.sh first (or name the folder with --eval)")
     print("| run | " + " | ".join(h for h, _ in COLUMNS) + " |")
     print("|---" * (len(COLUMNS) + 1) + "|")
     for run in args.runs:

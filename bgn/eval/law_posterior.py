@@ -143,9 +143,8 @@ def fit_simulation(head: PairForceHead, graphs: list[Graph],
     law's free scale, and its standard deviation (N,) (the delta method); NaN where the fitted
     mass is not positive, the fit turned by its median's sign first (a law learned without
     recorded masses may have either). None under ``mass_law=type`` (nothing to fit). Under the
-    coupling law
-    the mass is ``c_i / k_i`` (``q_i / (q_i / m_i)``), turned by its median's sign (the law's
-    sign is free), its relative error the two couplings' added in quadrature."""
+    coupling law the mass is ``c_i / k_i`` (``q_i / (q_i / m_i)``), turned by its median's
+    sign likewise, its relative error the two couplings' added in quadrature."""
     if head.mass_law == "type":
         return None
     g, past, seen, start = pooled_system(head, graphs)

@@ -30,6 +30,11 @@ SMALL = {
 NETWORK_LAW = "model.law=mlp"
 
 
+# the provenance record report.md is written with, for tests of the report's text alone
+REPORT_RECORD = {"split": "test", "command": "c", "checkpoint": "k", "run_config": "r",
+                 "run_config_hash": "h", "git_commit": "g", "machine": "m", "cpu_count": 1,
+                 "torch_threads": 1, "seeds": {}, "calibration_split": "val",
+                 "wall_time_s": 0.0}
 TINY_RUN = ["dataset=spring", *SMALL["spring"], NETWORK_LAW, "dataset.test_samples=17",
             "model.hidden=8", "model.decoder_hidden=8", "model.flow_hidden=8", "figures=false",
             "val_rollout_steps=0",

@@ -22,7 +22,7 @@ from bgn.eval.evaluate import evaluate_model, mass_figure
 from bgn.eval.evaluate import main as evaluate_main
 from bgn.rollout import evaluate_rollouts, rollout_starts, rollout_summary
 from bgn.training.run import build, train
-from tests.conftest import SMALL, TINY_RUN, compose_config
+from tests.conftest import REPORT_RECORD, SMALL, TINY_RUN, compose_config
 from tests.test_simulator import Oracle
 
 TINY_BGN = ["model.hidden=8", "model.decoder_hidden=8", "model.flow_hidden=8",
@@ -55,6 +55,12 @@ def test_inverse_evaluation_with_references(scene: str, tmp_path: Path,
         assert metrics["physical/mass_rel_err"] < 2 * metrics["type_prior/mass_rel_err"] < 0.5
         assert 0 <= metrics["physical/identified"] <= metrics["physical/sim_identified"] <= 1
         assert "coverage_type" in arrays
+        # per simulation through the impacts the model's own contact head sees (no
+        # validation split given: the noise from the equations' own scatter)
+        for key in ("sim_mass_rel_err", "coverage50", "info_gain", "info_gain_over_type",
+                    "identified", "physical_sim_mass_rel_err"):
+            assert np.isfinite(metrics[f"impact_posterior/{key}"]), key
+        assert metrics["impact_posterior/noise_from"] == "residuals"
     else:  # one mass law for every particle: the type says nothing, no such reference
         assert not any(k.startswith("type_prior/") for k in metrics)
         assert "info_gain_over_type" not in metrics
@@ -71,6 +77,8 @@ def test_inverse_evaluation_with_references(scene: str, tmp_path: Path,
         assert metrics["law_posterior/scale"] == ("prior" if scene == "spring" else "physical")
     else:  # the impulse head has no pair law to read masses through
         assert not any(k.startswith(("learned_law/", "law_posterior/")) for k in metrics)
+    if scene != "collisions":  # no contact head: no impacts to read
+        assert not any(k.startswith("impact_posterior/") for k in metrics)
     assert mass_figure(arrays, tmp_path / "mass.png").stat().st_size > 0
 
 
@@ -376,9 +384,7 @@ def test_the_report_reads_the_pair_law_of_a_pair_force_head(model: str, tmp_path
                                    "val_rollout_steps=0"])
     datamodule, module = build(cfg)
     text, figure = law_text(module.eval(), datamodule.datasets["train"], "law.png")
-    record = {"split": "test", "command": "c", "checkpoint": "k", "run_config": "r",
-              "run_config_hash": "h", "git_commit": "g", "machine": "m", "cpu_count": 1,
-              "torch_threads": 1, "seeds": {}, "calibration_split": "val", "wall_time_s": 0.0}
+    record = REPORT_RECORD
     report = report_text(record, {}, ["rollout_error.png", "law.png"], text)
     if model == "newton":
         assert "## The learned pair law (newton on spring)" in text and "f(r) = " in text

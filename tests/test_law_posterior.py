@@ -27,7 +27,7 @@ from bgn.eval.law_posterior import (
 from bgn.eval.mass_baselines import MassPrior
 from bgn.model.newton import pair_force_head_of
 from bgn.training.run import build
-from tests.conftest import SMALL, compose_config
+from tests.conftest import REPORT_RECORD, SMALL, compose_config
 
 TINY_BGN = ["model.hidden=8", "model.decoder_hidden=8", "model.flow_hidden=8",
             "model.mass_context=pairs"]
@@ -121,9 +121,7 @@ def test_a_model_trained_without_masses_reads_them_through_its_law_alone(
     assert "coverage50" not in metrics and arrays == {}        # no flow to score
     from bgn.eval.evaluate import report_text
 
-    record = {"split": "test", "command": "c", "checkpoint": "k", "run_config": "r",
-              "run_config_hash": "h", "git_commit": "g", "machine": "m", "cpu_count": 1,
-              "torch_threads": 1, "seeds": {}, "calibration_split": "val", "wall_time_s": 0.0}
+    record = REPORT_RECORD
     report = report_text(record, metrics, [])
     assert "## Inverse model (through the learned law)" in report and "scale prior" in report
 

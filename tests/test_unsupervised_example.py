@@ -28,8 +28,22 @@ def test_the_table_reads_each_runs_evaluation(tmp_path: Path) -> None:
     res = run(str(tmp_path / "spring_s0"))
     assert res.returncode == 0, res.stderr
     row = res.stdout.strip().splitlines()[-1]
-    assert row.startswith("| spring_s0 | pair forces (contact) | 0.99 | 0.05 |")
+    assert row.startswith("| spring_s0 | pair forces (contact) | learned law | 0.99 | 0.05 |")
     assert "| prior |" in row and "| 0.5 / 0.9 |" in row
+
+
+def test_a_run_with_an_impulse_head_reads_its_impact_posterior(tmp_path: Path) -> None:
+    folder = tmp_path / "collisions_s0" / "eval400"
+    folder.mkdir(parents=True)
+    metrics = {"impact_posterior/sim_mass_rel_err": 0.01,
+               "impact_posterior/info_gain_over_type": 2.5,
+               "impact_posterior/coverage50": 0.4, "impact_posterior/coverage90": 0.8}
+    (folder / "metrics.json").write_text(json.dumps({"provenance": {}, "metrics": metrics}))
+    res = run(str(tmp_path / "collisions_s0"))
+    assert res.returncode == 0, res.stderr
+    row = res.stdout.strip().splitlines()[-1]
+    assert "| contact head's impacts |" in row and "| 0.01 |" in row
+    assert "| 2.5 |" in row and "| 0.4 / 0.8 |" in row
 
 
 def test_a_run_without_its_evaluation_is_named(tmp_path: Path) -> None:

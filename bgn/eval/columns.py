@@ -15,8 +15,10 @@ INVERSE_REFERENCES = {"prior": "prior-only sampler",
                       "type_prior": "type-only sampler (the true type's mass law)",
                       "physical": "physical estimator (force law, no learning)",
                       "learned_law": "law estimator (the model's learned pair law)",
-                   "law_posterior": ("law posterior (the model's learned pair law, all frames "
-                                     "of a simulation)")}
+                      "law_posterior": ("law posterior (the model's learned pair law, all "
+                                        "frames of a simulation)"),
+                      "impact_posterior": ("impact posterior (the model's contact head, all "
+                                           "frames of a simulation)")}
 # the columns that say what a model is, beside its name in every model table: what its
 # training loss reads beyond the frames, what it reads at inference beyond the position window
 # (PhysicsModel.describe) and the physics written into it
@@ -41,10 +43,12 @@ def inverse_reference_variant(key: str, contact_scene: bool) -> dict[str, str]:
     physical estimator reads the recorded contacts and the types on contact scenes only; the
     law estimator learns nothing of its own: it reads the masses off the frames through the
     pair law the model learned (trained as the model's row says), per window, or per
-    simulation for the law posterior, whose free scale the validation split's masses place."""
+    simulation for the law posterior, whose free scale the validation split's masses place;
+    the impact posterior reads them off the impacts the model's contact head sees, per
+    simulation, each disc's type (its radius shows it) giving its prior."""
     given = {"prior": "-", "type_prior": "types",
              "physical": "recorded contacts, types" if contact_scene else "-",
-             "learned_law": "-", "law_posterior": "-"}[key]
+             "learned_law": "-", "law_posterior": "-", "impact_posterior": "types"}[key]
     physics = {"prior": "the scene's mass law", "type_prior": "each type's mass law",
                "physical": ("momentum exchange at impacts, each type's mass law"
                             if contact_scene else "the scene's force law and mass law"),
@@ -53,9 +57,13 @@ def inverse_reference_variant(key: str, contact_scene: bool) -> dict[str, str]:
                "law_posterior": ("the model's learned pair law (one least squares per "
                                  "simulation over its frames, a Laplace posterior with the "
                                  "scene's mass law as prior), its scale physical or placed on "
-                                 "the validation split's masses")}[key]
-    trained = ("the model's pair law" if key in ("learned_law", "law_posterior")
-               else NO_LEARNING)
+                                 "the validation split's masses"),
+               "impact_posterior": ("momentum exchange at the impacts the model's contact head "
+                                    "sees (one Gaussian posterior per simulation over its "
+                                    "frames), each type's mass law as prior, the impacts' "
+                                    "noise set on the validation split's masses")}[key]
+    trained = {"learned_law": "the model's pair law", "law_posterior": "the model's pair law",
+               "impact_posterior": "the model's contact head"}.get(key, NO_LEARNING)
     return {TRAINED_WITH: trained, GIVEN: given, PHYSICS: physics}
 
 ROLLOUT_COLUMNS = ["pos_err_mean@1", "pos_err_mean@10", "pos_err_mean@50", "pos_err_mean@100",

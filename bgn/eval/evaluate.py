@@ -20,8 +20,17 @@ from scipy.stats import norm
 
 from bgn.data.dataset import FrameDataset
 from bgn.data.frames import evenly_spaced
+from bgn.eval.impact_posterior import (
+    choose_noise,
+    graph_rows,
+    mixed_with_types,
+    posterior_of,
+    simulation_impacts,
+    window_and_contacts,
+)
 from bgn.eval.law_posterior import (
     KEY,
+    LawPosterior,
     contamination,
     fit_simulations,
     laplace_posterior,
@@ -184,28 +193,35 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
         inverse_values, arrays = evaluate_inverse(module, dataset, mass_frames, mass_samples,
                                                   batch_size, seed, calibration, law_frames)
         metrics.update(inverse_values)
-    elif inverse and masses_known and pair_force_head_of(model) is not None:
+    elif inverse and masses_known and (pair_force_head_of(model) is not None or isinstance(
+            getattr(model, "force_head", None), ContactImpulseHead)):
         metrics.update(evaluate_law_inverse(module, dataset, mass_frames, mass_samples, seed,
-                                            calibration, law_frames))
+                                            calibration, law_frames, batch_size))
     return metrics, arrays
 
 
 def evaluate_law_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: int = 32,
                          mass_samples: int = 32, seed: int = 0,
                          validation: FrameDataset | None = None, law_frames: int = 0,
-                         ) -> dict[str, Any]:
-    """A model with a pair-force head and no inverse flow (``ablation=unsupervised`` or
-    ``no_inverse``), on data that record masses: the masses read through its learned law
-    alone, per simulation (``law_posterior/...``, as ``evaluate_inverse`` computes it beside
-    the flow), scored against the recorded masses. A model trained without recorded masses
-    (none in ``trained_with``) never reads any: ``validation`` is then ignored and the law's
-    free scale is placed by the scene's mass law, as for a user whose data record none
-    (docs/design.md#inverse-metrics, "Without recorded masses")."""
+                         batch_size: int = 16) -> dict[str, Any]:
+    """A model with a pair-force head or an impulse head and no inverse flow
+    (``ablation=unsupervised`` or ``no_inverse``), on data that record masses: the masses read
+    per simulation through its learned law (``law_posterior/...``) or through the impacts its
+    contact head sees (``impact_posterior/...``), as ``evaluate_inverse`` computes them beside
+    the flow, scored against the recorded masses. A model trained without recorded masses
+    (none in ``trained_with``) never reads any: ``validation`` is then ignored, the law's free
+    scale is placed by the scene's mass law and the impacts' noise is their own residual
+    scatter, as for a user whose data record none (docs/design.md#inverse-metrics, "Without
+    recorded masses")."""
     if "masses" not in module.model.trained_with:
         validation = None
     prior = MassPrior.of_scene(dataset.scene, module.hparams.stats.get("log_mass"))
     rng = np.random.default_rng(seed)
     indices = evenly_spaced(len(dataset), mass_frames)
+    if pair_force_head_of(module.model) is None:
+        values = _impact_posterior_reference(module, dataset, validation, prior, indices,
+                                             law_frames, mass_samples, batch_size, rng)
+        return {f"impact_posterior/{k}": v for k, v in values.items()}
     values = _law_posterior_reference(module, dataset, validation, prior, indices, law_frames,
                                       mass_samples, rng)
     return {f"law_posterior/{k}": v for k, v in values.items()}
@@ -262,20 +278,6 @@ def _point_metrics(estimate: np.ndarray, true_log: np.ndarray, particles: np.nda
             "sim_mass_rel_err": relative_mass_error(pooled, truth)}
 
 
-def window_and_contacts(dataset: FrameDataset, index: int) -> tuple[np.ndarray,
-                                                                    np.ndarray | None]:
-    """The position window the model sees at dataset ``index`` (k+2, N, D) and, for a contact
-    scene, its contacts as rows ``(frame within the window, i, j)``."""
-    sim, t = dataset.locate(index)
-    first = t - dataset.history - 1
-    window = dataset.file.read("positions", (sim, slice(first, t + 1)))
-    if dataset.meta.interaction != "contact":
-        return window, None
-    table = dataset.file.read("contacts", ...)
-    rows = table[(table[:, 0] == sim) & (table[:, 1] >= first) & (table[:, 1] < t)]
-    return window, np.column_stack([rows[:, 1] - first, rows[:, 2], rows[:, 3]])
-
-
 def _physical(dataset: FrameDataset, prior: MassPrior,
               views: list[tuple[np.ndarray, np.ndarray | None]],
               types: np.ndarray) -> np.ndarray:
@@ -311,16 +313,6 @@ def _impact_solve_error(dataset: FrameDataset, prior: MassPrior,
         estimate.append(np.where(np.isfinite(solved), solved, gauge[0]))
         truth.append(true_log)
     return relative_mass_error(np.concatenate(estimate), np.concatenate(truth))
-
-
-def _window_rows(rows: torch.Tensor, g: Graph, b: int, first_node: torch.Tensor,
-                 frames: int) -> np.ndarray:
-    """The contact head's impacts ``(j, i, k)`` (graph-wide node indices, as
-    ``window_contacts`` gives them) of the batch's graph ``b`` as rows ``(frame in its window
-    of ``frames`` frames, i, k)`` with the graph's own node indices."""
-    mine = rows[g.batch[rows[:, 1]] == b]
-    return torch.stack([frames - 1 - mine[:, 0], mine[:, 1] - first_node[b],
-                        mine[:, 2] - first_node[b]], 1).numpy()
 
 
 class _MassArrays(NamedTuple):
@@ -394,7 +386,7 @@ class _MassDraws:
             self.physical.append(_physical(dataset, prior, [(window, contacts)], types))
             if rows is not None:
                 self.model_contacts.setdefault(sim, []).append(
-                    _window_rows(rows, g, b, first_node, len(window)))
+                    graph_rows(rows, g, b, first_node, len(window)))
 
     def arrays(self) -> _MassArrays:
         """The batches concatenated."""
@@ -520,35 +512,95 @@ def _law_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
     shift_std = prior_shift_error(fits.log_mass + shift, prior) if scale == "prior" else 0.0
     laplace = laplace.widened(shift_std)
     posterior = laplace.mixed(prior, share)
-    true_log = fits.true_log
-    # every ordered pair of particles of a simulation: the relative masses' R^2
-    same = (fits.keys[:, None] // KEY == fits.keys[None, :] // KEY) & \
-        ~np.eye(len(fits.keys), dtype=bool)
-    snd, rcv = np.nonzero(same)
-    edges = np.stack([snd, rcv])
     metrics: dict[str, Any] = {
-        **_posterior_metrics(true_log, posterior.sample(mass_samples, rng),
-                             posterior.log_pdf(true_log), prior.log_pdf(true_log), fits.keys),
         # the point estimate is the Laplace posterior's mean: the prior's share stands for the
         # fits that went wrong, in the tails (coverage, density), and would pull every
         # estimate towards the prior's mean by the share
-        **_point_metrics(laplace.mean, true_log, fits.keys, edges,
-                         true_log[rcv] - true_log[snd]),
+        **_simulation_posterior_metrics(posterior, laplace.mean, fits.true_log, fits.keys,
+                                        prior, mass_samples, rng),
         "identified": float(np.mean(np.isfinite(fits.log_mass))),
         "scale": scale, "shift": shift, "shift_std": shift_std, "std_scale": factor,
         "std_floor": floor,
         "contamination": share,
         "windows": fits.windows}
     if law_frames > 0:  # the estimator that knows the law, on the same windows
-        pooled, truth = [], []
-        for sim, frames in simulation_frames(dataset, indices, law_frames).items():
-            views = [window_and_contacts(dataset, i) for i in frames]
-            types = dataset.file.read("types", sim)
-            estimate = _physical(dataset, prior, views, types)
-            pooled.append(np.where(np.isfinite(estimate), estimate, prior.type_mean(types)))
-            truth.append(np.log(dataset.file.read("masses", sim)))
-        metrics["physical_sim_mass_rel_err"] = relative_mass_error(np.concatenate(pooled),
-                                                                   np.concatenate(truth))
+        metrics["physical_sim_mass_rel_err"] = _physical_on_frames(dataset, prior, indices,
+                                                                   law_frames)
+    return metrics
+
+
+def _simulation_posterior_metrics(posterior: LawPosterior, estimate: np.ndarray,
+                                  true_log: np.ndarray, keys: np.ndarray, prior: MassPrior,
+                                  mass_samples: int, rng: np.random.Generator,
+                                  ) -> dict[str, Any]:
+    """A per-simulation posterior (one row per particle, ``keys``) scored as the flow's is:
+    its draws and density, and the point ``estimate`` (P,), with the relative masses' R^2 over
+    every ordered pair of particles of a simulation."""
+    same = (keys[:, None] // KEY == keys[None, :] // KEY) & ~np.eye(len(keys), dtype=bool)
+    snd, rcv = np.nonzero(same)
+    return {**_posterior_metrics(true_log, posterior.sample(mass_samples, rng),
+                                 posterior.log_pdf(true_log), prior.log_pdf(true_log), keys),
+            **_point_metrics(estimate, true_log, keys, np.stack([snd, rcv]),
+                             true_log[rcv] - true_log[snd])}
+
+
+def _physical_on_frames(dataset: FrameDataset, prior: MassPrior, indices: list[int],
+                        law_frames: int) -> float:
+    """The physical estimator's per-simulation error on the windows a per-simulation
+    posterior read (``simulation_frames``): the estimator that knows the law, given as
+    much."""
+    pooled, truth = [], []
+    for sim, frames in simulation_frames(dataset, indices, law_frames).items():
+        views = [window_and_contacts(dataset, i) for i in frames]
+        types = dataset.file.read("types", sim)
+        estimate = _physical(dataset, prior, views, types)
+        pooled.append(np.where(np.isfinite(estimate), estimate, prior.type_mean(types)))
+        truth.append(np.log(dataset.file.read("masses", sim)))
+    return relative_mass_error(np.concatenate(pooled), np.concatenate(truth))
+
+
+def _impact_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
+                                validation: FrameDataset | None, prior: MassPrior,
+                                indices: list[int], law_frames: int, mass_samples: int,
+                                batch_size: int, rng: np.random.Generator) -> dict[str, Any]:
+    """The per-simulation posterior through the model's own contact head
+    (``bgn.eval.impact_posterior``): per simulation of ``indices``, the momentum exchanged at
+    the impacts the head sees in the windows of its evaluated frames (and ``law_frames`` more
+    of its frames), a Gaussian posterior with each disc's type's law as prior, its noise and
+    the share of the type's law mixed in chosen on ``validation`` (never the split scored),
+    scored as the flow's posterior is, one row per disc. ``noise`` and ``noise_from`` (where
+    it was chosen: validation, or the equations' own residuals without validation masses),
+    ``contamination``, ``identified`` (the share of discs in at least one equation),
+    ``impacts`` and ``windows`` per simulation, and the physical estimator on the same
+    windows (``physical_sim_mass_rel_err``). Empty for a model without a contact head."""
+    head = getattr(module.model, "force_head", None)
+    if not isinstance(head, ContactImpulseHead):
+        return {}
+    impacts = simulation_impacts(head, dataset, indices, law_frames, batch_size)
+    checked = None
+    if validation is not None and getattr(validation.meta, "masses_known", True):
+        checked = simulation_impacts(head, validation,
+                                     evenly_spaced(len(validation), len(indices)), law_frames,
+                                     batch_size)
+    noise, share, source = choose_noise(impacts, checked, prior)
+    gaussian = posterior_of(impacts, prior, noise)
+    posterior = mixed_with_types(gaussian, impacts, prior, share)
+    true_log = np.concatenate([sim.true_log for sim in impacts])
+    keys = np.concatenate([sim.keys for sim in impacts])
+    metrics = _simulation_posterior_metrics(posterior, gaussian.mean, true_log, keys, prior,
+                                            mass_samples, rng)
+    if prior.typed:
+        types = np.concatenate([sim.types for sim in impacts])
+        metrics["info_gain_over_type"] = information_gain(
+            posterior.log_pdf(true_log), prior.type_log_pdf(true_log, types))
+    seen = np.concatenate([np.isin(np.arange(len(sim.types)), sim.pairs)
+                           for sim in impacts])
+    metrics.update({"identified": float(np.mean(seen)), "noise": noise, "noise_from": source,
+                    "contamination": share,
+                    "impacts": float(np.mean([len(sim.pairs) for sim in impacts])),
+                    "windows": float(np.mean([sim.windows for sim in impacts])),
+                    "physical_sim_mass_rel_err": _physical_on_frames(dataset, prior, indices,
+                                                                     law_frames)})
     return metrics
 
 
@@ -602,6 +654,10 @@ def evaluate_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: 
         references["learned_law"] = _learned_law_reference(prior, draws, a)
         references["law_posterior"] = _law_posterior_reference(
             module, dataset, validation, prior, indices, law_frames, mass_samples, rng)
+    if draws.model_contacts:
+        references["impact_posterior"] = _impact_posterior_reference(
+            module, dataset, validation, prior, indices, law_frames, mass_samples, batch_size,
+            rng)
     arrays = {"true_mass": np.exp(a.true_log), "sampled_mass": np.exp(a.sampled),
               "coverage_levels": COVERAGE_LEVELS,
               "coverage": coverage_curve(a.true_log, a.sampled),
@@ -917,6 +973,16 @@ def report_text(record: dict[str, Any], metrics: dict[str, Any], figures: list[s
                   "(bgn.eval.evaluate.evaluate_law_inverse), its free scale "
                   f"{metrics['law_posterior/scale']}, scored against the recorded masses.", "",
                   markdown_table(["source", *columns], [row])]
+    elif "impact_posterior/noise_from" in metrics:  # no flow: the masses through impacts
+        row = {"source": INVERSE_REFERENCES["impact_posterior"],
+               **{c: metrics.get(f"impact_posterior/{c}") for c in INVERSE_COLUMNS}}
+        columns = [c for c in INVERSE_COLUMNS if row[c] is not None]
+        lines += ["## Inverse model (through the impacts)", "",
+                  "No inverse flow: each simulation's masses read from the momentum exchanged "
+                  "at the impacts the model's contact head sees, each type's mass law as prior "
+                  "(bgn.eval.evaluate.evaluate_law_inverse), the impacts' noise from "
+                  f"{metrics['impact_posterior/noise_from']}, scored against the recorded "
+                  "masses.", "", markdown_table(["source", *columns], [row])]
     if "posterior/particles" in metrics:
         lines += ["## Inverse model (no recorded masses)", "",
                   "The data carry no masses, so the posterior is reported, not scored "

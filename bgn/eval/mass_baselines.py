@@ -181,23 +181,20 @@ def gravity_log_mass(scene: Scene, windows: np.ndarray, dt: float) -> np.ndarray
     return np.where(m > 0, np.log(np.abs(m)), np.nan)
 
 
-def impact_log_mass(prior: MassPrior, windows: np.ndarray, dt: float,
-                    contacts: list[np.ndarray],
-                    gauge: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-    """Collisions: log-masses from the momentum exchanged at isolated impacts.
+def impact_equations(windows: np.ndarray, dt: float, contacts: list[np.ndarray],
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The momentum exchanged at the isolated impacts of one simulation's windows, as
+    equations on log-mass: pairs (M, 2) ``(i, j)`` and ratios (M,), one per impact,
+    ``log m_i - log m_j = ratio``.
 
-    ``contacts[w]`` (M, 3) rows ``(frame, i, j)``: i and j touch between frames ``frame`` and
-    ``frame + 1`` of window w (the dataset's contacts table, made relative to the window).
-    An impact is used when the frames before and after it are in the window, neither disc
-    has another event in the impact's interval or the two beside it (so the backward-difference
-    velocities before and after are free flight), and the two velocity changes are
-    antiparallel (no wall bounce in between): then ``m_i dv_i = -m_j dv_j``. The equations of
-    a simulation are solved by least squares; each group of discs linked by impacts is
-    shifted to the most probable place under ``prior`` (only ratios are observable), or, given
-    a ``gauge`` (per-disc mean and variance (N,) of log-mass: a model's own posteriors, or
-    each disc's type's law), to the precision-weighted agreement with it."""
-    n = windows.shape[2]
-    rows, rhs = [], []
+    ``contacts[w]`` (K, 3) rows ``(frame, i, j)``: i and j touch between frames ``frame`` and
+    ``frame + 1`` of window w (the dataset's contacts table made relative to the window, or
+    the impacts a model's contact head sees in it). An impact is used when the frames before
+    and after it are in the window, neither disc has another event in the impact's interval
+    or the two beside it (so the backward-difference velocities before and after are free
+    flight), and the two velocity changes are antiparallel (no wall bounce in between): then
+    ``m_i dv_i = -m_j dv_j``, so ``log m_i - log m_j = log |dv_j| - log |dv_i|``."""
+    pairs, ratios = [], []
     for x, table in zip(windows, contacts):
         v = np.diff(x, axis=0) / dt                 # v[s] = (x[s+1] - x[s]) / dt
         events: dict[tuple[int, int], int] = {}
@@ -213,17 +210,38 @@ def impact_log_mass(prior: MassPrior, windows: np.ndarray, dt: float,
             ni, nj = np.linalg.norm(dv_i), np.linalg.norm(dv_j)
             if ni < _TINY or nj < _TINY or np.dot(dv_i, dv_j) > -(1 - 1e-6) * ni * nj:
                 continue                            # a wall bounce too: not a pair exchange
-            row = np.zeros(n)
-            row[i], row[j] = 1.0, -1.0
-            rows.append(row)
-            rhs.append(np.log(nj) - np.log(ni))     # log m_i - log m_j
+            pairs.append((int(i), int(j)))
+            ratios.append(np.log(nj) - np.log(ni))
+    return np.asarray(pairs, dtype=np.int64).reshape(-1, 2), np.asarray(ratios, float)
+
+
+def impact_matrix(pairs: np.ndarray, n: int) -> np.ndarray:
+    """The equations' matrix (M, n) of ``impact_equations``' pairs: +1 at i, -1 at j."""
+    a = np.zeros((len(pairs), n))
+    rows = np.arange(len(pairs))
+    a[rows, pairs[:, 0]] += 1.0
+    a[rows, pairs[:, 1]] -= 1.0
+    return a
+
+
+def impact_log_mass(prior: MassPrior, windows: np.ndarray, dt: float,
+                    contacts: list[np.ndarray],
+                    gauge: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Collisions: log-masses from the momentum exchanged at isolated impacts
+    (``impact_equations``). The equations of a simulation are solved by least squares; each
+    group of discs linked by impacts is shifted to the most probable place under ``prior``
+    (only ratios are observable), or, given a ``gauge`` (per-disc mean and variance (N,) of
+    log-mass: a model's own posteriors, or each disc's type's law), to the precision-weighted
+    agreement with it."""
+    n = windows.shape[2]
+    pairs, ratios = impact_equations(windows, dt, contacts)
     out = np.full(n, np.nan)
-    if not rows:
+    if not len(pairs):
         return out
-    a = np.asarray(rows)
+    a = impact_matrix(pairs, n)
     seen = np.flatnonzero(np.abs(a).sum(axis=0) > 0)
     # minimum-norm least squares, then one shift per linked group (the gauge)
-    out[seen] = np.linalg.lstsq(a[:, seen], np.asarray(rhs), rcond=None)[0]
+    out[seen] = np.linalg.lstsq(a[:, seen], ratios, rcond=None)[0]
     adjacency = (np.abs(a[:, seen]).T @ np.abs(a[:, seen])) > 0
     _, labels = connected_components(adjacency, directed=False)
     for group in np.unique(labels):

@@ -1,7 +1,9 @@
 """The table of examples/unsupervised/run.sh: per run trained without recorded masses
-(``ablation=unsupervised``), the masses read through its learned law per simulation (the law
-posterior, its scale placed by the scene's mass law) against the recorded ones, beside the
-physical estimator that knows the true law on the same windows, and the forward figures.
+(``ablation=unsupervised``), the masses read per simulation through its learned law (the law
+posterior, its scale placed by the scene's mass law) or, with an impulse head, through the
+impacts its contact head sees (the impact posterior, each type's mass law as prior), against
+the recorded ones, beside the physical estimator that knows the true law on the same windows,
+and the forward figures.
 
     python examples/unsupervised/summary.py outputs/unsupervised/spring_s0 ... [--eval DIR]
 
@@ -15,14 +17,18 @@ import json
 import sys
 from pathlib import Path
 
-COLUMNS = [  # (header, key in <run>/eval400/metrics.json)
+# the per-simulation posteriors, as the run's metrics prefix them: the first one present
+POSTERIORS = {"law_posterior": "learned law", "impact_posterior": "contact head's impacts"}
+COLUMNS = [  # (header, key in <run>/eval400/metrics.json: "~" the run's posterior prefix)
     ("trained with", None),
-    ("relative-mass R^2", "law_posterior/relmass_r2_estimate"),
-    ("per-simulation mass error", "law_posterior/sim_mass_rel_err"),
-    ("physical estimator, per simulation", "law_posterior/physical_sim_mass_rel_err"),
-    ("scale", "law_posterior/scale"),
-    ("information over the prior (nats)", "law_posterior/info_gain"),
-    ("shift std", "law_posterior/shift_std"),
+    ("through", None),
+    ("relative-mass R^2", "~/relmass_r2_estimate"),
+    ("per-simulation mass error", "~/sim_mass_rel_err"),
+    ("physical estimator, per simulation", "~/physical_sim_mass_rel_err"),
+    ("scale", "~/scale"),
+    ("information over the prior (nats)", "~/info_gain"),
+    ("over the type", "~/info_gain_over_type"),
+    ("shift std", "~/shift_std"),
     ("coverage 50 / 90", None),
     ("NMSE", "nmse"),
     ("mean error @100", "rollout/pos_err_mean@100"),
@@ -38,16 +44,19 @@ def cell(value: object) -> str:
 def row(run: Path, folder: str) -> list[str]:
     record = json.loads((run / folder / "metrics.json").read_text())
     m, model = record["metrics"], record["provenance"].get("model", {})
+    prefix = next((p for p in POSTERIORS if f"{p}/sim_mass_rel_err" in m), None)
     out = [run.name]
     for header, key in COLUMNS:
         if header == "trained with":
             sup = model.get("supervision", {})
             out.append("; ".join(f"{q} ({', '.join(t)})" for q, t in sup.items()) or "-")
+        elif header == "through":
+            out.append(POSTERIORS.get(prefix, "-"))
         elif header.startswith("coverage"):
-            out.append(f"{cell(m.get('law_posterior/coverage50'))} / "
-                       f"{cell(m.get('law_posterior/coverage90'))}")
+            out.append(f"{cell(m.get(f'{prefix}/coverage50'))} / "
+                       f"{cell(m.get(f'{prefix}/coverage90'))}")
         else:
-            out.append(cell(m.get(key)))
+            out.append(cell(m.get(key.replace("~", str(prefix)))))
     return out
 
 

@@ -193,8 +193,10 @@ class EvaluateKeys:
                                       # training run's own phase scores, dataset.<split>_samples)
     mass_frames: int = 32             # frames of the inverse metrics and of the calibration
     mass_samples: int = 32            # posterior samples per particle
-    law_frames: int = 0               # more frames per simulation for the posterior through
-                                      # the learned law (bgn.eval.law_posterior), beyond mass_frames
+    law_frames: int = 0               # more frames per simulation for the posteriors through
+                                      # the learned law or the contact head's impacts
+                                      # (bgn.eval.law_posterior, impact_posterior), beyond
+                                      # mass_frames
     batch_size: int = 16
     seed: int = 0                     # the flow's samples
     # Eq. 9-10's input z in relmass_r2: median (the flow's base draw 0, as the model decodes in

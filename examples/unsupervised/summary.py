@@ -7,7 +7,10 @@ and the forward figures.
 
     python examples/unsupervised/summary.py outputs/unsupervised/spring_s0 ... [--eval DIR]
 
-``--eval``: the evaluation folder inside each run (default ``eval400``, run.sh's).
+``--eval``: the evaluation folder inside each run (default ``eval400``, run.sh's). Any run
+evaluated so reads the same way, one trained with recorded masses too (its "trained with"
+column names them; the per-simulation posteriors are then placed and spread on the validation
+split's masses).
 """
 
 from __future__ import annotations

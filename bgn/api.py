@@ -59,7 +59,28 @@ def load(path: str | Path) -> Model:
                               "provenance record): retrain it with this version")
     module = load_model(ckpt)
     return Model(module.model, dt=1.0 / float(record["fps"]),
-                 margin=float(record.get("margin", 0.0)), source=str(ckpt))
+                 margin=float(record.get("margin", 0.0)), source=str(ckpt),
+                 mass_prior=_mass_prior(record, module.hparams.get("stats", {})))
+
+
+def _mass_prior(record: dict[str, Any], stats: dict[str, Any]) -> Any:
+    """The scene's mass law (``bgn.eval.mass_baselines.MassPrior``) from the scene a
+    checkpoint's record rebuilds, or from its training split's log-mass statistics (imported
+    data); None where neither gives one (data without recorded masses, a checkpoint older than
+    the record's ``scene_config``)."""
+    from bgn.eval.mass_baselines import MassPrior
+    from bgn.sim import make_scene
+
+    scene: Any = object()  # no mass law of its own: the statistics' log-normal
+    try:
+        scene = make_scene(record["scene"], **record["scene_config"])
+    except (KeyError, TypeError, ValueError):
+        if record.get("scene") != "imported":  # a built-in scene's law is not its statistics'
+            return None
+    try:
+        return MassPrior.of_scene(scene, stats.get("log_mass"))
+    except ValueError:
+        return None
 
 
 @dataclass(frozen=True)
@@ -77,27 +98,38 @@ class MassPosterior:
     validation split. ``law_scale``: "physical" where the law was trained on recorded masses;
     "per-frame" where its one free common factor was set by the per-frame posterior (the
     median over particles of the two log-masses' difference); "relative" where nothing sets
-    it: the masses are right up to one common factor."""
+    it: the masses are right up to one common factor. ``impacts``: with a contact head (the
+    impulse head), the momentum exchanged at the impacts it sees in all the windows, each
+    type's mass law as prior (``bgn.eval.impact_posterior``), log-mass (N,) and its standard
+    deviation (N,), the noise the equations' own scatter (``python -m bgn.evaluate`` sets it
+    on the validation split); None otherwise. ``median`` and the rest read the law's fit where
+    it identifies a particle, else the impacts', else the per-frame draws."""
 
     per_frame: np.ndarray | None
     frames: int
     law: tuple[np.ndarray, np.ndarray] | None
     law_scale: str | None
+    impacts: tuple[np.ndarray, np.ndarray] | None = None
 
     def _law_identified(self) -> bool:
         return self.law is not None and bool(np.isfinite(self.law[0]).any())
 
+    def _fit(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The per-simulation Gaussian (log-mass mean and std, (N,) each) that ``median``
+        and the rest read: the law's where it identifies any particle, else the impacts'."""
+        return self.law if self._law_identified() else self.impacts
+
     def median(self) -> np.ndarray:
         """(N,) the median mass: the law fit's where it identifies any particle, else the
         per-frame draws'."""
-        if self._law_identified():
-            return np.exp(self.law[0])
+        if self._fit() is not None:
+            return np.exp(self._fit()[0])
         return np.exp(np.median(self._draws(), axis=0))
 
     def log_std(self) -> np.ndarray:
         """(N,) the spread of log-mass, from the same source as ``median``."""
-        if self._law_identified():
-            return self.law[1]
+        if self._fit() is not None:
+            return self._fit()[1]
         return np.std(self._draws(), axis=0)
 
     def interval(self, level: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
@@ -105,11 +137,12 @@ class MassPosterior:
         ``median``."""
         if not 0 < level < 1:
             raise ValueError(f"level={level} must lie in (0, 1)")
-        if self._law_identified():
+        fit = self._fit()
+        if fit is not None:
             from scipy.stats import norm
 
             z = norm.ppf(0.5 + level / 2)
-            return np.exp(self.law[0] - z * self.law[1]), np.exp(self.law[0] + z * self.law[1])
+            return np.exp(fit[0] - z * fit[1]), np.exp(fit[0] + z * fit[1])
         low, high = np.quantile(self._draws(), [0.5 - level / 2, 0.5 + level / 2], axis=0)
         return np.exp(low), np.exp(high)
 
@@ -117,12 +150,15 @@ class MassPosterior:
         """Where ``median`` comes from, in a few words."""
         if self._law_identified():
             return (f"the learned law's fit of {self.frames} windows (scale {self.law_scale})")
+        if self.impacts is not None:
+            return (f"the impacts the contact head sees in {self.frames} windows, each type's "
+                    "mass law as prior")
         return f"the inverse model's posterior at {self.frames} windows, pooled"
 
     def _draws(self) -> np.ndarray:
         if self.per_frame is None:
             raise ValueError("the learned law identifies no particle here and the model has "
-                             "no inverse model: no masses to report")
+                             "no inverse model nor contact head: no masses to report")
         return self.per_frame
 
 
@@ -154,8 +190,11 @@ class Model:
     """A trained bgn model on numpy arrays (``load`` builds it). ``dt``: the frame spacing it
     was trained at; ``window_length``: frames a window holds (``history + 2``)."""
 
-    def __init__(self, model: Any, dt: float, margin: float = 0.0, source: str = "") -> None:
+    def __init__(self, model: Any, dt: float, margin: float = 0.0, source: str = "",
+                 mass_prior: Any = None) -> None:
         self.model = model.eval()
+        # the scene's mass law (bgn.eval.mass_baselines.MassPrior): the impacts' prior
+        self.mass_prior = mass_prior
         self.simulator = LearnedSimulator(model, dt, margin)
         self.dt, self.margin, self.source = float(dt), float(margin), source
         self.meta = model.meta
@@ -227,13 +266,18 @@ class Model:
                              "the model was trained on)")
         return Particles(m, r, t.long(), torch.zeros(1, dtype=torch.long))
 
+    def _window_ends(self, n_frames: int, frames: int) -> np.ndarray:
+        """The last frame of each of up to ``frames`` windows evenly spaced over a trajectory
+        of ``n_frames`` (each followed by one more frame: its observed target)."""
+        k2 = self.window_length
+        return np.unique(np.linspace(k2 - 1, n_frames - 2, frames).round().astype(int))
+
     def _graphs(self, trajectory: np.ndarray, particles: Particles, frames: int) -> list[Graph]:
         """The graphs of up to ``frames`` windows evenly spaced over ``trajectory``, each with
         its observed target (the next frame's acceleration or velocity)."""
         k2 = self.window_length
-        ends = np.unique(np.linspace(k2 - 1, len(trajectory) - 2, frames).round().astype(int))
         graphs = []
-        for end in ends:
+        for end in self._window_ends(len(trajectory), frames):
             window = torch.as_tensor(trajectory[None, end - k2 + 1:end + 1])
             g = self.simulator.graph(window.to(self.simulator.device), particles.to(
                 self.simulator.device), int(end))
@@ -318,9 +362,11 @@ class Model:
             per_frame = draws.reshape(-1, x.shape[1])
         head = pair_force_head_of(self.model)
         fit = None if head is None else fit_simulation(head, graphs)
-        if per_frame is None and fit is None:
+        impacts = self._impact_fit(x, graphs, types) if head is None else None
+        if per_frame is None and fit is None and impacts is None:
             raise ValueError(f"{self.model.label} infers no masses: it has neither an inverse "
-                             "model nor a pair-force head whose law fits them")
+                             "model, nor a pair-force head whose law fits them, nor a contact "
+                             "head whose impacts do")
         scale = None
         if fit is not None:
             scale = "physical" if law_scale_pinned(self.model) else "relative"
@@ -328,7 +374,50 @@ class Model:
             if scale == "relative" and per_frame is not None and seen.any():
                 shift = float(np.median(np.median(per_frame, axis=0)[seen] - fit[0][seen]))
                 fit, scale = (fit[0] + shift, fit[1]), "per-frame"
-        return MassPosterior(per_frame, len(graphs), fit, scale)
+        return MassPosterior(per_frame, len(graphs), fit, scale, impacts)
+
+    def _impact_fit(self, x: np.ndarray, graphs: list[Graph], types: Any,
+                    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """The impact posterior (``bgn.eval.impact_posterior``) of the trajectory ``x``: the
+        momentum exchanged at the impacts the model's contact head sees in the windows of
+        ``graphs``, each disc's type's mass law as prior, the noise the equations' own residual
+        scatter; log-mass mean and std (N,). None without a contact head or a mass law. The
+        types: ``types`` where given, else the model's type classifier's (mean over the
+        windows)."""
+        from bgn.eval.impact_posterior import (
+            SimulationImpacts,
+            graph_rows,
+            impact_posterior,
+            residual_noise,
+        )
+        from bgn.eval.mass_baselines import impact_equations
+        from bgn.graph import collate
+        from bgn.model.impulse import ContactImpulseHead
+
+        head = getattr(self.model, "force_head", None)
+        if not isinstance(head, ContactImpulseHead) or self.mass_prior is None:
+            return None
+        g = collate(graphs)
+        rows = head.window_contacts(g).cpu()
+        batch = g.batch.cpu()
+        first = (torch.cumsum(g.num_nodes, 0) - g.num_nodes).cpu()
+        k2, n = self.window_length, x.shape[1]
+        ends = self._window_ends(len(x), len(graphs))
+        windows = np.stack([x[e - k2 + 1:e + 1] for e in ends])
+        contacts = [graph_rows(rows, batch, b, first, k2) for b in range(len(graphs))]
+        pairs, ratios = impact_equations(windows, self.dt, contacts)
+        if types is not None:
+            kinds = np.asarray(types, dtype=np.int64)
+        elif not self.mass_prior.typed:
+            kinds = np.zeros(n, dtype=np.int64)
+        elif "type" in self.model.heads:
+            logits = self.model(g).type_logits.double().cpu().numpy()
+            kinds = logits.reshape(len(graphs), n, -1).mean(axis=0).argmax(axis=1)
+        else:
+            raise ValueError(f"{self.model.label}: pass types= (N,): each disc's type's mass "
+                             "law is the prior of the masses its impacts give")
+        sim = SimulationImpacts(0, pairs, ratios, kinds, np.full(n, np.nan), len(graphs))
+        return impact_posterior(sim, self.mass_prior, residual_noise([sim]))
 
     def law(self) -> PairLaw:
         """The learned pair law (``PairLaw``); a model without a pair-force head has none.

@@ -185,3 +185,54 @@ def test_a_periodic_scenes_frames_may_come_wrapped_into_the_box() -> None:
     model.meta = SceneMeta(name="open", dim=2, n_particles=1, n_types=1,
                            interaction="pairwise", target="acceleration", graph="full")
     np.testing.assert_array_equal(model._positions("window", wrapped, 2), wrapped)
+
+
+def test_a_contact_head_reads_the_masses_off_the_impacts_it_sees(shared_data_dir: Path) -> None:
+    """A model with an impulse head and no pair law: ``infer`` reads each disc's mass off the
+    momentum exchanged at the impacts its contact head sees over the trajectory, each type's
+    mass law as prior (``bgn.eval.impact_posterior``); with the gates open on an exact
+    event-driven trajectory the linked discs' ratios are exact, so each group's errors are one
+    common shift within the posterior's spread. The types come from the type classifier when not
+    given; a checkpoint without the scene's mass law gets no impact posterior."""
+    from bgn.eval.mass_baselines import MassPrior
+    from bgn.training.run import build
+    from tests.conftest import SMALL, compose_config
+
+    cfg = compose_config("train", ["dataset=collisions", *SMALL["collisions"],
+                                   "model.hidden=8", "model.decoder_hidden=8",
+                                   "model.flow_hidden=8", "model.mass_context=pairs",
+                                   f"paths.data_dir={shared_data_dir}", "figures=false"])
+    datamodule, module = build(cfg)
+    test = datamodule.datasets["test"]
+    head = module.model.force_head
+    with torch.no_grad():  # gates that pass every impact of the rule
+        head.gate[-1].bias.fill_(40.0)
+    prior = MassPrior.of_scene(test.scene)
+    model = api.Model(module.model, test.dt, test.margin, mass_prior=prior)
+    x = test.file.read("positions", 0)
+    masses, types = test.file.read("masses", 0), test.file.read("types", 0)
+    posterior = model.infer(x, frames=len(x), radii=test.file.read("radii", 0), types=types)
+    assert "impacts" in posterior.describe()
+    mean, std = posterior.impacts
+    err = mean - np.log(masses)
+    seen = std < 0.9 * prior.type_law(types)[1]          # narrowed by an impact
+    assert seen.sum() >= 2
+    # the ratios exact: each disc's error is its impact partner's (one shift per linked group)
+    same = np.abs(err[seen][:, None] - err[seen][None, :]) < 1e-6
+    assert np.all(same.sum(axis=1) >= 2)
+    assert np.all(np.abs(err[seen]) < 4 * std[seen])       # the shift: within its spread
+    np.testing.assert_allclose(posterior.median(), np.exp(mean))
+    model.mass_prior = None                                 # no mass law: the flow alone
+    assert model.infer(x, frames=4, radii=test.file.read("radii", 0)).impacts is None
+
+
+def test_a_checkpoint_carries_its_scenes_mass_law(run_and_data) -> None:
+    """The record keeps the scene's parameters (``scene_config``), so the API rebuilds the
+    scene's mass law from the checkpoint alone; the hash the resume check compares is theirs."""
+    from bgn.eval.mass_baselines import MassPrior
+    from bgn.training.checkpoints import params_hash, read, recorded_provenance, resolve_run
+
+    run, test, _, _ = run_and_data
+    record = recorded_provenance(read(resolve_run(str(run))[0]))
+    assert record["scene_params"] == params_hash(record["scene_config"])
+    assert bgn.load(run).mass_prior == MassPrior.of_scene(test.scene)

@@ -386,7 +386,7 @@ class _MassDraws:
             self.physical.append(_physical(dataset, prior, [(window, contacts)], types))
             if rows is not None:
                 self.model_contacts.setdefault(sim, []).append(
-                    graph_rows(rows, g, b, first_node, len(window)))
+                    graph_rows(rows, g.batch, b, first_node, len(window)))
 
     def arrays(self) -> _MassArrays:
         """The batches concatenated."""

@@ -34,7 +34,7 @@ import torch
 from bgn.data.dataset import FrameDataset
 from bgn.eval.law_posterior import CONTAMINATION, KEY, LawPosterior, simulation_frames
 from bgn.eval.mass_baselines import MassPrior, impact_equations, impact_matrix
-from bgn.graph import Graph, collate
+from bgn.graph import collate
 from bgn.model.impulse import ContactImpulseHead
 
 # candidate standard deviations of one impact's log-ratio (``choose_noise``): from the
@@ -56,12 +56,13 @@ def window_and_contacts(dataset: FrameDataset, index: int) -> tuple[np.ndarray,
     return window, np.column_stack([rows[:, 1] - first, rows[:, 2], rows[:, 3]])
 
 
-def graph_rows(rows: torch.Tensor, g: Graph, b: int, first_node: torch.Tensor,
+def graph_rows(rows: torch.Tensor, batch: torch.Tensor, b: int, first_node: torch.Tensor,
                frames: int) -> np.ndarray:
-    """The contact head's impacts ``(j, i, k)`` (graph-wide node indices, as
-    ``ContactImpulseHead.window_contacts`` gives them) of the batch's graph ``b`` as rows
-    ``(frame in its window of ``frames`` frames, i, k)`` with the graph's own node indices."""
-    mine = rows[g.batch[rows[:, 1]] == b]
+    """The contact head's impacts ``(j, i, k)`` (node indices of the batched graph, as
+    ``ContactImpulseHead.window_contacts`` gives them; ``batch``: each node's graph) of graph
+    ``b`` as rows ``(frame in its window of ``frames`` frames, i, k)`` with the graph's own
+    node indices. CPU tensors."""
+    mine = rows[batch[rows[:, 1]] == b]
     return torch.stack([frames - 1 - mine[:, 0], mine[:, 1] - first_node[b],
                         mine[:, 2] - first_node[b]], 1).numpy()
 
@@ -109,7 +110,7 @@ def simulation_impacts(head: ContactImpulseHead, dataset: FrameDataset, indices:
             for b, i in enumerate(chunk):
                 window = window_and_contacts(dataset, i)[0]
                 windows.append(window)
-                contacts.append(graph_rows(rows, g, b, first_node, len(window)))
+                contacts.append(graph_rows(rows, g.batch, b, first_node, len(window)))
         pairs, ratios = impact_equations(np.stack(windows), dataset.dt, contacts)
         types = dataset.file.read("types", sim)
         masses = (dataset.file.read("masses", sim) if known

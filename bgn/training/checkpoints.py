@@ -44,10 +44,13 @@ def params_hash(params: dict[str, Any]) -> str:
 def provenance(scene: str, params: dict[str, Any], fps: float, model: str,
                history: int, margin: float = 0.0) -> dict[str, Any]:
     """The record a checkpoint keeps of the run that wrote it (plain types only). ``margin``
-    (the training file's radius-graph margin) is carried for the Python API (``bgn.api``),
-    which rebuilds the graph rule from the checkpoint alone; it is not checked on resume."""
+    (the training file's radius-graph margin) and ``scene_config`` (the scene's parameters,
+    whose hash ``scene_params`` is) are carried for the Python API (``bgn.api``), which
+    rebuilds the graph rule and the scene's mass law from the checkpoint alone; they are not
+    checked on resume."""
     return {"scene": str(scene), "scene_params": params_hash(params), "fps": float(fps),
-            "model": str(model), "history": int(history), "margin": float(margin)}
+            "model": str(model), "history": int(history), "margin": float(margin),
+            "scene_config": json.loads(json.dumps(params, default=str))}
 
 
 def read(path: str | Path) -> dict[str, Any]:

@@ -408,3 +408,29 @@ def test_summary_states_each_baselines_budget(tmp_path, monkeypatch):
     row = summary.rows_of(base)[0][0]
     assert (row["model"], row["BGN job s"]) == (
         "gns (default budget) (cut by trainer.max_time)", None)
+
+
+def test_the_engines_law_reads_the_masses_off_rebounds_frames(tmp_path, monkeypatch):
+    """engine_masses.py's law is REBOUND's Plummer-softened gravity: bgn's gravity estimator
+    reads the masses of REBOUND's own frames through it (to the frames' finite differences),
+    and a law of another softening reads them worse."""
+    pytest.importorskip("rebound")
+    monkeypatch.syspath_prepend(str(ENGINES))
+    from engine_masses import PlummerLaw
+
+    from bgn.eval.mass_baselines import gravity_log_mass
+
+    out = tmp_path / "nbody"
+    assert run("rebound_nbody.py", out, "--sims", "3", "--frames", "40", "--bodies",
+               "4").returncode == 0
+    data = np.load(out / "nbody.npz")
+    params = json.loads((out / "engine.json").read_text())["params"]
+    x, masses = data["positions"][0], data["masses"][0]
+    windows = np.stack([x[s:s + 8] for s in range(0, 32, 8)])
+    right = gravity_log_mass(PlummerLaw(params["G"], params["softening"]), windows,
+                             params["frame_dt"])
+    wrong = gravity_log_mass(PlummerLaw(params["G"], 3 * params["softening"]), windows,
+                             params["frame_dt"])
+    err_right = np.abs(np.exp(right) / masses - 1)
+    assert np.all(err_right < 0.01)
+    assert np.median(np.abs(np.exp(wrong) / masses - 1)) > np.median(err_right)

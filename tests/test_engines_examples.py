@@ -365,6 +365,15 @@ def test_regenerate_refuses_seeds_without_the_one_that_gives_the_budget(tmp_path
     assert not (tmp_path / "out").exists()
 
 
+def test_regenerate_without_baselines_runs_the_bgn_jobs_alone(tmp_path):
+    """BASELINES="" means none (not the default pair), and then no seed gives a budget."""
+    res = regenerate(tmp_path, SEEDS="1", BASELINES="")
+    out = tmp_path / "out"
+    assert res.returncode == 0, res.stderr
+    assert (out / "gas_s1" / "regenerate.done").exists()
+    assert "gns" not in res.stdout and not list(out.glob("gas_*_s0*"))
+
+
 def test_regenerate_a_failed_baseline_leaves_no_budget_record_behind(tmp_path):
     res = regenerate(tmp_path, SEEDS="0")
     out = tmp_path / "out"

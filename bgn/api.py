@@ -362,7 +362,7 @@ class Model:
             per_frame = draws.reshape(-1, x.shape[1])
         head = pair_force_head_of(self.model)
         fit = None if head is None else fit_simulation(head, graphs)
-        impacts = self._impact_fit(x, graphs, types) if head is None else None
+        impacts = self._impact_fit(x, graphs, int(frames), types) if head is None else None
         if per_frame is None and fit is None and impacts is None:
             raise ValueError(f"{self.model.label} infers no masses: it has neither an inverse "
                              "model, nor a pair-force head whose law fits them, nor a contact "
@@ -376,12 +376,13 @@ class Model:
                 fit, scale = (fit[0] + shift, fit[1]), "per-frame"
         return MassPosterior(per_frame, len(graphs), fit, scale, impacts)
 
-    def _impact_fit(self, x: np.ndarray, graphs: list[Graph], types: Any,
+    def _impact_fit(self, x: np.ndarray, graphs: list[Graph], frames: int, types: Any,
                     ) -> tuple[np.ndarray, np.ndarray] | None:
         """The impact posterior (``bgn.eval.impact_posterior``) of the trajectory ``x``: the
         momentum exchanged at the impacts the model's contact head sees in the windows of
         ``graphs``, each disc's type's mass law as prior, the noise the equations' own residual
-        scatter; log-mass mean and std (N,). None without a contact head or a mass law. The
+        scatter; log-mass mean and std (N,) (``graphs``: ``_graphs`` of ``x`` and ``frames``).
+        None without a contact head or a mass law. The
         types: ``types`` where given, else the model's type classifier's (mean over the
         windows)."""
         from bgn.eval.impact_posterior import (
@@ -402,7 +403,7 @@ class Model:
         batch = g.batch.cpu()
         first = (torch.cumsum(g.num_nodes, 0) - g.num_nodes).cpu()
         k2, n = self.window_length, x.shape[1]
-        ends = self._window_ends(len(x), len(graphs))
+        ends = self._window_ends(len(x), frames)
         windows = np.stack([x[e - k2 + 1:e + 1] for e in ends])
         contacts = [graph_rows(rows, batch, b, first, k2) for b in range(len(graphs))]
         pairs, ratios = impact_equations(windows, self.dt, contacts)

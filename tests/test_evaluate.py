@@ -309,6 +309,37 @@ def test_bad_input_is_one_line(trained_run, tmp_path: Path, capsys) -> None:
         assert exit_.value.code == 2 and key in err and words in err, err
 
 
+def test_a_larger_split_scores_more_simulations_the_runs_first(trained_run, tmp_path: Path,
+                                                               capsys) -> None:
+    """``sims=``: the scored split with more simulations, the run's first ones unchanged (each
+    simulation a pure function of the seed, the split and its index), the training file the
+    run's; on imported data, or a count below 1, one line."""
+    from omegaconf import OmegaConf
+
+    run, _ = trained_run
+    cfg = OmegaConf.load(run / ".hydra" / "config.yaml")
+    dm = ParticleDataModule(cfg.dataset, cfg.fps, cfg.paths.data_dir)
+    dm.prepare_data()
+    dm.setup()
+    n = dm.datasets["test"].file.n_sims
+    larger = dm.larger_split("test", n + 2)
+    assert larger.file.n_sims == n + 2 and larger.file.path != dm.datasets["test"].file.path
+    np.testing.assert_array_equal(larger.file.read("positions", n - 1),
+                                  dm.datasets["test"].file.read("positions", n - 1))
+    out = evaluate_main(evaluate_cfg(f"ckpt={run}", f"out_dir={tmp_path / 'eval'}",
+                                     f"sims={n + 2}", "rollout.max_sims=1"))
+    metrics = json.loads((out / "metrics.json").read_text())["metrics"]
+    base = evaluate_main(evaluate_cfg(f"ckpt={run}", f"out_dir={tmp_path / 'base'}",
+                                      "rollout.max_sims=1"))
+    fewer = json.loads((base / "metrics.json").read_text())["metrics"]
+    # the same frame count spread over more simulations: more distinct particles
+    assert metrics["law_posterior/windows"] < fewer["law_posterior/windows"]
+    with pytest.raises(SystemExit) as exit_:
+        evaluate_main(evaluate_cfg(f"ckpt={run}", "sims=0"))
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and "sims" in err and len(err.strip().splitlines()) == 1
+
+
 def test_the_relmass_decode_recheck_writes_both_decodes_into_its_block(trained_run, tmp_path,
                                                                       monkeypatch) -> None:
     """``examples/recheck/relmass_decode.py`` on a run: both decodes evaluated on validation,

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterator
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -13,11 +14,12 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader, Sampler, Subset
 
+from bgn.coerce import ConfigError, need_int
 from bgn.data.dataset import FrameDataset
 from bgn.data.files import DatasetFile
 from bgn.data.frames import evenly_spaced
-from bgn.data.generate import ensure_splits
-from bgn.data.spec import IMPORTED, DatasetSpec, LoaderOptions
+from bgn.data.generate import ensure_dataset, ensure_splits
+from bgn.data.spec import IMPORTED, SPLITS, DatasetSpec, LoaderOptions
 from bgn.graph import collate
 from bgn.sim import SceneMeta
 
@@ -80,6 +82,25 @@ class ParticleDataModule(L.LightningDataModule):
             sims = list(range(self.train_sims)) if split == "train" and self.train_sims else None
             self.datasets[split] = FrameDataset(file, self.history, sims, self.in_memory,
                                                 unroll=self.unroll if split == "train" else 0)
+
+    def larger_split(self, split: str, n_sims: int) -> FrameDataset:
+        """Split ``split`` with ``n_sims`` simulations instead of the run's, generated on first
+        use: its first simulations are the run's (each is a pure function of the seed, the
+        split and its index), the rest new ones from the same scene, never seen in training or
+        choices; a radius-graph scene keeps the run's training file and its margin. More
+        particles for a metric whose spread is the split's size (coverage over ten
+        simulations moves in tenths). Generated scenes only."""
+        if self.spec.scene == IMPORTED:
+            raise ConfigError("sims", n_sims, "imported data hold the simulations they hold: "
+                              "import more, or leave sims unset")
+        n_sims = need_int(n_sims, "sims", 1)
+        base = self.spec.with_split(split)
+        # every other split keeps the run's size: the train file (and its margin) is the run's
+        sizes = tuple((int(n_sims) if s == split else base.n_sims, base.n_frames)
+                      for s in SPLITS)
+        spec = replace(base, n_sims=int(n_sims), sizes=sizes)
+        path = ensure_dataset(spec, self.data_dir, self.generate_workers, None)
+        return FrameDataset(DatasetFile(path, spec), self.history, None, self.in_memory)
 
     @property
     def meta(self) -> SceneMeta:

@@ -745,6 +745,7 @@ def validate_evaluate(cfg: Any) -> tuple[Path, Path, Path]:
     for key in ("mass_frames", "mass_samples", "batch_size"):
         need_int(cfg[key], key, 1)
     need_int(cfg.law_frames, "law_frames", 0)
+    need_int(cfg.sims, "sims", 1, optional=True, why=" (null: the run's own simulations)")
     need_int(cfg.seed, "seed", 0, MAX_SEED)
     if cfg.relmass_decode not in RELMASS_DECODES:
         raise ConfigError("relmass_decode", cfg.relmass_decode,
@@ -1069,6 +1070,9 @@ def evaluate_run(cfg: Any, paths: tuple[Path, Path, Path]) -> Path:
     datamodule.prepare_data()  # the run's data, generated again where they are missing
     datamodule.setup()
     dataset = datamodule.datasets[cfg.split]
+    if cfg.sims is not None:
+        with reported():  # imported data: one line
+            dataset = datamodule.larger_split(cfg.split, cfg.sims)
     references = 2 if dataset.meta.target == "velocity" else 3
     stages = Stages(3 + references + bool(cfg.figures), bool(cfg.progress))
     curves: dict[str, dict[str, np.ndarray]] = {}

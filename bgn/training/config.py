@@ -186,6 +186,8 @@ class EvaluateKeys:
     ckpt: str | None = None           # a checkpoint or a run directory (the positional path)
     run_config: str | None = None     # null: the run's .hydra/config.yaml (or train_config.yaml)
     split: str = "test"               # the split scored
+    sims: int | None = None           # score that split with this many simulations, the run's
+                                      # first and new ones of the same scene (null: the run's)
     calibration_split: str = "val"    # the split the mass flow is recalibrated on
     out_dir: str | None = None        # null: <run>/eval/<split>
     paths: Any = None                 # paths.data_dir (null: the run's paths.data_dir)

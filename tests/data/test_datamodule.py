@@ -146,3 +146,24 @@ def test_datamodule_rejects_bad_values(small_cfg):
         ParticleDataModule(small_cfg("spring", "dataset.test_samples=0").dataset, 50)
     with pytest.raises(ValueError, match="batch_size"):
         ParticleDataModule(small_cfg("spring", "dataset.batch_size=0").dataset, 50)
+
+
+def test_a_larger_split_keeps_the_runs_simulations_and_its_training_file(small_cfg):
+    """``larger_split``: the run's simulations first, bit for bit, then new ones; a
+    radius-graph scene's val and test take the training file's margin, so the run's training
+    file is read, not a larger one made; a count below 1 is refused."""
+    from bgn.coerce import ConfigError
+
+    dm = _datamodule(small_cfg("collisions"))
+    data_dir = dm.datasets["train"].file.path.parent
+    files = set(data_dir.glob("*.h5"))
+    test = dm.datasets["test"]
+    larger = dm.larger_split("test", test.file.n_sims + 1)
+    assert larger.file.n_sims == test.file.n_sims + 1
+    for sim in range(test.file.n_sims):
+        np.testing.assert_array_equal(larger.file.read("positions", sim),
+                                      test.file.read("positions", sim))
+    assert set(data_dir.glob("*.h5")) - files == {larger.file.path}   # no other file made
+    assert larger.margin == test.margin
+    with pytest.raises(ConfigError, match="sims"):
+        dm.larger_split("test", 0)

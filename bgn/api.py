@@ -387,7 +387,7 @@ class Model:
         windows)."""
         from bgn.eval.impact_posterior import (
             SimulationImpacts,
-            graph_rows,
+            contact_rows,
             impact_posterior,
             residual_noise,
         )
@@ -399,14 +399,9 @@ class Model:
         if not isinstance(head, ContactImpulseHead) or self.mass_prior is None:
             return None
         g = collate(graphs)
-        rows = head.window_contacts(g).cpu()
-        batch = g.batch.cpu()
-        first = (torch.cumsum(g.num_nodes, 0) - g.num_nodes).cpu()
         k2, n = self.window_length, x.shape[1]
-        ends = self._window_ends(len(x), frames)
-        windows = np.stack([x[e - k2 + 1:e + 1] for e in ends])
-        contacts = [graph_rows(rows, batch, b, first, k2) for b in range(len(graphs))]
-        pairs, ratios = impact_equations(windows, self.dt, contacts)
+        windows = np.stack([x[e - k2 + 1:e + 1] for e in self._window_ends(len(x), frames)])
+        pairs, ratios = impact_equations(windows, self.dt, contact_rows(head, g, k2))
         if types is not None:
             kinds = np.asarray(types, dtype=np.int64)
         elif not self.mass_prior.typed:

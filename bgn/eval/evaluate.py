@@ -22,7 +22,7 @@ from bgn.data.dataset import FrameDataset
 from bgn.data.frames import evenly_spaced
 from bgn.eval.impact_posterior import (
     choose_noise,
-    graph_rows,
+    contact_rows,
     mixed_with_types,
     posterior_of,
     simulation_impacts,
@@ -372,10 +372,11 @@ class _MassDraws:
         self.law_fit.append(head.fitted_log_mass(g, fit, error).double().numpy())
 
     def add_windows(self, dataset: FrameDataset, prior: MassPrior, chunk: np.ndarray,
-                    g: Graph, first_node: torch.Tensor, rows: torch.Tensor | None) -> None:
+                    g: Graph, first_node: torch.Tensor, rows: list[np.ndarray] | None,
+                    ) -> None:
         """Each frame of ``chunk`` (the batch ``g``): its window and contacts, the force-law
-        estimate on it and the contact head's impacts in it (``rows``: ``window_contacts``
-        on the batch, None without that head)."""
+        estimate on it and the contact head's impacts in it (``rows``: ``contact_rows`` of
+        the batch, None without that head)."""
         for b, i in enumerate(chunk):
             window, contacts = window_and_contacts(dataset, i)
             sim = dataset.locate(i)[0]
@@ -385,8 +386,7 @@ class _MassDraws:
                 sim, g.types[first_node[b]:first_node[b] + g.num_nodes[b]].numpy())
             self.physical.append(_physical(dataset, prior, [(window, contacts)], types))
             if rows is not None:
-                self.model_contacts.setdefault(sim, []).append(
-                    graph_rows(rows, g.batch, b, first_node, len(window)))
+                self.model_contacts.setdefault(sim, []).append(rows[b])
 
     def arrays(self) -> _MassArrays:
         """The batches concatenated."""
@@ -401,7 +401,7 @@ def _gather_draws(model: Any, dataset: FrameDataset, prior: MassPrior, indices: 
     """The posterior's draws and the windows of the frames ``indices``, a batch at a time."""
     # the contact head's impacts in each window: its per-simulation mass solve
     head = getattr(model, "force_head", None)
-    seen_contacts = (head.window_contacts if isinstance(head, ContactImpulseHead) else None)
+    contact_head = head if isinstance(head, ContactImpulseHead) else None
     law_head = pair_force_head_of(model)
     draws = _MassDraws()
     for s in range(0, len(indices), batch_size):
@@ -410,8 +410,8 @@ def _gather_draws(model: Any, dataset: FrameDataset, prior: MassPrior, indices: 
         first_node = draws.add_posterior(model, g, mass_samples)
         if law_head is not None:
             draws.add_law_fit(law_head, g)
-        draws.add_windows(dataset, prior, chunk, g, first_node,
-                          None if seen_contacts is None else seen_contacts(g))
+        draws.add_windows(dataset, prior, chunk, g, first_node, None if contact_head is None
+                          else contact_rows(contact_head, g, dataset.history + 2))
     return draws
 
 

@@ -34,7 +34,7 @@ import torch
 from bgn.data.dataset import FrameDataset
 from bgn.eval.law_posterior import CONTAMINATION, KEY, LawPosterior, simulation_frames
 from bgn.eval.mass_baselines import MassPrior, impact_equations, impact_matrix
-from bgn.graph import collate
+from bgn.graph import Graph, collate
 from bgn.model.impulse import ContactImpulseHead
 
 # candidate standard deviations of one impact's log-ratio (``choose_noise``): from the
@@ -42,29 +42,40 @@ from bgn.model.impulse import ContactImpulseHead
 NOISE = tuple(float(s) for s in np.geomspace(1e-4, 1.0, 17))
 
 
+def position_window(dataset: FrameDataset, index: int) -> np.ndarray:
+    """The position window the model sees at dataset ``index`` (k+2, N, D)."""
+    sim, t = dataset.locate(index)
+    return dataset.file.read("positions", (sim, slice(t - dataset.history - 1, t + 1)))
+
+
 def window_and_contacts(dataset: FrameDataset, index: int) -> tuple[np.ndarray,
                                                                     np.ndarray | None]:
-    """The position window the model sees at dataset ``index`` (k+2, N, D) and, for a contact
-    scene, its recorded contacts as rows ``(frame within the window, i, j)``."""
-    sim, t = dataset.locate(index)
-    first = t - dataset.history - 1
-    window = dataset.file.read("positions", (sim, slice(first, t + 1)))
+    """``position_window`` and, for a contact scene, its recorded contacts as rows ``(frame
+    within the window, i, j)``."""
+    window = position_window(dataset, index)
     if dataset.meta.interaction != "contact":
         return window, None
+    sim, t = dataset.locate(index)
+    first = t - dataset.history - 1
     table = dataset.file.read("contacts", ...)
     rows = table[(table[:, 0] == sim) & (table[:, 1] >= first) & (table[:, 1] < t)]
     return window, np.column_stack([rows[:, 1] - first, rows[:, 2], rows[:, 3]])
 
 
-def graph_rows(rows: torch.Tensor, batch: torch.Tensor, b: int, first_node: torch.Tensor,
-               frames: int) -> np.ndarray:
-    """The contact head's impacts ``(j, i, k)`` (node indices of the batched graph, as
-    ``ContactImpulseHead.window_contacts`` gives them; ``batch``: each node's graph) of graph
-    ``b`` as rows ``(frame in its window of ``frames`` frames, i, k)`` with the graph's own
-    node indices. CPU tensors."""
-    mine = rows[batch[rows[:, 1]] == b]
-    return torch.stack([frames - 1 - mine[:, 0], mine[:, 1] - first_node[b],
-                        mine[:, 2] - first_node[b]], 1).numpy()
+@torch.no_grad()
+def contact_rows(head: ContactImpulseHead, g: Graph, frames: int) -> list[np.ndarray]:
+    """The impacts the contact ``head`` sees in each window of the batch ``g`` (windows of
+    ``frames`` frames), per graph as rows ``(frame in its window, i, k)`` with the graph's own
+    node indices: ``ContactImpulseHead.window_contacts``' rows ``(j, i, k)`` split by graph."""
+    rows = head.window_contacts(g).cpu()
+    batch = g.batch.cpu()
+    first = (torch.cumsum(g.num_nodes, 0) - g.num_nodes).cpu()
+    out = []
+    for b in range(len(first)):
+        mine = rows[batch[rows[:, 1]] == b]
+        out.append(torch.stack([frames - 1 - mine[:, 0], mine[:, 1] - first[b],
+                                mine[:, 2] - first[b]], 1).numpy())
+    return out
 
 
 @dataclass
@@ -101,17 +112,12 @@ def simulation_impacts(head: ContactImpulseHead, dataset: FrameDataset, indices:
     known = getattr(dataset.meta, "masses_known", True)
     out = []
     for sim, frames in simulation_frames(dataset, indices, law_frames).items():
-        windows, contacts = [], []
+        windows = np.stack([position_window(dataset, i) for i in frames])
+        contacts = []
         for s in range(0, len(frames), batch_size):
-            chunk = frames[s:s + batch_size]
-            g = collate([dataset[i] for i in chunk])
-            rows = head.window_contacts(g)
-            first_node = torch.cumsum(g.num_nodes, 0) - g.num_nodes
-            for b, i in enumerate(chunk):
-                window = window_and_contacts(dataset, i)[0]
-                windows.append(window)
-                contacts.append(graph_rows(rows, g.batch, b, first_node, len(window)))
-        pairs, ratios = impact_equations(np.stack(windows), dataset.dt, contacts)
+            g = collate([dataset[i] for i in frames[s:s + batch_size]])
+            contacts += contact_rows(head, g, windows.shape[1])
+        pairs, ratios = impact_equations(windows, dataset.dt, contacts)
         types = dataset.file.read("types", sim)
         masses = (dataset.file.read("masses", sim) if known
                   else np.full(len(types), np.nan))
@@ -155,15 +161,10 @@ def mixed_with_types(posterior: LawPosterior, impacts: list[SimulationImpacts],
                      prior: MassPrior, share: float) -> LawPosterior:
     """``(1 - share)`` of ``posterior`` and ``share`` of each disc's type's law
     (``type_prior``): a false impact costs the type's density, not a Gaussian's tail."""
-    if share <= 0:
-        return posterior
     laws = [type_prior(prior, sim.types) for sim in impacts]
     means = np.concatenate([m for m, _ in laws])[:, None]
     stds = np.concatenate([s for _, s in laws])[:, None]
-    return LawPosterior(np.concatenate([posterior.means, means], 1),
-                        np.concatenate([posterior.stds, stds], 1),
-                        np.concatenate([posterior.log_weights + np.log1p(-share),
-                                        np.full_like(means, np.log(share))], 1))
+    return posterior.mixed_with(LawPosterior(means, stds, np.zeros_like(means)), share)
 
 
 def residual_noise(impacts: list[SimulationImpacts]) -> float:

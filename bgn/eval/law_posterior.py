@@ -266,17 +266,22 @@ class LawPosterior:
         prior, which would shrink every mass towards the prior's mean alike."""
         return LawPosterior(self.means, np.hypot(self.stds, std), self.log_weights)
 
-    def mixed(self, prior: MassPrior, share: float) -> LawPosterior:
-        """``(1 - share)`` of this posterior and ``share`` of the prior, as one mixture per
-        particle (the prior's components appended)."""
+    def mixed_with(self, other: LawPosterior, share: float) -> LawPosterior:
+        """``(1 - share)`` of this posterior and ``share`` of ``other`` (per particle too), as
+        one mixture per particle (``other``'s components appended)."""
         if share <= 0:
             return self
+        return LawPosterior(np.concatenate([self.means, other.means], 1),
+                            np.concatenate([self.stds, other.stds], 1),
+                            np.concatenate([self.log_weights + np.log1p(-share),
+                                            other.log_weights + np.log(share)], 1))
+
+    def mixed(self, prior: MassPrior, share: float) -> LawPosterior:
+        """``(1 - share)`` of this posterior and ``share`` of the prior (``mixed_with``)."""
         p = len(self.means)
         prior_w = np.log(prior.weights / prior.weights.sum())[None].repeat(p, 0)
-        return LawPosterior(np.concatenate([self.means, np.repeat(prior.means[None], p, 0)], 1),
-                            np.concatenate([self.stds, np.repeat(prior.stds[None], p, 0)], 1),
-                            np.concatenate([self.log_weights + np.log1p(-share),
-                                            prior_w + np.log(share)], 1))
+        return self.mixed_with(LawPosterior(np.repeat(prior.means[None], p, 0),
+                                            np.repeat(prior.stds[None], p, 0), prior_w), share)
 
     def sample(self, n: int, rng: np.random.Generator) -> np.ndarray:
         """(n, P) independent draws of each particle's log-mass."""

@@ -43,7 +43,7 @@ def main(argv: list[str]) -> int:
 
     from bgn.data.datamodule import ParticleDataModule
     from bgn.data.frames import evenly_spaced
-    from bgn.eval.impact_posterior import window_and_contacts
+    from bgn.eval.impact_posterior import position_window
     from bgn.eval.law_posterior import simulation_frames
     from bgn.eval.mass_baselines import gravity_log_mass
     from bgn.metrics import relative_mass_error
@@ -72,7 +72,7 @@ def main(argv: list[str]) -> int:
     print("| simulation | windows | median abs relative mass error |")
     print("|---|---|---|")
     for sim, frames in simulation_frames(test, indices, args.law_frames).items():
-        windows = np.stack([window_and_contacts(test, i)[0] for i in frames])
+        windows = np.stack([position_window(test, i) for i in frames])
         log_mass = gravity_log_mass(law, windows, test.dt)
         true_log = np.log(test.file.read("masses", sim))
         estimate.append(log_mass)

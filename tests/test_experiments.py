@@ -212,8 +212,9 @@ def test_tiny_preset_end_to_end_and_resumes(tmp_path: Path, capsys) -> None:
     # the prior-only sampler and the physical estimator under every model, the type-only
     # sampler where each type has its own mass law (collisions), the law estimator per window
     # and the per-simulation posterior through the learned law where the model has a
-    # pair-force head
-    assert len(inverse) == 3 * len(models) + sum(r["scene"] == "collisions" for r in models) \
+    # pair-force head, the per-simulation posterior through the impacts where it has a contact
+    # head (collisions)
+    assert len(inverse) == 3 * len(models) + 2 * sum(r["scene"] == "collisions" for r in models) \
         + 2 * sum("pair-force head" in r["model"] for r in models)
     for row in models:
         assert 0 <= float(row["coverage90"]) <= 1

@@ -334,10 +334,22 @@ def test_a_larger_split_scores_more_simulations_the_runs_first(trained_run, tmp_
     fewer = json.loads((base / "metrics.json").read_text())["metrics"]
     # the same frame count spread over more simulations: more distinct particles
     assert metrics["law_posterior/windows"] < fewer["law_posterior/windows"]
+    # calibration_sims=: the calibration split enlarged the same way, said in the provenance
+    calibrated = evaluate_main(evaluate_cfg(
+        f"ckpt={run}", f"out_dir={tmp_path / 'calibrated'}", f"calibration_sims={n + 2}",
+        "rollout.max_sims=1", "figures=false"))
+    record = json.loads((calibrated / "metrics.json").read_text())["provenance"]
+    assert record["sims"] == {"split": n, "calibration": n + 2}
+    assert f"({n} simulations scored, {n + 2} calibrated on)" in (
+        calibrated / "report.md").read_text()
     with pytest.raises(SystemExit) as exit_:
         evaluate_main(evaluate_cfg(f"ckpt={run}", "sims=0"))
     err = capsys.readouterr().err
     assert exit_.value.code == 2 and "sims" in err and len(err.strip().splitlines()) == 1
+    with pytest.raises(SystemExit) as exit_:
+        evaluate_main(evaluate_cfg(f"ckpt={run}", "calibration_sims=-1"))
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and "calibration_sims" in err
 
 
 def test_the_relmass_decode_recheck_writes_both_decodes_into_its_block(trained_run, tmp_path,

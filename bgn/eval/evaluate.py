@@ -745,7 +745,8 @@ def validate_evaluate(cfg: Any) -> tuple[Path, Path, Path]:
     for key in ("mass_frames", "mass_samples", "batch_size"):
         need_int(cfg[key], key, 1)
     need_int(cfg.law_frames, "law_frames", 0)
-    need_int(cfg.sims, "sims", 1, optional=True, why=" (null: the run's own simulations)")
+    for key in ("sims", "calibration_sims"):
+        need_int(cfg[key], key, 1, optional=True, why=" (null: the run's own simulations)")
     need_int(cfg.seed, "seed", 0, MAX_SEED)
     if cfg.relmass_decode not in RELMASS_DECODES:
         raise ConfigError("relmass_decode", cfg.relmass_decode,
@@ -812,6 +813,14 @@ def provenance_record(cfg: Any, ckpt: Path, config: Path, run_cfg: Any) -> dict[
             "split": str(cfg.split), "calibration_split": str(cfg.calibration_split),
             "command": " ".join([ARGV[0] if ARGV else "python -m bgn.evaluate",
                                  *(shlex.quote(a) for a in (ARGV or sys.argv)[1:])])}
+
+
+def sims_text(record: dict[str, Any]) -> str:
+    """The simulations scored and calibrated on, as the report's provenance says them (an
+    older record has none)."""
+    sims = record.get("sims")
+    return (f" ({sims['split']} simulations scored, {sims['calibration']} calibrated on)"
+            if sims else "")
 
 
 class Stages:
@@ -936,7 +945,7 @@ def report_text(record: dict[str, Any], metrics: dict[str, Any], figures: list[s
              f"{record['cpu_count']} CPUs, {record['torch_threads']} torch threads",
              f"- libraries: {record.get('libraries', 'unknown')}",
              f"- seeds: {seeds}; mass flow recalibrated on the {record['calibration_split']} "
-             f"split; wall time {record['wall_time_s']:.1f} s", "",
+             f"split{sims_text(record)}; wall time {record['wall_time_s']:.1f} s", "",
              "## One step", "",
              markdown_table(["metric", "value"], [{"metric": k, "value": metrics[k]}
                                                   for k in ONE_STEP_KEYS if k in metrics]),
@@ -1073,13 +1082,17 @@ def evaluate_run(cfg: Any, paths: tuple[Path, Path, Path]) -> Path:
     if cfg.sims is not None:
         with reported():  # imported data: one line
             dataset = datamodule.larger_split(cfg.split, cfg.sims)
+    calibration = datamodule.datasets[cfg.calibration_split]
+    if cfg.calibration_sims is not None:
+        with reported():
+            calibration = datamodule.larger_split(cfg.calibration_split, cfg.calibration_sims)
     references = 2 if dataset.meta.target == "velocity" else 3
     stages = Stages(3 + references + bool(cfg.figures), bool(cfg.progress))
     curves: dict[str, dict[str, np.ndarray]] = {}
     positions: dict[str, np.ndarray] = {}  # the model's rollouts, written as rollouts.npz
     try:
         metrics, arrays = evaluate_split(
-            module, dataset, datamodule.datasets[cfg.calibration_split],
+            module, dataset, calibration,
             one_step_frames(cfg, datamodule),
             cfg.mass_frames, cfg.mass_samples, cfg.batch_size, int(cfg.seed),
             int(cfg.rollout.steps), int(cfg.rollout.starts_per_sim), cfg.rollout.max_sims,
@@ -1105,6 +1118,7 @@ def evaluate_run(cfg: Any, paths: tuple[Path, Path, Path]) -> Path:
     out_dir = Path(cfg.out_dir) if cfg.out_dir else run_dir / "eval" / str(cfg.split)
     record = provenance_record(cfg, ckpt, config, run_cfg)
     record["wall_time_s"] = time.perf_counter() - start
+    record["sims"] = {"split": len(dataset.sims), "calibration": len(calibration.sims)}
     record["model"] = module.model.describe()  # the variant, given, physics written in
     write_outputs(out_dir, record, metrics, figures, law)
     write_rollouts(out_dir / "rollouts.npz", positions, dataset.dt)

@@ -189,6 +189,7 @@ class EvaluateKeys:
     sims: int | None = None           # score that split with this many simulations, the run's
                                       # first and new ones of the same scene (null: the run's)
     calibration_split: str = "val"    # the split the mass flow is recalibrated on
+    calibration_sims: int | None = None  # that split with this many simulations, as sims=
     out_dir: str | None = None        # null: <run>/eval/<split>
     paths: Any = None                 # paths.data_dir (null: the run's paths.data_dir)
     max_frames: int | None = None     # one-step frames, evenly spread (null: the frames the

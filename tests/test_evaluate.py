@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from bgn.data.datamodule import ParticleDataModule
-from bgn.eval.evaluate import evaluate_model, mass_figure
+from bgn.eval.evaluate import evaluate_model, mass_figure, matched_frames
 from bgn.eval.evaluate import main as evaluate_main
 from bgn.rollout import evaluate_rollouts, rollout_starts, rollout_summary
 from bgn.training.run import build, train
@@ -493,3 +493,26 @@ def test_data_without_masses_build_no_inverse_model_and_score_no_masses(tmp_path
     assert module.model.heads == frozenset({"dynamics"})
     assert not any(k.startswith("posterior/") for k in metrics)
     assert not arrays and "coverage50" not in metrics and "relmass_r2" not in metrics
+
+
+class _Split:
+    """A split's shape alone: its simulations and its windows (``frames`` per simulation)."""
+
+    def __init__(self, n_sims: int, frames: int) -> None:
+        self.sims, self.frames_per_sim = list(range(n_sims)), frames
+
+    def __len__(self) -> int:
+        return len(self.sims) * self.frames_per_sim
+
+
+def test_the_calibration_split_is_read_with_as_many_frames_per_simulation() -> None:
+    """A posterior's noise is chosen on the calibration split with the scored split's frames
+    per simulation, whatever the two splits' sizes (sims=, calibration_sims=)."""
+    scored, indices = _Split(40, 100), list(range(0, 4000, 100))  # one frame per simulation
+    for n_sims, per_sim in ((10, 1), (40, 1), (160, 1)):
+        chosen = matched_frames(scored, _Split(n_sims, 100), indices)
+        assert len(chosen) == n_sims * per_sim
+        assert sorted({i // 100 for i in chosen}) == list(range(n_sims))  # every simulation
+    assert len(matched_frames(_Split(10, 100), _Split(40, 100), list(range(0, 1000, 25)))) \
+        == 160  # four per simulation
+    assert len(matched_frames(_Split(10, 5), _Split(10, 5), list(range(50)))) == 50  # all

@@ -200,6 +200,16 @@ def evaluate_model(module: PhysicsModule, dataset: FrameDataset, max_frames: int
     return metrics, arrays
 
 
+def matched_frames(dataset: FrameDataset, validation: FrameDataset,
+                   indices: list[int]) -> list[int]:
+    """Evenly spaced frames of ``validation``, as many per simulation as ``indices`` hold of
+    ``dataset``: a per-simulation posterior's noise is chosen on as much evidence per
+    simulation as it is scored with, whatever the two splits' sizes (``sims=``,
+    ``calibration_sims=``)."""
+    per_sim = len(indices) / len(dataset.sims)
+    return evenly_spaced(len(validation), max(1, round(per_sim * len(validation.sims))))
+
+
 def evaluate_law_inverse(module: PhysicsModule, dataset: FrameDataset, mass_frames: int = 32,
                          mass_samples: int = 32, seed: int = 0,
                          validation: FrameDataset | None = None, law_frames: int = 0,
@@ -500,8 +510,8 @@ def _law_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
         return {"fit": "none: mass_law=type, one learned mass per type, nothing to fit"}
     checked = None
     if validation is not None and getattr(validation.meta, "masses_known", True):
-        checked = fit_simulations(head, validation, evenly_spaced(len(validation),
-                                                                  len(indices)), law_frames)
+        checked = fit_simulations(head, validation, matched_frames(dataset, validation, indices),
+                                  law_frames)
     shift, factor, floor, scale = place_scale(fits, prior, law_scale_pinned(module.model),
                                               checked)
     share = contamination(checked, prior, shift, factor, floor)
@@ -580,7 +590,7 @@ def _impact_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
     checked = None
     if validation is not None and getattr(validation.meta, "masses_known", True):
         checked = simulation_impacts(head, validation,
-                                     evenly_spaced(len(validation), len(indices)), law_frames,
+                                     matched_frames(dataset, validation, indices), law_frames,
                                      batch_size)
     noise, share, source = choose_noise(impacts, checked, prior)
     gaussian = posterior_of(impacts, prior, noise)

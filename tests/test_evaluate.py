@@ -509,9 +509,9 @@ def test_the_calibration_split_is_read_with_as_many_frames_per_simulation() -> N
     """A posterior's noise is chosen on the calibration split with the scored split's frames
     per simulation, whatever the two splits' sizes (sims=, calibration_sims=)."""
     scored, indices = _Split(40, 100), list(range(0, 4000, 100))  # one frame per simulation
-    for n_sims, per_sim in ((10, 1), (40, 1), (160, 1)):
+    for n_sims in (10, 40, 160):
         chosen = matched_frames(scored, _Split(n_sims, 100), indices)
-        assert len(chosen) == n_sims * per_sim
+        assert len(chosen) == n_sims  # one each
         assert sorted({i // 100 for i in chosen}) == list(range(n_sims))  # every simulation
     assert len(matched_frames(_Split(10, 100), _Split(40, 100), list(range(0, 1000, 25)))) \
         == 160  # four per simulation

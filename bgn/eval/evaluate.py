@@ -1094,7 +1094,7 @@ def evaluate_run(cfg: Any, paths: tuple[Path, Path, Path]) -> Path:
             dataset = datamodule.larger_split(cfg.split, cfg.sims)
     calibration = datamodule.datasets[cfg.calibration_split]
     if cfg.calibration_sims is not None:
-        with reported():
+        with reported():  # imported data: one line
             calibration = datamodule.larger_split(cfg.calibration_split, cfg.calibration_sims)
     references = 2 if dataset.meta.target == "velocity" else 3
     stages = Stages(3 + references + bool(cfg.figures), bool(cfg.progress))

@@ -4,12 +4,14 @@ truth kept beside the file, and the file imported as a user's would be."""
 from __future__ import annotations
 
 import csv
+import importlib.util
 import json
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from bgn.sim.nbody import NBodyScene
 
@@ -63,3 +65,32 @@ def test_a_simulations_frames_identify_its_masses_and_charge_signs_with_the_true
     assert "per window" in rows and (out / "identify.md").exists()
     resolved = rows["per simulation, frames turning < 0.02"]  # frames a pair turns fast in: out
     assert float(resolved["charge signs right"]) == 1.0
+
+
+def test_a_fits_posterior_misses_are_zero_at_the_truth_and_its_coverage_counts_them() -> None:
+    """score.py's posterior: the true couplings (``k = q / m``, ``c`` the charges at unit rms,
+    in any global sign) miss nothing; a simulation with a particle whose ``k`` came out 0 (its
+    own accelerations all left out) has no masses but keeps its charges, and a simulation
+    whose fit failed (NaN) is left out of the charges' scores."""
+    spec = importlib.util.spec_from_file_location("charges_score",
+                                                  SCRIPT.with_name("score.py"))
+    score = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(score)
+    scores, coverage, misses = score.scores, score.coverage, score.misses
+
+    rng = np.random.default_rng(0)
+    masses = np.exp(rng.normal(size=(3, 4)))
+    charges = rng.choice([-1.0, 1.0], (3, 4)) * np.exp(0.5 * rng.normal(size=(3, 4)))
+    c = -charges / np.sqrt((charges ** 2).mean(1, keepdims=True))       # the other sign
+    k = c / masses
+    got = misses(k, c, np.full_like(k, 0.01), np.full_like(c, 0.01), masses, charges)
+    assert np.allclose(got["log-mass"][0], 0) and np.allclose(got["charge"][0], 0)
+    miss, sd = np.array([0.0, 0.5, 2.0, np.nan]), np.ones(4)
+    assert coverage(miss, sd, 1.0, 0.0, 0.5) == pytest.approx(2 / 3)    # |z| 0, 0.5 within
+    k[1, 2] = 0.0                     # no mass for simulation 1, its charges still read
+    c[2] = np.nan                     # simulation 2's fit failed
+    k[2] = np.nan
+    table = scores(k, c, masses, charges, 0.2)
+    assert table["identified"] == pytest.approx(1 / 3)
+    assert table["charges fitted"] == pytest.approx(2 / 3)
+    assert table["charge signs right"] == 1.0 and table["charge R^2"] == pytest.approx(1.0)

@@ -58,7 +58,7 @@ def test_inverse_evaluation_with_references(scene: str, tmp_path: Path,
         # per simulation through the impacts the model's own contact head sees (no
         # validation split given: the noise from the equations' own scatter)
         for key in ("sim_mass_rel_err", "coverage50", "info_gain", "info_gain_over_type",
-                    "identified", "physical_sim_mass_rel_err"):
+                    "identified", "physical_sim_mass_rel_err", "physical_relmass_r2_estimate"):
             assert np.isfinite(metrics[f"impact_posterior/{key}"]), key
         assert metrics["impact_posterior/noise_from"] == "residuals"
     else:  # one mass law for every particle: the type says nothing, no such reference

@@ -121,7 +121,7 @@ def test_a_model_trained_without_masses_reads_them_through_its_impacts(
     assert metrics["impact_posterior/noise_from"] == "residuals"
     assert metrics["impact_posterior/contamination"] == 0.0
     for key in ("sim_mass_rel_err", "info_gain", "info_gain_over_type",
-                "physical_sim_mass_rel_err", "coverage50"):
+                "physical_sim_mass_rel_err", "physical_relmass_r2_estimate", "coverage50"):
         assert np.isfinite(metrics[f"impact_posterior/{key}"]), key
     assert not any(k.startswith("law_posterior/") for k in metrics)
     assert "coverage50" not in metrics and arrays == {}        # no flow to score

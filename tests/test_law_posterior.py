@@ -23,6 +23,7 @@ from bgn.eval.law_posterior import (
     place_scale,
     pooled_system,
     simulation_frames,
+    spread_calibration,
 )
 from bgn.eval.mass_baselines import MassPrior
 from bgn.model.newton import pair_force_head_of
@@ -93,6 +94,8 @@ def test_through_the_true_law_a_simulation_pins_its_masses_far_better_than_a_win
     assert metrics["law_posterior/sim_mass_rel_err"] < 0.1 * metrics[
         "learned_law/sim_mass_rel_err"]
     assert metrics["law_posterior/relmass_r2_estimate"] > 0.999
+    # the estimator that knows the law, on the same windows, beside it
+    assert metrics["law_posterior/physical_relmass_r2_estimate"] > 0.99
     # (8 particles: the coverage and information are reported, not held to a level here)
     assert np.isfinite(metrics["law_posterior/info_gain"])
     # the per-window estimator and the flow stay beside it
@@ -233,6 +236,19 @@ def test_the_scale_physical_validation_or_prior() -> None:
     shift, factor, floor, scale = place_scale(shifted, prior, False, unknown)
     assert (scale, factor, floor) == ("prior", 1.0, 0.0)
     assert shift == pytest.approx(0.7 - true.mean(), abs=0.01)
+
+
+def test_spreads_chosen_on_one_sample_cover_another() -> None:
+    """``spread_calibration`` on validation misses whose stated errors are 3x too narrow (a
+    floor) or 3x too wide (a factor): new misses of the same kind are then covered at 50 %."""
+    rng = np.random.default_rng(1)
+    sd = rng.uniform(0.01, 0.1, 4000)
+    for stated in (sd / 3, sd * 3):
+        factor, floor = spread_calibration(rng.normal(0.0, sd), stated)
+        assert (floor > 0) == (stated[0] < sd[0]) and (factor < 1) == (stated[0] > sd[0])
+        fresh = rng.normal(0.0, sd)
+        covered = np.abs(fresh) <= 0.6744897501960817 * np.hypot(stated * factor, floor)
+        assert covered.mean() == pytest.approx(0.5, abs=0.03)
 
 
 def test_the_prior_shifts_error_is_its_fisher_information() -> None:

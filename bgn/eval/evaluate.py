@@ -498,8 +498,9 @@ def _law_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
     fit's standard deviations and the floor added to them (``place_scale``);
     ``contamination``: the share of the prior mixed in, chosen on ``validation`` too;
     ``windows``:
-    windows per simulation; with ``law_frames``,
-    ``physical_sim_mass_rel_err``: the physical estimator on the same windows. Empty for a
+    windows per simulation; ``physical_sim_mass_rel_err`` and
+    ``physical_relmass_r2_estimate``: the physical estimator on the same windows
+    (``_physical_on_frames``). Empty for a
     model without a pair-force head; under ``mass_law=type`` only ``fit`` saying there is
     nothing to fit."""
     head = pair_force_head_of(module.model)
@@ -533,9 +534,8 @@ def _law_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
         "std_floor": floor,
         "contamination": share,
         "windows": fits.windows}
-    if law_frames > 0:  # the estimator that knows the law, on the same windows
-        metrics["physical_sim_mass_rel_err"] = _physical_on_frames(dataset, prior, indices,
-                                                                   law_frames)
+    # the estimator that knows the law, on the same windows
+    metrics.update(_physical_on_frames(dataset, prior, indices, law_frames))
     return metrics
 
 
@@ -555,18 +555,29 @@ def _simulation_posterior_metrics(posterior: LawPosterior, estimate: np.ndarray,
 
 
 def _physical_on_frames(dataset: FrameDataset, prior: MassPrior, indices: list[int],
-                        law_frames: int) -> float:
-    """The physical estimator's per-simulation error on the windows a per-simulation
-    posterior read (``simulation_frames``): the estimator that knows the law, given as
-    much."""
-    pooled, truth = [], []
+                        law_frames: int) -> dict[str, float]:
+    """The physical estimator on the windows a per-simulation posterior read
+    (``simulation_frames``): the estimator that knows the law, given as much. Its
+    per-simulation error (``physical_sim_mass_rel_err``) and its relative masses' R^2 over
+    every ordered pair of particles of a simulation (``physical_relmass_r2_estimate``, as the
+    posterior's); a particle it cannot estimate keeps its type's mean. Empty where the data
+    have no law written down (imported): it estimates nothing there."""
+    pooled, truth, keys, seen = [], [], [], False
     for sim, frames in simulation_frames(dataset, indices, law_frames).items():
         views = [window_and_contacts(dataset, i) for i in frames]
         types = dataset.file.read("types", sim)
         estimate = _physical(dataset, prior, views, types)
+        seen = seen or bool(np.isfinite(estimate).any())
         pooled.append(np.where(np.isfinite(estimate), estimate, prior.type_mean(types)))
         truth.append(np.log(dataset.file.read("masses", sim)))
-    return relative_mass_error(np.concatenate(pooled), np.concatenate(truth))
+        keys.append(np.full(len(estimate), sim))
+    if not seen:
+        return {}
+    estimate, true_log, sims = (np.concatenate(a) for a in (pooled, truth, keys))
+    snd, rcv = np.nonzero((sims[:, None] == sims[None, :]) & ~np.eye(len(sims), dtype=bool))
+    return {"physical_sim_mass_rel_err": relative_mass_error(estimate, true_log),
+            "physical_relmass_r2_estimate": r2_score(estimate[rcv] - estimate[snd],
+                                                     true_log[rcv] - true_log[snd])}
 
 
 def _impact_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
@@ -582,7 +593,7 @@ def _impact_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
     it was chosen: validation, or the equations' own residuals without validation masses),
     ``contamination``, ``identified`` (the share of discs in at least one equation),
     ``impacts`` and ``windows`` per simulation, and the physical estimator on the same
-    windows (``physical_sim_mass_rel_err``). Empty for a model without a contact head."""
+    windows (``_physical_on_frames``). Empty for a model without a contact head."""
     head = getattr(module.model, "force_head", None)
     if not isinstance(head, ContactImpulseHead):
         return {}
@@ -609,8 +620,7 @@ def _impact_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
                     "contamination": share,
                     "impacts": float(np.mean([len(sim.pairs) for sim in impacts])),
                     "windows": float(np.mean([sim.windows for sim in impacts])),
-                    "physical_sim_mass_rel_err": _physical_on_frames(dataset, prior, indices,
-                                                                     law_frames)})
+                    **_physical_on_frames(dataset, prior, indices, law_frames)})
     return metrics
 
 

@@ -229,15 +229,25 @@ def place_scale(fits: SimulationFits, prior: MassPrior, pinned: bool,
         scale = "prior"
     if not has_validation:
         return shift, 1.0, 0.0, scale
-    miss = np.abs(validation.true_log[known] - validation.log_mass[known] - shift)
-    sd = np.maximum(validation.log_std[known], 1e-12)
+    return (shift, *spread_calibration(
+        validation.true_log[known] - validation.log_mass[known] - shift,
+        validation.log_std[known]), scale)
+
+
+def spread_calibration(miss: np.ndarray, sd: np.ndarray) -> tuple[float, float]:
+    """A factor on the standard deviations ``sd`` and a floor added to them in quadrature
+    (``sd^2 factor^2 + floor^2``) under which the median of ``|miss| / sd`` over the
+    validation particles is a calibrated normal's: a factor below 1 where the fit's errors are
+    too wide, else a floor, the error the least squares does not see (``place_scale``)."""
+    miss = np.abs(np.asarray(miss, dtype=np.float64))
+    sd = np.maximum(np.asarray(sd, dtype=np.float64), 1e-12)
 
     def excess(floor: float) -> float:  # the median |z| over its calibrated value, less 1
         return float(np.median(miss / np.sqrt(sd ** 2 + floor ** 2))) / HALF_WIDTH - 1
 
     if excess(0.0) <= 0:
-        return shift, max(excess(0.0) + 1, 1e-6), 0.0, scale
-    return shift, 1.0, float(brentq(excess, 0.0, 2 * miss.max() / HALF_WIDTH + 1e-12)), scale
+        return max(excess(0.0) + 1, 1e-6), 0.0
+    return 1.0, float(brentq(excess, 0.0, 2 * miss.max() / HALF_WIDTH + 1e-12))
 
 
 @dataclass

@@ -91,13 +91,17 @@ def scores(k: np.ndarray, c: np.ndarray, masses: np.ndarray, charges: np.ndarray
     true = np.log(masses[identified])
     true = true - true.mean(1, keepdims=True)
     r2_mass = 1 - ((fitted - true) ** 2).sum() / (true**2).sum()
+    # the charges of a fit whose couplings came out (a particle whose own accelerations were
+    # all left out has k = 0, its mass unknown, its charge still read from its neighbours')
+    fitted_c = np.isfinite(c).all(1)
     q = charges / np.sqrt((charges**2).mean(1, keepdims=True))
     sign = np.where((c * q).sum(1, keepdims=True) < 0, -1.0, 1.0)           # the global sign
-    aligned = c * sign
+    aligned, q = (c * sign)[fitted_c], q[fitted_c]
     big = np.abs(q) >= floor
     signs_right = float((np.sign(aligned) == np.sign(q))[big].mean())
     r2_charge = 1 - ((aligned - q) ** 2).sum() / ((q - q.mean()) ** 2).sum()
     return {"fits": len(k), "identified": float(identified.mean()),
+            "charges fitted": float(fitted_c.mean()),
             "log-mass R^2": float(r2_mass),
             "median |log-mass error|": float(np.median(np.abs(fitted - true))),
             "charge signs right": signs_right, "charge R^2": float(r2_charge)}

@@ -28,6 +28,7 @@ COLUMNS = [  # (header, key in <run>/eval400/metrics.json: "~" the run's posteri
     ("relative-mass R^2", "~/relmass_r2_estimate"),
     ("per-simulation mass error", "~/sim_mass_rel_err"),
     ("physical estimator, per simulation", "~/physical_sim_mass_rel_err"),
+    ("physical estimator, relative-mass R^2", "~/physical_relmass_r2_estimate"),
     ("scale", "~/scale"),
     ("information over the prior (nats)", "~/info_gain"),
     ("over the type", "~/info_gain_over_type"),

@@ -539,6 +539,12 @@ def _law_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
     return metrics
 
 
+def _pairs_within(sims: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Every ordered pair (sender, receiver) of distinct rows with the same simulation
+    ``sims`` (P,): the pairs a relative-mass R^2 is scored over."""
+    return np.nonzero((sims[:, None] == sims[None, :]) & ~np.eye(len(sims), dtype=bool))
+
+
 def _simulation_posterior_metrics(posterior: LawPosterior, estimate: np.ndarray,
                                   true_log: np.ndarray, keys: np.ndarray, prior: MassPrior,
                                   mass_samples: int, rng: np.random.Generator,
@@ -546,8 +552,7 @@ def _simulation_posterior_metrics(posterior: LawPosterior, estimate: np.ndarray,
     """A per-simulation posterior (one row per particle, ``keys``) scored as the flow's is:
     its draws and density, and the point ``estimate`` (P,), with the relative masses' R^2 over
     every ordered pair of particles of a simulation."""
-    same = (keys[:, None] // KEY == keys[None, :] // KEY) & ~np.eye(len(keys), dtype=bool)
-    snd, rcv = np.nonzero(same)
+    snd, rcv = _pairs_within(keys // KEY)
     return {**_posterior_metrics(true_log, posterior.sample(mass_samples, rng),
                                  posterior.log_pdf(true_log), prior.log_pdf(true_log), keys),
             **_point_metrics(estimate, true_log, keys, np.stack([snd, rcv]),
@@ -574,7 +579,7 @@ def _physical_on_frames(dataset: FrameDataset, prior: MassPrior, indices: list[i
     if not seen:
         return {}
     estimate, true_log, sims = (np.concatenate(a) for a in (pooled, truth, keys))
-    snd, rcv = np.nonzero((sims[:, None] == sims[None, :]) & ~np.eye(len(sims), dtype=bool))
+    snd, rcv = _pairs_within(sims)
     return {"physical_sim_mass_rel_err": relative_mass_error(estimate, true_log),
             "physical_relmass_r2_estimate": r2_score(estimate[rcv] - estimate[snd],
                                                      true_log[rcv] - true_log[snd])}

@@ -81,6 +81,13 @@ def fit(systems: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.nd
     return k.numpy(), c.numpy()
 
 
+def aligned_charges(c: np.ndarray, charges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The fitted couplings ``c`` (B, N) turned by each simulation's global sign to agree with
+    the true ``charges`` (the one gauge the frames leave), and those charges at unit rms."""
+    q = charges / np.sqrt((charges**2).mean(1, keepdims=True))
+    return c * np.where((c * q).sum(1, keepdims=True) < 0, -1.0, 1.0), q
+
+
 def scores(k: np.ndarray, c: np.ndarray, masses: np.ndarray, charges: np.ndarray,
            floor: float) -> dict[str, float]:
     """The fits' scores against the truth, (B, N) arrays each (one row per fitted system)."""
@@ -94,9 +101,7 @@ def scores(k: np.ndarray, c: np.ndarray, masses: np.ndarray, charges: np.ndarray
     # the charges of a fit whose couplings came out (a particle whose own accelerations were
     # all left out has k = 0, its mass unknown, its charge still read from its neighbours')
     fitted_c = np.isfinite(c).all(1)
-    q = charges / np.sqrt((charges**2).mean(1, keepdims=True))
-    sign = np.where((c * q).sum(1, keepdims=True) < 0, -1.0, 1.0)           # the global sign
-    aligned, q = (c * sign)[fitted_c], q[fitted_c]
+    aligned, q = (a[fitted_c] for a in aligned_charges(c, charges))
     big = np.abs(q) >= floor
     signs_right = float((np.sign(aligned) == np.sign(q))[big].mean())
     r2_charge = 1 - ((aligned - q) ** 2).sum() / ((q - q.mean()) ** 2).sum()

@@ -50,7 +50,7 @@ from bgn.training.checkpoints import resolve_run
 from bgn.training.module import load_model
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from identify import fit, scores, system  # noqa: E402
+from identify import aligned_charges, fit, scores, system  # noqa: E402
 
 
 def learned_couplings(head: torch.nn.Module, dataset: FrameDataset, windows: int,
@@ -83,16 +83,15 @@ def misses(k: np.ndarray, c: np.ndarray, k_err: np.ndarray, c_err: np.ndarray,
     """Per particle (flattened over simulations), the fit's miss and standard deviation of the
     centred log-mass and of the charge (unit rms per simulation, the global sign aligned with
     the truth's); NaN where a simulation has a mass that is not positive (not identified)."""
-    with np.errstate(invalid="ignore", divide="ignore"):
+    with np.errstate(invalid="ignore", divide="ignore"):  # k = 0: no mass, NaN below
         log_m = np.log(c / k)
+        mass_sd = np.hypot(k_err / np.abs(k), c_err / np.abs(c))
     log_m = np.where(np.isfinite(log_m).all(1, keepdims=True), log_m, np.nan)
     true_m = np.log(masses)
     mass_miss = (log_m - log_m.mean(1, keepdims=True)) - (true_m - true_m.mean(1, keepdims=True))
-    mass_sd = np.hypot(k_err / np.abs(k), c_err / np.abs(c))
-    q = charges / np.sqrt((charges ** 2).mean(1, keepdims=True))
-    sign = np.where((c * q).sum(1, keepdims=True) < 0, -1.0, 1.0)
+    aligned, q = aligned_charges(c, charges)
     return {"log-mass": (mass_miss.ravel(), mass_sd.ravel()),
-            "charge": ((c * sign - q).ravel(), c_err.ravel())}
+            "charge": ((aligned - q).ravel(), c_err.ravel())}
 
 
 def coverage(miss: np.ndarray, sd: np.ndarray, factor: float, floor: float,

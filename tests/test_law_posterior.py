@@ -16,7 +16,10 @@ import torch
 
 from bgn.eval.evaluate import _law_posterior_reference, evaluate_model
 from bgn.eval.law_posterior import (
+    LawPosterior,
     SimulationFits,
+    Spread,
+    _half_covered,
     fit_simulation,
     fit_simulations,
     laplace_posterior,
@@ -218,37 +221,77 @@ def test_the_scale_physical_validation_or_prior() -> None:
     true = np.array([0.5, -0.5, 1.0, 0.0])
     shifted = fits(true, true - 0.7, np.full(4, 0.1))
     # physical: nothing moved
-    assert place_scale(shifted, prior, True, None) == (0.0, 1.0, 0.0, "physical")
+    assert place_scale(shifted, prior, True, None) == (0.0, Spread(), "physical")
     # validation: the median of the truth minus the fit; errors too narrow get a floor that
     # makes the validation median |z| its calibrated value
     miss = np.array([0.1, -0.1, 0.2, -0.2])
     narrow = fits(true, true - 0.7 + miss, np.full(4, 0.01))
-    shift, factor, floor, scale = place_scale(shifted, prior, False, narrow)
-    assert (shift, factor, scale) == (pytest.approx(0.7), 1.0, "validation")
-    z = np.abs(miss) / np.hypot(0.01, floor)
-    assert np.median(z) == pytest.approx(0.6744897501960817, rel=1e-6)
+    shift, spread, scale = place_scale(shifted, prior, False, narrow)
+    assert (shift, spread.factor, scale) == (pytest.approx(0.7), 1.0, "validation")
+    assert np.median(spread.central(miss, np.full(4, 0.01))) == pytest.approx(0.5, abs=1e-6)
     # ... and errors too wide shrink by one factor
     wide = fits(true, true - 0.7 + miss, np.full(4, 1.0))
-    shift, factor, floor, scale = place_scale(shifted, prior, False, wide)
-    assert (factor, floor) == (pytest.approx(0.15 / 0.6744897501960817), 0.0)
+    shift, spread, scale = place_scale(shifted, prior, False, wide)
+    assert spread.floor == 0.0 and spread.factor < 1
+    assert np.median(spread.central(miss, np.full(4, 1.0))) == pytest.approx(0.5, abs=1e-6)
     # no validation masses: the prior's most probable place for the fitted masses
     unknown = fits(np.full(4, np.nan), true, np.full(4, 0.1))
-    shift, factor, floor, scale = place_scale(shifted, prior, False, unknown)
-    assert (scale, factor, floor) == ("prior", 1.0, 0.0)
+    shift, spread, scale = place_scale(shifted, prior, False, unknown)
+    assert (scale, spread) == ("prior", Spread())
     assert shift == pytest.approx(0.7 - true.mean(), abs=0.01)
 
 
 def test_spreads_chosen_on_one_sample_cover_another() -> None:
     """``spread_calibration`` on validation misses whose stated errors are 3x too narrow (a
-    floor) or 3x too wide (a factor): new misses of the same kind are then covered at 50 %."""
+    floor) or 3x too wide (a factor): new misses of the same kind are then covered at 50 %
+    and 90 %; no tail where a factor makes the misses Gaussian again (a floor does not: the
+    misses are then a scale mixture about it, which a tail follows)."""
     rng = np.random.default_rng(1)
     sd = rng.uniform(0.01, 0.1, 4000)
     for stated in (sd / 3, sd * 3):
-        factor, floor = spread_calibration(rng.normal(0.0, sd), stated)
-        assert (floor > 0) == (stated[0] < sd[0]) and (factor < 1) == (stated[0] > sd[0])
+        spread = spread_calibration(rng.normal(0.0, sd), stated)
+        assert (spread.floor > 0) == (stated[0] < sd[0])
+        assert (spread.factor < 1) == (stated[0] > sd[0])
+        assert (spread.tail_share == 0.0) == (stated[0] > sd[0])
         fresh = rng.normal(0.0, sd)
-        covered = np.abs(fresh) <= 0.6744897501960817 * np.hypot(stated * factor, floor)
-        assert covered.mean() == pytest.approx(0.5, abs=0.03)
+        for level in (0.5, 0.9):
+            assert spread.covered(fresh, stated, level).mean() == pytest.approx(level, abs=0.03)
+
+
+def test_a_heavy_tail_is_chosen_where_the_misses_have_one_and_covers_both_levels() -> None:
+    """Misses of which a fifth are five times wider than the rest: a Gaussian matched at 50 %
+    covers well under 90 % of fresh misses; the tail ``spread_calibration`` chooses covers
+    both levels, and makes the misses more probable than the Gaussian does."""
+    rng = np.random.default_rng(2)
+    sd = rng.uniform(0.01, 0.1, 4000)
+
+    def draw() -> np.ndarray:
+        return rng.normal(0.0, sd * np.where(rng.random(len(sd)) < 0.2, 5.0, 1.0))
+
+    miss = draw()
+    spread = spread_calibration(miss, sd)
+    assert spread.tail_share > 0 and spread.tail_width > 1
+    gaussian = _half_covered(miss, sd, 0.0, 1.0)
+    assert np.mean(spread.log_pdf(miss, sd)) > np.mean(gaussian.log_pdf(miss, sd))
+    fresh = draw()
+    assert gaussian.covered(fresh, sd, 0.9).mean() < 0.85
+    for level in (0.5, 0.9):
+        assert spread.covered(fresh, sd, level).mean() == pytest.approx(level, abs=0.03)
+
+
+def test_a_spreads_levels_are_its_own_quantiles() -> None:
+    """``Spread.central`` is the mixture's two-sided CDF: a miss drawn from the mixture has
+    it uniform; its density integrates to 1."""
+    spread = Spread(1.5, 0.02, 0.2, 4.0)
+    rng = np.random.default_rng(3)
+    sd = rng.uniform(0.01, 0.1, 20000)
+    wide = rng.random(len(sd)) < 0.2
+    miss = rng.normal(0.0, spread.sd(sd) * np.where(wide, 4.0, 1.0))
+    levels = np.sort(spread.central(miss, sd))
+    assert np.abs(levels - np.linspace(0, 1, len(levels))).max() < 0.02
+    grid = np.linspace(-3, 3, 60001)
+    assert np.sum(np.exp(spread.log_pdf(grid, np.full(len(grid), 0.1)))) * 1e-4 \
+        == pytest.approx(1.0, abs=1e-4)
 
 
 def test_the_prior_shifts_error_is_its_fisher_information() -> None:
@@ -291,6 +334,26 @@ def test_the_laplace_posterior_is_the_fit_times_the_prior() -> None:
     assert np.exp(sharp.log_weights[0]) == pytest.approx([0.0, 1.0], abs=1e-9)
 
 
+def test_a_heavy_tailed_likelihood_times_the_prior_is_that_mixture_of_products() -> None:
+    """With a tail the posterior is the mixture of the two likelihoods' products with the
+    prior, each weighted by its share and its evidence: its density is the normalised
+    product, checked on a grid; with no fit, the prior itself."""
+    prior = MassPrior(np.array([0.5, 0.5]), np.array([-1.0, 1.0]), np.array([0.7, 0.5]))
+    spread = Spread(1.2, 0.05, 0.2, 4.0)
+    fit, sd = np.array([0.3, np.nan]), np.array([0.2, np.nan])
+    post = laplace_posterior(fit, sd, prior, spread)
+    assert np.exp(post.log_weights).sum(1) == pytest.approx([1.0, 1.0])
+    grid = np.linspace(-8, 8, 40001)
+    product = np.exp(prior.log_pdf(grid)
+                     + spread.log_pdf(grid - fit[0], np.full(len(grid), sd[0])))
+    product /= product.sum() * (grid[1] - grid[0])
+    first = LawPosterior(*(np.repeat(a[:1], len(grid), 0)
+                           for a in (post.means, post.stds, post.log_weights)))
+    assert np.exp(first.log_pdf(grid)) == pytest.approx(product, abs=1e-6)
+    assert post.log_pdf(np.array([0.0, 0.4]))[1] == pytest.approx(
+        float(prior.log_pdf(np.array([0.4]))[0]))
+
+
 def test_a_share_of_the_prior_is_mixed_in_where_validation_holds_a_fit_gone_wrong() -> None:
     """``mixed`` is the mixture of the posterior and the prior; ``contamination`` picks the
     share under which the validation masses are most probable: none where the fits are as
@@ -302,10 +365,10 @@ def test_a_share_of_the_prior_is_mixed_in_where_validation_holds_a_fit_gone_wron
     rng = np.random.default_rng(0)
     true = rng.standard_normal(200)
     good = fits(true, true + 0.01 * rng.standard_normal(200), np.full(200, 0.01))
-    assert contamination(good, prior, 0.0, 1.0, 0.0) == 0.0
+    assert contamination(good, prior, 0.0, Spread()) == 0.0
     wrong = fits(true, good.log_mass.copy(), good.log_std)
     wrong.log_mass[:6] += 1.0  # six fits a hundred standard deviations off
-    share = contamination(wrong, prior, 0.0, 1.0, 0.0)
+    share = contamination(wrong, prior, 0.0, Spread())
     assert share in CONTAMINATION and share > 0
     post = laplace_posterior(wrong.log_mass, wrong.log_std, prior)
     both = post.mixed(prior, share)
@@ -314,6 +377,6 @@ def test_a_share_of_the_prior_is_mixed_in_where_validation_holds_a_fit_gone_wron
         np.log1p(-share) + post.log_pdf(true), np.log(share) + prior.log_pdf(true)))
     assert both.log_pdf(true)[:6].min() > np.log(share) + prior.log_pdf(true)[:6].min() - 1e-9
     assert post.mixed(prior, 0.0) is post
-    assert contamination(fits(np.full(4, np.nan), true[:4], np.full(4, 0.1)), prior, 0.0, 1.0,
-                         0.0) == 0.0
-    assert contamination(None, prior, 0.0, 1.0, 0.0) == 0.0
+    assert contamination(fits(np.full(4, np.nan), true[:4], np.full(4, 0.1)), prior, 0.0,
+                         Spread()) == 0.0
+    assert contamination(None, prior, 0.0, Spread()) == 0.0

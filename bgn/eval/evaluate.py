@@ -494,8 +494,9 @@ def _law_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
     posterior on log-mass with the scene's mass law as prior, the law's free scale placed on
     ``validation`` (the validation split: never the split scored), scored as the flow's
     posterior is, one row per particle. ``scale``: physical, validation or prior (where the
-    shift came from); ``shift``, ``std_scale`` and ``std_floor``: the shift, the factor on the
-    fit's standard deviations and the floor added to them (``place_scale``);
+    shift came from); ``shift``, ``std_scale``, ``std_floor``, ``tail_share`` and
+    ``tail_width``: the shift, the factor on the fit's standard deviations, the floor added to
+    them and the likelihood's heavy tail (``place_scale``, ``Spread``);
     ``contamination``: the share of the prior mixed in, chosen on ``validation`` too;
     ``windows``:
     windows per simulation; ``physical_sim_mass_rel_err`` and
@@ -513,11 +514,9 @@ def _law_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
     if validation is not None and getattr(validation.meta, "masses_known", True):
         checked = fit_simulations(head, validation, matched_frames(dataset, validation, indices),
                                   law_frames)
-    shift, factor, floor, scale = place_scale(fits, prior, law_scale_pinned(module.model),
-                                              checked)
-    share = contamination(checked, prior, shift, factor, floor)
-    laplace = laplace_posterior(fits.log_mass + shift, np.hypot(fits.log_std * factor, floor),
-                                prior)
+    shift, spread, scale = place_scale(fits, prior, law_scale_pinned(module.model), checked)
+    share = contamination(checked, prior, shift, spread)
+    laplace = laplace_posterior(fits.log_mass + shift, fits.log_std, prior, spread)
     # a scale placed by the prior is known only as well as the particles' scatter under the
     # prior pins it: an error of every particle at once, added outside the product
     shift_std = prior_shift_error(fits.log_mass + shift, prior) if scale == "prior" else 0.0
@@ -530,8 +529,9 @@ def _law_posterior_reference(module: PhysicsModule, dataset: FrameDataset,
         **_simulation_posterior_metrics(posterior, laplace.mean, fits.true_log, fits.keys,
                                         prior, mass_samples, rng),
         "identified": float(np.mean(np.isfinite(fits.log_mass))),
-        "scale": scale, "shift": shift, "shift_std": shift_std, "std_scale": factor,
-        "std_floor": floor,
+        "scale": scale, "shift": shift, "shift_std": shift_std, "std_scale": spread.factor,
+        "std_floor": spread.floor, "tail_share": spread.tail_share,
+        "tail_width": spread.tail_width,
         "contamination": share,
         "windows": fits.windows}
     # the estimator that knows the law, on the same windows

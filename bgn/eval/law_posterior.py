@@ -24,11 +24,13 @@ where a whole trajectory does. Here, per simulation:
   otherwise the masses are known up to one common factor, a log-shift set on the validation
   split (the median of true minus fitted log-mass over its particles) or, with no validation
   masses, by the scene's mass law (``place_by_prior``). Never on the split scored. With
-  validation masses the fit's standard deviations are also rescaled by one factor, so that
-  half the validation particles lie within the central 50 % interval (the likelihood's
-  errors ignore the learned law's own error).
-- ``laplace_posterior``: that Gaussian likelihood times the scene's mass law (the prior), in
-  closed form per mixture component: the posterior's mean, density and draws, for the same
+  validation masses the likelihood about the fit is calibrated there (``spread_calibration``,
+  ``Spread``): the fit's standard deviations shrunk by one factor or widened by a floor, so
+  that half the validation particles lie within the central 50 % interval (the likelihood's
+  errors ignore the learned law's own error), and a heavy tail, a share of the likelihood
+  widened, where it makes the validation masses more probable.
+- ``laplace_posterior``: that likelihood (a Gaussian, or two with a tail) times the scene's
+  mass law (the prior), in closed form per pair of components: the posterior's mean, density and draws, for the same
   metrics as the flow's. Each particle's marginal: the fit's correlations between particles
   are not carried into the draws.
 - ``contamination``: a share of the prior mixed into every posterior, chosen on the
@@ -65,6 +67,11 @@ SCREEN = 3 * ROBUST_SCALE
 # shares of the prior mixed into each particle's posterior, the one that makes the validation
 # masses most probable kept (``contamination``)
 CONTAMINATION = (0.0, 0.001, 0.003, 0.01, 0.03, 0.1, 0.3)
+# the likelihood's heavy tails, (share, width): a share of it widened by the width, the pair
+# under which the validation misses are most probable kept (``spread_calibration``); (0, 1)
+# is the Gaussian alone
+TAILS = ((0.0, 1.0),) + tuple((share, width) for share in (0.05, 0.1, 0.2, 0.3)
+                              for width in (2.0, 4.0, 8.0))
 
 
 def law_scale_pinned(model: torch.nn.Module) -> bool:
@@ -204,16 +211,17 @@ def fit_simulations(head: PairForceHead, dataset: FrameDataset, indices: list[in
 
 
 def place_scale(fits: SimulationFits, prior: MassPrior, pinned: bool,
-                validation: SimulationFits | None) -> tuple[float, float, float, str]:
-    """The log-shift for the law's scale, the factor on the fit's standard deviations, a
-    floor added to them in quadrature (``sd^2 factor^2 + floor^2``), and where the shift came
-    from (``SCALES``). The shift: 0 where the law is physical (``pinned``); else the
-    validation split's median of true minus fitted log-mass, or, with no validation masses,
-    the shift that puts ``fits``' log-masses where the prior makes them most probable. The
-    factor and floor make the median of the validation particles' ``|true - fitted| / sd``
-    its calibrated value: a factor below 1 where the fit's errors are too wide; a floor where
-    they are too narrow, the learned law's own error, which the least squares does not see and
-    which does not shrink with more frames (1 and 0 without validation masses)."""
+                validation: SimulationFits | None) -> tuple[float, Spread, str]:
+    """The log-shift for the law's scale, the likelihood about the fit (``Spread``: a factor
+    on the fit's standard deviations, a floor added to them in quadrature, a heavy tail) and
+    where the shift came from (``SCALES``). The shift: 0 where the law is physical
+    (``pinned``); else the validation split's median of true minus fitted log-mass, or, with
+    no validation masses, the shift that puts ``fits``' log-masses where the prior makes them
+    most probable. The spread is chosen on the validation particles (``spread_calibration``):
+    a factor below 1 where the fit's errors are too wide; a floor where they are too narrow,
+    the learned law's own error, which the least squares does not see and which does not
+    shrink with more frames; a tail where they are heavier than a Gaussian's (the stated
+    Gaussian, ``Spread()``, without validation masses)."""
     known = (None if validation is None else
              np.isfinite(validation.true_log) & np.isfinite(validation.log_mass))
     has_validation = known is not None and bool(known.any())
@@ -228,26 +236,79 @@ def place_scale(fits: SimulationFits, prior: MassPrior, pinned: bool,
         shift = float(np.mean(placed[seen] - fits.log_mass[seen])) if seen.any() else 0.0
         scale = "prior"
     if not has_validation:
-        return shift, 1.0, 0.0, scale
-    return (shift, *spread_calibration(
+        return shift, Spread(), scale
+    return shift, spread_calibration(
         validation.true_log[known] - validation.log_mass[known] - shift,
-        validation.log_std[known]), scale)
+        validation.log_std[known]), scale
 
 
-def spread_calibration(miss: np.ndarray, sd: np.ndarray) -> tuple[float, float]:
-    """A factor on the standard deviations ``sd`` and a floor added to them in quadrature
-    (``sd^2 factor^2 + floor^2``) under which the median of ``|miss| / sd`` over the
-    validation particles is a calibrated normal's: a factor below 1 where the fit's errors are
-    too wide, else a floor, the error the least squares does not see (``place_scale``)."""
+@dataclass(frozen=True)
+class Spread:
+    """The calibrated likelihood of a miss about a fit whose stated standard deviation is
+    ``sd``: ``(1 - tail_share) N(0, s^2) + tail_share N(0, (tail_width s)^2)``, with
+    ``s^2 = (sd factor)^2 + floor^2`` (``spread_calibration``). The tail, a share of the
+    likelihood widened, is a scale mixture about the fit: a fit's errors are heavier-tailed
+    than its least squares says (a window the law barely explains, a particle read only
+    through a far pull), which a Gaussian of any one width cannot cover at 50 % and 90 %
+    alike. ``Spread()``: the stated Gaussian itself."""
+
+    factor: float = 1.0
+    floor: float = 0.0
+    tail_share: float = 0.0
+    tail_width: float = 1.0
+
+    def sd(self, sd: np.ndarray) -> np.ndarray:
+        """The Gaussian core's standard deviation for stated ``sd``."""
+        return np.sqrt((np.asarray(sd, dtype=np.float64) * self.factor) ** 2 + self.floor ** 2)
+
+    def components(self) -> list[tuple[float, float]]:
+        """(share, width) of each Gaussian of the mixture, the core first."""
+        if self.tail_share <= 0:
+            return [(1.0, 1.0)]
+        return [(1.0 - self.tail_share, 1.0), (self.tail_share, self.tail_width)]
+
+    def central(self, miss: np.ndarray, sd: np.ndarray) -> np.ndarray:
+        """The smallest central credibility level whose interval holds ``miss``: uniform on
+        [0, 1] over particles when calibrated (the mixture's two-sided PIT, closed form)."""
+        a, s = np.abs(np.asarray(miss, dtype=np.float64)), np.maximum(self.sd(sd), 1e-300)
+        return sum(share * (2 * norm.cdf(a / (s * width)) - 1)
+                   for share, width in self.components())
+
+    def covered(self, miss: np.ndarray, sd: np.ndarray, level: float) -> np.ndarray:
+        """Whether each ``miss`` lies in the central ``level`` interval."""
+        return self.central(miss, sd) <= level
+
+    def log_pdf(self, miss: np.ndarray, sd: np.ndarray) -> np.ndarray:
+        """The density of each ``miss`` under the calibrated likelihood."""
+        s = np.maximum(self.sd(sd), 1e-300)
+        return logsumexp([np.log(share) + norm.logpdf(miss, 0.0, s * width)
+                          for share, width in self.components()], axis=0)
+
+
+def spread_calibration(miss: np.ndarray, sd: np.ndarray) -> Spread:
+    """The likelihood about the fit (``Spread``) chosen on the validation particles' misses
+    ``miss`` from the truth and stated standard deviations ``sd``: for each tail of ``TAILS``
+    a factor below 1 where the stated errors are too wide, else a floor added in quadrature
+    (the error the least squares does not see, ``place_scale``), so that half the particles
+    lie in the central 50 % interval; of those, the one under which the misses are most
+    probable (their mean log-density: a proper score, so the tail is paid for by the core's
+    width). With no tail this is the median |z| of a calibrated normal."""
     miss = np.abs(np.asarray(miss, dtype=np.float64))
     sd = np.maximum(np.asarray(sd, dtype=np.float64), 1e-12)
+    spreads = [_half_covered(miss, sd, share, width) for share, width in TAILS]
+    return max(spreads, key=lambda spread: float(np.mean(spread.log_pdf(miss, sd))))
 
-    def excess(floor: float) -> float:  # the median |z| over its calibrated value, less 1
-        return float(np.median(miss / np.sqrt(sd ** 2 + floor ** 2))) / HALF_WIDTH - 1
 
-    if excess(0.0) <= 0:
-        return max(excess(0.0) + 1, 1e-6), 0.0
-    return 1.0, float(brentq(excess, 0.0, 2 * miss.max() / HALF_WIDTH + 1e-12))
+def _half_covered(miss: np.ndarray, sd: np.ndarray, share: float, width: float) -> Spread:
+    """The factor (below 1) or floor under which the tail ``(share, width)`` holds half the
+    misses in its central 50 % interval."""
+    def excess(factor: float, floor: float) -> float:  # the median level held, less 1/2
+        return float(np.median(Spread(factor, floor, share, width).central(miss, sd))) - 0.5
+
+    if excess(1.0, 0.0) <= 0:
+        return Spread(brentq(lambda f: excess(f, 0.0), 1e-9, 1.0), 0.0, share, width)
+    top = 2 * width * miss.max() / HALF_WIDTH + 1e-12
+    return Spread(1.0, brentq(lambda f: excess(1.0, f), 0.0, top), share, width)
 
 
 @dataclass
@@ -302,25 +363,34 @@ class LawPosterior:
 
 
 def laplace_posterior(log_mass: np.ndarray, log_std: np.ndarray, prior: MassPrior,
-                      ) -> LawPosterior:
-    """The Gaussian likelihood ``N(log_mass, log_std^2)`` (P,) times the prior, component by
-    component (a product of Gaussians, weighted by how well each component predicts the
-    fit); the prior itself where ``log_mass`` is NaN (the fit said nothing)."""
+                      spread: Spread | None = None) -> LawPosterior:
+    """The likelihood of the fit ``log_mass`` (P,) of stated standard deviations ``log_std``
+    (``spread``'s mixture of Gaussians about it; the stated Gaussian by default) times the
+    prior, component by component (a product of Gaussians for each pair of a likelihood's and
+    a prior's component, weighted by its share and how well it predicts the fit); the prior
+    itself where ``log_mass`` is NaN (the fit said nothing)."""
+    spread = Spread() if spread is None else spread
     seen = np.isfinite(log_mass) & np.isfinite(log_std)
     mu = np.where(seen, log_mass, 0.0)[:, None]
-    var = np.where(seen, np.maximum(log_std, 1e-12) ** 2, np.inf)[:, None]
+    core = np.maximum(spread.sd(np.where(seen, log_std, 1.0)), 1e-12)[:, None]
     m0, v0 = prior.means[None], prior.stds[None] ** 2
-    precision = 1 / var + 1 / v0
-    means = (mu / var + m0 / v0) / precision
-    evidence = np.where(seen[:, None], norm.logpdf(mu, m0, np.sqrt(np.where(
-        seen[:, None], var, 1.0) + v0)), 0.0)
-    log_w = np.log(prior.weights / prior.weights.sum())[None] + evidence
-    log_w = log_w - logsumexp(log_w, axis=1, keepdims=True)
-    return LawPosterior(means, np.sqrt(1 / precision), log_w)
+    means, stds, log_ws = [], [], []
+    for share, width in spread.components():
+        var = np.where(seen[:, None], (core * width) ** 2, np.inf)
+        precision = 1 / var + 1 / v0
+        means.append((mu / var + m0 / v0) / precision)
+        stds.append(np.sqrt(1 / precision))
+        evidence = np.where(seen[:, None], norm.logpdf(mu, m0, np.sqrt(np.where(
+            seen[:, None], var, 1.0) + v0)), 0.0)
+        log_ws.append(np.log(share) + np.log(prior.weights / prior.weights.sum())[None]
+                      + evidence)
+    log_w = np.concatenate(log_ws, 1)
+    return LawPosterior(np.concatenate(means, 1), np.concatenate(stds, 1),
+                        log_w - logsumexp(log_w, axis=1, keepdims=True))
 
 
 def contamination(validation: SimulationFits | None, prior: MassPrior, shift: float,
-                  factor: float, floor: float) -> float:
+                  spread: Spread) -> float:
     """The share of the prior mixed into each particle's posterior (``LawPosterior.mixed``):
     of ``CONTAMINATION``, the one under which the validation particles' recorded log-masses
     are most probable (their mean log-density; 0 without validation masses). The Gaussian
@@ -332,8 +402,7 @@ def contamination(validation: SimulationFits | None, prior: MassPrior, shift: fl
              np.isfinite(validation.true_log) & np.isfinite(validation.log_mass))
     if known is None or not known.any():
         return 0.0
-    base = laplace_posterior(validation.log_mass + shift,
-                             np.hypot(validation.log_std * factor, floor), prior)
+    base = laplace_posterior(validation.log_mass + shift, validation.log_std, prior, spread)
     scores = [float(np.mean(base.mixed(prior, share).log_pdf(validation.true_log)[known]))
               for share in CONTAMINATION]
     return CONTAMINATION[int(np.argmax(scores))]

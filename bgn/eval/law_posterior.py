@@ -30,9 +30,9 @@ where a whole trajectory does. Here, per simulation:
   errors ignore the learned law's own error), and a heavy tail, a share of the likelihood
   widened, where it makes the validation masses more probable.
 - ``laplace_posterior``: that likelihood (a Gaussian, or two with a tail) times the scene's
-  mass law (the prior), in closed form per pair of components: the posterior's mean, density and draws, for the same
-  metrics as the flow's. Each particle's marginal: the fit's correlations between particles
-  are not carried into the draws.
+  mass law (the prior), in closed form per pair of components: the posterior's mean,
+  density and draws, for the same metrics as the flow's. Each particle's marginal: the
+  fit's correlations between particles are not carried into the draws.
 - ``contamination``: a share of the prior mixed into every posterior, chosen on the
   validation split (the share under which its recorded masses are most probable): a fit
   that goes wrong costs the prior's density, not a Gaussian's tail.

@@ -28,7 +28,7 @@ where a whole trajectory does. Here, per simulation:
   ``Spread``): the fit's standard deviations shrunk by one factor or widened by a floor, so
   that half the validation particles lie within the central 50 % interval (the likelihood's
   errors ignore the learned law's own error), and a heavy tail, a share of the likelihood
-  widened, where it makes the validation masses more probable.
+  widened, where it brings the validation coverage nearer every level.
 - ``laplace_posterior``: that likelihood (a Gaussian, or two with a tail) times the scene's
   mass law (the prior), in closed form per pair of components: the posterior's mean,
   density and draws, for the same metrics as the flow's. Each particle's marginal: the
@@ -55,6 +55,7 @@ from bgn.data.dataset import FrameDataset
 from bgn.data.frames import evenly_spaced
 from bgn.eval.mass_baselines import MassPrior, place_by_prior
 from bgn.graph import Graph, collate
+from bgn.metrics import COVERAGE_LEVELS
 from bgn.model.newton import FIT_EPS, ROBUST_SCALE, PairForceHead
 
 SCALES = ("physical", "validation", "prior")  # where the law's scale comes from
@@ -68,8 +69,8 @@ SCREEN = 3 * ROBUST_SCALE
 # masses most probable kept (``contamination``)
 CONTAMINATION = (0.0, 0.001, 0.003, 0.01, 0.03, 0.1, 0.3)
 # the likelihood's heavy tails, (share, width): a share of it widened by the width, the pair
-# under which the validation misses are most probable kept (``spread_calibration``); (0, 1)
-# is the Gaussian alone
+# that calibrates the validation particles best kept (``spread_calibration``); (0, 1) is the
+# Gaussian alone
 TAILS = ((0.0, 1.0),) + tuple((share, width) for share in (0.05, 0.1, 0.2, 0.3)
                               for width in (2.0, 4.0, 8.0))
 
@@ -290,13 +291,20 @@ def spread_calibration(miss: np.ndarray, sd: np.ndarray) -> Spread:
     ``miss`` from the truth and stated standard deviations ``sd``: for each tail of ``TAILS``
     a factor below 1 where the stated errors are too wide, else a floor added in quadrature
     (the error the least squares does not see, ``place_scale``), so that half the particles
-    lie in the central 50 % interval; of those, the one under which the misses are most
-    probable (their mean log-density: a proper score, so the tail is paid for by the core's
-    width). With no tail this is the median |z| of a calibrated normal."""
+    lie in the central 50 % interval; of those, the one whose coverage is nearest the level
+    at every level of ``COVERAGE_LEVELS`` (the largest deviation, what recalibration is
+    judged by), ties broken by the misses' mean log-density. With no tail this is the median
+    |z| of a calibrated normal."""
     miss = np.abs(np.asarray(miss, dtype=np.float64))
     sd = np.maximum(np.asarray(sd, dtype=np.float64), 1e-12)
-    spreads = [_half_covered(miss, sd, share, width) for share, width in TAILS]
-    return max(spreads, key=lambda spread: float(np.mean(spread.log_pdf(miss, sd))))
+
+    def rank(spread: Spread) -> tuple[float, float]:
+        held = spread.central(miss, sd)
+        deviation = max(abs(float(np.mean(held <= level)) - level)
+                        for level in COVERAGE_LEVELS)
+        return -round(deviation, 9), float(np.mean(spread.log_pdf(miss, sd)))
+
+    return max((_half_covered(miss, sd, share, width) for share, width in TAILS), key=rank)
 
 
 def _half_covered(miss: np.ndarray, sd: np.ndarray, share: float, width: float) -> Spread:

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from bgn.eval.law_posterior import Spread
 from bgn.sim.nbody import NBodyScene
 
 SCRIPT = Path(__file__).resolve().parents[1] / "examples" / "charges" / "make.py"
@@ -86,7 +87,10 @@ def test_a_fits_posterior_misses_are_zero_at_the_truth_and_its_coverage_counts_t
     got = misses(k, c, np.full_like(k, 0.01), np.full_like(c, 0.01), masses, charges)
     assert np.allclose(got["log-mass"][0], 0) and np.allclose(got["charge"][0], 0)
     miss, sd = np.array([0.0, 0.5, 2.0, np.nan]), np.ones(4)
-    assert coverage(miss, sd, 1.0, 0.0, 0.5) == pytest.approx(2 / 3)    # |z| 0, 0.5 within
+    # two simulations of two particles: |z| 0 and 0.5 within, 2 without, one not identified;
+    # resampling the simulations gives any share from none (the second twice) to all
+    share, low, high = coverage(miss, sd, Spread(), 0.5, 2, rng)
+    assert (share, low, high) == (pytest.approx(2 / 3), 0.0, 1.0)
     k[1, 2] = 0.0                     # no mass for simulation 1, its charges still read
     c[2] = np.nan                     # simulation 2's fit failed
     k[2] = np.nan

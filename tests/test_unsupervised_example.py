@@ -21,7 +21,8 @@ def test_the_table_reads_each_runs_evaluation(tmp_path: Path) -> None:
     folder.mkdir(parents=True)
     metrics = {"law_posterior/relmass_r2_estimate": 0.99, "law_posterior/scale": "prior",
                "law_posterior/sim_mass_rel_err": 0.05, "law_posterior/coverage50": 0.5,
-               "law_posterior/coverage90": 0.9, "nmse": 1e-5}
+               "law_posterior/coverage90": 0.9, "law_posterior/tail_share": 0.2,
+               "law_posterior/tail_width": 4.0, "nmse": 1e-5}
     record = {"provenance": {"model": {"supervision": {"pair forces": ["contact"]}}},
               "metrics": metrics}
     (folder / "metrics.json").write_text(json.dumps(record))
@@ -29,7 +30,7 @@ def test_the_table_reads_each_runs_evaluation(tmp_path: Path) -> None:
     assert res.returncode == 0, res.stderr
     row = res.stdout.strip().splitlines()[-1]
     assert row.startswith("| spring_s0 | pair forces (contact) | learned law | 0.99 | 0.05 |")
-    assert "| prior |" in row and "| 0.5 / 0.9 |" in row
+    assert "| prior |" in row and "| 0.5 / 0.9 |" in row and "| 0.2 x 4 |" in row
 
 
 def test_a_run_with_an_impulse_head_reads_its_impact_posterior(tmp_path: Path) -> None:

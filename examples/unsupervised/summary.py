@@ -34,6 +34,9 @@ COLUMNS = [  # (header, key in <run>/eval400/metrics.json: "~" the run's posteri
     ("over the type", "~/info_gain_over_type"),
     ("shift std", "~/shift_std"),
     ("coverage 50 / 90", None),
+    ("largest coverage deviation", "~/coverage_max_dev"),
+    ("tail (share x width)", None),
+    ("share of the prior", "~/contamination"),
     ("NMSE", "nmse"),
     ("mean error @100", "rollout/pos_err_mean@100"),
 ]
@@ -59,6 +62,10 @@ def row(run: Path, folder: str) -> list[str]:
         elif header.startswith("coverage"):
             out.append(f"{cell(m.get(f'{prefix}/coverage50'))} / "
                        f"{cell(m.get(f'{prefix}/coverage90'))}")
+        elif header.startswith("tail"):  # the law posterior's likelihood's heavy tail
+            share = m.get(f"{prefix}/tail_share")
+            out.append("-" if share is None else
+                       "none" if share == 0 else f"{share:g} x {m[f'{prefix}/tail_width']:g}")
         else:
             out.append(cell(m.get(key.replace("~", str(prefix)))))
     return out

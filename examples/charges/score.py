@@ -47,7 +47,7 @@ from bgn.data.dataset import FrameDataset
 from bgn.data.files import DatasetFile
 from bgn.data.frames import evenly_spaced
 from bgn.eval.law_posterior import Spread, pooled_system, screened, spread_calibration
-from bgn.model.newton import pair_force_head_of
+from bgn.model.newton import FIT_EPS, pair_force_head_of
 from bgn.training.checkpoints import resolve_run
 from bgn.training.module import load_model
 
@@ -71,7 +71,7 @@ def learned_couplings(head: torch.nn.Module, dataset: FrameDataset, windows: int
         k, c = couplings[:, 0].double().numpy(), couplings[:, 1].double().numpy()
         # the learned law's sign is free (f -> -f, c -> -c): turned so that most masses c / k
         # are positive, as bgn.eval.law_posterior does
-        turn = np.sign(np.median(c / k)) or 1.0
+        turn = np.sign(np.median(c / np.where(k == 0, FIT_EPS, k))) or 1.0
         ks.append(k)
         cs.append(c * turn)
         k_errs.append(errors[:, 0].double().numpy())

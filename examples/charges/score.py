@@ -72,6 +72,8 @@ def learned_couplings(head: torch.nn.Module, dataset: FrameDataset, windows: int
         # the learned law's sign is free (f -> -f, c -> -c): turned so that most masses c / k
         # are positive, as bgn.eval.law_posterior does
         turn = np.sign(np.median(c / np.where(k == 0, FIT_EPS, k))) or 1.0
+        if not (k.any() or c.any()):  # the fit failed whole (no coupling at all): not fitted
+            turn = np.nan
         ks.append(k)
         cs.append(c * turn)
         k_errs.append(errors[:, 0].double().numpy())

@@ -12,6 +12,7 @@ import sys
 import time
 from datetime import datetime
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -192,6 +193,18 @@ def test_rollout_error_can_pick_checkpoints_and_stop_training(tiny_train_cfg, tm
     callback = next(v for k, v in best["callbacks"].items() if "ModelCheckpoint" in k)
     assert callback["monitor"] == "val/rollout_error"
     assert np.isfinite(float(callback["best_model_score"]))
+
+
+def test_a_gradient_whose_norm_overflows_is_named_so():
+    """Every entry finite and their norm beyond float range (an exp that grew): the error
+    says so, where it once failed on naming the first non-finite entry, which there is not."""
+    layer = torch.nn.Linear(2, 2)
+    for p in layer.parameters():
+        p.grad = torch.full_like(p, 3e38)
+    stand_in = SimpleNamespace(parameters=layer.parameters,
+                               named_parameters=layer.named_parameters, global_step=7)
+    with pytest.raises(FloatingPointError, match="at step 7 in its norm"):
+        PhysicsModule.on_before_optimizer_step(stand_in, None)
 
 
 def test_non_finite_gradient_stops_training_and_keeps_good_checkpoints(tiny_train_cfg,

@@ -83,6 +83,7 @@ def calibrate_scale(head: Any, dataset: Any, frames: int = DEFAULTS.calibration_
     (near 1)."""
     from bgn.data.frames import evenly_spaced
     from bgn.graph import collate
+    from bgn.model.target_coder import relative_floor
 
     idx = evenly_spaced(len(dataset), frames)
     pred, target = [], []
@@ -92,7 +93,7 @@ def calibrate_scale(head: Any, dataset: Any, frames: int = DEFAULTS.calibration_
         target.append(g.target.double())
     p, t = torch.cat(pred), torch.cat(target)
     size = (t * t).sum(-1)
-    w = 1 / (size + 1e-4 * size.mean() + 1e-300)
+    w = 1 / (size + relative_floor(size))
     k = float((w * (p * t).sum(-1)).sum() / (w * (p * p).sum(-1)).sum().clamp_min(1e-300))
     error = float((w * ((k * p - t) ** 2).sum(-1)).mean())
     return k, error

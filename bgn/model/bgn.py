@@ -156,7 +156,7 @@ class BGN(PhysicsModel):
                 meta, self.normalizer, history, cfg.decoder_hidden, 2, cfg.activation,
                 cfg.mass_law, "model.dynamics=newton", cfg.substeps,
                 cfg.law_formula if cfg.law == "formula" else "", cfg.law_scale,
-                cfg.rollout_masses)
+                cfg.rollout_masses, cfg.law_output)
             self.decoder = None
         else:
             self.force_head = None

@@ -74,11 +74,16 @@ from bgn.model.message_passing import edge_vector
 from bgn.model.normalizer import Normalizer
 from bgn.model.ops import activation, mlp, scatter_sum
 from bgn.model.soft_contact import CONTACT_CALIBRATION, CONTACT_ENERGY, SoftContactHead
-from bgn.model.target_coder import observed_targets
+from bgn.model.target_coder import observed_targets, relative_squared_error
 from bgn.sim.scene import SceneMeta
 
 MASS_LAWS = ("inertial", "source", "type", "coupling")
 LAW_INITS = ("random", "match")  # the MLP law's start (ForceLawOptions.law_init)
+LAW_OUTPUTS = ("linear", "exp_scaled")  # how the MLP law's outputs make f (ForceLawOptions)
+# exp_scaled: |log-scale| at most this (smoothly, a tanh), so f stays within exp(10) of its
+# amplitude early in training, where an unbounded one overflowed the gradient (seed 1 of
+# gravity_r2 at step 83); the amplitude carries the rest of the range
+LOG_SCALE_MAX = 10.0
 ROLLOUT_MASSES = ("window", "held")  # a rollout's mass fit (ForceLawOptions.rollout_masses)
 # BGN's dynamics head: Eq. 5's decoder, the scene's structured head, or soft contacts with
 # friction, a field and drag (granular media, ``bgn.model.soft_contact``)
@@ -123,10 +128,15 @@ class ForceLawOptions(OptionGroup):
     # a refit from predicted frames feeds their error back into the masses. One-step
     # predictions (training, Table 1) are the same either way.
     rollout_masses: str = "window"
+    # linear: f the MLP's one output | exp_scaled: f = a exp(b) from its two outputs
+    # (ExpScaledLaw), the optimiser's noise a relative change of f at every distance
+    law_output: str = "linear"
 
     def __post_init__(self) -> None:
         super().__post_init__()
         check_positive_ints(self, ("substeps",))
+        if self.law_output not in LAW_OUTPUTS:
+            raise ValueError(f"law_output={self.law_output!r}; choose one of {LAW_OUTPUTS}")
         if self.rollout_masses not in ROLLOUT_MASSES:
             raise ValueError(f"rollout_masses={self.rollout_masses!r}; choose one of "
                              f"{ROLLOUT_MASSES}")
@@ -256,13 +266,35 @@ def check_scene(meta: SceneMeta, history: int, option: str) -> None:
                          f"dataset.history={history} must be >= 3")
 
 
+class ExpScaledLaw(nn.Sequential):
+    """An MLP law ``f = a exp(b)`` from the MLP's two outputs ``(a, b)`` (``law_output=
+    exp_scaled``). An optimiser's step moves every parameter by about its learning rate
+    whatever the gradient (Adam); in a plain output that is an absolute change of f, which a
+    law falling over orders of magnitude (an inverse square from encounters to pairs far apart)
+    cannot afford where it is small: a gravity law's far tail then carries the last layer's
+    jitter as an offset. Through ``exp(b)`` the same step is a relative change of f at every
+    distance, and a zero crossing (a spring's) stays ``a``'s. Output (..., 1) as the plain
+    MLP's."""
+
+    def __init__(self, *layers: nn.Module) -> None:
+        super().__init__(*layers)
+        with torch.no_grad():  # b = 0 at the start: f starts as the plain MLP's would
+            self[-1].weight[1:].zero_()
+            self[-1].bias[1:].zero_()
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = super().forward(x)
+        return y[..., :1] * torch.exp(LOG_SCALE_MAX * torch.tanh(y[..., 1:] / LOG_SCALE_MAX))
+
+
 class PairForceHead(nn.Module):
     """The structured dynamics head (see the module doc): positions and the velocity window
     of a graph -> its acceleration at frame t in physical units, (N, D)."""
 
     def __init__(self, meta: SceneMeta, normalizer: Normalizer, hidden: int, layers: int,
                  act: str, mass_law: str, substeps: int = 1, law_formula: str = "",
-                 law_scale: float = 1.0, rollout_masses: str = "window") -> None:
+                 law_scale: float = 1.0, rollout_masses: str = "window",
+                 law_output: str = "linear") -> None:
         super().__init__()  # mass_law: checked by the model configs (NewtonConfig, BGN's)
         self.mass_law, self.types, self.substeps = mass_law, meta.n_types, substeps
         self.rollout_masses = rollout_masses  # ForceLawOptions.rollout_masses
@@ -274,9 +306,13 @@ class PairForceHead(nn.Module):
         self.register_buffer("length_scale", normalizer.rel_position_scale.detach().clone())
         # law_formula: the law a formula of the physical distance (bgn.model.formula_law),
         # its constants trainable; else an MLP
-        self.force_law = (FormulaLaw(law_formula, meta.n_types) if law_formula else
-                          mlp([3 + (meta.n_types if meta.n_types > 1 else 0),
-                               *[hidden] * layers, 1], act))
+        sizes = [3 + (meta.n_types if meta.n_types > 1 else 0), *[hidden] * layers]
+        if law_formula:
+            self.force_law: nn.Module = FormulaLaw(law_formula, meta.n_types)
+        elif law_output == "exp_scaled":
+            self.force_law = ExpScaledLaw(*mlp([*sizes, 2], act))
+        else:
+            self.force_law = mlp([*sizes, 1], act)
 
     def pair_terms(self, g: Graph, positions: torch.Tensor) -> torch.Tensor:
         """(E, F, D) ``f(s_ij) u_ij`` on every edge j -> i at each of the F frames of
@@ -553,8 +589,8 @@ def check_mass_law(meta: SceneMeta, mass_law: str, option: str) -> None:
 
 def build_head(meta: SceneMeta, normalizer: Normalizer, history: int, hidden: int, layers: int,
                act: str, mass_law: str, option: str, substeps: int = 1,
-               law_formula: str = "", law_scale: float = 1.0, rollout_masses: str = "window"
-               ) -> PairForceHead | ContactImpulseHead:
+               law_formula: str = "", law_scale: float = 1.0, rollout_masses: str = "window",
+               law_output: str = "linear") -> PairForceHead | ContactImpulseHead:
     """The structured dynamics head of a scene: pair forces (``PairForceHead``) or pair
     impulses at the time of impact (``bgn.model.impulse``); ``head(g)`` gives the physical
     target and the contact gate's logits (None for forces). ``option`` names the setting in
@@ -566,7 +602,7 @@ def build_head(meta: SceneMeta, normalizer: Normalizer, history: int, hidden: in
     check_scene(meta, history, option)
     check_mass_law(meta, mass_law, option)
     return PairForceHead(meta, normalizer, hidden, layers, act, mass_law, substeps, law_formula,
-                         law_scale, rollout_masses)
+                         law_scale, rollout_masses, law_output)
 
 
 def head_given(head: nn.Module) -> tuple[str, ...]:
@@ -659,15 +695,15 @@ def law_loss(head: nn.Module, g: Graph, reduce: bool = True) -> torch.Tensor | N
     fit absorbs any law's scale, and over the few frames of a window almost any shape: trained
     through the fit alone, gravity_r2's law came out nowhere near 1/s^2 while the one-step error
     stayed small (docs/notes/2026-11-26-results-history.md, "Gravity_r2: what frames allow").
-    With the true masses the law is identified; relative errors weigh every distance alike,
-    where a squared error is set by the few close encounters
-    (docs/notes/2026-11-26-results-history.md, "Moved here from code comments and configs").
+    With the true masses the law is identified; relative errors
+    (``target_coder.relative_squared_error``) weigh every distance alike, where a squared error
+    is set by the few close encounters (docs/notes/2026-11-26-results-history.md, "Moved here
+    from code comments and configs").
     ``reduce=False``: the relative error of each particle, (N,)."""
     if not isinstance(head, PairForceHead) or head.mass_law == "coupling":
         return None  # no recorded couplings to train the law with
     predicted, target = head(g, known_masses=True)[0], g.target.to(g.pos.dtype)
-    size = (target * target).sum(-1)
-    rel = ((predicted - target) ** 2).sum(-1) / (size + 1e-4 * size.mean() + FIT_EPS)
+    rel = relative_squared_error(predicted, target)
     return rel.mean() if reduce else rel
 
 
@@ -694,7 +730,7 @@ class Newton(PhysicsModel):
         self.head = build_head(self.meta, self.normalizer, self.history, cfg.hidden, cfg.layers,
                                cfg.activation, cfg.mass_law, "model=newton", cfg.substeps,
                                cfg.law_formula if cfg.law == "formula" else "", cfg.law_scale,
-                               cfg.rollout_masses)
+                               cfg.rollout_masses, cfg.law_output)
         if self.meta.interaction == "contact":
             self.heads = frozenset({"dynamics", "contact", "impulse_mass"})
             self.register_buffer("contact_pos_weight", torch.tensor(

@@ -54,6 +54,23 @@ RELATIVE_FLOOR = 1e-3
 _DIFF_STATS = {"last": "target_diff1", "linear": "target_diff2"}
 
 
+def relative_squared_error(predicted: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """(N,) each row's squared error over the squared size of its ``target`` (N, D), the size
+    floored at ``RELATIVE_FLOOR`` times the batch's median size: every distance of a pair law
+    weighs alike. The floor is the median's, not the mean's: on gravity_r2 the close
+    encounters set the mean, and the law loss's former floor, 1e-4 of the mean, covered over
+    half the particles, whose errors then counted as absolute ones (docs/results.md, "The
+    network's law per distance band")."""
+    size = (target * target).sum(-1)
+    return ((predicted - target) ** 2).sum(-1) / (size + relative_floor(size))
+
+
+def relative_floor(size: torch.Tensor) -> torch.Tensor:
+    """The floor of ``relative_squared_error``'s squared sizes ``size`` (N,): a target this
+    much smaller than the batch's median counts half."""
+    return RELATIVE_FLOOR * size.median().detach() + 1e-30
+
+
 def observed_targets(g: Graph, kind: str) -> torch.Tensor:
     """The targets of the frames before ``t`` that the velocity window determines, newest
     first: (N, k+1, D) velocities for velocity targets, (N, k, D) finite-difference
@@ -152,13 +169,9 @@ class TargetCoder(nn.Module):
             # each particle's squared error over its own target's size, both physical (so
             # neither the normaliser nor a prior's residual units enter): every distance weighs
             # alike, where a squared error is set by the few close encounters and leaves a
-            # law's far tail unlearned. The floor is the median size's (not the mean's, which
-            # the encounters set: it would floor every far pair)
+            # law's far tail unlearned (relative_squared_error)
             target = g.target.to(output.dtype)[moved]
-            error = self.decode(g, output)[moved] - target
-            size = (target * target).sum(-1)
-            floor = RELATIVE_FLOOR * size.median().detach() + 1e-30
-            return ((error * error).sum(-1) / (size + floor)).mean()
+            return relative_squared_error(self.decode(g, output)[moved], target).mean()
         y = self.encode(g)[moved]
         output = output[moved]
         if self.loss_name == "huber":

@@ -340,10 +340,12 @@ class PhysicsModule(L.LightningModule):
         if grads and not torch.isfinite(torch.nn.utils.get_total_norm(grads)):
             bad = [n for n, p in self.named_parameters()
                    if p.grad is not None and not torch.isfinite(p.grad).all()]
+            where = (f"in {len(bad)} parameters (first: {bad[0]})" if bad else
+                     "in its norm (every entry finite, their norm beyond float range)")
             raise FloatingPointError(
-                f"the gradient became non-finite at step {self.global_step} in {len(bad)} "
-                f"parameters (first: {bad[0]}); lower optimizer.lr or check the data; the last "
-                "good checkpoint is in the run's checkpoints/ folder")
+                f"the gradient became non-finite at step {self.global_step} {where}; lower "
+                "optimizer.lr or check the data; the last good checkpoint is in the run's "
+                "checkpoints/ folder")
 
     def validation_step(self, g: Graph, batch_idx: int) -> None:
         if batch_idx == 0:

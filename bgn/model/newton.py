@@ -81,8 +81,8 @@ MASS_LAWS = ("inertial", "source", "type", "coupling")
 LAW_INITS = ("random", "match")  # the MLP law's start (ForceLawOptions.law_init)
 LAW_OUTPUTS = ("linear", "exp_scaled")  # how the MLP law's outputs make f (ForceLawOptions)
 # exp_scaled: |log-scale| at most this (smoothly, a tanh), so f stays within exp(10) of its
-# amplitude early in training, where an unbounded one overflowed the gradient (seed 1 of
-# gravity_r2 at step 83); the amplitude carries the rest of the range
+# amplitude early in training, where an unbounded one overflowed the gradient
+# (docs/results.md, "The network's law per distance band"); the amplitude carries the rest
 LOG_SCALE_MAX = 10.0
 ROLLOUT_MASSES = ("window", "held")  # a rollout's mass fit (ForceLawOptions.rollout_masses)
 # BGN's dynamics head: Eq. 5's decoder, the scene's structured head, or soft contacts with

@@ -22,6 +22,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from bgn.figures import save
+from bgn.laws.compare import relative_error
 from bgn.tables import write_table
 
 GOAL = 0.05           # the bar: within 5 % ...
@@ -59,8 +60,10 @@ def run_row(run: Path, label: str) -> tuple[dict, dict]:
     r = np.array([float(x["r"]) for x in rows])
     learned = np.array([float(x["learned"]) for x in rows])
     truth = np.array([float(x["truth"]) for x in rows])
-    lo, hi = (float(pair["bands"][1]["r"][0]), float(pair["bands"][-2]["r"][1]))
-    return row, {"r": r, "error": np.abs(learned - truth) / np.abs(truth), "lo": lo, "hi": hi}
+    covered = [b["r"] for b in pair["bands"] if b["quantiles"][0] >= COVERED[0] - 1e-12
+               and b["quantiles"][1] <= COVERED[1] + 1e-12]
+    return row, {"r": r, "error": relative_error(learned, truth, r),
+                 "lo": float(covered[0][0]), "hi": float(covered[-1][1])}
 
 
 def figure(curves: dict[str, list[tuple[str, dict]]]):

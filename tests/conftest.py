@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -41,6 +42,41 @@ TINY_RUN = ["dataset=spring", *SMALL["spring"], NETWORK_LAW, "dataset.test_sampl
             "callbacks.progress_bar=null", "trainer.max_epochs=1",
             "+trainer.limit_train_batches=2", "trainer.limit_val_batches=1",
             "trainer.enable_model_summary=false"]
+
+
+# The law search at its defaults costs tens of seconds per law (bgn.laws.search). A test of what
+# reads a law back (evaluate's report, the formula stage, auto's formula candidate, the laws
+# command) checks the plumbing, not the search: it gets a search of the same grammar cut to
+# sums of two terms, no products, no potentials, few starts, which still finds a spring's or a
+# softened power law. The search itself is tested at its defaults (tests/laws/test_search.py,
+# marked full_law_search), as is any test marked so.
+def fast_search_options():
+    """The cut search of the tests (above)."""
+    from bgn.laws.options import SEARCH_DEFAULTS
+
+    return replace(SEARCH_DEFAULTS, potentials=False, max_terms=2, product_terms=1,
+                   random_starts=2, random_forms=1, refine_per_size=5)
+
+
+@pytest.fixture(autouse=True)
+def fast_law_search(request, monkeypatch):
+    """In-process law searches at the defaults (but for ``max_terms``, python -m bgn.laws's
+    key) run with ``fast_search_options`` (see above); ``@pytest.mark.full_law_search`` keeps
+    the defaults. A search given other options keeps them."""
+    if request.node.get_closest_marker("full_law_search"):
+        return
+    import bgn.laws.compare as compare
+    from bgn.laws.options import SEARCH_DEFAULTS
+
+    full, fast = compare.search_law, fast_search_options()
+
+    def search(r, y, weight=None, tolerance=compare.DEFAULTS.tolerance,
+               options=SEARCH_DEFAULTS):
+        if replace(options, max_terms=SEARCH_DEFAULTS.max_terms) == SEARCH_DEFAULTS:
+            options = replace(fast, max_terms=min(options.max_terms, fast.max_terms))
+        return full(r, y, weight, tolerance, options)
+
+    monkeypatch.setattr(compare, "search_law", search)
 
 
 def compose_config(config_name: str, overrides: list[str]) -> DictConfig:

@@ -258,6 +258,18 @@ def test_spreads_chosen_on_one_sample_cover_another() -> None:
             assert spread.covered(fresh, stated, level).mean() == pytest.approx(level, abs=0.03)
 
 
+def test_degenerate_misses_give_a_spread_not_an_error() -> None:
+    """A tiny split (one simulation): most misses exactly 0 (no factor moves the median
+    covered), or a failed fit's NaN among them: a finite spread, the NaN left out; none left:
+    the stated errors as they are."""
+    sd = np.full(6, 0.1)
+    spread = spread_calibration(np.array([0.0, 0.0, 0.0, 0.0, 0.3, 0.05]), sd)
+    assert np.isfinite([spread.factor, spread.floor]).all() and spread.factor > 0
+    with_nan = spread_calibration(np.array([np.nan, 0.02, 0.3, 0.05, 0.1, 0.2]), sd)
+    assert with_nan == spread_calibration(np.array([0.02, 0.3, 0.05, 0.1, 0.2]), sd[1:])
+    assert spread_calibration(np.array([np.nan]), np.array([0.1])) == Spread()
+
+
 def test_a_heavy_tail_is_chosen_where_the_misses_have_one_and_covers_both_levels() -> None:
     """Misses of which a fifth are five times wider than the rest: a Gaussian matched at 50 %
     covers well under 90 % of fresh misses; the tail ``spread_calibration`` chooses covers

@@ -297,6 +297,10 @@ def spread_calibration(miss: np.ndarray, sd: np.ndarray) -> Spread:
     |z| of a calibrated normal."""
     miss = np.abs(np.asarray(miss, dtype=np.float64))
     sd = np.maximum(np.asarray(sd, dtype=np.float64), 1e-12)
+    finite = np.isfinite(miss) & np.isfinite(sd)  # a failed fit's particle says nothing here
+    miss, sd = miss[finite], sd[finite]
+    if not len(miss):
+        return Spread()
 
     def rank(spread: Spread) -> tuple[float, float]:
         held = spread.central(miss, sd)
@@ -314,8 +318,12 @@ def _half_covered(miss: np.ndarray, sd: np.ndarray, share: float, width: float) 
         return float(np.median(Spread(factor, floor, share, width).central(miss, sd))) - 0.5
 
     if excess(1.0, 0.0) <= 0:
+        if excess(1e-9, 0.0) <= 0:  # half the misses are exactly 0: no factor moves the
+            return Spread(1.0, 0.0, share, width)  # median, so the stated errors are kept
         return Spread(brentq(lambda f: excess(f, 0.0), 1e-9, 1.0), 0.0, share, width)
     top = 2 * width * miss.max() / HALF_WIDTH + 1e-12
+    if excess(1.0, top) > 0:  # rounding at the bracket's end: the floor that covers most
+        return Spread(1.0, top, share, width)
     return Spread(1.0, brentq(lambda f: excess(1.0, f), 0.0, top), share, width)
 
 

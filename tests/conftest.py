@@ -48,8 +48,8 @@ TINY_RUN = ["dataset=spring", *SMALL["spring"], NETWORK_LAW, "dataset.test_sampl
 # reads a law back (evaluate's report, the formula stage, auto's formula candidate, the laws
 # command) checks the plumbing, not the search: it gets a search of the same grammar cut to
 # sums of two terms, no products, no potentials, few starts, which still finds a spring's or a
-# softened power law. The search itself is tested at its defaults (tests/laws/test_search.py,
-# marked full_law_search), as is any test marked so.
+# softened power law. The search itself is tested on its own (tests/laws/test_search.py, which
+# calls bgn.laws.search directly, with options of its own).
 def fast_search_options():
     """The cut search of the tests (above)."""
     from bgn.laws.options import SEARCH_DEFAULTS
@@ -59,12 +59,10 @@ def fast_search_options():
 
 
 @pytest.fixture(autouse=True)
-def fast_law_search(request, monkeypatch):
+def fast_law_search(monkeypatch):
     """In-process law searches at the defaults (but for ``max_terms``, python -m bgn.laws's
-    key) run with ``fast_search_options`` (see above); ``@pytest.mark.full_law_search`` keeps
-    the defaults. A search given other options keeps them."""
-    if request.node.get_closest_marker("full_law_search"):
-        return
+    key) run with ``fast_search_options`` (see above); a search given other options keeps
+    them."""
     import bgn.laws.compare as compare
     from bgn.laws.options import SEARCH_DEFAULTS
 

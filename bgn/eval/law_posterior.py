@@ -322,8 +322,6 @@ def _half_covered(miss: np.ndarray, sd: np.ndarray, share: float, width: float) 
             return Spread(1.0, 0.0, share, width)  # median, so the stated errors are kept
         return Spread(brentq(lambda f: excess(f, 0.0), 1e-9, 1.0), 0.0, share, width)
     top = 2 * width * miss.max() / HALF_WIDTH + 1e-12
-    if excess(1.0, top) > 0:  # rounding at the bracket's end: the floor that covers most
-        return Spread(1.0, top, share, width)
     return Spread(1.0, brentq(lambda f: excess(1.0, f), 0.0, top), share, width)
 
 

@@ -31,8 +31,6 @@ from bgn.laws.search import (
 )
 from bgn.model.formula_law import FormulaLaw
 
-pytestmark = pytest.mark.full_law_search  # the search itself, as given
-
 # a smaller search than the default, so that each test takes seconds: one or two terms
 FAST = SearchOptions(max_terms=2, beam=3, random_starts=3, random_forms=2, refine_per_size=10)
 FASTER = SearchOptions(max_terms=2, beam=2, random_starts=2, random_forms=1, fixed_starts=2)

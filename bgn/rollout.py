@@ -120,6 +120,17 @@ def rollout_starts(dataset: FrameDataset, n_steps: int, per_sim: int = 1) -> lis
     return sorted((starts + [t for t in spread if t not in starts])[:per_sim])
 
 
+def scoring_starts(dataset: FrameDataset, n_steps: int, n_sims: int,
+                   min_rollouts: int) -> list[int]:
+    """The start frames of a validation score (``model.dynamics=auto``'s and the formula
+    stage's): as many per simulation (``rollout_starts``, frame 100 among them) as ``n_sims``
+    simulations need to give at least ``min_rollouts`` rollouts, fewer where the files are
+    short. One start on a split of 10 simulations lets a single close encounter decide a
+    mean, and a law that fails only at encounters the 10 miss is never seen failing
+    (docs/design.md, "Choosing on validation rollouts")."""
+    return rollout_starts(dataset, n_steps, max(1, -(-min_rollouts // max(1, n_sims))))
+
+
 @dataclass
 class Trajectories:
     """Rollouts of one predictor from several (simulation, start) pairs, all ``n_steps`` long.

@@ -31,7 +31,7 @@ def checked_options(cfg: Any) -> tuple[Path, Path, LawOptions]:
     need_float(cfg.tolerance, "tolerance", 0.0, strict_low=False)
     for key, high in (("finetune_steps", None), ("finetune_substeps", 64),
                       ("finetune_batch_size", None), ("finetune_horizon", None),
-                      ("finetune_val_sims", None)):
+                      ("finetune_val_sims", None), ("finetune_val_rollouts", None)):
         need_int(cfg[key], key, 1, high, optional=True)
     ckpt, _, config = resolve_run(str(cfg.ckpt), cfg.get("run_config"))
     return ckpt, Path(config), from_keys({k: cfg[k] for k in COMMAND_KEYS})

@@ -120,19 +120,22 @@ def checked_rollouts(model: Any, val: Any, sims: list[int], starts: list[int], n
 
 def validation_errors(model: Any, val: Any, history: int, horizon: int = DEFAULTS.finetune_horizon,
                       val_sims: int | None = None,
-                      deadline: Deadline | None = None) -> dict[str, Any]:
+                      deadline: Deadline | None = None,
+                      val_rollouts: int = DEFAULTS.finetune_val_rollouts) -> dict[str, Any]:
     """bgn.studies.auto's scoring: every validation simulation (or ``val_sims`` of them)
-    rolled out from the shared start frames; after 10 and ``horizon`` steps the mean capped
+    rolled out from the shared start frames, as many as give ``val_rollouts`` rollouts
+    (``bgn.rollout.scoring_starts``); after 10 and ``horizon`` steps the mean capped
     error (a failed rollout at the cap) and its geometric mean over the rollouts
     (``typical``, shown beside), and how many failed (``failed``, ``failed_share``).
     ``deadline``: checked between batches (``checked_rollouts``)."""
     from bgn.data.frames import evenly_spaced
     from bgn.metrics import SHORT_HORIZON, failure_capped_errors
-    from bgn.rollout import rollout_starts
+    from bgn.rollout import scoring_starts
 
     n_steps = min(horizon, val.file.n_frames - history - 2)
     horizons = sorted({min(SHORT_HORIZON, n_steps), n_steps})
-    sims, starts = evenly_spaced(val.file.n_sims, val_sims), rollout_starts(val, n_steps)
+    sims = evenly_spaced(val.file.n_sims, val_sims)
+    starts = scoring_starts(val, n_steps, len(sims), val_rollouts)
     t = checked_rollouts(model, val, sims, starts, n_steps, deadline)
     capped, failed = failure_capped_errors(t.predicted, t.true, t.first_non_finite,
                                            val.meta.box)
@@ -543,7 +546,8 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
                      seed: int = 0, start: str | None = None,
                      max_seconds: float | None = None,
                      deadline: Deadline | None = None,
-                     members: int = DEFAULTS.finetune_members) -> dict[str, Any]:
+                     members: int = DEFAULTS.finetune_members,
+                     val_rollouts: int = DEFAULTS.finetune_val_rollouts) -> dict[str, Any]:
     """The fitted formula as the model's law, its constants fine-tuned end to end: the
     checkpoint's model with ``law=formula`` (``formula_module``), the law's constants alone
     fitted by Nelder-Mead (``steps`` evaluations) to the head's own loss (``law_objective``)
@@ -656,7 +660,7 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     history = int(hp["history"])
     try:
         scores, by_substeps = _validated_laws(network, model, head, val, history, horizon,
-                                              val_sims, substeps, job)
+                                              val_sims, substeps, job, val_rollouts)
         choice = law_choice(scores, scores["network"]["horizon"])
     except OutOfTime:  # nothing compared: the law the checkpoint validated with stays
         scores, by_substeps, choice = {}, {}, "network"
@@ -792,6 +796,7 @@ def no_formula_record(checkpoint: Path, report: LawReport) -> dict[str, Any]:
 
 def _validated_laws(network: Any, model: Any, head: Any, val: Any, history: int, horizon: int,
                     val_sims: int | None, substeps: int, deadline: Deadline | None = None,
+                    val_rollouts: int = DEFAULTS.finetune_val_rollouts,
                     ) -> tuple[dict[str, Any], dict[int, Any]]:
     """Validation rollouts of the network law and of the formula (``scores``), the formula
     rolled out with the substeps it was tuned through and with the network's own
@@ -802,14 +807,14 @@ def _validated_laws(network: Any, model: Any, head: Any, val: Any, history: int,
     ``deadline``: the job's, checked between rollout batches (``OutOfTime``, with
     ``head.substeps`` put back)."""
     scores = {"network": validation_errors(network.model, val, history, horizon, val_sims,
-                                           deadline)}
+                                           deadline, val_rollouts)}
     n = scores["network"]["horizon"]
     by_substeps = {}
     for k in sorted({substeps, pair_force_head(network)[1].substeps}):
         head.substeps = k
         try:
             by_substeps[k] = validation_errors(model, val, history, horizon, val_sims,
-                                               deadline)
+                                               deadline, val_rollouts)
         except OutOfTime:
             head.substeps = substeps
             raise

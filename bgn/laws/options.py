@@ -100,6 +100,7 @@ class LawOptions:
     finetune_batch_size: int = 512     # training frames of the fixed batch (closest ones first)
     finetune_horizon: int = 50         # validation rollout steps (as bgn.studies.auto's horizon)
     finetune_val_sims: int | None = None  # validation simulations rolled out (None: all)
+    finetune_val_rollouts: int = 100   # ... from as many start frames each as give this many
     amplitude_step: float = 0.1        # the first simplex's step in each amplitude (relative)
     c_step: float = 2.0                # ... and its factor on each constant c
     form_tolerance: float = 0.02       # a simpler form is kept while its loss is within this
@@ -119,7 +120,8 @@ DEFAULTS = LawOptions()
 
 # the fields python -m bgn.laws sets by their names (conf/laws.yaml; max_terms: the search's)
 COMMAND_KEYS = ("max_terms", "tolerance", "finetune_steps", "finetune_substeps",
-                "finetune_batch_size", "finetune_horizon", "finetune_val_sims")
+                "finetune_batch_size", "finetune_horizon", "finetune_val_sims",
+                "finetune_val_rollouts")
 
 
 def from_keys(values: dict[str, Any]) -> LawOptions:

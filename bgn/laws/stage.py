@@ -52,7 +52,8 @@ def formula_stage(checkpoint: Path, train_split: Any, val: Any, config: Any,
                               horizon=options.finetune_horizon,
                               val_sims=options.finetune_val_sims, out_dir=out_dir,
                               max_seconds=max_seconds, deadline=deadline,
-                              members=options.finetune_members)
+                              members=options.finetune_members,
+                              val_rollouts=options.finetune_val_rollouts)
     section = finetune_markdown(record)
     print(section)
     write_atomic(path, path.read_text() + "\n" + section)

@@ -24,7 +24,8 @@ is one deadline over the whole job, ``candidate_deadline``), each in
 Each is composed from the real configs (``bgn.studies.cells.compose_train``: a scene's
 ``conf/dataset_model/`` defaults apply) with the run's own overrides, then scored on the
 VALIDATION split (never the test split): every validation simulation (or ``auto.val_sims``
-of them, evenly spread) rolled out from the same start frame (``bgn.rollout.rollout_starts``),
+of them, evenly spread) rolled out from the same start frames, as many as give
+``auto.val_rollouts`` rollouts (``bgn.rollout.scoring_starts``),
 the mean position error after ``auto.horizon`` steps over all rollouts, a failed rollout
 counted at the cap from its failure on (``bgn.metrics.capped_step_errors``). The eligible
 candidate with the lowest error wins (ties: the error after 10 steps, then the order above,
@@ -952,7 +953,7 @@ def _run_auto(cfg: DictConfig, base: list[str], run_dir: Path, deadline: Deadlin
     from bgn.coerce import ConfigError
     from bgn.data.frames import evenly_spaced
     from bgn.laws.stage import law_stage
-    from bgn.rollout import rollout_starts
+    from bgn.rollout import scoring_starts
     from bgn.training.budget import OutOfTime
     from bgn.training.run import data_module, info, summary, train
 
@@ -984,7 +985,7 @@ def _run_auto(cfg: DictConfig, base: list[str], run_dir: Path, deadline: Deadlin
     n_steps = min(int(auto.get("horizon", 50)), val.file.n_frames - datamodule.history - 2)
     horizons = sorted({min(SHORT_HORIZON, n_steps), n_steps})
     sims = evenly_spaced(val.file.n_sims, auto.get("val_sims"))
-    starts = rollout_starts(val, n_steps)
+    starts = scoring_starts(val, n_steps, len(sims), int(auto.get("val_rollouts", 100)))
     # the fits before the choice: the candidates and, with a pair-force head, the formula
     fits = len(admitted) + any(c.pair_force for c in admitted)
     left = deadline.left()

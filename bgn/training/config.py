@@ -112,6 +112,7 @@ class AutoKeys:
     min_steps: int = 100              # fewer steps: "not trained", never scored or chosen
     horizon: int = 50                 # rollout steps the choice is made at (capped by the files)
     val_sims: int | None = None       # validation simulations rolled out (null: all)
+    val_rollouts: int = 100           # ... from as many start frames each as give this many
     references: list[str] = field(default_factory=lambda: ["gns", "cranmer_gn"])  # not chosen
 
 

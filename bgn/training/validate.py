@@ -255,6 +255,8 @@ def validate_auto(auto: Any) -> None:
     need_int(_get(auto, "horizon", 50), "auto.horizon", 1, why=" (rollout steps)")
     need_int(_get(auto, "val_sims"), "auto.val_sims", 1, optional=True,
              why=" (validation simulations; null: all)")
+    need_int(_get(auto, "val_rollouts", 100), "auto.val_rollouts", 1,
+             why=" (validation rollouts: start frames per simulation as give this many)")
     for name in _get(auto, "references") or ():
         if name not in MODELS or name == "bgn":
             raise ConfigError("auto.references", name,

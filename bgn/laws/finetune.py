@@ -40,11 +40,14 @@ from bgn.training.budget import NO_DEADLINE, Deadline, OutOfTime, check, clock_t
 log = logging.getLogger("bgn.train")
 
 
-def formula_spec(report: LawReport) -> str:
+def formula_spec(report: LawReport, free_exponents: bool = False) -> str:
     """The report's formulas (each pair's ``PairLaw.formula``) as ``model.law_formula``: a JSON
     list of expression pairs (``bgn.laws.search.expression_spec``; ``bgn.model.formula_law``'s
-    format), in physical units: the head with ``model.law=formula`` evaluates this law."""
-    return json.dumps([expression_spec(pair.formula, pair.types) for pair in report.pairs])
+    format), in physical units: the head with ``model.law=formula`` evaluates this law.
+    ``free_exponents``: the search's rounded exponents as constants again (the tuning's
+    starts)."""
+    return json.dumps([expression_spec(pair.formula, pair.types, free_exponents)
+                       for pair in report.pairs])
 
 
 def formula_module(checkpoint: Path, spec: str, substeps: int) -> Any:
@@ -195,13 +198,14 @@ def candidate_specs(report: LawReport, limit: int = DEFAULTS.finetune_members,
         if len(report.pairs) != 1:
             return []
         pair = report.pairs[0]
-        return [(json.dumps([expression_spec(m, pair.types)]), m.complexity)
-                for m in pair.search.front][:max(1, limit)]
-    starts = [(formula_spec(report), sum(p.formula.complexity for p in report.pairs))]
+        return [(json.dumps([expression_spec(m, pair.types, free_exponents=True)]),
+                 m.complexity) for m in pair.search.front][:max(1, limit)]
+    starts = [(formula_spec(report, free_exponents=True),
+               sum(p.formula.complexity for p in report.pairs))]
     if len(report.pairs) == 1:
         pair = report.pairs[0]
-        starts += [(json.dumps([expression_spec(m, pair.types)]), m.complexity)
-                   for m in pair.search.front if m is not pair.formula]
+        starts += [(json.dumps([expression_spec(m, pair.types, free_exponents=True)]),
+                    m.complexity) for m in pair.search.front if m is not pair.formula]
     return starts[:max(1, limit)]
 
 

@@ -50,7 +50,7 @@ import itertools
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -942,8 +942,16 @@ def constant_difference(found: sympy.Expr, truth: sympy.Expr, r: np.ndarray,
 # ----------------------------------------------------------------------------- the spec
 
 
-def expression_spec(member: Member, types: tuple[int, int] = (0, 0)) -> dict[str, Any]:
+def expression_spec(member: Member, types: tuple[int, int] = (0, 0),
+                    free_exponents: bool = False) -> dict[str, Any]:
     """A front member as one pair's entry of a ``model.law_formula`` spec
-    (``bgn.model.formula_law``): ``{"types", "expr", "constants"}``."""
-    return {"types": [int(t) for t in types], "expr": sympy.sstr(member.template),
-            "constants": {k: float(v) for k, v in member.constants.items()}}
+    (``bgn.model.formula_law``): ``{"types", "expr", "constants"}``. ``free_exponents``: the
+    exponents the clean-up rounded on the learned law become constants again, at their
+    rounded values, for a fit to the frames to move (the formula stage's tuning, which rounds
+    what it fits by the same rule)."""
+    template, constants = member.template, member.constants
+    if free_exponents and member.fit.form.fixed:
+        fit = replace(member.fit, form=replace(member.fit.form, fixed=()))
+        template, constants = form_expression(fit, named=True)
+    return {"types": [int(t) for t in types], "expr": sympy.sstr(template),
+            "constants": {k: float(v) for k, v in constants.items()}}

@@ -388,13 +388,20 @@ def _screened_report(law=None):
 
 
 def test_the_fine_tuning_starts_from_the_front_chosen_first_then_simplest_first():
+    """The members as the tuning's starts, their exponents the search rounded on the learned
+    law constants again (at the rounded values: the same law), for the frames to move."""
     from bgn.laws.finetune import candidate_specs, formula_spec
     from bgn.model.formula_law import FormulaLaw
 
     report = _screened_report()
     pair = report.pairs[0]
     starts = candidate_specs(report, limit=3)
-    assert starts[0] == (formula_spec(report), pair.formula.complexity)
+    assert starts[0] == (formula_spec(report, free_exponents=True), pair.formula.complexity)
+    rounded = dict(pair.formula.fit.form.fixed)
+    assert rounded  # the case this test is about: a member with a rounded exponent
+    free = json.loads(starts[0][0])[0]["constants"]
+    assert len(free) == len(pair.formula.constants) + len(rounded)
+    assert all(any(abs(v - x) < 1e-12 for v in free.values()) for x in rounded.values())
     others = [m for m in pair.search.front if m is not pair.formula]
     assert [c for _, c in starts[1:]] == [m.complexity for m in others][:2]
     assert len(starts) == min(3, len(pair.search.front))

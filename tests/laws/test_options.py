@@ -37,6 +37,9 @@ OLD_CONSTANTS = {
     # the law search's (wired in as the stage's read-back): its options, the front members
     # tuned on the frames
     "search": SEARCH_DEFAULTS, "finetune_members": 6,
+    # validation rollouts from more start frames (docs/design.md, "Choosing on validation
+    # rollouts"): a new default, not an old constant
+    "finetune_val_rollouts": 100,
 }
 
 

@@ -31,12 +31,15 @@ GOALS = {"spring": ("test/rollout_error@100", 0.0005),
 def law_text(tuned: list[dict] | None) -> str:
     if not tuned:
         return "-"
+    import sympy
+
+    from bgn.model.formula_law import parse_expression
+
     out = []
     for t in tuned:
-        expr = t["expr"]
-        for k, v in sorted(t["constants"].items(), key=lambda kv: -len(kv[0])):
-            expr = expr.replace(k, f"{v:.4g}")
-        out.append(expr)
+        expr = parse_expression(t["expr"], t["constants"])
+        values = {sympy.Symbol(k, real=True): v for k, v in t["constants"].items()}
+        out.append(sympy.sstr(sympy.N(sympy.simplify(expr.subs(values)), 5)))
     return "; ".join(out)
 
 

@@ -567,3 +567,46 @@ def test_a_rounding_is_kept_only_while_the_frames_loss_stays_within_the_form_tol
     assert set(out["tuned"][0]["constants"]) == {"a1", "a2", "k2"}
     assert out["loss"] == pytest.approx(costs["k1"]) and out["constants"] == 3
     assert snap_exponents(tune, {**form, "loss": math.nan}) is not None
+
+
+def test_an_exponent_the_polish_leaves_free_is_rounded_after_it_within_the_tolerance(
+        monkeypatch):
+    """snap_polished: each free exponent near a round value rounded, the form polished again
+    through the polish's substeps, the rounding kept while the polished loss stays within
+    form_tolerance (gravity_r2 seed 2: 1.9996 -> 2), refused above it; no free exponent, or
+    no time left: the polished form stands."""
+    from types import SimpleNamespace
+
+    import bgn.laws.finetune as laws
+
+    costs = {"k1": 1 + laws.DEFAULTS.form_tolerance / 2, "k2": 1 + 2 * laws.DEFAULTS.form_tolerance}
+
+    def head_of(spec: str) -> SimpleNamespace:
+        return SimpleNamespace(force_law=SimpleNamespace(spec=lambda: spec))
+
+    monkeypatch.setattr(laws, "pair_force_head", lambda module: (module, module.head))
+    monkeypatch.setattr(laws, "formula_module", lambda ckpt, spec, substeps: (
+        SimpleNamespace(head=head_of(spec), requires_grad_=lambda _: None, eval=lambda: None),
+        {"spec": spec}))
+
+    def polish(model, head, batches, steps, deadline):  # each rounding costs its factor
+        names = json.loads(head.force_law.spec())[0]["constants"]
+        return {"substeps": 64, "evaluations": 80,
+                "loss": math.prod(v for k, v in costs.items() if k not in names)}
+
+    monkeypatch.setattr(laws, "polish_constants", polish)
+    spec = _expression("a1*r**k1 + a2*r**k2", a1=1.0, a2=1.0, k1=1.01, k2=-2.03)
+    module = laws.formula_module(None, spec, 16)[0]
+    form = {"module": module, "hp": {"spec": spec}, "tuned": json.loads(spec), "snapped": []}
+    evaluations = [0, 0]
+    out, polished, _, head = laws.snap_polished(None, form, {"loss": 1.0}, [], 80, 16, None,
+                                               evaluations)
+    assert out["snapped"] == ["exponent k1 1.01 -> 1 (after the polish)"]  # k2's cost too much
+    assert set(json.loads(head.force_law.spec())[0]["constants"]) == {"a1", "a2", "k2"}
+    assert polished["loss"] == pytest.approx(costs["k1"]) and evaluations == [160, 2]
+    assert out["hp"]["spec"] == head.force_law.spec() and out["tuned"] == json.loads(
+        head.force_law.spec())
+    # no time left for the polish: the form stands as it came
+    monkeypatch.setattr(laws, "polish_constants", lambda *a: None)
+    same = laws.snap_polished(None, form, {"loss": 1.0}, [], 80, 16, None, [0, 0])
+    assert same[0] is form and same[1] == {"loss": 1.0}

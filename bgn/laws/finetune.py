@@ -526,34 +526,36 @@ def snap_polished(checkpoint: Path, form: dict[str, Any], polish: dict[str, Any]
                   batches: list[tuple[float, Any]], steps: int, substeps: int,
                   deadline: Deadline | None, evaluations: list[int],
                   ) -> tuple[dict[str, Any], dict[str, Any], Any, Any]:
-    """The exponents the polish left free rounded as ``snap_exponents`` rounds them, now
-    through the polish's substeps from the polished constants: before the polish the fit
-    can hold an exponent just off a round value that the finer substeps put on it (gravity_r2:
-    1.9974 through 16, 1.9996 through 64, docs/results.md, "The default jobs"). Each rounding
-    is kept, the form re-polished, while the polished loss stays within
-    ``DEFAULTS.form_tolerance``; ``evaluations`` counts them. Returns (form, polish, model,
-    head), unchanged where no free exponent is near a round value."""
-    model, head = pair_force_head(form["module"])
-    tried: set[tuple[int, str]] = set()
-    while (trial := snapped_exponent(head.force_law.spec(), tried)) is not None:
-        spec, at, change = trial
-        tried.add(at)
+    """``snap_exponents`` once more after the polish, on the polished constants and through
+    the polish's substeps (each rounding re-polished, kept while the polished loss stays
+    within ``DEFAULTS.form_tolerance``): through the coarser substeps the fit can hold an
+    exponent just off the round value the finer ones put it on (docs/results.md, "The
+    default jobs"). ``evaluations`` counts the re-polishes. Returns (form, polish, model,
+    head), the form's ``snapped`` marking these roundings "(after the polish)"; unchanged
+    where no rounding is kept or no time is left."""
+    def polished(spec: str) -> tuple[float, Any, Any, str]:
         module, hp = formula_module(checkpoint, spec, substeps)
-        m, h = pair_force_head(module)
-        m.requires_grad_(False)
-        m.eval()
-        again = polish_constants(m, h, batches, steps, deadline)
+        model, head = pair_force_head(module)
+        model.requires_grad_(False)
+        model.eval()
+        again = polish_constants(model, head, batches, steps, deadline)
         if again is None:  # no time left: the polished form stands
-            break
+            raise _Budget
         evaluations[0] += again["evaluations"]
         evaluations[1] += 1
-        log.info("formula stage: after the polish, %s: loss %.4g against %.4g", change,
-                 again["loss"], polish["loss"])
-        if not again["loss"] > polish["loss"] * (1 + DEFAULTS.form_tolerance):
-            form = {**form, "module": module, "hp": hp, "tuned": json.loads(h.force_law.spec()),
-                    "snapped": form.get("snapped", []) + [f"{change} (after the polish)"]}
-            polish, model, head = {**again}, m, h
-    return form, polish, model, head
+        return again["loss"], module, hp, head.force_law.spec()
+
+    spec = pair_force_head(form["module"])[1].force_law.spec()
+    out = snap_exponents(polished, {"tuned": json.loads(spec), "loss": polish["loss"],
+                                    "module": form["module"], "hp": form["hp"]})
+    if out["snapped"]:
+        log.info("formula stage: after the polish, %s (loss %.4g against %.4g)",
+                 "; ".join(out["snapped"]), out["loss"], polish["loss"])
+        form = {**form, "module": out["module"], "hp": out["hp"], "tuned": out["tuned"],
+                "constants": out["constants"], "snapped": form.get("snapped", [])
+                + [f"{change} (after the polish)" for change in out["snapped"]]}
+        polish = {**polish, "loss": out["loss"]}
+    return (form, polish, *pair_force_head(form["module"]))
 
 
 def failed_rollouts(score: dict[str, Any]) -> int:

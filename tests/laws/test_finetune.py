@@ -573,8 +573,7 @@ def test_an_exponent_the_polish_leaves_free_is_rounded_after_it_within_the_toler
         monkeypatch):
     """snap_polished: each free exponent near a round value rounded, the form polished again
     through the polish's substeps, the rounding kept while the polished loss stays within
-    form_tolerance (gravity_r2 seed 2: 1.9996 -> 2), refused above it; no free exponent, or
-    no time left: the polished form stands."""
+    form_tolerance, refused above it; no time left: the polished form stands."""
     from types import SimpleNamespace
 
     import bgn.laws.finetune as laws

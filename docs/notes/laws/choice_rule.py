@@ -25,11 +25,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from bgn.laws.options import DEFAULTS
 from bgn.tables import write_table
 
-HORIZONS = (10, 50, 100)
-CHOICE_HORIZON = 50  # the stage's (DEFAULTS.finetune_horizon)
-FLOOR = 1e-9         # the stage's typical_floor
+CHOICE_HORIZON = DEFAULTS.finetune_horizon  # the stage's
+FLOOR = DEFAULTS.typical_floor               # ... and its floor of the geometric mean
+HORIZONS = (10, CHOICE_HORIZON, 100)
 
 
 def rollout_errors(checkpoint: Path, val, starts: list[int], n_steps: int) -> tuple[np.ndarray,

@@ -366,10 +366,14 @@ def exponent_constants(pair: dict[str, Any]) -> list[str]:
 def snapped_exponent(spec: str, tried: set[tuple[int, str]],
                      options: SearchOptions = SEARCH_DEFAULTS
                      ) -> tuple[str, tuple[int, str], str] | None:
-    """The spec with its free exponent closest to a non-zero multiple of ``snap_step`` (within
+    """The spec with its free exponent closest to a multiple of ``snap_step`` (within
     ``snap_distance``, not in ``tried``) rounded to it and written into the expression (no
     longer a constant): (spec, (pair, name), what changed); None where no exponent is that
-    close. The search's clean-up rule (``bgn.laws.search.clean_up``), on the tuned values."""
+    close. The search's clean-up rule (``bgn.laws.search.clean_up``), on the tuned values,
+    and zero too: the search keeps an exponent off 0 because a power of 0 there is the
+    constant term its grammar already has, while on the frames a factor ``r^k`` tuned to
+    ``k`` near 0 is a factor of 1, and the constants it leaves in no part of the expression
+    are dropped. A rounding that leaves no law (an expression of 0) is not offered."""
     from bgn.model.formula_law import parse_expression
 
     pairs = json.loads(spec)
@@ -380,17 +384,20 @@ def snapped_exponent(spec: str, tried: set[tuple[int, str]],
         for name in exponent_constants(pair):
             v = float(pair["constants"][name])
             h = options.snap_step * round(v / options.snap_step)
-            if (i, name) not in tried and h != 0 and abs(v - h) <= options.snap_distance:
+            if (i, name) not in tried and abs(v - h) <= options.snap_distance:
                 near.append((abs(v - h), i, name, v, h))
-    if not near:
-        return None
-    _, i, name, v, h = min(near)
-    pair = pairs[i]
-    expr = parse_expression(pair["expr"], pair["constants"])
-    fixed = expr.subs(sympy.Symbol(name, real=True), sympy.nsimplify(h))
-    pairs[i] = {**pair, "expr": sympy.sstr(fixed),
-                "constants": {k: c for k, c in pair["constants"].items() if k != name}}
-    return json.dumps(pairs), (i, name), f"exponent {name} {v:.4g} -> {h:g}"
+    for _, i, name, v, h in sorted(near):
+        pair = pairs[i]
+        expr = parse_expression(pair["expr"], pair["constants"])
+        fixed = expr.subs(sympy.Symbol(name, real=True), sympy.nsimplify(h))
+        if fixed == 0:
+            continue
+        left = {str(s) for s in fixed.free_symbols}
+        out = [*pairs[:i], {**pair, "expr": sympy.sstr(fixed), "constants": {
+            k: c for k, c in pair["constants"].items() if k != name and k in left}},
+            *pairs[i + 1:]]
+        return json.dumps(out), (i, name), f"exponent {name} {v:.4g} -> {h:g}"
+    return None
 
 
 def snap_exponents(tune: Callable[[str], tuple[float, Any, Any, str]], form: dict[str, Any]

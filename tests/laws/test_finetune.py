@@ -544,9 +544,30 @@ def test_an_exponent_near_a_round_value_is_rounded_into_the_expression_closest_f
                             {"np": np, "r": r, **pair["constants"]}),
                        2.0 * r ** 1.08 + 1.0 / np.sqrt(r ** 2 + 0.25))
     assert snapped_exponent(spec, {(0, "k2")})[1] == (0, "k1")
-    # beyond snap_distance of a multiple of snap_step, or rounding to 0: left free
+    # beyond snap_distance of a multiple of snap_step: left free
     assert snapped_exponent(_expression("a1*r**k1", a1=1.0, k1=1.25), set()) is None
-    assert snapped_exponent(_expression("a1*r**k1", a1=1.0, k1=0.1), set()) is None
+
+
+def test_an_exponent_near_zero_is_rounded_to_a_factor_of_one_and_its_constants_dropped():
+    """A potential's product ``U = a1 r^k1 (r^2 + k3)^k2`` tuned to k1 near 0 is Plummer's
+    ``a1 (r^2 + k3)^k2``: rounding k1 to 0 removes the factor and the term its derivative
+    made; a rounding that leaves an expression of 0 is not offered."""
+    from bgn.laws.finetune import snapped_exponent
+
+    force = ("-a1*(k1*r**(k1 - 1)*Abs(k3 + r**2)**k2"
+             " + 2*k2*r*r**k1*(k3 + r**2)*Abs(k3 + r**2)**(k2 - 2))")
+    spec = _expression(force, a1=-1.0, k1=6.7e-5, k2=-0.5, k3=0.01)
+    fixed, at, change = snapped_exponent(spec, {(0, "k2")})
+    assert at == (0, "k1") and change.endswith("-> 0")
+    pair = json.loads(fixed)[0]
+    assert set(pair["constants"]) == {"a1", "k2", "k3"} and "k1" not in pair["expr"]
+    r = np.linspace(0.05, 5.0, 9)
+    value = eval(pair["expr"].replace("Abs", "np.abs"), {"np": np, "r": r, **pair["constants"]})
+    assert np.allclose(value, -r / (r ** 2 + 0.01) ** 1.5)        # attractive Plummer force
+    assert json.loads(snapped_exponent(_expression("a1*r**k1", a1=1.0, k1=0.1), set())[0])[0][
+        "expr"] == "a1"
+    # the force of a potential a1 r^k1 is 0 at k1 = 0: no law left, not offered
+    assert snapped_exponent(_expression("-a1*k1*r**(k1 - 1)", a1=1.0, k1=0.1), set()) is None
 
 
 def test_a_rounding_is_kept_only_while_the_frames_loss_stays_within_the_form_tolerance():

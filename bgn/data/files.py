@@ -49,10 +49,12 @@ RECOMPUTED_STATS = ("velocity", "target", "log_mass")
 class DatasetFileError(RuntimeError):
     """A dataset file that cannot be used; the message names the file and the fix."""
 
-    def __init__(self, path: str | Path, problem: str, hint: str | None = None) -> None:
-        fix = (f"Delete it and regenerate it with `{hint}`" if hint
-               else "Delete it and regenerate it with `python -m bgn.train.generate`")
-        super().__init__(f"dataset file {path}: {problem}. {fix}; nothing else is touched.")
+    def __init__(self, path: str | Path, problem: str, hint: str | None = None,
+                 missing: bool = False) -> None:
+        command = hint or "python -m bgn.train.generate"
+        fix = (f"Make it with `{command}`" if missing
+               else f"Delete it and regenerate it with `{command}`; nothing else is touched")
+        super().__init__(f"dataset file {path}: {problem}. {fix}.")
         self.path = Path(path)
 
 
@@ -121,7 +123,10 @@ class DatasetFile:
             self._compare(spec)
 
     def _own_hint(self) -> str | None:
-        """The regenerate command of the file's own generating config (None if unreadable)."""
+        """The regenerate command of the file's own generating config (None if unreadable);
+        of a file in an imported dataset's folder (``<data>/imported/<name>/``), the import."""
+        if self.path.parent.parent.name == "imported":
+            return f"python -m bgn.data.import <your trajectories> name={self.path.parent.name}"
         try:
             with h5py.File(self.path, "r") as f:
                 config = json.loads(f.attrs["config"])
@@ -155,7 +160,7 @@ class DatasetFile:
 
     def _validate(self, check_values: bool) -> dict[str, Any]:
         if not self.path.exists():
-            raise self._fail("does not exist")
+            raise DatasetFileError(self.path, "does not exist", self.hint, missing=True)
         try:
             with h5py.File(self.path, "r") as f:
                 attrs = {k: (v.item() if isinstance(v, np.generic) else v)

@@ -55,6 +55,17 @@ def test_garbage_file(tmp_path):
         DatasetFile(bad)
 
 
+def test_a_missing_file_says_how_to_make_it_not_to_delete_it(tmp_path):
+    with pytest.raises(DatasetFileError) as err:
+        DatasetFile(tmp_path / "spring_x_fps50_test.h5")
+    assert "does not exist. Make it with `python -m bgn.train.generate`" in str(err.value)
+    assert "Delete" not in str(err.value)
+    # an imported dataset's file: made by the import, named by its folder
+    with pytest.raises(DatasetFileError, match=r"Make it with `python -m bgn\.data\.import "
+                       r"<your trajectories> name=charges`"):
+        DatasetFile(tmp_path / "imported" / "charges" / "test.h5")
+
+
 def test_wrong_schema_version(train_file, tmp_path):
     path, spec = train_file
     bad = _copy(path, tmp_path)

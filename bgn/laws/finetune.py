@@ -164,8 +164,9 @@ def law_objective(model: Any, head: Any, g: Any) -> torch.Tensor:
     likelihood would pull the law towards masses that are easy to predict."""
     from bgn.model.newton import law_loss
 
-    if "law" in getattr(model, "heads", ()):
-        rel = law_loss(head, g, reduce=False)
+    # a coupling head trains no law on recorded masses (law_loss None): its dynamics loss
+    rel = law_loss(head, g, reduce=False) if "law" in getattr(model, "heads", ()) else None
+    if rel is not None:
         return torch.log1p(rel / DEFAULTS.robust_scale ** 2).mean()
     # the dynamics term of model.loss_terms through the head alone (forward_target): the
     # encoders and the flow, whose losses are left out, need not run for every evaluation

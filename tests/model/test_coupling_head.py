@@ -5,6 +5,7 @@ start (bgn.simulator), on trajectories of charged bodies with the true law writt
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -175,6 +176,27 @@ def test_the_law_posterior_reads_masses_through_the_couplings(charged_data):
     assert np.isfinite(log_mass).all() and (log_std < 0.05).all(), log_std
     np.testing.assert_allclose(log_mass - log_mass.mean(), np.log(masses) - np.log(masses).mean(),
                                atol=2e-3)
+
+
+def test_a_coupling_head_is_tuned_on_its_dynamics_loss_where_the_model_trains_a_law_head(
+        charged_data):
+    """A model that trains its law on the recorded masses (BGN's ``law`` head, the built-in
+    gravity scenes' default) with the coupling law, as ``model.dynamics=auto``'s coupling
+    candidate there: the law has no recorded couplings to train with, so the formula stage
+    tunes it on the dynamics loss (it divided None by a number)."""
+    from bgn.laws.finetune import law_objective
+
+    data, _ = charged_data
+    ds = data["train"]
+    model = build_model({"name": "newton", "mass_law": "coupling", "law": "formula",
+                         "law_formula": TRUE_LAW}, ds.meta, ds.file.stats(), ds.history).double()
+    model.eval()
+    batch = double(collate([w for s in range(2) for w in windows(ds, s, range(8, 40, 4))]))
+    with torch.no_grad():
+        alone = float(law_objective(model, model.head, batch))
+        model.heads = ("law",)
+        with_law_head = float(law_objective(model, model.head, batch))
+    assert math.isfinite(alone) and with_law_head == alone
 
 
 def test_the_formula_tuning_holds_the_couplings_and_reports_its_loss_with_them_refitted(

@@ -125,8 +125,10 @@ class DatasetFile:
     def _own_hint(self) -> str | None:
         """The regenerate command of the file's own generating config (None if unreadable);
         of a file in an imported dataset's folder (``<data>/imported/<name>/``), the import."""
-        if self.path.parent.parent.name == "imported":
-            return f"python -m bgn.data.import <your trajectories> name={self.path.parent.name}"
+        imported = (f"python -m bgn.data.import <your trajectories> name={self.path.parent.name}"
+                    if self.path.parent.parent.name == "imported" else None)
+        if not self.path.exists():
+            return imported
         try:
             with h5py.File(self.path, "r") as f:
                 config = json.loads(f.attrs["config"])
@@ -136,7 +138,7 @@ class DatasetFile:
                                    config["params"])
             return spec.regenerate_hint(self.path.parent)
         except Exception:  # noqa: BLE001 (a corrupt file: the generic hint)
-            return None
+            return imported
 
     def _compare(self, spec: DatasetSpec) -> None:
         """The file's attributes against the config it is opened for: a file renamed or

@@ -9,11 +9,24 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 # smoothness penalties tried (second differences of the table), relative to the mean
 # diagonal of the normal matrix
 SMOOTHING = tuple(10.0**-k for k in range(10, -1, -1))
+# a law's size near a zero crossing: its change over this fraction of r (``law_size``)
+ZERO_CROSSING_WIDTH = 0.1
+
+
+def law_size(values: np.ndarray, log_r: np.ndarray, width: float = ZERO_CROSSING_WIDTH,
+             ) -> np.ndarray:
+    """The size a law's relative errors are taken against, at each of the sorted ``log_r``
+    (the last axis of ``values``): ``sqrt(f^2 + (width r f')^2)``, within a few % of |f| for a
+    power law, and finite where f crosses zero (a spring's law at its rest length, where an
+    error relative to |f| is undefined)."""
+    slope = np.gradient(values, log_r, axis=-1)
+    return np.sqrt(values * values + (width * slope) ** 2)
 
 
 @dataclass

@@ -13,6 +13,8 @@ from typing import Any
 
 import numpy as np
 
+from bgn.law_table import ZERO_CROSSING_WIDTH
+
 
 @dataclass(frozen=True)
 class SearchOptions:
@@ -74,7 +76,7 @@ class LawOptions:
     # ------------------------------------------- relative residuals (terms.law_scale)
     # relative residuals: |f| floored near a zero crossing by the change of f over this
     # fraction of r (a spring's law crosses zero at s = 1, where a relative error is undefined)
-    zero_crossing_width: float = 0.1
+    zero_crossing_width: float = ZERO_CROSSING_WIDTH
     size_floor: float = 0.01           # of the law's size at the median point: residuals' floor
     significant: int = 4               # digits of the constants in the printed formula
     # the term list's fit (terms.fit_formula: the baseline of examples/heldout_laws)

@@ -47,6 +47,7 @@ import sympy
 from scipy.optimize import least_squares
 from scipy.signal import savgol_filter
 
+from bgn.law_table import law_size
 from bgn.laws.options import DEFAULTS
 
 # ----------------------------------------------------------------------------- library
@@ -117,8 +118,7 @@ def law_scale(r: np.ndarray, y: np.ndarray, smooth: bool = True) -> np.ndarray:
     y = np.asarray(y, dtype=np.float64)
     if smooth and len(y) >= 7:
         y = savgol_filter(y, min(21, len(y) - 1 + len(y) % 2), 3)  # an odd window
-    slope = np.gradient(y, np.log(r))
-    size = np.sqrt(y * y + (DEFAULTS.zero_crossing_width * slope) ** 2)
+    size = law_size(y, np.log(r), DEFAULTS.zero_crossing_width)
     return np.maximum(size, 1e-12 * (size.max() + 1e-300))
 
 

@@ -32,10 +32,10 @@ from dataclasses import asdict, dataclass
 import torch
 
 from bgn.graph import Graph
-from bgn.law_table import NormalEquations, fit_table, hat_basis, log_knots
+from bgn.law_table import NormalEquations, fit_table, hat_basis, law_size, log_knots
 from bgn.model.newton import PairForceHead, numerov, pair_force_head_of, past_positions
 from bgn.model.ops import scatter_sum
-from bgn.model.target_coder import observed_targets
+from bgn.model.target_coder import observed_targets, relative_floor
 
 log = logging.getLogger(__name__)
 
@@ -216,8 +216,13 @@ def law_error(head: PairForceHead, graphs: Iterable[Graph], known_masses: bool) 
 
 def distil(head: PairForceHead, table: Table, progress: Progress | None = None) -> None:
     """Fit the head's MLP law to ``table`` at ``DISTIL_POINTS`` distances per pair of types,
-    evenly spaced in log distance (Adam on the squared error relative to the table's mean
-    square, at most ``DISTIL_STEPS`` steps, until it is below ``DISTIL_TOL`` or stalls)."""
+    evenly spaced in log distance (Adam on each point's squared error relative to the
+    table's size there, ``law_size``, floored as the relative loss floors a target, at most
+    ``DISTIL_STEPS`` steps, until it is below ``DISTIL_TOL`` or stalls). Relative, so that
+    every distance weighs alike: against the table's mean square, a law that spans decades
+    (softened gravity's, from 40 to 0.006 over REBOUND's distances) is fitted at its close
+    end only, and its far end starts off by its own size (docs/design.md, "Force
+    matching")."""
     t = max(head.types, 1)
     # the unordered pairs of types pair_index gives (lo * t + hi, lo <= hi): the table's
     # other rows are never filled
@@ -229,14 +234,18 @@ def distil(head: PairForceHead, table: Table, progress: Progress | None = None) 
     param = next(head.force_law.parameters())
     inputs = head.law_input(dist.to(param), None if pair is None else pair.to(param.device))
     target = target.to(param)
-    scale = (target**2).mean().clamp_min(torch.finfo(param.dtype).tiny)
+    # each pair of types' row of the table, its size at each point (``law_size``), floored
+    # as the relative loss floors a target (``target_coder.relative_floor``)
+    size = law_size(target.reshape(len(pairs), -1).double().cpu().numpy(), u.numpy())
+    size = torch.as_tensor(size, dtype=param.dtype, device=param.device).reshape(-1) ** 2
+    scale = (size + relative_floor(size)).clamp_min(torch.finfo(param.dtype).tiny)
     optimizer = torch.optim.Adam(head.force_law.parameters(), lr=DISTIL_LR)
     schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, DISTIL_STEPS)
     with torch.enable_grad():
         seen: list[float] = []  # the error every 50 steps
         for i in range(DISTIL_STEPS):
             optimizer.zero_grad()
-            loss = ((head.force_law(inputs)[:, 0] - target) ** 2).mean() / scale
+            loss = (((head.force_law(inputs).reshape(-1) - target[:, 0]) ** 2) / scale).mean()
             if i % 50 == 0:
                 seen.append(float(loss.detach()))
                 if progress is not None:

@@ -1,14 +1,17 @@
 """The pair law bgn learned on an engine's data, against the engine's own force.
 
     python examples/engines/engine_law.py data/external/ase_morse_gas <run>/laws
+    python examples/engines/engine_law.py data/external/rebound_nbody <run>/laws
 
 Reads the engine's parameters (``engine.json`` of the dataset folder) and a ``python -m bgn.laws``
 output folder (``law.csv``: the learned law and the formula read back on the training
 distances; ``formula.json``, where ``finetune=true`` wrote one: the formula fitted to the
-frames). The engine's force is computed by the engine itself, on a two-atom system at each
-distance (ASE's MorsePotential, smooth cutoff included), not from a transcription of its
-documentation. Prints, and writes beside the law as ``engine_law.md`` and ``engine_law.png``,
-the relative errors in bands of the training distances (by their quantiles) and the figure.
+frames). The engine's force is computed by the engine itself, on a two-body system at each
+distance (ASE's MorsePotential, smooth cutoff included; REBOUND's softened gravity, by one
+leapfrog kick from rest as ``examples/heldout_laws/make.py`` scans it), not from a
+transcription of its documentation. Prints, and writes beside the law as ``engine_law.md``
+and ``engine_law.png``, the relative errors in bands of the training distances (by their
+quantiles) and the figure.
 """
 
 from __future__ import annotations
@@ -48,8 +51,18 @@ def engine_force(dataset: Path, r: np.ndarray) -> tuple[np.ndarray, str]:
                 f"2 exp(-rho0 (r/r0 - 1))) times a smooth cutoff from rcut1 r0 to rcut2 r0; "
                 + ", ".join(f"{k} = {v:.6g}" for k, v in morse.items()))
         return ase_morse_force(r, morse), text
+    if record.get("engine") == "rebound":
+        import sys
+
+        sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "heldout_laws"))
+        from make import rebound_scan
+
+        p = record["params"]
+        text = (f"REBOUND {record.get('version')} gravity with Plummer softening: f = -G r / "
+                f"(r^2 + b^2)^1.5, G = {p['G']:g}, b = {p['softening']:g}")
+        return rebound_scan({"constants": {"G": p["G"], "b": p["softening"]}}, r), text
     raise SystemExit(f"{dataset}: engine {record.get('engine')!r} has no pair law this script "
-                     "knows (ASE's Morse gas)")
+                     "knows (ASE's Morse gas, REBOUND's softened gravity)")
 
 
 def read_law_folder(laws: Path) -> dict[str, np.ndarray]:
@@ -122,7 +135,7 @@ def main() -> None:
     import matplotlib.pyplot as plt
 
     fig, (ax, err) = plt.subplots(2, 1, figsize=(6.5, 7), sharex=True)
-    ax.plot(law["r"], truth, "k:", lw=2, label="engine (ASE, cutoff included)")
+    ax.plot(law["r"], truth, "k:", lw=2, label="engine")
     floor = 0.01 * np.sqrt(np.mean(truth**2))
     for name, values in compared.items():
         ax.plot(law["r"], values, label=name)

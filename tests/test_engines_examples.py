@@ -443,3 +443,18 @@ def test_the_engines_law_reads_the_masses_off_rebounds_frames(tmp_path, monkeypa
     err_right = np.abs(np.exp(right) / masses - 1)
     assert np.all(err_right < 0.01)
     assert np.median(np.abs(np.exp(wrong) / masses - 1)) > np.median(err_right)
+
+
+def test_engine_law_reads_rebounds_force_off_the_engine(tmp_path, monkeypatch):
+    """engine_law.py's engine force for REBOUND data is the engine's own Plummer-softened
+    gravity (a leapfrog kick from rest), G and b from the dataset's engine.json."""
+    pytest.importorskip("rebound")
+    monkeypatch.syspath_prepend(str(ENGINES))
+    import engine_law
+
+    (tmp_path / "engine.json").write_text(json.dumps(
+        {"engine": "rebound", "version": "test", "params": {"G": 2.0, "softening": 0.3}}))
+    r = np.geomspace(0.05, 20.0, 25)
+    force, text = engine_law.engine_force(tmp_path, r)
+    assert "Plummer" in text
+    np.testing.assert_allclose(force, -2.0 * r / (r**2 + 0.09) ** 1.5, rtol=1e-6)

@@ -220,9 +220,8 @@ def distil(head: PairForceHead, table: Table, progress: Progress | None = None) 
     table's size there, ``law_size``, floored as the relative loss floors a target, at most
     ``DISTIL_STEPS`` steps, until it is below ``DISTIL_TOL`` or stalls). Relative, so that
     every distance weighs alike: against the table's mean square, a law that spans decades
-    (softened gravity's, from 40 to 0.006 over REBOUND's distances) is fitted at its close
-    end only, and its far end starts off by its own size (docs/design.md, "Force
-    matching")."""
+    (softened gravity's) is fitted at its close end only, and its far end starts off by its
+    own size (docs/design.md, "Force matching")."""
     t = max(head.types, 1)
     # the unordered pairs of types pair_index gives (lo * t + hi, lo <= hi): the table's
     # other rows are never filled

@@ -77,7 +77,8 @@ def test_the_mlp_follows_a_law_that_spans_decades_at_its_far_end_too():
     """distil weighs every distance alike (each point's error relative to the table there):
     a softened gravity law falls from about 40 to 0.003 over the data's distances, and against
     the table's mean square its far end would count for nothing (there it was off by its own
-    size on REBOUND's data; docs/results.md, "REBOUND again")."""
+    size on REBOUND's data; docs/results.md, "REBOUND with the matched law fitted at every
+    distance")."""
     from types import SimpleNamespace
 
     from bgn.model.newton import PairForceHead

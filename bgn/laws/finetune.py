@@ -66,7 +66,8 @@ def formula_module(checkpoint: Path, spec: str, substeps: int) -> Any:
     module = PhysicsModule(**{k: v for k, v in hp.items() if k in keep})
     old = saved["state_dict"]
     missing, unexpected = module.load_state_dict(
-        {k: v for k, v in old.items() if ".force_law." not in k}, strict=False)
+        {k: v for k, v in old.items() if ".force_law." not in k and "log_law_gain" not in k},
+        strict=False)
     if [k for k in missing if ".force_law." not in k] or unexpected:
         raise ValueError(f"checkpoint {checkpoint}: its weights do not fit the same model with "
                          f"law=formula (missing {missing[:3]}, unexpected {unexpected[:3]})")

@@ -156,7 +156,8 @@ class BGN(PhysicsModel):
                 meta, self.normalizer, history, cfg.decoder_hidden, 2, cfg.activation,
                 cfg.mass_law, "model.dynamics=newton", cfg.substeps,
                 cfg.law_formula if cfg.law == "formula" else "", cfg.law_scale,
-                cfg.rollout_masses, cfg.law_output)
+                cfg.rollout_masses, cfg.law_output,
+                law_gain=bool(cfg.loss_weights.get("law", 0.0)) and cfg.mass_law != "coupling")
             self.decoder = None
         else:
             self.force_head = None

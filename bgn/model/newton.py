@@ -294,7 +294,7 @@ class PairForceHead(nn.Module):
     def __init__(self, meta: SceneMeta, normalizer: Normalizer, hidden: int, layers: int,
                  act: str, mass_law: str, substeps: int = 1, law_formula: str = "",
                  law_scale: float = 1.0, rollout_masses: str = "window",
-                 law_output: str = "linear") -> None:
+                 law_output: str = "linear", law_gain: bool = False) -> None:
         super().__init__()  # mass_law: checked by the model configs (NewtonConfig, BGN's)
         self.mass_law, self.types, self.substeps = mass_law, meta.n_types, substeps
         self.rollout_masses = rollout_masses  # ForceLawOptions.rollout_masses
@@ -313,6 +313,14 @@ class PairForceHead(nn.Module):
             self.force_law = ExpScaledLaw(*mlp([*sizes, 2], act))
         else:
             self.force_law = mlp([*sizes, 1], act)
+        # law_gain: the MLP law's overall factor as a parameter of its own (log). Where the
+        # window's mass fit absorbs the law's scale, only the law loss (recorded masses) sees
+        # that direction; spread over the MLP's weights, Adam's steps along it are set by the
+        # dynamics loss's noise on those weights and the scale barely moves (slower still at
+        # a matched law's reduced rate). One parameter gets its own step size from the law
+        # loss alone (docs/design.md, "The law's scale").
+        self.log_law_gain = (nn.Parameter(torch.zeros(()))
+                             if law_gain and not law_formula else None)
 
     def pair_terms(self, g: Graph, positions: torch.Tensor) -> torch.Tensor:
         """(E, F, D) ``f(s_ij) u_ij`` on every edge j -> i at each of the F frames of
@@ -321,7 +329,10 @@ class PairForceHead(nn.Module):
         pair = self.pair_index(g)
         if isinstance(self.force_law, FormulaLaw):  # physical distances, physical law
             return self.force_law(dist * self.length_scale, pair) * rel / dist
-        return self.force_law(self.law_input(dist, pair)) * rel / dist
+        f = self.force_law(self.law_input(dist, pair))
+        if self.log_law_gain is not None:
+            f = f * torch.exp(self.log_law_gain)
+        return f * rel / dist
 
     @torch.no_grad()
     def law_at(self, r: np.ndarray, dim: int, types: tuple[int, int] = (0, 0)) -> np.ndarray:
@@ -590,11 +601,13 @@ def check_mass_law(meta: SceneMeta, mass_law: str, option: str) -> None:
 def build_head(meta: SceneMeta, normalizer: Normalizer, history: int, hidden: int, layers: int,
                act: str, mass_law: str, option: str, substeps: int = 1,
                law_formula: str = "", law_scale: float = 1.0, rollout_masses: str = "window",
-               law_output: str = "linear") -> PairForceHead | ContactImpulseHead:
+               law_output: str = "linear", law_gain: bool = False,
+               ) -> PairForceHead | ContactImpulseHead:
     """The structured dynamics head of a scene: pair forces (``PairForceHead``) or pair
     impulses at the time of impact (``bgn.model.impulse``); ``head(g)`` gives the physical
     target and the contact gate's logits (None for forces). ``option`` names the setting in
-    errors."""
+    errors. ``law_gain``: the law's overall factor a parameter of its own (where a law loss
+    trains it, ``PairForceHead``)."""
     if meta.interaction == "contact":
         if meta.target != "velocity":
             raise ValueError(f"{option} on a contact scene needs a next-velocity target")
@@ -602,7 +615,7 @@ def build_head(meta: SceneMeta, normalizer: Normalizer, history: int, hidden: in
     check_scene(meta, history, option)
     check_mass_law(meta, mass_law, option)
     return PairForceHead(meta, normalizer, hidden, layers, act, mass_law, substeps, law_formula,
-                         law_scale, rollout_masses, law_output)
+                         law_scale, rollout_masses, law_output, law_gain)
 
 
 def head_given(head: nn.Module) -> tuple[str, ...]:

@@ -157,7 +157,10 @@ class BGN(PhysicsModel):
                 cfg.mass_law, "model.dynamics=newton", cfg.substeps,
                 cfg.law_formula if cfg.law == "formula" else "", cfg.law_scale,
                 cfg.rollout_masses, cfg.law_output,
-                law_gain=bool(cfg.loss_weights.get("law", 0.0)) and cfg.mass_law != "coupling")
+                # the law's scale its own parameter where the law loss trains it beside the
+                # dynamics loss, whose noise would swamp it (PairForceHead's law_gain)
+                law_gain=bool(cfg.loss_weights.get("law", 0.0))
+                and bool(cfg.loss_weights.get("dynamics", 1.0)) and cfg.mass_law != "coupling")
             self.decoder = None
         else:
             self.force_head = None

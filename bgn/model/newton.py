@@ -315,12 +315,18 @@ class PairForceHead(nn.Module):
             self.force_law = mlp([*sizes, 1], act)
         # law_gain: the MLP law's overall factor as a parameter of its own (log). Where the
         # window's mass fit absorbs the law's scale, only the law loss (recorded masses) sees
-        # that direction; spread over the MLP's weights, Adam's steps along it are set by the
-        # dynamics loss's noise on those weights and the scale barely moves (slower still at
-        # a matched law's reduced rate). One parameter gets its own step size from the law
-        # loss alone (docs/design.md, "The law's scale").
+        # that direction; spread over the MLP's weights beside the dynamics loss, Adam's steps
+        # along it are set by that loss's noise on those weights and the scale barely moves
+        # (slower still at a matched law's reduced rate). One parameter gets its own step size
+        # from the law loss alone (docs/design.md, "The law's scale").
         self.log_law_gain = (nn.Parameter(torch.zeros(()))
                              if law_gain and not law_formula else None)
+
+    def _load_from_state_dict(self, state_dict: dict, prefix: str, *args: Any) -> None:
+        # a checkpoint written before the law had a gain of its own: its law's factor is 1
+        if self.log_law_gain is not None and prefix + "log_law_gain" not in state_dict:
+            state_dict[prefix + "log_law_gain"] = torch.zeros(())
+        super()._load_from_state_dict(state_dict, prefix, *args)
 
     def pair_terms(self, g: Graph, positions: torch.Tensor) -> torch.Tensor:
         """(E, F, D) ``f(s_ij) u_ij`` on every edge j -> i at each of the F frames of

@@ -337,6 +337,50 @@ def test_the_law_loss_vanishes_for_the_true_law_and_is_only_built_when_weighted(
     assert float(model.total_loss(terms)) >= float(terms["law"])   # the fit's term weighs 0
 
 
+def test_the_laws_gain_is_seen_by_the_law_loss_alone(small_cfg):
+    """The window's fit absorbs the law's scale: the gain (its factor, a parameter of its own
+    where the law loss trains an MLP law) moves no prediction made through the fit, moves the
+    law itself, and only the law loss has a gradient along it."""
+    ds, g = frames(small_cfg, "gravity_r2")
+    config = {"name": "bgn", "dynamics": "newton", "mass_law": "source",
+              "loss_weights": {"dynamics": 1.0, "law": 1.0}}
+    model = build_model(config, ds.meta, ds.file.stats(), ds.history).double()
+    head = model.force_head
+    head.force_law = TrueLaw(LAWS["gravity_r2"][1], float(model.normalizer.rel_position_scale))
+    r = np.geomspace(0.1, 3.0, 7)
+    predicted, law, law_error = model.predict(g), head.law_at(r, 2), float(law_loss(head, g))
+    with torch.no_grad():
+        head.log_law_gain.fill_(math.log(2.0))
+    assert torch.allclose(model.predict(g), predicted, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(head.law_at(r, 2), 2 * law, rtol=1e-12)
+    terms = model.loss_terms(g, model(g))
+    assert float(terms["law"]) > 100 * law_error
+    dynamics = torch.autograd.grad(terms["dynamics"], head.log_law_gain, retain_graph=True)[0]
+    pull = torch.autograd.grad(terms["law"], head.log_law_gain)[0]
+    assert float(pull) > 0 and abs(float(dynamics)) < 1e-6 * float(pull)
+
+
+@pytest.mark.parametrize(("overrides", "gain"), [
+    ({"loss_weights": {"law": 1.0}}, True), ({}, False),
+    ({"loss_weights": {"dynamics": 0.0, "law": 1.0}}, False),
+    ({"loss_weights": {"law": 1.0}, "mass_law": "coupling"}, False),
+    ({"loss_weights": {"law": 1.0}, "law": "formula",
+      "law_formula": '[{"types": [0, 0], "expr": "a1/r**2", "constants": {"a1": -1.0}}]'},
+     False)])
+def test_the_law_has_a_gain_only_where_the_law_loss_trains_an_mlp_beside_the_dynamics(
+        small_cfg, overrides, gain):
+    ds, _ = frames(small_cfg, "gravity_r2")
+    model = build_model({"name": "bgn", "dynamics": "newton", "mass_law": "source", **overrides},
+                        ds.meta, ds.file.stats(), ds.history)
+    assert (model.force_head.log_law_gain is not None) == gain
+    if gain:  # a checkpoint from before the gain loads with the factor 1
+        state = {k: v for k, v in model.state_dict().items() if "log_law_gain" not in k}
+        with torch.no_grad():
+            model.force_head.log_law_gain.fill_(3.0)
+        model.load_state_dict(state)
+        assert float(model.force_head.log_law_gain) == 0.0
+
+
 def test_the_law_loss_weighs_far_pairs_alike_when_encounters_set_the_mean():
     """The law loss is each particle's relative squared error (``relative_squared_error``),
     the size floored at a fraction of the batch's median: on gravity_r2 the encounters' few

@@ -612,8 +612,8 @@ def build_head(meta: SceneMeta, normalizer: Normalizer, history: int, hidden: in
     """The structured dynamics head of a scene: pair forces (``PairForceHead``) or pair
     impulses at the time of impact (``bgn.model.impulse``); ``head(g)`` gives the physical
     target and the contact gate's logits (None for forces). ``option`` names the setting in
-    errors. ``law_gain``: the law's overall factor a parameter of its own (where a law loss
-    trains it, ``PairForceHead``)."""
+    errors. ``law_gain``: the law's overall factor a parameter of its own (where the law loss
+    trains the law beside the dynamics loss, ``PairForceHead``)."""
     if meta.interaction == "contact":
         if meta.target != "velocity":
             raise ValueError(f"{option} on a contact scene needs a next-velocity target")

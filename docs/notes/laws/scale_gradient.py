@@ -4,7 +4,8 @@ training batches, with its standard error. The window's mass fit absorbs the fac
 the law loss (the head with the recorded masses) should see it (docs/design.md, "The law's
 scale"; docs/results.md, "The law's scale as a parameter of its own").
 
-    python docs/notes/laws/scale_gradient.py outputs/engines_relfit/rebound_nbody_s0/auto/newton_source
+    python docs/notes/laws/scale_gradient.py \
+        outputs/engines_relfit/rebound_nbody_s0/auto/newton_source
 """
 
 from __future__ import annotations

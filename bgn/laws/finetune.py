@@ -149,7 +149,11 @@ def validation_errors(model: Any, val: Any, history: int, horizon: int = DEFAULT
                         for h, e in at.items()},
             "failed": int(np.sum(failed >= 0)),
             "failed_share": float(np.mean(failed >= 0)), "horizon": n_steps,
-            "rollouts": len(sims) * len(starts)}
+            "rollouts": len(sims) * len(starts),
+            # every rollout's error and its simulation (rollout_many's rows: start by start,
+            # the simulations within), for law_choice's paired standard error
+            "per_rollout": {h: [float(x) for x in e] for h, e in at.items()},
+            "simulations": [int(sims[i % len(sims)]) for i in range(len(capped))]}
 
 
 def law_objective(model: Any, head: Any, g: Any) -> torch.Tensor:
@@ -575,15 +579,69 @@ def failed_rollouts(score: dict[str, Any]) -> int:
     return int(round(score.get("failed_share", 0.0) * score.get("rollouts", 0)))
 
 
+def _at(values: dict[Any, Any], horizon: int) -> Any:
+    """``values[horizon]``, its key a string in a record read back from JSON; None if absent."""
+    return values.get(horizon, values.get(str(horizon)))
+
+
+def mean_error(score: dict[str, Any], horizon: int) -> float:
+    """A ``validation_errors`` score's mean capped error after ``horizon`` steps (inf if
+    absent)."""
+    value = _at(score.get("errors", {}), horizon)
+    return math.inf if value is None else float(value)
+
+
+def paired_standard_error(a: dict[str, Any], b: dict[str, Any], horizon: int) -> float | None:
+    """The standard error of the difference of two laws' mean capped errors after
+    ``horizon`` steps on the same validation rollouts (``validation_errors``' per-rollout
+    errors): the differences averaged per simulation first, because the start frames of one
+    simulation share one trajectory and one chaotic stretch, then the standard error over
+    the simulations (over the rollouts where there is one simulation). None where a score
+    lacks the rollouts' errors (a record older than them) or the two were not rolled out
+    from the same simulations."""
+    ea, eb = _at(a.get("per_rollout", {}), horizon), _at(b.get("per_rollout", {}), horizon)
+    if ea is None or eb is None or len(ea) != len(eb) or a.get("simulations") != b.get(
+            "simulations"):
+        return None
+    diff = np.asarray(eb, float) - np.asarray(ea, float)
+    sims = np.asarray(a.get("simulations") or range(len(diff)))
+    groups = np.array([diff[sims == s].mean() for s in np.unique(sims)])
+    if len(groups) < 2:
+        groups = diff
+    if len(groups) < 2:
+        return None
+    return float(groups.std(ddof=1) / math.sqrt(len(groups)))
+
+
+def integrator_choice(by_substeps: dict[int, dict[str, Any]], horizon: int) -> int:
+    """The substeps a formula is rolled out with, of ``by_substeps`` (substeps ->
+    ``validation_errors``): the fewest failed rollouts, then the lower mean error after
+    ``horizon`` steps, the fewer substeps on a tie."""
+    return min(by_substeps, key=lambda k: (failed_rollouts(by_substeps[k]),
+                                           mean_error(by_substeps[k], horizon), k))
+
+
 def law_choice(scores: dict[str, dict[str, Any]], horizon: int) -> str:
     """The law a formula stage keeps, of ``scores`` (law -> ``validation_errors``): the fewest
     failed rollouts first, so a law that fails more never wins; then the lower mean error
     after ``horizon`` steps with each failed rollout at the cap (``model.dynamics=auto``'s
-    rule, ``bgn.metrics.capped_step_errors``), in which a failure weighs its cap where a
-    geometric mean would let it weigh little; the network law on a tie."""
-    return min(scores, key=lambda k: (failed_rollouts(scores[k]),
-                                      scores[k]["errors"].get(horizon, math.inf),
-                                      k != "network"))
+    measure, ``bgn.metrics.capped_step_errors``), in which a failure weighs its cap where a
+    geometric mean would let it weigh little, the network law on a tie; except that the
+    formula, the simpler law (a handful of constants against a network), is kept wherever its
+    mean is within one standard error of the network law's (``paired_standard_error``): the
+    one-standard-error rule (Breiman et al. 1984; Hastie, Tibshirani and Friedman, The
+    Elements of Statistical Learning, section 7.10). On chaotic data a few rollouts that lose
+    track set both means, and a difference inside their noise says nothing about the laws
+    (docs/design.md, "The formula stage")."""
+    fewest = min(failed_rollouts(s) for s in scores.values())
+    tied = {k: s for k, s in scores.items() if failed_rollouts(s) == fewest}
+    best = min(tied, key=lambda k: (mean_error(tied[k], horizon), k != "network"))
+    if best == "network" and "formula" in tied:
+        se = paired_standard_error(tied["network"], tied["formula"], horizon)
+        margin = mean_error(tied["formula"], horizon) - mean_error(tied["network"], horizon)
+        if se is not None and margin <= se:
+            return "formula"
+    return best
 
 
 def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
@@ -608,7 +666,8 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
     checkpoint's, validated with the network law, and a handful of constants cannot overfit
     a split. Both laws are then scored on the validation rollouts (``validation_errors``)
     and one is kept (``law_choice``: the fewer failed rollouts, then the lower mean error
-    after the horizon, a failed rollout at the cap).
+    after the horizon, a failed rollout at the cap, the formula wherever its mean is within
+    one standard error of the network law's).
     ``out_dir``: writes ``formula.ckpt`` (loadable as any checkpoint) and ``formula.json``.
     The forms tuned: the law search's front members (``candidate_specs``, at most
     ``members``). Where no formula fits the learned law (the search chose no member) the
@@ -711,8 +770,11 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
                           "law_scale": 1 / model_scale}  # its labels in physical units
     history = int(hp["history"])
     try:
+        # the integrators tried: the tuning's substeps, the polish's (the constants were
+        # last fitted through them) and the network's own
+        tried = [substeps] + ([polish["substeps"]] if polish else [])
         scores, by_substeps = _validated_laws(network, model, head, val, history, horizon,
-                                              val_sims, substeps, job, val_rollouts)
+                                              val_sims, tried, job, val_rollouts)
         choice = law_choice(scores, scores["network"]["horizon"])
     except OutOfTime:  # nothing compared: the law the checkpoint validated with stays
         scores, by_substeps, choice = {}, {}, "network"
@@ -739,6 +801,10 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
               "model_tuned": json.loads(hp["model_config"]["law_formula"]),
               "loss": form["loss"], "polish": polish, "floor": floor,
               "validation": scores, "choice": choice,
+              "choice_standard_error": (None if "formula" not in scores else
+                                        paired_standard_error(scores["network"],
+                                                              scores["formula"],
+                                                              scores["network"]["horizon"])),
               "against_truth": {} if report is None else against_truth(report,
                                                                         json.loads(spec)),
               "truth": None if report is None else report.truth_text}
@@ -847,30 +913,33 @@ def no_formula_record(checkpoint: Path, report: LawReport) -> dict[str, Any]:
 
 
 def _validated_laws(network: Any, model: Any, head: Any, val: Any, history: int, horizon: int,
-                    val_sims: int | None, substeps: int, deadline: Deadline | None = None,
+                    val_sims: int | None, substeps: list[int],
+                    deadline: Deadline | None = None,
                     val_rollouts: int = DEFAULTS.finetune_val_rollouts,
                     ) -> tuple[dict[str, Any], dict[int, Any]]:
     """Validation rollouts of the network law and of the formula (``scores``), the formula
-    rolled out with the substeps it was tuned through and with the network's own
-    (``by_substeps``); ``head.substeps`` is left at the better of the two on the mean error:
-    the shooting's velocity estimate can cost more over a rollout than the substeps gain
-    (docs/notes/2026-11-26-results-history.md, "The formula stage"), and substeps are there
-    for the rare close encounters, which a typical (geometric-mean) error discounts.
+    rolled out with each of ``substeps`` (the tuning's, the polish's) and with the network's
+    own (``by_substeps``); ``head.substeps`` is left at the one with the fewest failed
+    rollouts, then the lower mean error: the shooting's velocity estimate can cost more over
+    a rollout than the substeps gain (docs/notes/2026-11-26-results-history.md, "The formula
+    stage"), and substeps are there for the rare close encounters, at which a law of the
+    truth's form rolled out through too few can fling a body away where the network law,
+    softer there, does not; a typical (geometric-mean) error would discount both.
     ``deadline``: the job's, checked between rollout batches (``OutOfTime``, with
-    ``head.substeps`` put back)."""
+    ``head.substeps`` put back to the first of ``substeps``)."""
     scores = {"network": validation_errors(network.model, val, history, horizon, val_sims,
                                            deadline, val_rollouts)}
     n = scores["network"]["horizon"]
     by_substeps = {}
-    for k in sorted({substeps, pair_force_head(network)[1].substeps}):
+    for k in sorted({*substeps, pair_force_head(network)[1].substeps}):
         head.substeps = k
         try:
             by_substeps[k] = validation_errors(model, val, history, horizon, val_sims,
                                                deadline, val_rollouts)
         except OutOfTime:
-            head.substeps = substeps
+            head.substeps = substeps[0]
             raise
-    head.substeps = min(by_substeps, key=lambda k: by_substeps[k]["errors"].get(n, math.inf))
+    head.substeps = integrator_choice(by_substeps, n)
     scores["formula"] = by_substeps[head.substeps]
     return scores, by_substeps
 

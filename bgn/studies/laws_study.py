@@ -261,7 +261,8 @@ def laws_stage(cfg: DictConfig, cells: list[Cell], results: dict[str, Any],
         "(all of them, and between their 1st and 99th percentiles; near a zero crossing "
         "relative to the law's change over 10 % of r). `formula chosen`: the share of seeds "
         "whose formula validated better than the network law (the fewer failed validation "
-        "rollouts, then the lower mean error: bgn.laws.finetune.law_choice); the two validation "
+        "rollouts, then the lower mean error, the formula where its mean is within one "
+        "standard error of the network law's: bgn.laws.finetune.law_choice); the two validation "
         f"errors: the mean position error after {h} steps over the validation rollouts, a "
         "failed one at the cap; `... failed`: how many of those rollouts failed.",
         empty="(no cell with a pair-force head)")

@@ -87,14 +87,18 @@ def test_fine_tuning_moves_a_perturbed_constant_back_and_writes_a_checkpoint(
     assert sorted(p.name for p in out.iterdir()) == ["formula.ckpt", "formula.json"]
 
 
-def _score(errors: list[float], cap: float = 10.0) -> dict:
+def _score(errors: list[float], cap: float = 10.0, sims: list[int] | None = None) -> dict:
     """A ``validation_errors`` record of rollouts with these errors after 50 steps (a
-    failed one: ``cap``)."""
+    failed one: ``cap``); with ``sims``, each rollout's simulation and the rollouts' errors,
+    which ``law_choice``'s paired standard error reads."""
     e = np.asarray(errors)
-    return {"errors": {50: float(e.mean())},
-            "typical": {50: float(np.exp(np.log(e + 1e-9).mean()))},
-            "failed": int(np.sum(e >= cap)), "failed_share": float(np.mean(e >= cap)),
-            "horizon": 50, "rollouts": len(e)}
+    score = {"errors": {50: float(e.mean())},
+             "typical": {50: float(np.exp(np.log(e + 1e-9).mean()))},
+             "failed": int(np.sum(e >= cap)), "failed_share": float(np.mean(e >= cap)),
+             "horizon": 50, "rollouts": len(e)}
+    if sims is not None:
+        score |= {"per_rollout": {50: [float(x) for x in e]}, "simulations": list(sims)}
+    return score
 
 
 def test_law_choice_counts_failed_rollouts_where_the_geometric_mean_would_not():
@@ -116,20 +120,73 @@ def test_law_choice_counts_failed_rollouts_where_the_geometric_mean_would_not():
     assert failed_rollouts({"failed_share": 0.2, "rollouts": 10}) == 2
 
 
-@given(st.lists(st.floats(1e-6, 10.0), min_size=2, max_size=12),
-       st.lists(st.floats(1e-6, 10.0), min_size=2, max_size=12))
+def test_law_choice_keeps_the_formula_within_one_standard_error_of_the_network_law():
+    """The one-standard-error rule: on chaotic data a few diverging rollouts set both means,
+    and the formula (the simpler law) is kept where its mean is above the network law's by
+    less than the paired difference's standard error over the simulations; by more, the
+    network law; a record without the rollouts' errors (older) chooses on the means alone."""
+    from bgn.laws.finetune import law_choice, paired_standard_error
+
+    sims = [0, 1, 2, 3] * 5  # 5 start frames of 4 simulations, start by start
+    rng = np.random.default_rng(0)
+    chaos = rng.lognormal(0, 2, 20)  # each rollout's loss of track, shared by both laws
+    network = 0.05 * chaos + 0.01
+    formula = 0.05 * chaos * rng.uniform(0.8, 1.3, 20) + 1e-4  # a mean a little higher
+    scores = {"network": _score(list(network), 1e9, sims),
+              "formula": _score(list(formula), 1e9, sims)}
+    se = paired_standard_error(scores["network"], scores["formula"], 50)
+    margin = scores["formula"]["errors"][50] - scores["network"]["errors"][50]
+    assert 0 < margin <= se
+    assert law_choice(scores, 50) == "formula"
+    # the same means without the rollouts' errors: the lower mean
+    assert law_choice({k: _score(list(v), 1e9) for k, v in
+                       (("network", network), ("formula", formula))}, 50) == "network"
+    # far outside the noise: the network law
+    steady = _score([0.01] * 20, 1e9, sims)
+    assert law_choice({"network": steady, "formula": _score([0.02] * 20, 1e9, sims)},
+                      50) == "network"
+    # the errors averaged per simulation first: four simulations, one standard error over
+    # four means, whatever the number of start frames
+    by_sim = np.array([(formula - network)[np.asarray(sims) == s].mean() for s in range(4)])
+    assert se == pytest.approx(by_sim.std(ddof=1) / 2)
+    # read back from JSON (string keys): the same
+    again = json.loads(json.dumps(scores))
+    assert paired_standard_error(again["network"], again["formula"], 50) == pytest.approx(se)
 
 
+def test_the_integrator_with_fewer_failed_rollouts_is_kept_before_the_lower_mean():
+    """A formula of the truth's form rolled out through too few substeps can fling a body away
+    at a close encounter: the substeps that fail fewer rollouts win over a lower mean."""
+    from bgn.laws.finetune import integrator_choice
+
+    tuning = _score([1e-4] * 99 + [10.0])  # 16 substeps: one rollout failed
+    polish = _score([0.2] * 100)           # 64 substeps: none failed, a higher mean
+    network_own = _score([1e-3] * 95 + [10.0] * 5)
+    assert tuning["errors"][50] < polish["errors"][50]
+    assert integrator_choice({16: tuning, 64: polish, 1: network_own}, 50) == 64
+    assert integrator_choice({16: polish, 64: _score([0.2] * 100)}, 50) == 16  # tie: fewer
+    assert integrator_choice({16: _score([0.01] * 100), 64: polish}, 50) == 16
+
+
+@given(st.lists(st.floats(1e-6, 10.0), min_size=4, max_size=12),
+       st.lists(st.floats(1e-6, 10.0), min_size=4, max_size=12))
 @settings(max_examples=60, deadline=None)
 def test_law_choice_never_prefers_more_failures(a, b):
-    from bgn.laws.finetune import law_choice
+    """Whatever the errors: never the law with more failed rollouts; with as many, the
+    network law only where its mean is lower by more than one standard error, the formula
+    only where its mean is within one standard error of the network law's (or lower)."""
+    from bgn.laws.finetune import law_choice, paired_standard_error
 
-    scores = {"network": _score(a), "formula": _score(b)}
+    n = min(len(a), len(b))
+    sims = [i % 2 for i in range(n)]
+    scores = {"network": _score(a[:n], sims=sims), "formula": _score(b[:n], sims=sims)}
     chosen = law_choice(scores, 50)
     other = "formula" if chosen == "network" else "network"
     assert scores[chosen]["failed"] <= scores[other]["failed"]
     if scores[chosen]["failed"] == scores[other]["failed"]:
-        assert scores[chosen]["errors"][50] <= scores[other]["errors"][50]
+        se = paired_standard_error(scores["network"], scores["formula"], 50)
+        margin = scores["formula"]["errors"][50] - scores["network"]["errors"][50]
+        assert (chosen == "formula") == (margin <= se)
 
 
 def _one_pair(*terms: tuple[str, float, float, float | None]) -> str:

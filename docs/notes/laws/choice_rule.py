@@ -13,6 +13,15 @@ choice.csv and rollouts.csv (every rollout's errors) in ``--out``.
 
     python docs/notes/laws/choice_rule.py outputs/s22/gravity_r2_s0 ... --starts 10 \\
         --out outputs/reports/choice_rule
+
+``--stage``: instead, both laws scored exactly as the formula stage scores them today
+(``bgn.laws.finetune.validation_errors`` at the stage's defaults: at least 100 rollouts), and
+the law kept by the lower mean alone (the rule before the one-standard-error rule) and by
+``law_choice`` (the formula wherever its mean is within one standard error of the network
+law's), beside the choice the run's stage recorded: writes stage.md and stage.csv.
+
+    python docs/notes/laws/choice_rule.py outputs/s26/gravity_r2_s0 ... --stage \\
+        --out outputs/reports/choice_stage
 """
 
 from __future__ import annotations
@@ -66,6 +75,32 @@ def choose(net: tuple[np.ndarray, np.ndarray], formula: tuple[np.ndarray, np.nda
     return "formula" if b[rule] < a[rule] else "network"
 
 
+def stage_row(run: Path, network: Path, formula: Path, val) -> dict:
+    """One run's row of ``--stage``: both laws through ``validation_errors`` as the stage
+    rolls them out (the formula with the substeps its checkpoint holds)."""
+    from bgn.laws.finetune import law_choice, mean_error, paired_standard_error, validation_errors
+    from bgn.training.module import load_model
+
+    scores = {}
+    for law, ckpt in (("network", network), ("formula", formula)):
+        with torch.no_grad():
+            scores[law] = validation_errors(load_model(ckpt).model, val, val.history)
+    h = scores["network"]["horizon"]
+    margin = mean_error(scores["formula"], h) - mean_error(scores["network"], h)
+    se = paired_standard_error(scores["network"], scores["formula"], h)
+    recorded = json.loads((run / "laws" / "formula.json").read_text()).get("choice")
+    by_mean = min(scores, key=lambda k: (scores[k]["failed"], mean_error(scores[k], h),
+                                         k != "network"))
+    return {"run": str(run), "rollouts": scores["network"]["rollouts"],
+            **{f"{law}: failed, mean / typical @{h}":
+               f"{s['failed']}, {mean_error(s, h):.3g} / {s['typical'][h]:.3g}"
+               for law, s in scores.items()},
+            "formula - network": f"{margin:.3g}",
+            "standard error": f"{se:.3g}" if se is not None else "-",
+            "lower mean": by_mean, "one standard error": law_choice(scores, h),
+            "the stage recorded": recorded}
+
+
 def main() -> None:
     from omegaconf import OmegaConf
 
@@ -77,8 +112,10 @@ def main() -> None:
     parser.add_argument("runs", nargs="+", type=Path)
     parser.add_argument("--starts", type=int, default=10, help="start frames per simulation")
     parser.add_argument("--out", type=Path, default=Path("outputs/reports/choice_rule"))
+    parser.add_argument("--stage", action="store_true",
+                        help="score both laws as the formula stage does; the two rules")
     args = parser.parse_args()
-    rows, per_rollout = [], []
+    rows, per_rollout, stage_rows = [], [], []
     for run in args.runs:
         formula = run / "laws" / "formula.ckpt"
         if not formula.is_file():
@@ -90,6 +127,10 @@ def main() -> None:
         dm.prepare_data()
         dm.setup()
         val = dm.datasets["val"]
+        if args.stage:
+            stage_rows.append(stage_row(run, network, formula, val))
+            print(stage_rows[-1], flush=True)
+            continue
         n_steps = min(max(HORIZONS), val.file.n_frames - val.history - 2)
         spread = rollout_starts(val, n_steps, per_sim=args.starts)
         starts = [REFERENCE_START] + [s for s in spread if s != REFERENCE_START]
@@ -116,6 +157,15 @@ def main() -> None:
                                        if h <= n_steps}})
         print(row, flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.stage:
+        print(write_table(args.out, "stage", list(stage_rows[0]), stage_rows,
+                          "The formula stage's law choice: the lower mean against the "
+                          "one-standard-error rule",
+                          "Validation split only, rolled out as the stage does "
+                          "(bgn.laws.finetune.validation_errors). standard error: of the "
+                          "difference of the two means, the rollouts averaged per simulation "
+                          "first (bgn.laws.finetune.paired_standard_error)."))
+        return
     print(write_table(args.out, "choice", list(rows[0]), rows,
                       "The formula stage's law choice under four rules, on the stage's "
                       "validation rollouts and on more start frames",

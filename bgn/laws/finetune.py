@@ -439,10 +439,16 @@ def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], step
     derivative-free (Nelder-Mead, at most ``steps`` evaluations): the
     law's loss through the substeps of the closest encounters is smooth at the scale of the
     constants' errors but rough at a quasi-Newton step's (its gradient jumps), where L-BFGS
-    stalls. A trial point where the loss is not finite counts as infinitely worse (a form
-    with no finite point returns inf and loses). Returns (the lowest loss, evaluations);
-    ``_Budget`` past ``deadline`` (the job's, ``bgn.training.budget``) before any; a
-    SIGTERM ends it between evaluations (``check``).
+    stalls. Then ``DEFAULTS.finetune_restarts`` times again from a fresh simplex about the
+    best point, ``steps`` evaluations each: a Nelder-Mead simplex that has shrunk along a
+    valley stalls short of its minimum, and a restart at the claimed minimum is the standard
+    remedy (Press et al., Numerical Recipes, section 10.5); a form whose start lies far from
+    its minimum (a softening read off a network law that is wrong at close range) needs it
+    (docs/results.md, "The choice rule and the integrator"). A trial point where the loss is
+    not finite counts as infinitely worse (a form with no finite point returns inf and
+    loses). Returns (the lowest loss, evaluations); ``_Budget`` past ``deadline`` (the
+    job's, ``bgn.training.budget``) before any; a SIGTERM ends it between evaluations
+    (``check``).
 
     Couplings (``mass_law=coupling``): their fit per simulation (``bgn.model.coupling``, a
     multi-start Levenberg-Marquardt) costs far more than the law's evaluation, so they are
@@ -458,7 +464,7 @@ def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], step
     # relative to its spec value, as the amplitudes are: a relative step)
     expressions = law.constant if law.expressions else None
     best: list[Any] = [math.inf, None]
-    count = [0]
+    count, limit, out_of_time = [0], [steps], [False]
 
     def place(x: np.ndarray) -> None:
         with torch.no_grad():
@@ -468,11 +474,12 @@ def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], step
                 expressions.copy_(torch.as_tensor(x[n_a + n_c:], dtype=expressions.dtype))
 
     def objective(x: np.ndarray) -> float:
-        if count[0] >= steps:
+        if count[0] >= limit[0]:  # this pass's evaluations spent
             raise _Budget
         try:
             check(deadline, "the formula stage")  # and SIGTERM, between evaluations
         except OutOfTime:
+            out_of_time[0] = True
             raise _Budget from None
         place(x)
         with torch.no_grad():
@@ -491,14 +498,18 @@ def tune_constants(model: Any, head: Any, batches: list[tuple[float, Any]], step
                          else expressions.detach().numpy()]).astype(np.float64)
     step = np.full(len(x0), DEFAULTS.amplitude_step)
     step[n_a:n_a + n_c] = math.log(DEFAULTS.c_step)
-    simplex = np.vstack([x0, x0 + np.diag(step)])
-    try:
-        minimize(objective, x0, method="Nelder-Mead",
-                 options={"initial_simplex": simplex, "maxfev": steps, "xatol": 1e-3,
-                          "fatol": 1e-6})
-    except _Budget:
-        if best[1] is None and count[0] == 0:
-            raise
+    for attempt in range(1 + DEFAULTS.finetune_restarts):
+        if attempt and (best[1] is None or out_of_time[0]):
+            break  # no finite point to restart from, or no time
+        start = x0 if best[1] is None else best[1].copy()
+        limit[0] = count[0] + steps
+        try:
+            minimize(objective, start, method="Nelder-Mead",
+                     options={"initial_simplex": np.vstack([start, start + np.diag(step)]),
+                              "maxfev": steps, "xatol": 1e-3, "fatol": 1e-6})
+        except _Budget:
+            if best[1] is None and count[0] == 0:
+                raise
     place(x0 if best[1] is None else best[1])  # no finite point: the form loses (loss inf)
     if coupling and best[1] is not None:  # the couplings fitted again through the tuned law
         with torch.no_grad():
@@ -748,7 +759,8 @@ def finetune_formula(checkpoint: Path, train_split: Any, val: Any,
                                                   substeps, deadline, evaluations)
         module, hp = form["module"], form["hp"]
     # the fit ended by the cap, not by its evaluation count: another machine fits otherwise
-    budget = {"steps_per_form": steps, "evaluations": evaluations[0],
+    budget = {"steps_per_form": steps, "restarts": DEFAULTS.finetune_restarts,
+              "evaluations": evaluations[0],
               "cut_by": "max_time" if deadline.passed() else None,
               "cut": ["the fit"] if deadline.passed() else []}
     log.info("formula stage: tuned in %s%s; rolling out both laws on validation",

@@ -97,6 +97,7 @@ class LawOptions:
     # ------------------------------------------------------- the formula as the law (finetune)
     finetune_members: int = 6          # front members tuned on the frames (the chosen first)
     finetune_steps: int = 80           # loss evaluations (Nelder-Mead) per form's constants
+    finetune_restarts: int = 1         # ... then as many more from a fresh simplex, this often
     finetune_substeps: int = 16        # model.substeps while the forms are tuned (and written)
     polish_factor: int = 4             # the chosen form polished through this times finer substeps
     finetune_batch_size: int = 512     # training frames of the fixed batch (closest ones first)

@@ -20,14 +20,15 @@ from bgn.laws.options import (
     from_keys,
 )
 
-# the module constants of bgn/eval/laws.py before the laws had a package (commit 536f519)
+# the module constants of bgn/eval/laws.py before the laws had a package (commit 536f519),
+# and the settings added since (finetune_restarts: 63b1503)
 OLD_CONSTANTS = {
     "zero_crossing_width": 0.1, "size_floor": 0.01, "grid_points": 240,
     "distance_quantiles": np.linspace(0.01, 0.99, 99), "kde_points": 20_000,
     "band_quantiles": (0.0, 0.01, 0.1, 0.5, 0.9, 0.99, 1.0), "c_grid": 41,
     "c_grid_pair": 25, "refine_per_complexity": 4, "calibration_frames": 256,
     "max_distances": 2_000_000, "significant": 4, "tolerance": 0.02,
-    "finetune_steps": 80, "finetune_substeps": 16, "polish_factor": 4,
+    "finetune_steps": 80, "finetune_restarts": 1, "finetune_substeps": 16, "polish_factor": 4,
     "finetune_batch_size": 512, "amplitude_step": 0.1, "c_step": 2.0,
     "form_tolerance": 0.02, "negligible": 0.01, "finetune_horizon": 50,
     "rollout_chunk": 4096, "typical_floor": 1e-9, "close_share": 0.25,

@@ -68,6 +68,10 @@ def run_row(run: Path) -> dict:
                                    if truth.get("tuned_form_is_truth") == 1.0 else "-"),
             "validation network: mean / typical @50, failed": scores(val.get("network")),
             "validation formula": scores(val.get("formula")),
+            "formula's substeps": record.get("rollout_substeps", "-"),
+            # law_choice's paired standard error of the two means (records since e81fd73)
+            "standard error": (f"{record['choice_standard_error']:.2g}"
+                               if record.get("choice_standard_error") is not None else "-"),
             "test @10": x.get("test/rollout_error@10"), "test @50": x.get("test/rollout_error@50"),
             "test @100": x.get("test/rollout_error@100"),
             "test median @100": x.get("test/rollout_error_median@100"),
@@ -103,7 +107,10 @@ def main() -> None:
     print(write_table(args.out, "default_jobs", list(rows[0]), rows,
                       "The default jobs' law and test rollouts, per run",
                       "validation: the formula stage's scores (mean / typical position error "
-                      "after 50 steps, a failed rollout at the cap); test: every test "
+                      "after 50 steps, a failed rollout at the cap); the formula's substeps: "
+                      "the integrator it was rolled out with; standard error: of the "
+                      "difference of the two validation means, paired over the simulations "
+                      "(bgn.laws.finetune.paired_standard_error); test: every test "
                       "simulation from frame 100, mean (median) position error, a failed "
                       "rollout at the cap."))
     print(write_table(args.out, "default_jobs_summary", list(summary[0]), summary,
